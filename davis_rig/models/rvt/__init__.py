@@ -1,1 +1,34 @@
-"""models/rvt"""
+"""RVT (Recurrent Vision Transformer, uzh-rpg/RVT) event-camera detector.
+
+Importing this package does not import torch: :class:`RVTConfig` is pure Python and the torch-based names
+(``RVTDetector``, ``pad_to_input``, ``load_detector``, ``read_state_dict``, ``save_safetensors``) are loaded
+on first access (``MissingDependencyError`` naming the ``torch`` extra if torch is absent).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from davis_rig.models.rvt.config import RVTConfig
+
+_LAZY = {
+    "RVTDetector": "davis_rig.models.rvt.detector",
+    "pad_to_input": "davis_rig.models.rvt.detector",
+    "load_detector": "davis_rig.models.rvt.checkpoint",
+    "read_state_dict": "davis_rig.models.rvt.checkpoint",
+    "save_safetensors": "davis_rig.models.rvt.checkpoint",
+}
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_LAZY))
+
+
+__all__ = ["RVTConfig", *_LAZY]
