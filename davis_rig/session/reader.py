@@ -1,0 +1,290 @@
+"""Read a session.h5 (see :mod:`davis_rig.session.schema`): attributes, events, time slices, frames, labels."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from davis_rig.errors import SessionError
+from davis_rig.session import schema
+from davis_rig.types import EVENT_DTYPE
+
+
+@dataclass(frozen=True)
+class StoredFrame:
+    """One APS frame as stored (same fields as ``davis_rig.protocol.frames.ApsFrame``).
+
+    Attributes:
+        pixels: uint16 [height, width] of the read-out region (libcaer 16-bit scale).
+        position_x, position_y: region origin, px.
+        t_start_of_frame_us, t_start_exposure_us, t_end_exposure_us, t_end_of_frame_us: device µs.
+    """
+
+    pixels: np.ndarray
+    position_x: int
+    position_y: int
+    t_start_of_frame_us: int
+    t_start_exposure_us: int
+    t_end_exposure_us: int
+    t_end_of_frame_us: int
+
+    @property
+    def t_exposure_mid_us(self) -> int:
+        """Middle of the exposure, device µs."""
+        return (self.t_start_exposure_us + self.t_end_exposure_us) // 2
+
+
+class FrameStore:
+    """Lazy access to the APS frames of a session: ``len``, indexing (-> frame objects) and time columns.
+
+    Attributes:
+        data: the h5py dataset [F, H, W] uint16 (full sensor, zero outside each ROI); read slices lazily.
+    """
+
+    def __init__(self, group):
+        self._group = group
+        self.data = group[schema.FRAME_DATA]
+        self._roi = group[schema.FRAME_ROI][:]
+        self._times = {name: group[name][:] for name in schema.FRAME_TIME_COLUMNS}
+        n = len(self.data)
+        lengths = {name: len(values) for name, values in self._times.items()} | {"roi": len(self._roi)}
+        if any(length != n for length in lengths.values()):
+            raise SessionError(f"/frames: inconsistent lengths: data {n}, {lengths}")
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def times_us(self, name: str = "t_start_exposure_us") -> np.ndarray:
+        """Return one per-frame timestamp column, int64 [F], device µs (see ``schema.FRAME_TIME_COLUMNS``)."""
+        if name not in self._times:
+            raise KeyError(f"unknown frame time column {name!r}; expected one of {schema.FRAME_TIME_COLUMNS}")
+        return self._times[name].copy()
+
+    @property
+    def roi(self) -> np.ndarray:
+        """int32 [F, 4]: (position_x, position_y, width, height) of each frame's read-out region, px."""
+        return self._roi.copy()
+
+    def __getitem__(self, index: int):
+        """Return frame ``index`` as an ``ApsFrame`` (or :class:`StoredFrame` if the protocol package is absent)."""
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame index {index} out of range for {n} frames")
+        index %= n
+        x0, y0, width, height = (int(v) for v in self._roi[index])
+        pixels = self.data[index, y0 : y0 + height, x0 : x0 + width]
+        fields = dict(
+            pixels=pixels,
+            position_x=x0,
+            position_y=y0,
+            **{name: int(self._times[name][index]) for name in schema.FRAME_TIME_COLUMNS},
+        )
+        try:
+            from davis_rig.protocol.frames import ApsFrame
+
+            return ApsFrame(**fields)
+        except (ImportError, TypeError):
+            return StoredFrame(**fields)
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+
+class SessionReader:
+    """Read-only access to a session.h5 (the file is never modified).
+
+    Args:
+        path: the session file.
+
+    Attributes (after opening): ``device_info``, ``config``, ``biases``, ``stats`` (dicts), ``complete`` (bool:
+    closed cleanly), ``format_version``, ``recording_start_utc``, ``t_offset_us``, ``num_events``.
+
+    Raises (on open):
+        SessionError: the file is missing, truncated, not a session file, or misses a required group.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._file = None
+
+    def open(self) -> "SessionReader":
+        """Open the file read-only and validate its layout; returns ``self``."""
+        import h5py
+
+        schema.import_hdf5plugin()
+        if not self.path.exists():
+            raise SessionError(f"{self.path}: no such session file")
+        try:
+            self._file = h5py.File(self.path, "r", locking=False)
+        except OSError as exc:
+            raise SessionError(
+                f"{self.path}: cannot open as HDF5 ({exc}); the file is truncated or corrupt — if a "
+                f"{self.path.name}.journal exists next to it, run `davis-record --recover {self.path}`"
+            ) from exc
+        try:
+            self._validate()
+        except SessionError:
+            self.close()
+            raise
+        return self
+
+    def _validate(self) -> None:
+        f = self._file
+        try:
+            fmt = f.attrs.get(schema.ATTR_FORMAT)
+            if fmt != schema.FORMAT_NAME:
+                raise SessionError(f"{self.path}: not a session file (format attr {fmt!r}, expected "
+                                   f"{schema.FORMAT_NAME!r})")
+            self.format_version = int(f.attrs[schema.ATTR_FORMAT_VERSION])
+            if self.format_version > schema.FORMAT_VERSION:
+                raise SessionError(f"{self.path}: format version {self.format_version} is newer than this "
+                                   f"toolkit's {schema.FORMAT_VERSION}; upgrade davis_rig")
+            for group in (schema.EVENTS_GROUP, schema.FRAMES_GROUP):
+                if group not in f:
+                    raise SessionError(f"{self.path}: missing group /{group}")
+            events = f[schema.EVENTS_GROUP]
+            for name in (*schema.EVENT_COLUMNS, schema.MS_TO_IDX):
+                if name not in events:
+                    raise SessionError(f"{self.path}: missing dataset /events/{name}")
+            lengths = {name: events[name].shape[0] for name in schema.EVENT_COLUMNS}
+            if len(set(lengths.values())) != 1:
+                raise SessionError(f"{self.path}: /events columns have different lengths {lengths}")
+            self.num_events = lengths["t"]
+            self.t_offset_us = int(events.attrs.get(schema.T_OFFSET_ATTR, 0))
+            self._ms_to_idx = events[schema.MS_TO_IDX][:].astype(np.int64)
+            if len(self._ms_to_idx) and (self._ms_to_idx[-1] > self.num_events or
+                                         np.any(np.diff(self._ms_to_idx) < 0)):
+                raise SessionError(f"{self.path}: /events/ms_to_idx is inconsistent with {self.num_events} events")
+            self.frames = FrameStore(f[schema.FRAMES_GROUP])
+            self.device_info = json.loads(f.attrs.get(schema.ATTR_DEVICE_INFO, "{}"))
+            self.config = json.loads(f.attrs.get(schema.ATTR_CONFIG, "{}"))
+            self.biases = json.loads(f.attrs.get(schema.ATTR_BIASES, "{}"))
+            self.stats = json.loads(f.attrs.get(schema.ATTR_STATS, "{}"))
+            self.complete = bool(f.attrs.get(schema.ATTR_COMPLETE, False))
+            self.recording_start_utc = str(f.attrs.get(schema.ATTR_START_UTC, ""))
+            self.recording_start_unix_us = int(f.attrs.get(schema.ATTR_START_UNIX_US, 0))
+        except (OSError, KeyError, ValueError) as exc:
+            raise SessionError(f"{self.path}: unreadable session layout ({type(exc).__name__}: {exc})") from exc
+
+    def __enter__(self) -> "SessionReader":
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def _require_open(self):
+        if self._file is None:
+            raise SessionError(f"{self.path}: reader is not open (use `with SessionReader(path) as r:`)")
+        return self._file
+
+    # --- events -------------------------------------------------------------------------------
+    def _read_events(self, start: int, stop: int) -> np.ndarray:
+        group = self._require_open()[schema.EVENTS_GROUP]
+        out = np.empty(max(stop - start, 0), dtype=EVENT_DTYPE)
+        if len(out):
+            try:
+                out["t"] = group["t"][start:stop] + self.t_offset_us
+                for name in ("x", "y", "p"):
+                    out[name] = group[name][start:stop]
+            except OSError as exc:
+                raise SessionError(f"{self.path}: cannot read events [{start}, {stop}): {exc}") from exc
+        return out
+
+    def events(self) -> np.ndarray:
+        """Return all events, EVENT_DTYPE [N], ``t`` in device µs."""
+        return self._read_events(0, self.num_events)
+
+    def event_index(self, t_us: int) -> int:
+        """Return the index of the first event with ``t >= t_us`` (device µs), using ``ms_to_idx``.
+
+        Only the events of one millisecond are read from the file.
+        """
+        group = self._require_open()[schema.EVENTS_GROUP]
+        t_rel = int(t_us) - self.t_offset_us
+        n = self.num_events
+        if t_rel <= 0 or n == 0:
+            return 0
+        ms = self._ms_to_idx
+        m = -(-t_rel // 1000)  # ceil: ms_to_idx[m] is an upper bound of the answer
+        lo = int(ms[min(t_rel // 1000, len(ms) - 1)]) if len(ms) else 0
+        hi = int(ms[m]) if m < len(ms) else n
+        if lo >= hi:
+            return hi
+        t_window = group["t"][lo:hi]
+        return lo + int(np.searchsorted(t_window, t_rel, side="left"))
+
+    def events_between(self, t0_us: int, t1_us: int) -> np.ndarray:
+        """Return the events with ``t0_us <= t < t1_us`` (half-open, device µs), EVENT_DTYPE [N].
+
+        Raises:
+            ValueError: ``t1_us < t0_us``.
+        """
+        if t1_us < t0_us:
+            raise ValueError(f"events_between: t1_us ({t1_us}) must be >= t0_us ({t0_us})")
+        start = self.event_index(t0_us)
+        stop = self.event_index(t1_us)
+        return self._read_events(start, stop)
+
+    @property
+    def ms_to_idx(self) -> np.ndarray:
+        """int64 [M]: index of the first event with ``t >= t_offset_us + 1000 m`` (DSEC convention)."""
+        return self._ms_to_idx.copy()
+
+    # --- other streams ------------------------------------------------------------------------
+    def _table(self, group_name: str) -> np.ndarray | None:
+        f = self._require_open()
+        if group_name not in f or not len(f[group_name]):
+            return None
+        group = f[group_name]
+        names = list(group.keys())
+        if "t" in names:
+            names.remove("t")
+            names.insert(0, "t")
+        lengths = {name: group[name].shape[0] for name in names}
+        if len(set(lengths.values())) != 1:
+            raise SessionError(f"{self.path}: /{group_name} columns have different lengths {lengths}")
+        table = np.empty(lengths[names[0]], dtype=[(name, group[name].dtype) for name in names])
+        for name in names:
+            table[name] = group[name][:]
+        return table
+
+    def specials(self) -> np.ndarray:
+        """Return the special events (structured [S]: ``t`` device µs, ``type`` libcaer id), maybe empty."""
+        table = self._table(schema.SPECIALS_GROUP)
+        return table if table is not None else np.zeros(0, dtype=[("t", "<i8"), ("type", "u1")])
+
+    def imu(self) -> np.ndarray | None:
+        """Return the IMU samples (structured [K], ``t`` device µs) or ``None`` when the session has none."""
+        return self._table(schema.IMU_GROUP)
+
+    def labels(self) -> np.ndarray | None:
+        """Return the labels (BBOX_DTYPE [B]) or ``None`` when the session has no /labels group."""
+        f = self._require_open()
+        if schema.LABELS_GROUP not in f:
+            return None
+        group = f[schema.LABELS_GROUP]
+        if schema.LABEL_BOXES not in group:
+            raise SessionError(f"{self.path}: /labels has no '{schema.LABEL_BOXES}' dataset")
+        boxes = group[schema.LABEL_BOXES][:]
+        if boxes.dtype != schema.LABEL_DTYPE:
+            raise SessionError(f"{self.path}: /labels/boxes dtype {boxes.dtype}, expected {schema.LABEL_DTYPE}")
+        return boxes
+
+    def labels_attrs(self) -> dict:
+        """Return the /labels attributes (labeler, labeler_version, created_utc, source) or ``{}``."""
+        f = self._require_open()
+        if schema.LABELS_GROUP not in f:
+            return {}
+        return {key: (value.item() if hasattr(value, "item") else value)
+                for key, value in f[schema.LABELS_GROUP].attrs.items()}

@@ -1,0 +1,572 @@
+"""Write a session.h5 incrementally while a recording runs (see :mod:`davis_rig.session.schema`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import enum
+import errno
+import json
+import os
+import time
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from davis_rig import __version__
+from davis_rig.errors import FormatError, SessionError, ShapeError
+from davis_rig.session import schema
+from davis_rig.session.journal import SessionJournal, journal_path
+from davis_rig.types import EVENT_DTYPE
+
+#: Buffered events that trigger a write to HDF5 before the flush interval is up.
+WRITE_BATCH_EVENTS = 1 << 20
+#: Free space kept for HDF5 metadata on top of the data of each write, bytes.
+METADATA_MARGIN_BYTES = 1 << 20
+#: Default free space that must remain after a write, bytes (the recording stops cleanly below it).
+MIN_FREE_BYTES = 64 << 20
+
+
+def to_jsonable(obj):
+    """Convert device info / config objects (dataclasses, enums, numpy scalars, mappings) into JSON-able values."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        for name in ("dvs_width", "dvs_height", "aps_width", "aps_height"):
+            if hasattr(type(obj), name) and isinstance(getattr(type(obj), name), property):
+                out.setdefault(name, to_jsonable(getattr(obj, name)))
+        return out
+    if isinstance(obj, enum.Enum):
+        return obj.name
+    if isinstance(obj, Mapping):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    if hasattr(obj, "_asdict"):
+        return to_jsonable(obj._asdict())
+    return str(obj)
+
+
+def frame_hw_from_device_info(info: Mapping | None) -> tuple[int, int]:
+    """Return the APS (height, width) in px from a device-info dict (its ``layout``), else DAVIS346's."""
+    layout = (info or {}).get("layout") or {}
+    height = layout.get("aps_height") or layout.get("aps_size_rows")
+    width = layout.get("aps_width") or layout.get("aps_size_columns")
+    if height and width:
+        return int(height), int(width)
+    return schema.DEFAULT_FRAME_HW
+
+
+class SessionWriter:
+    """Write one recording into a session.h5, incrementally and crash-tolerantly.
+
+    Data passed to :meth:`append` is buffered and written at least every ``flush_interval_s`` (then the HDF5
+    file is flushed, so a reader or a crash sees everything up to the last flush) or as soon as
+    :data:`WRITE_BATCH_EVENTS` events are buffered. With ``journal=True`` the raw USB transfers given to
+    :meth:`append_raw` also go to ``<path>.journal`` (see :mod:`davis_rig.session.journal`), which is deleted on a
+    clean :meth:`close` and lets :func:`~davis_rig.session.recovery.recover_session` rebuild the file after a crash.
+
+    Args:
+        path: the session.h5 to create.
+        device_info: the camera's ``DeviceInfo`` (dataclass) or an equivalent mapping; stored as JSON.
+        config: recording configuration (exposure_us, frame_interval_us, biases, ...), mapping; stored as JSON.
+        overwrite: replace an existing file (else :class:`SessionError`).
+        journal: keep a raw-transfer journal next to the file.
+        flush_interval_s: longest time between two HDF5 flushes, s (≤ 1 keeps the "lose ≤ 1 s" promise).
+        start_unix_us: wall-clock start of the recording, µs since the Unix epoch (default: now).
+        min_free_bytes: free disk space to leave; below it the recording stops cleanly (HDF5 corrupts a file
+            it cannot extend, so the writer checks ``statvfs`` before every write instead of waiting for ENOSPC).
+
+    Use as a context manager (``with SessionWriter(...) as writer:``) or call :meth:`open` / :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        device_info=None,
+        config: Mapping | None = None,
+        *,
+        overwrite: bool = False,
+        journal: bool = False,
+        flush_interval_s: float = 1.0,
+        start_unix_us: int | None = None,
+        min_free_bytes: int = MIN_FREE_BYTES,
+    ):
+        self.path = Path(path)
+        self.device_info = device_info
+        self.config = config
+        self.overwrite = overwrite
+        self.use_journal = journal
+        self.flush_interval_s = flush_interval_s
+        self.start_unix_us = start_unix_us
+        self.min_free_bytes = min_free_bytes
+        self.journal: SessionJournal | None = None
+        self._file = None
+        self._extra_stats: dict = {}
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def open(self) -> "SessionWriter":
+        """Create the file, its groups and root attributes (and the journal); returns ``self``.
+
+        Raises:
+            SessionError: the file exists and ``overwrite`` is false, or it cannot be created.
+        """
+        import h5py
+
+        if self._file is not None:
+            return self
+        if self.path.exists() and not self.overwrite:
+            raise SessionError(f"{self.path}: file exists (pass overwrite=True / --overwrite to replace it)")
+        info = to_jsonable(self.device_info) if self.device_info is not None else {}
+        config = to_jsonable(self.config) if self.config is not None else {}
+        start_us = self.start_unix_us if self.start_unix_us is not None else time.time_ns() // 1000
+        start_utc = _dt.datetime.fromtimestamp(start_us / 1e6, tz=_dt.timezone.utc).isoformat()
+        self._frame_hw = frame_hw_from_device_info(info)
+        compression = schema.compression_options()
+        try:
+            self._file = h5py.File(self.path, "w", libver=("v110", "latest"))
+            f = self._file
+            f.attrs[schema.ATTR_FORMAT] = schema.FORMAT_NAME
+            f.attrs[schema.ATTR_FORMAT_VERSION] = schema.FORMAT_VERSION
+            f.attrs[schema.ATTR_TOOLKIT_VERSION] = __version__
+            f.attrs[schema.ATTR_COMPLETE] = False
+            f.attrs[schema.ATTR_START_UTC] = start_utc
+            f.attrs[schema.ATTR_START_UNIX_US] = np.int64(start_us)
+            f.attrs[schema.ATTR_DEVICE_INFO] = json.dumps(info)
+            f.attrs[schema.ATTR_CONFIG] = json.dumps(config)
+            f.attrs[schema.ATTR_BIASES] = json.dumps(config.get("biases", {}) if isinstance(config, dict) else {})
+            f.attrs[schema.ATTR_STATS] = json.dumps({})
+            events = f.create_group(schema.EVENTS_GROUP)
+            for name, dtype in schema.EVENT_COLUMNS.items():
+                events.create_dataset(
+                    name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(schema.EVENT_CHUNK,), **compression
+                )
+            events.create_dataset(
+                schema.MS_TO_IDX, shape=(0,), maxshape=(None,), dtype=schema.MS_TO_IDX_DTYPE,
+                chunks=(schema.SMALL_CHUNK * 4,), **compression,
+            )
+            events.attrs[schema.T_OFFSET_ATTR] = np.int64(0)
+            frames = f.create_group(schema.FRAMES_GROUP)
+            height, width = self._frame_hw
+            frames.create_dataset(
+                schema.FRAME_DATA, shape=(0, height, width), maxshape=(None, height, width),
+                dtype=schema.FRAME_DTYPE, chunks=(1, height, width), **compression,
+            )
+            frames.create_dataset(
+                schema.FRAME_ROI, shape=(0, 4), maxshape=(None, 4), dtype="<i4", chunks=(schema.SMALL_CHUNK, 4)
+            )
+            for name in schema.FRAME_TIME_COLUMNS:
+                frames.create_dataset(
+                    name, shape=(0,), maxshape=(None,), dtype="<i8", chunks=(schema.SMALL_CHUNK,)
+                )
+            f.create_group(schema.SPECIALS_GROUP)
+            f.flush()
+        except OSError as exc:
+            self._abort_open()
+            raise SessionError(f"{self.path}: cannot create the session file: {exc}") from exc
+        if self.use_journal:
+            header = {
+                "format": "davis_rig.journal",
+                "session_path": str(self.path),
+                "toolkit_version": __version__,
+                "recording_start_unix_us": start_us,
+                "device_info": info,
+                "config": config,
+            }
+            try:
+                self.journal = SessionJournal(journal_path(self.path), header).open()
+            except SessionError:
+                self._abort_open()
+                raise
+        self._t_offset: int | None = None
+        self._buffers: dict[str, list] = {"events": [], "frames": [], "specials": [], "imu": []}
+        self._buffered_events = 0
+        self._ms_written = 0  # number of finalized ms_to_idx entries
+        self._n_events_written = 0
+        self._n_frames_written = 0
+        self._n_table_written = {"specials": 0, "imu": 0}
+        self._last_t_written = None
+        self._last_t = None  # device µs of the last accepted event
+        self._counts = {"events": 0, "frames": 0, "specials": 0, "imu": 0}
+        self._committed = dict(self._counts)  # counts as of the last successful HDF5 flush
+        self._committed_t_us = None
+        self._dropped_non_monotonic = 0
+        self._last_flush = time.monotonic()
+        self._failed: Exception | None = None
+        return self
+
+    def _abort_open(self) -> None:
+        if self._file is not None:
+            try:
+                self._file.close()
+            except OSError:
+                pass
+            self._file = None
+
+    def __enter__(self) -> "SessionWriter":
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the file is open for appending."""
+        return self._file is not None
+
+    @property
+    def counts(self) -> dict:
+        """Items accepted so far: ``{"events", "frames", "specials", "imu"}`` (buffered + written)."""
+        return dict(self._counts)
+
+    def set_stats(self, stats: Mapping) -> None:
+        """Record counters kept outside the writer (device drops, decoder stats); stored in the ``stats`` attr.
+
+        Args:
+            stats: JSON-able mapping (dataclasses are converted), merged into the stored dict.
+        """
+        self._extra_stats.update(to_jsonable(dict(stats)))
+
+    def stats(self) -> dict:
+        """Return the counters stored in the root ``stats`` attribute."""
+        return {
+            **self._extra_stats,
+            "writer": {
+                "events": self._counts["events"],
+                "frames": self._counts["frames"],
+                "specials": self._counts["specials"],
+                "imu": self._counts["imu"],
+                "events_dropped_non_monotonic": self._dropped_non_monotonic,
+                "journal_transfers": self.journal.transfers if self.journal else 0,
+            },
+        }
+
+    # --- appending ----------------------------------------------------------------------------
+    def append_raw(self, data: bytes | bytearray | memoryview) -> None:
+        """Journal one raw USB transfer (thread-safe; a no-op without a journal)."""
+        if self.journal is not None:
+            self.journal.append_transfer(data)
+
+    def append(self, chunk) -> None:
+        """Append one decoded chunk (anything with ``events``, ``frames``, ``specials`` and optional ``imu``).
+
+        Args:
+            chunk: a ``DecodedChunk``: ``events`` EVENT_DTYPE [N] time-sorted (device µs); ``frames`` list of
+                ``ApsFrame``; ``specials`` structured [M] with a ``t`` field; ``imu`` structured [K] or None.
+
+        Raises:
+            SessionError: the writer is not open or an earlier write failed (disk full, ...).
+            FormatError / ShapeError: a field has the wrong dtype or shape.
+        """
+        self._check_usable()
+        events = getattr(chunk, "events", None)
+        if events is not None and len(events):
+            self.append_events(events)
+        for frame in getattr(chunk, "frames", None) or ():
+            self.append_frame(frame)
+        specials = getattr(chunk, "specials", None)
+        if specials is not None and len(specials):
+            self._append_table("specials", specials)
+        imu = getattr(chunk, "imu", None)
+        if imu is not None and len(imu):
+            self._append_table("imu", imu)
+        self.maybe_flush()
+
+    def append_events(self, events: np.ndarray) -> None:
+        """Append events (EVENT_DTYPE [N], non-decreasing ``t`` in device µs).
+
+        Events older than the last accepted one cannot be indexed by ``ms_to_idx``: they are dropped, counted
+        in ``stats["writer"]["events_dropped_non_monotonic"]`` and warned about once.
+
+        Raises:
+            FormatError: ``events`` is not an EVENT_DTYPE array.
+        """
+        self._check_usable()
+        events = np.asarray(events)
+        if events.dtype != EVENT_DTYPE:
+            raise FormatError(f"events: expected dtype {EVENT_DTYPE}, got {events.dtype}")
+        if events.ndim != 1:
+            raise ShapeError(f"events: expected shape (N,), got {events.shape}")
+        if not len(events):
+            return
+        t = events["t"]
+        floor = self._last_t if self._last_t is not None else t[0]
+        running_max = np.maximum.accumulate(t)
+        keep = (t >= running_max) & (t >= floor)
+        if not keep.all():
+            dropped = int((~keep).sum())
+            if self._dropped_non_monotonic == 0:
+                warnings.warn(
+                    f"{self.path}: {dropped} events go back in time and are dropped "
+                    "(counted in stats['writer']['events_dropped_non_monotonic'])",
+                    stacklevel=2,
+                )
+            self._dropped_non_monotonic += dropped
+            events = events[keep]
+            if not len(events):
+                return
+        if self._t_offset is None:
+            self._t_offset = int(events["t"][0]) // 1000 * 1000
+            self._file[schema.EVENTS_GROUP].attrs[schema.T_OFFSET_ATTR] = np.int64(self._t_offset)
+        self._buffers["events"].append(events)
+        self._buffered_events += len(events)
+        self._counts["events"] += len(events)
+        self._last_t = int(events["t"][-1])
+        if self._buffered_events >= WRITE_BATCH_EVENTS:
+            self._write_out()
+
+    def append_frame(self, frame) -> None:
+        """Append one APS frame (``ApsFrame``: ``pixels`` uint16 [h, w] at ``position_x/y`` plus four times, µs).
+
+        Raises:
+            ShapeError: the frame's region does not fit the sensor.
+        """
+        self._check_usable()
+        pixels = np.asarray(frame.pixels)
+        height, width = self._frame_hw
+        if pixels.ndim != 2:
+            raise ShapeError(f"frame pixels: expected shape (rows, cols), got {pixels.shape}")
+        x0, y0 = int(frame.position_x), int(frame.position_y)
+        if x0 < 0 or y0 < 0 or y0 + pixels.shape[0] > height or x0 + pixels.shape[1] > width:
+            raise ShapeError(
+                f"frame ROI {pixels.shape} at (x={x0}, y={y0}) does not fit the sensor ({height}, {width})"
+            )
+        self._buffers["frames"].append(frame)
+        self._counts["frames"] += 1
+
+    def _append_table(self, kind: str, table: np.ndarray) -> None:
+        table = np.asarray(table)
+        if table.dtype.names is None or "t" not in table.dtype.names:
+            raise FormatError(f"{kind}: expected a structured array with a 't' field, got dtype {table.dtype}")
+        self._buffers[kind].append(table)
+        self._counts[kind] += len(table)
+
+    # --- writing ------------------------------------------------------------------------------
+    def maybe_flush(self) -> None:
+        """Flush if the last flush is older than ``flush_interval_s`` (called by :meth:`append`)."""
+        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+        elif self.journal is not None:
+            self.journal.sync()
+
+    def flush(self) -> None:
+        """Write all buffered data, update the stats attribute and flush the HDF5 file (and fsync the journal).
+
+        Raises:
+            SessionError: the write failed (disk full, ...); the file keeps the data of the last good flush.
+        """
+        self._check_usable()
+        self._write_out()
+        self._guarded(self._flush_file)
+        self._committed = dict(self._counts)
+        self._committed_t_us = self._last_t
+        self._last_flush = time.monotonic()
+        if self.journal is not None:
+            self.journal.sync(force=True)
+
+    def _flush_file(self) -> None:
+        self._file.attrs[schema.ATTR_STATS] = json.dumps(self.stats())
+        self._file.flush()
+
+    def _write_out(self) -> None:
+        if not (self._buffered_events or any(self._buffers[k] for k in ("frames", "specials", "imu"))):
+            return
+        self._check_space()
+        self._guarded(self._write_buffers)
+
+    def _write_buffers(self) -> None:
+        f = self._file
+        if self._buffers["events"]:
+            events = np.concatenate(self._buffers["events"])
+            self._buffers["events"] = []
+            self._buffered_events = 0
+            group = f[schema.EVENTS_GROUP]
+            n0 = self._n_events_written
+            t_rel = events["t"] - self._t_offset
+            for name, column in (("t", t_rel), ("x", events["x"]), ("y", events["y"]), ("p", events["p"])):
+                _extend(group[name], column)
+            # ms m is final once an event with t >= 1000 m has been seen (later events are not older).
+            last_ms = int(t_rel[-1]) // 1000
+            if last_ms >= self._ms_written:
+                ms = np.arange(self._ms_written, last_ms + 1, dtype=np.int64) * 1000
+                idx = n0 + np.searchsorted(t_rel, ms, side="left")
+                _extend(group[schema.MS_TO_IDX], idx.astype(schema.MS_TO_IDX_DTYPE))
+                self._ms_written = last_ms + 1
+            self._n_events_written = n0 + len(events)
+            self._last_t_written = int(events["t"][-1])
+        if self._buffers["frames"]:
+            frames, self._buffers["frames"] = self._buffers["frames"], []
+            height, width = self._frame_hw
+            data = np.zeros((len(frames), height, width), dtype=schema.FRAME_DTYPE)
+            roi = np.empty((len(frames), 4), dtype="<i4")
+            times = {name: np.empty(len(frames), dtype="<i8") for name in schema.FRAME_TIME_COLUMNS}
+            for i, frame in enumerate(frames):
+                pixels = np.asarray(frame.pixels)
+                x0, y0 = int(frame.position_x), int(frame.position_y)
+                data[i, y0 : y0 + pixels.shape[0], x0 : x0 + pixels.shape[1]] = pixels
+                roi[i] = (x0, y0, pixels.shape[1], pixels.shape[0])
+                for name in schema.FRAME_TIME_COLUMNS:
+                    times[name][i] = int(getattr(frame, name))
+            group = f[schema.FRAMES_GROUP]
+            _extend(group[schema.FRAME_DATA], data)
+            _extend(group[schema.FRAME_ROI], roi)
+            for name, column in times.items():
+                _extend(group[name], column)
+            self._n_frames_written += len(frames)
+        for kind, group_name in (("specials", schema.SPECIALS_GROUP), ("imu", schema.IMU_GROUP)):
+            if not self._buffers[kind]:
+                continue
+            table = np.concatenate(self._buffers[kind])
+            self._buffers[kind] = []
+            group = f.require_group(group_name)
+            for name in table.dtype.names:
+                if name not in group:
+                    group.create_dataset(
+                        name, shape=(0,), maxshape=(None,), dtype=table.dtype[name], chunks=(schema.SMALL_CHUNK,)
+                    )
+                _extend(group[name], np.ascontiguousarray(table[name]))
+            self._n_table_written[kind] += len(table)
+
+    def _guarded(self, operation) -> None:
+        """Run an HDF5 write; turn a failure into SessionError (the file is closed, the journal kept)."""
+        try:
+            operation()
+        except (OSError, RuntimeError) as exc:
+            self._failed = exc
+            kept = dict(self._committed)
+            f, self._file = self._file, None
+            try:
+                f.close()
+            except (OSError, RuntimeError, ValueError):
+                pass
+            self._close_journal(delete=False)
+            reason = "disk full" if _is_disk_full(exc) else "write failed"
+            raise SessionError(
+                f"{self.path}: {reason} while writing ({exc}); the file may be damaged — data up to the last "
+                f"flush: {kept['events']} events, {kept['frames']} frames"
+                + (f"; recover it from the journal with `davis-record --recover {self.path}`"
+                   if self.journal is not None else "")
+            ) from exc
+
+    def _free_bytes(self) -> int:
+        """Bytes available to this process on the file's filesystem (``os.statvfs``)."""
+        stat = os.statvfs(self.path.parent if str(self.path.parent) else ".")
+        return stat.f_bavail * stat.f_frsize
+
+    def _check_space(self) -> None:
+        """Stop cleanly *before* HDF5 can hit a full disk (HDF5 corrupts a file it cannot extend).
+
+        The buffered data's uncompressed size plus :data:`METADATA_MARGIN_BYTES` plus ``min_free_bytes`` must
+        be free; otherwise the buffered data (≤ one flush interval) is discarded, the file is finalized with
+        what it already holds, and :class:`SessionError` reports what was kept.
+        """
+        height, width = self._frame_hw
+        needed = (
+            self._buffered_events * EVENT_DTYPE.itemsize
+            + len(self._buffers["frames"]) * height * width * 2
+            + sum(table.nbytes for kind in ("specials", "imu") for table in self._buffers[kind])
+            + METADATA_MARGIN_BYTES
+        )
+        free = self._free_bytes()
+        if free >= needed + self.min_free_bytes:
+            return
+        lost_events = self._buffered_events
+        lost_frames = len(self._buffers["frames"])
+        for kind in self._buffers:
+            self._buffers[kind] = []
+        self._buffered_events = 0
+        self._counts = {
+            "events": self._n_events_written,
+            "frames": self._n_frames_written,
+            "specials": self._n_table_written["specials"],
+            "imu": self._n_table_written["imu"],
+        }
+        self._last_t = self._last_t_written
+        self._extra_stats["stopped_by"] = (
+            f"disk nearly full: {free} bytes free, {needed + self.min_free_bytes} needed; "
+            f"{lost_events} buffered events and {lost_frames} frames discarded"
+        )
+        self._finalize_and_close(delete_journal=False)
+        self._failed = SessionError("disk nearly full")
+        raise SessionError(
+            f"{self.path}: disk nearly full ({free / 2**20:.1f} MiB free, {(needed + self.min_free_bytes) / 2**20:.1f}"
+            f" MiB needed for the next write): recording stopped and the file was closed cleanly with "
+            f"{self._counts['events']} events and {self._counts['frames']} frames "
+            f"(the last {lost_events} buffered events / {lost_frames} frames, at most one flush interval, were not "
+            "written)" + (f"; the raw journal {self.journal.path} was kept" if self.journal is not None else "")
+        )
+
+    def _check_usable(self) -> None:
+        if self._failed is not None:
+            raise SessionError(f"{self.path}: the writer stopped after an earlier error: {self._failed}")
+        if self._file is None:
+            raise SessionError(f"{self.path}: the writer is not open (use `with SessionWriter(...) as w:`)")
+
+    def close(self) -> None:
+        """Write everything, finalize ``ms_to_idx`` and the attributes, close the file and delete the journal.
+
+        Raises:
+            SessionError: the final write failed (the journal is then kept for recovery).
+        """
+        if self._file is None:
+            return
+        self._check_usable()
+        self._write_out()
+        self._finalize_and_close(delete_journal=True)
+
+    def _finalize_and_close(self, delete_journal: bool) -> None:
+        def finalize() -> None:
+            group = self._file[schema.EVENTS_GROUP]
+            # One sentinel entry past the last event's millisecond: ms_to_idx[m + 1] always exists.
+            if self._last_t is not None:
+                _extend(group[schema.MS_TO_IDX], np.array([self._n_events_written], dtype=schema.MS_TO_IDX_DTYPE))
+            self._file.attrs[schema.ATTR_COMPLETE] = True
+            self._flush_file()
+            self._file.close()
+
+        self._guarded(finalize)
+        self._file = None
+        self._close_journal(delete=delete_journal)
+
+    def _close_journal(self, delete: bool) -> None:
+        if self.journal is not None:
+            try:
+                self.journal.close(delete=delete)
+            except SessionError:
+                if delete:
+                    raise
+
+    def abort(self) -> None:
+        """Close after an error elsewhere: write what is buffered, keep ``complete=False`` and the journal."""
+        if self._file is None:
+            return
+        try:
+            if self._failed is None:
+                self._write_out()
+                self._flush_file()
+            self._file.close()
+        except (OSError, RuntimeError, SessionError):
+            pass
+        finally:
+            self._file = None
+            self._close_journal(delete=False)
+
+
+def _extend(dataset, values: np.ndarray) -> None:
+    n0 = dataset.shape[0]
+    dataset.resize((n0 + len(values), *dataset.shape[1:]))
+    dataset[n0:] = values
+
+
+def _is_disk_full(exc: OSError) -> bool:
+    return exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT) or "No space" in str(exc) or "File too large" in str(exc)
