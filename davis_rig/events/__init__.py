@@ -1,1 +1,27 @@
-"""events"""
+"""Event-stream kernels: RVT input histograms and time windows (numpy; the torch variant is lazy).
+
+``davis_rig.events.histogram`` is numpy-only and bit-exact with the official RVT pre-processing;
+``davis_rig.events.histogram_torch`` is the differentiable float version (imports torch when called).
+"""
+
+from davis_rig.events.histogram import (
+    COUNT_CUTOFF,
+    NUM_BINS,
+    WINDOW_US,
+    event_columns,
+    stacked_histogram,
+    stacked_histograms,
+    time_bins,
+    window_indices,
+)
+
+__all__ = [
+    "COUNT_CUTOFF",
+    "NUM_BINS",
+    "WINDOW_US",
+    "event_columns",
+    "stacked_histogram",
+    "stacked_histograms",
+    "time_bins",
+    "window_indices",
+]

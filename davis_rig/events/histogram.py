@@ -1,0 +1,245 @@
+"""RVT's stacked-histogram input representation (numpy, bit-exact with the official code).
+
+The official RVT pre-processing (``data/utils/representations.py::StackedHistogram`` with ``fastmode=True``,
+``nbins=10``, ``count_cutoff=10``) turns the events of one 50 ms window into a uint8 tensor
+``[2 * num_bins, H, W]``:
+
+1. ``t0`` / ``t1`` are the times of the **first and last event of the window** (not the window bounds);
+2. bin ``b = min(floor(float32(t - t0) / float32(max(t1 - t0, 1)) * num_bins), num_bins - 1)``, all float32;
+3. counts are accumulated into **uint8**, which wraps modulo 256 (260 events in one cell give 4);
+4. the counts are clipped to ``[0, count_cutoff]``; channel ``c = p * num_bins + b``.
+
+Windows are both-ends inclusive: events with ``t_end - window_us <= t <= t_end``
+(``scripts/genx/preprocess_dataset.py``), so an event exactly on a boundary counts in both neighbours.
+
+This module imports numpy only (no torch): it is used on the capture/scoring path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Final
+
+import numpy as np
+
+from davis_rig.errors import FormatError, ShapeError
+from davis_rig.types import RVT_HW
+
+#: Official Gen1 settings (``conf_preprocess/representation/stacked_hist.yaml``).
+NUM_BINS: Final = 10
+COUNT_CUTOFF: Final = 10
+#: Official Gen1 window duration (``conf_preprocess/extraction/const_duration.yaml``), µs.
+WINDOW_US: Final = 50_000
+
+__all__ = [
+    "COUNT_CUTOFF",
+    "NUM_BINS",
+    "WINDOW_US",
+    "event_columns",
+    "stacked_histogram",
+    "stacked_histograms",
+    "time_bins",
+    "window_indices",
+]
+
+
+def _column(name: str, values, n: int | None) -> np.ndarray:
+    array = np.asarray(values)
+    if array.ndim != 1:
+        raise ShapeError(f"{name}: expected a 1-D array [N], got shape {array.shape}")
+    if n is not None and array.shape[0] != n:
+        raise ShapeError(f"{name}: expected shape ({n},) like t_us, got {array.shape}")
+    if not np.issubdtype(array.dtype, np.integer) and not (array.size == 0 and array.dtype == np.float64):
+        raise FormatError(f"{name}: expected an integer array, got dtype {array.dtype}")
+    return array
+
+
+def time_bins(t_us: np.ndarray, num_bins: int = NUM_BINS) -> np.ndarray:
+    """Official time-bin index of every event of one window (first/last-event normalization, float32).
+
+    Args:
+        t_us: event timestamps of the window, int µs, shape [N], non-decreasing.
+        num_bins: number of time bins B.
+
+    Returns:
+        int64 array [N] with values in ``0 .. num_bins - 1`` (all zeros when every event shares one timestamp).
+    """
+    t_us = np.asarray(t_us, dtype=np.int64)
+    if t_us.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    span_us = max(int(t_us[-1] - t_us[0]), 1)
+    # torch: int64 tensor / int64 scalar -> both cast to float32, float32 true division, then * B in float32.
+    t_norm = (t_us - t_us[0]).astype(np.float32) / np.float32(span_us)
+    t_norm = t_norm * np.float32(num_bins)
+    bins = np.floor(t_norm)
+    np.minimum(bins, np.float32(num_bins - 1), out=bins)
+    return bins.astype(np.int64)
+
+
+def stacked_histogram(
+    x,
+    y,
+    t_us,
+    p,
+    *,
+    height: int = RVT_HW[0],
+    width: int = RVT_HW[1],
+    num_bins: int = NUM_BINS,
+    count_cutoff: int = COUNT_CUTOFF,
+) -> np.ndarray:
+    """Official RVT stacked histogram of the events of one window (bit-exact, uint8 wrap then clip).
+
+    Args:
+        x: columns, integer pixels, shape [N], ``0 <= x < width``.
+        y: rows, integer pixels, shape [N], ``0 <= y < height``.
+        t_us: timestamps, integer µs, shape [N], non-decreasing (time bins come from the first and last event).
+        p: polarities, integers in {0, 1}, shape [N]; negative values (a −1/1 encoding) are mapped to 0 as
+            the official reader does (``np.clip(p, 0, None)``).
+        height: frame height H, pixels.
+        width: frame width W, pixels.
+        num_bins: time bins B per polarity.
+        count_cutoff: counts are clipped to ``[0, count_cutoff]`` after the uint8 accumulation.
+
+    Returns:
+        uint8 array [2 * num_bins, H, W]; channel ``p * num_bins + b``. All zeros for an empty window.
+
+    Raises:
+        ShapeError: columns of different lengths / not 1-D, or coordinates outside the ``H x W`` frame.
+        FormatError: non-integer columns, polarities above 1, or decreasing timestamps.
+
+    Example:
+        >>> h = stacked_histogram([0, 1], [0, 0], [0, 10], [1, 0], height=2, width=2, num_bins=2)
+        >>> h.shape, int(h[2, 0, 0]), int(h[1, 0, 1])
+        ((4, 2, 2), 1, 1)
+    """
+    t_us = _column("t_us", t_us, None)
+    n = t_us.shape[0]
+    x = _column("x", x, n)
+    y = _column("y", y, n)
+    p = _column("p", p, n)
+    if num_bins < 1 or height < 1 or width < 1:
+        raise ShapeError(f"expected num_bins, height, width >= 1, got {num_bins}, {height}, {width}")
+    size = 2 * num_bins * height * width
+    if n == 0:
+        return np.zeros((2 * num_bins, height, width), dtype=np.uint8)
+
+    x = x.astype(np.int64, copy=False)
+    y = y.astype(np.int64, copy=False)
+    p = np.clip(p.astype(np.int64, copy=False), 0, None)
+    x_min, x_max, y_min, y_max = int(x.min()), int(x.max()), int(y.min()), int(y.max())
+    if x_min < 0 or x_max >= width or y_min < 0 or y_max >= height:
+        raise ShapeError(
+            f"event coordinates outside the frame: expected 0 <= x < {width} and 0 <= y < {height}, "
+            f"got x in [{x_min}, {x_max}], y in [{y_min}, {y_max}] (crop the events first)"
+        )
+    if int(p.max()) > 1:
+        raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
+    if n > 1 and bool(np.any(np.diff(t_us) < 0)):
+        raise FormatError("t_us: expected non-decreasing timestamps within a window")
+
+    bins = time_bins(t_us, num_bins)
+    flat = x + width * y + (height * width) * bins + (num_bins * height * width) * p
+    counts = np.bincount(flat, minlength=size)
+    # uint8 accumulation wraps modulo 256 (torch put_(accumulate=True) on a uint8 tensor), then the clip.
+    wrapped = (counts & 0xFF).astype(np.uint8)
+    np.minimum(wrapped, np.uint8(min(max(count_cutoff, 0), 255)), out=wrapped)
+    return wrapped.reshape(2 * num_bins, height, width)
+
+
+def window_indices(t_us, window_end_us, window_us: int = WINDOW_US):
+    """Index range of the events of each window ``[end - window_us, end]`` (both ends inclusive, official).
+
+    Args:
+        t_us: sorted event timestamps, int µs, shape [N].
+        window_end_us: window end time(s), int µs, scalar or shape [T].
+        window_us: window duration, µs.
+
+    Returns:
+        ``(start, stop)`` such that ``t_us[start:stop]`` are the window's events; Python ints for a scalar
+        ``window_end_us``, otherwise two int64 arrays [T].
+    """
+    t_us = np.asarray(t_us)
+    ends = np.asarray(window_end_us, dtype=np.int64)
+    start = np.searchsorted(t_us, ends - int(window_us), side="left")
+    stop = np.searchsorted(t_us, ends, side="right")
+    if ends.ndim == 0:
+        return int(start), int(stop)
+    return start.astype(np.int64), stop.astype(np.int64)
+
+
+def event_columns(events) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Return ``(x, y, t_us, p)`` columns from a structured event array, a mapping or a 4-tuple.
+
+    Args:
+        events: an :data:`davis_rig.types.EVENT_DTYPE` array [N] (fields ``t, x, y, p``), a mapping with keys
+            ``x, y, p`` and ``t_us`` or ``t``, or a tuple ``(x, y, t_us, p)``.
+
+    Returns:
+        The four columns (views, not copies), each shape [N].
+
+    Raises:
+        FormatError: an unsupported container or missing fields.
+    """
+    if isinstance(events, np.ndarray) and events.dtype.names is not None:
+        names = set(events.dtype.names)
+        if not {"t", "x", "y", "p"} <= names:
+            raise FormatError(f"events: expected fields t, x, y, p, got {events.dtype.names}")
+        return events["x"], events["y"], events["t"], events["p"]
+    if isinstance(events, Mapping):
+        t_key = "t_us" if "t_us" in events else "t"
+        missing = [k for k in ("x", "y", "p", t_key) if k not in events]
+        if missing:
+            raise FormatError(f"events: mapping lacks keys {missing}, has {sorted(events)}")
+        return events["x"], events["y"], events[t_key], events["p"]
+    if isinstance(events, (tuple, list)) and len(events) == 4:
+        x, y, t_us, p = events
+        return x, y, t_us, p
+    raise FormatError(
+        f"events: expected a structured EVENT_DTYPE array, a mapping or (x, y, t_us, p), got {type(events)!r}"
+    )
+
+
+def stacked_histograms(
+    events,
+    window_end_us,
+    *,
+    window_us: int = WINDOW_US,
+    height: int = RVT_HW[0],
+    width: int = RVT_HW[1],
+    num_bins: int = NUM_BINS,
+    count_cutoff: int = COUNT_CUTOFF,
+) -> np.ndarray:
+    """Official stacked histograms of a stream for a list of window ends.
+
+    Args:
+        events: time-sorted events, see :func:`event_columns` (structured array, mapping or ``(x, y, t_us, p)``).
+        window_end_us: window ends, int µs, scalar or shape [T]; each window is
+            ``[end - window_us, end]`` inclusive (:func:`window_indices`).
+        window_us: window duration, µs.
+        height, width, num_bins, count_cutoff: as in :func:`stacked_histogram`.
+
+    Returns:
+        uint8 array [T, 2 * num_bins, H, W].
+
+    Raises:
+        ShapeError, FormatError: as :func:`stacked_histogram`.
+    """
+    x, y, t_us, p = event_columns(events)
+    t_us = _column("t_us", t_us, None)
+    ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
+    if ends.ndim != 1:
+        raise ShapeError(f"window_end_us: expected a scalar or shape [T], got {ends.shape}")
+    starts, stops = window_indices(t_us, ends, window_us)
+    out = np.empty((ends.shape[0], 2 * num_bins, height, width), dtype=np.uint8)
+    for i, (start, stop) in enumerate(zip(starts.tolist(), stops.tolist())):
+        out[i] = stacked_histogram(
+            x[start:stop],
+            y[start:stop],
+            t_us[start:stop],
+            p[start:stop],
+            height=height,
+            width=width,
+            num_bins=num_bins,
+            count_cutoff=count_cutoff,
+        )
+    return out

@@ -1,0 +1,205 @@
+"""Tests for the numpy stacked histogram: bit-exact vs the official RVT output, edge cases, windows."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from davis_rig.errors import FormatError, ShapeError
+from davis_rig.events import stacked_histogram, stacked_histograms, time_bins, window_indices
+from davis_rig.types import make_events
+
+
+def _official_torch_histogram(x, y, t_us, p, height, width, num_bins, count_cutoff):
+    """Transcription of RVT's ``StackedHistogram.construct`` (fastmode=True), run with torch."""
+    torch = pytest.importorskip("torch")
+    x, y, time, pol = (torch.from_numpy(np.asarray(a, dtype=np.int64)) for a in (x, y, t_us, p))
+    representation = torch.zeros((2, num_bins, height, width), dtype=torch.uint8)
+    if x.numel() == 0:
+        return representation.reshape(-1, height, width).numpy()
+    t0_int = time[0]
+    t1_int = time[-1]
+    t_norm = time - t0_int
+    t_norm = t_norm / max((t1_int - t0_int), 1)
+    t_norm = t_norm * num_bins
+    t_idx = torch.clamp(t_norm.floor(), max=num_bins - 1)
+    indices = x.long() + width * y.long() + height * width * t_idx.long() + num_bins * height * width * pol.long()
+    values = torch.ones_like(indices, dtype=torch.uint8)
+    representation.put_(indices, values, accumulate=True)
+    representation = torch.clamp(representation, min=0, max=count_cutoff)
+    return representation.reshape(-1, height, width).numpy()
+
+
+# --- golden tests against the official pre-processing ----------------------------------------------------
+def test_matches_official_fixture_histograms(reference_windows):
+    ref = reference_windows
+    events = {k: ref[f"events_{k}"] for k in ("x", "y", "t_us", "p")}
+    hist = stacked_histograms(events, ref["window_end_ts_us"])
+    assert hist.dtype == np.uint8
+    assert hist.shape == ref["hist_uint8_unpadded"].shape
+    np.testing.assert_array_equal(hist, ref["hist_uint8_unpadded"])
+
+
+def test_structured_array_and_tuple_inputs_give_the_same_result(reference_windows):
+    ref = reference_windows
+    x, y, t_us, p = (ref[f"events_{k}"] for k in ("x", "y", "t_us", "p"))
+    structured = make_events(t_us, x, y, p)
+    ends = ref["window_end_ts_us"]
+    np.testing.assert_array_equal(stacked_histograms(structured, ends), ref["hist_uint8_unpadded"])
+    np.testing.assert_array_equal(stacked_histograms((x, y, t_us, p), ends), ref["hist_uint8_unpadded"])
+
+
+def test_fixture_contains_the_wrap_and_clip_cases(reference_windows):
+    # the fixtures have a 260-event hot cell (wraps to 4) and a 40-event cell (clipped to 10)
+    hist = reference_windows["hist_uint8_unpadded"]
+    assert hist.max() == 10
+    assert (hist == 4).any()
+
+
+# --- hand-made edge cases ----------------------------------------------------------------------------------
+def test_single_event_goes_to_bin_zero_of_its_polarity():
+    hist = stacked_histogram([5], [7], [123_456], [1])
+    assert hist.shape == (20, 240, 304)
+    assert hist[10, 7, 5] == 1
+    assert int(hist.sum()) == 1
+
+
+def test_all_events_with_one_timestamp_land_in_bin_zero():
+    x = np.array([0, 1, 2, 3])
+    hist = stacked_histogram(x, np.zeros(4, int), np.full(4, 777), np.array([0, 1, 0, 1]))
+    assert hist[0, 0, 0] == 1 and hist[10, 0, 1] == 1 and hist[0, 0, 2] == 1 and hist[10, 0, 3] == 1
+    assert int(hist.sum()) == 4
+
+
+def test_first_and_last_event_times_define_the_bins():
+    # window bounds play no role: t0 = 1000, t1 = 2000; the last event lands in bin 9, a mid event in bin 5
+    hist = stacked_histogram([0, 1, 2], [0, 0, 0], [1000, 1500, 2000], [0, 0, 0])
+    assert hist[0, 0, 0] == 1
+    assert hist[5, 0, 1] == 1
+    assert hist[9, 0, 2] == 1
+
+
+def test_empty_window_is_all_zeros():
+    hist = stacked_histogram(np.array([], np.int16), np.array([], np.int16), np.array([], np.int64), [])
+    assert hist.shape == (20, 240, 304)
+    assert hist.dtype == np.uint8
+    assert not hist.any()
+
+
+@pytest.mark.parametrize(("count", "expected"), [(9, 9), (10, 10), (11, 10), (255, 10), (256, 0), (260, 4)])
+def test_uint8_wrap_happens_before_the_clip(count, expected):
+    n = count
+    hist = stacked_histogram(np.full(n, 3), np.full(n, 4), np.zeros(n, np.int64), np.ones(n, np.uint8))
+    assert hist[10, 4, 3] == expected
+
+
+def test_count_cutoff_and_bins_are_parameters():
+    n = 7
+    hist = stacked_histogram(
+        np.full(n, 1), np.full(n, 1), np.arange(n), np.zeros(n, np.int64), height=3, width=2, num_bins=1, count_cutoff=5
+    )
+    assert hist.shape == (2, 3, 2)
+    assert hist[0, 1, 1] == 5
+
+
+def test_time_normalization_is_float32_like_torch():
+    # span 2**24 + 1 µs: float32(8388608) / float32(16777217) * 10 floors to 5, exact arithmetic gives 4
+    t_us = np.array([0, 8_388_608, 16_777_217])
+    np.testing.assert_array_equal(time_bins(t_us), [0, 5, 9])
+    official = _official_torch_histogram([0, 1, 2], [0, 0, 0], t_us, [0, 0, 0], 2, 4, 10, 10)
+    np.testing.assert_array_equal(stacked_histogram([0, 1, 2], [0, 0, 0], t_us, [0, 0, 0], height=2, width=4), official)
+
+
+def test_negative_polarity_encoding_maps_to_off():
+    hist = stacked_histogram([0, 1], [0, 0], [0, 10], [-1, 1], height=1, width=2)
+    assert hist[0, 0, 0] == 1
+    assert hist[19, 0, 1] == 1
+
+
+def test_inputs_are_not_modified():
+    x = np.array([1, 2, 3], np.int16)
+    y = np.array([0, 1, 2], np.int16)
+    t_us = np.array([0, 5, 9], np.int64)
+    p = np.array([-1, 1, 0], np.int8)
+    copies = [a.copy() for a in (x, y, t_us, p)]
+    stacked_histogram(x, y, t_us, p)
+    for original, copy in zip((x, y, t_us, p), copies):
+        np.testing.assert_array_equal(original, copy)
+
+
+# --- validation ---------------------------------------------------------------------------------------------
+def test_coordinates_outside_the_frame_raise_shape_error():
+    with pytest.raises(ShapeError, match=r"0 <= x < 304.*got x in \[0, 345\]"):
+        stacked_histogram([0, 345], [0, 0], [0, 1], [0, 0])
+    with pytest.raises(ShapeError, match="0 <= y < 240"):
+        stacked_histogram([0], [240], [0], [0])
+
+
+def test_mismatched_columns_raise_shape_error():
+    with pytest.raises(ShapeError, match=r"x: expected shape \(2,\)"):
+        stacked_histogram([0, 1, 2], [0, 0], [0, 1], [0, 0])
+
+
+def test_bad_polarity_time_order_and_dtype_raise_format_error():
+    with pytest.raises(FormatError, match="polarity"):
+        stacked_histogram([0], [0], [0], [2])
+    with pytest.raises(FormatError, match="non-decreasing"):
+        stacked_histogram([0, 1], [0, 0], [10, 5], [0, 0])
+    with pytest.raises(FormatError, match="integer"):
+        stacked_histogram([0.5], [0], [0], [0])
+
+
+def test_unsupported_event_container_raises_format_error():
+    with pytest.raises(FormatError, match="expected a structured"):
+        stacked_histograms("events", [50_000])
+    with pytest.raises(FormatError, match="lacks keys"):
+        stacked_histograms({"x": [0], "y": [0]}, [50_000])
+
+
+# --- windows ------------------------------------------------------------------------------------------------
+def test_window_is_inclusive_at_both_ends():
+    t_us = np.array([0, 49_999, 50_000, 50_001, 100_000, 100_001])
+    assert window_indices(t_us, 50_000) == (0, 3)
+    assert window_indices(t_us, 100_000) == (2, 5)
+    starts, stops = window_indices(t_us, np.array([50_000, 100_000, 150_000]))
+    np.testing.assert_array_equal(starts, [0, 2, 4])
+    np.testing.assert_array_equal(stops, [3, 5, 6])
+
+
+def test_boundary_event_is_counted_in_both_windows():
+    t_us = np.array([10_000, 50_000, 90_000])
+    x = np.array([1, 2, 3])
+    hist = stacked_histograms((x, np.zeros(3, int), t_us, np.ones(3, int)), [50_000, 100_000])
+    # window 1: events at 10 ms and 50 ms -> the boundary event is the last one (bin 9)
+    assert hist[0, 19, 0, 2] == 1 and hist[0, 10, 0, 1] == 1
+    # window 2: events at 50 ms and 90 ms -> the boundary event is now the first one (bin 0)
+    assert hist[1, 10, 0, 2] == 1 and hist[1, 19, 0, 3] == 1
+    assert int(hist[0].sum()) == 2 and int(hist[1].sum()) == 2
+
+
+def test_window_without_events_is_zero_and_custom_window_length():
+    t_us = np.array([0, 10, 20])
+    hist = stacked_histograms((np.zeros(3, int), np.zeros(3, int), t_us, np.zeros(3, int)), [20, 500], window_us=10)
+    assert int(hist[0].sum()) == 2
+    assert not hist[1].any()
+
+
+# --- property test against a transcription of the official torch code ---------------------------------------
+@settings(max_examples=40, deadline=None)
+@given(
+    data=st.lists(
+        st.tuples(st.integers(0, 5), st.integers(0, 3), st.integers(0, 300), st.integers(0, 1)),
+        min_size=0,
+        max_size=400,
+    ),
+    num_bins=st.integers(1, 4),
+)
+def test_matches_official_transcription_on_random_windows(data, num_bins):
+    rows = np.array(data, dtype=np.int64).reshape(-1, 4)
+    rows = rows[np.argsort(rows[:, 2], kind="stable")]
+    x, y, t_us, p = rows.T
+    expected = _official_torch_histogram(x, y, t_us, p, 4, 6, num_bins, 3)
+    got = stacked_histogram(x, y, t_us, p, height=4, width=6, num_bins=num_bins, count_cutoff=3)
+    np.testing.assert_array_equal(got, expected)
