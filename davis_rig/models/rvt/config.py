@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Mapping
 
 from davis_rig.errors import FormatError
@@ -246,7 +246,7 @@ class RVTConfig:
         if "model" in d and isinstance(d["model"], Mapping) and "backbone" in d["model"]:
             d = d["model"]
         if "backbone" in d and isinstance(d["backbone"], Mapping):
-            return cls(**_from_nested(d))
+            return cls(**_from_nested(d)).with_preset_name()
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - names - {"format"})
         if unknown:
@@ -254,7 +254,15 @@ class RVTConfig:
         missing = [name for name in ("embed_dim", "dim_head") if name not in d]
         if missing:
             raise FormatError(f"RVT config: missing required keys {missing}")
-        return cls(**{k: v for k, v in d.items() if k in names})
+        config = cls(**{k: v for k, v in d.items() if k in names})
+        return config if "name" in d else config.with_preset_name()
+
+    def with_preset_name(self) -> "RVTConfig":
+        """This config, named after the preset it equals (``"RVT-T"``, ...), or unchanged if none."""
+        for preset in RVTConfig.presets().values():
+            if preset == self:
+                return replace(self, name=preset.name)
+        return self
 
 
 def _get(mapping: Mapping[str, Any], *path: str, default: Any = None) -> Any:
