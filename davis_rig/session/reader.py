@@ -34,8 +34,8 @@ class StoredFrame:
 
     @property
     def t_exposure_mid_us(self) -> int:
-        """Middle of the exposure, device µs."""
-        return (self.t_start_exposure_us + self.t_end_exposure_us) // 2
+        """Middle of the exposure, device µs (libcaer: ``SOE + (EOE - SOE) // 2``)."""
+        return self.t_start_exposure_us + (self.t_end_exposure_us - self.t_start_exposure_us) // 2
 
 
 class FrameStore:

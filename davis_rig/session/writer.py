@@ -131,7 +131,7 @@ class SessionWriter:
         self._frame_hw = frame_hw_from_device_info(info)
         compression = schema.compression_options()
         try:
-            self._file = h5py.File(self.path, "w", libver=("v110", "latest"))
+            self._file = h5py.File(self.path, "w")  # default libver: no "open for write" flag that blocks reading after a crash
             f = self._file
             f.attrs[schema.ATTR_FORMAT] = schema.FORMAT_NAME
             f.attrs[schema.ATTR_FORMAT_VERSION] = schema.FORMAT_VERSION
