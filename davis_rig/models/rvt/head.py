@@ -19,7 +19,6 @@ class YOLOXHead(nn.Module):
         self.num_classes = num_classes
         self.strides = tuple(strides)
         hidden = int(256 * (in_channels[-1] / 1024))
-        self.stems = nn.ModuleList(BaseConv(c, hidden, 1, 1) for c in in_channels)
         self.cls_convs = nn.ModuleList(
             nn.Sequential(BaseConv(hidden, hidden, 3, 1), BaseConv(hidden, hidden, 3, 1)) for _ in in_channels
         )
@@ -29,6 +28,8 @@ class YOLOXHead(nn.Module):
         self.cls_preds = nn.ModuleList(nn.Conv2d(hidden, num_classes, 1, 1, 0) for _ in in_channels)
         self.reg_preds = nn.ModuleList(nn.Conv2d(hidden, 4, 1, 1, 0) for _ in in_channels)
         self.obj_preds = nn.ModuleList(nn.Conv2d(hidden, 1, 1, 1, 0) for _ in in_channels)
+        # registered last, like the official head, so that state_dict() lists keys in the official order
+        self.stems = nn.ModuleList(BaseConv(c, hidden, 1, 1) for c in in_channels)
 
     def _level_outputs(self, fpn_features) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         outputs = []
