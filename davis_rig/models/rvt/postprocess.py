@@ -1,0 +1,357 @@
+"""RVT / YOLOX post-processing in numpy: confidence filter and class-wise NMS, exactly as the official code.
+
+Reproduces ``models/detection/yolox/utils/boxes.py::postprocess`` (``class_agnostic=False``) with
+``torchvision.ops.batched_nms`` semantics on CPU, in float32 like the original:
+
+* boxes ``(cx, cy, w, h)`` → ``(x1, y1, x2, y2)`` = ``(cx − w/2, cy − h/2, cx + w/2, cy + h/2)``;
+* ``class_conf, class_pred`` = max / argmax of the class probabilities (first index on ties);
+* keep anchors with ``obj · class_conf ≥ conf_threshold`` (float32 comparison, like torch);
+* class-wise greedy NMS on ``scores = obj · class_conf``: a box is suppressed when its IoU (float32, no +1)
+  with a kept box of the same class is **> nms_threshold** (compared in float64, like the C++ kernel);
+* torchvision's two CPU paths: with more than 1000 candidate boxes (> 4000 coordinates) it runs NMS per class
+  and orders the union by decreasing score (``Tensor.sort``, which on CPU is libstdc++'s unstable
+  ``std::sort`` — emulated here exactly, so even exact score ties come out in torch's order); otherwise it
+  offsets every class's boxes by ``class · (max_coordinate + 1)`` and runs one NMS (stable descending sort).
+
+Rows of the result: ``(x1, y1, x2, y2, obj, class_conf, class_pred)`` float32, ordered by decreasing
+``obj · class_conf``; ``None`` for an image without detections. No top-k cap (the official code has none).
+
+numpy only: torch tensors are accepted (converted with ``.detach().cpu().numpy()``) but torch is not imported.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from davis_rig.errors import ShapeError
+
+__all__ = ["batched_nms", "nms", "postprocess", "torch_cpu_unstable_argsort_desc"]
+
+#: torchvision ``batched_nms``: above this many box coordinates, CPU uses the per-class loop.
+_CPU_VANILLA_COORDINATES = 4000
+
+
+def _to_numpy(array) -> np.ndarray:
+    if hasattr(array, "detach") and hasattr(array, "cpu"):  # a torch tensor, without importing torch
+        array = array.detach().cpu().numpy()
+    return np.asarray(array)
+
+
+def _stable_argsort_desc(scores: np.ndarray) -> np.ndarray:
+    """``torch.sort(stable=True, descending=True)`` indices: equal scores keep their original order."""
+    # Sorting the negated values ascending with a stable sort gives a stable descending order (finite floats);
+    # NaNs go first in torch's descending order.
+    keys = -scores.astype(np.float64)
+    nan = np.isnan(keys)
+    if nan.any():
+        keys = np.where(nan, -np.inf, keys)
+    return np.argsort(keys, kind="stable")
+
+
+def nms(boxes, scores, iou_threshold: float) -> np.ndarray:
+    """Greedy NMS exactly like torchvision's CPU kernel (``nms_kernel.cpp``), float32 arithmetic.
+
+    Args:
+        boxes: float32 [N, 4] ``(x1, y1, x2, y2)``, pixels.
+        scores: float32 [N].
+        iou_threshold: boxes with IoU **>** this value (compared in float64) are suppressed.
+
+    Returns:
+        int64 [K] indices of kept boxes, by decreasing score (stable: ties keep index order).
+
+    Raises:
+        ShapeError: boxes not [N, 4] or scores not [N].
+    """
+    boxes = np.asarray(boxes, dtype=np.float32)
+    scores = np.asarray(scores, dtype=np.float32)
+    if boxes.ndim != 2 or boxes.shape[1] != 4 or scores.shape != (boxes.shape[0],):
+        raise ShapeError(f"nms: expected boxes [N, 4] and scores [N], got {boxes.shape} and {scores.shape}")
+    n = boxes.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    x1, y1, x2, y2 = (np.ascontiguousarray(boxes[:, k]) for k in range(4))
+    areas = (x2 - x1) * (y2 - y1)
+    order = _stable_argsort_desc(scores)
+    suppressed = np.zeros(n, dtype=bool)
+    keep = []
+    zero = np.float32(0)
+    threshold = float(iou_threshold)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for pos in range(n):
+            i = order[pos]
+            if suppressed[i]:
+                continue
+            keep.append(i)
+            rest = order[pos + 1 :]
+            rest = rest[~suppressed[rest]]
+            if rest.size == 0:
+                break
+            # std::max / std::min on floats: (a < b) ? b : a — keep the first operand on NaN like C++.
+            xx1 = np.where(x1[i] < x1[rest], x1[rest], x1[i])
+            yy1 = np.where(y1[i] < y1[rest], y1[rest], y1[i])
+            xx2 = np.where(x2[rest] < x2[i], x2[rest], x2[i])
+            yy2 = np.where(y2[rest] < y2[i], y2[rest], y2[i])
+            w = xx2 - xx1
+            h = yy2 - yy1
+            w = np.where(zero < w, w, zero)
+            h = np.where(zero < h, h, zero)
+            inter = w * h
+            ovr = inter / (areas[i] + areas[rest] - inter)
+            suppressed[rest[ovr.astype(np.float64) > threshold]] = True
+    return np.asarray(keep, dtype=np.int64)
+
+
+def torch_cpu_unstable_argsort_desc(values) -> np.ndarray:
+    """Indices of ``torch.sort(values, descending=True)`` on CPU (``stable=False``), ties included.
+
+    PyTorch's CPU sort without ``stable=True`` runs libstdc++ ``std::sort`` (introsort: median-of-three
+    quicksort down to 16-element blocks, heap sort past the depth limit, final insertion sort) on
+    (value, index) pairs compared by value only. When no two values are equal the result is the plain
+    descending order; otherwise the tie order of that algorithm is reproduced step by step.
+
+    Args:
+        values: float [N] (NaN sorts first, as in torch's descending comparator).
+
+    Returns:
+        int64 [N] permutation.
+    """
+    values = np.asarray(values)
+    n = values.shape[0]
+    order = _stable_argsort_desc(values)
+    if n < 2:
+        return order.astype(np.int64)
+    sorted_values = values[order]
+    nan = np.isnan(sorted_values)
+    finite_ties = bool(np.any(sorted_values[1:] == sorted_values[:-1]))
+    if not finite_ties and int(nan.sum()) <= 1:
+        return order.astype(np.int64)
+    return _introsort_desc(values)
+
+
+def _introsort_desc(values: np.ndarray) -> np.ndarray:
+    """Step-by-step emulation of libstdc++ ``std::sort`` with torch's descending comparator."""
+    keys = [float(v) for v in values.tolist()]
+    idx = list(range(len(keys)))
+
+    def comp(a: float, b: float) -> bool:  # KeyValueCompDesc: NaN first, then larger first
+        a_nan, b_nan = a != a, b != b
+        return (a_nan and not b_nan) or (not a_nan and not b_nan and a > b)
+
+    def swap(i: int, j: int) -> None:
+        keys[i], keys[j] = keys[j], keys[i]
+        idx[i], idx[j] = idx[j], idx[i]
+
+    def move_median_to_first(result: int, a: int, b: int, c: int) -> None:
+        if comp(keys[a], keys[b]):
+            if comp(keys[b], keys[c]):
+                swap(result, b)
+            elif comp(keys[a], keys[c]):
+                swap(result, c)
+            else:
+                swap(result, a)
+        elif comp(keys[a], keys[c]):
+            swap(result, a)
+        elif comp(keys[b], keys[c]):
+            swap(result, c)
+        else:
+            swap(result, b)
+
+    def unguarded_partition(first: int, last: int, pivot: int) -> int:
+        while True:
+            while comp(keys[first], keys[pivot]):
+                first += 1
+            last -= 1
+            while comp(keys[pivot], keys[last]):
+                last -= 1
+            if not first < last:
+                return first
+            swap(first, last)
+            first += 1
+
+    def adjust_heap(first: int, hole: int, length: int, key: float, index: int) -> None:
+        top = hole
+        child = hole
+        while child < (length - 1) // 2:
+            child = 2 * (child + 1)
+            if comp(keys[first + child], keys[first + child - 1]):
+                child -= 1
+            keys[first + hole], idx[first + hole] = keys[first + child], idx[first + child]
+            hole = child
+        if (length & 1) == 0 and child == (length - 2) // 2:
+            child = 2 * (child + 1)
+            keys[first + hole], idx[first + hole] = keys[first + child - 1], idx[first + child - 1]
+            hole = child - 1
+        parent = (hole - 1) // 2  # __push_heap
+        while hole > top and comp(keys[first + parent], key):
+            keys[first + hole], idx[first + hole] = keys[first + parent], idx[first + parent]
+            hole = parent
+            parent = (hole - 1) // 2
+        keys[first + hole], idx[first + hole] = key, index
+
+    def heap_sort(first: int, last: int) -> None:  # __partial_sort(first, last, last)
+        length = last - first
+        if length >= 2:  # __make_heap
+            parent = (length - 2) // 2
+            while True:
+                adjust_heap(first, parent, length, keys[first + parent], idx[first + parent])
+                if parent == 0:
+                    break
+                parent -= 1
+        while last - first > 1:  # __sort_heap / __pop_heap
+            last -= 1
+            key, index = keys[last], idx[last]
+            keys[last], idx[last] = keys[first], idx[first]
+            adjust_heap(first, 0, last - first, key, index)
+
+    def introsort_loop(first: int, last: int, depth_limit: int) -> None:
+        while last - first > 16:
+            if depth_limit == 0:
+                heap_sort(first, last)
+                return
+            depth_limit -= 1
+            mid = first + (last - first) // 2
+            move_median_to_first(first, first + 1, mid, last - 1)
+            cut = unguarded_partition(first + 1, last, first)
+            introsort_loop(cut, last, depth_limit)
+            last = cut
+
+    def unguarded_linear_insert(last: int) -> None:
+        key, index = keys[last], idx[last]
+        nxt = last - 1
+        while comp(key, keys[nxt]):
+            keys[last], idx[last] = keys[nxt], idx[nxt]
+            last = nxt
+            nxt -= 1
+        keys[last], idx[last] = key, index
+
+    def insertion_sort(first: int, last: int) -> None:
+        for i in range(first + 1, last):
+            if comp(keys[i], keys[first]):
+                key, index = keys[i], idx[i]
+                keys[first + 1 : i + 1], idx[first + 1 : i + 1] = keys[first:i], idx[first:i]
+                keys[first], idx[first] = key, index
+            else:
+                unguarded_linear_insert(i)
+
+    n = len(keys)
+    introsort_loop(0, n, 2 * (n.bit_length() - 1))
+    if n > 16:
+        insertion_sort(0, 16)
+        for i in range(16, n):
+            unguarded_linear_insert(i)
+    else:
+        insertion_sort(0, n)
+    return np.asarray(idx, dtype=np.int64)
+
+
+def batched_nms(boxes, scores, idxs, iou_threshold: float, *, path: str = "auto") -> np.ndarray:
+    """Class-wise NMS with ``torchvision.ops.batched_nms`` semantics on CPU.
+
+    Args:
+        boxes: float32 [N, 4] ``(x1, y1, x2, y2)``, pixels.
+        scores: float32 [N].
+        idxs: class index per box, [N] (any real dtype; converted to float32 for the coordinate offsets).
+        iou_threshold: IoU above which a box of the same class is suppressed.
+        path: ``"auto"`` (torchvision's CPU choice: per-class loop when ``4·N > 4000``), ``"per_class"``
+            or ``"offset"`` to force one path.
+
+    Returns:
+        int64 [K] kept indices, by decreasing score.
+
+    Raises:
+        ShapeError: inconsistent shapes. ValueError: unknown ``path``.
+    """
+    boxes = np.asarray(boxes, dtype=np.float32)
+    scores = np.asarray(scores, dtype=np.float32)
+    idxs = np.asarray(idxs)
+    if boxes.ndim != 2 or boxes.shape[1] != 4 or scores.shape != (boxes.shape[0],) or idxs.shape != scores.shape:
+        raise ShapeError(
+            f"batched_nms: expected boxes [N, 4], scores [N], idxs [N]; got {boxes.shape}, {scores.shape}, "
+            f"{idxs.shape}"
+        )
+    if path not in ("auto", "per_class", "offset"):
+        raise ValueError(f"path: expected 'auto', 'per_class' or 'offset', got {path!r}")
+    if boxes.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    if path == "per_class" or (path == "auto" and boxes.size > _CPU_VANILLA_COORDINATES):
+        keep_mask = np.zeros(scores.shape[0], dtype=bool)
+        for class_id in np.unique(idxs):
+            members = np.nonzero(idxs == class_id)[0]
+            keep_mask[members[nms(boxes[members], scores[members], iou_threshold)]] = True
+        keep = np.nonzero(keep_mask)[0]
+        return keep[torch_cpu_unstable_argsort_desc(scores[keep])]
+    max_coordinate = boxes.max()
+    offsets = idxs.astype(np.float32) * (max_coordinate + np.float32(1))
+    return nms(boxes + offsets[:, None], scores, iou_threshold)
+
+
+def postprocess(
+    decoded,
+    conf_threshold: float,
+    nms_threshold: float = 0.45,
+    *,
+    num_classes: int | None = None,
+) -> list[np.ndarray | None]:
+    """Official RVT post-processing of the decoded head output (confidence filter + class-wise NMS).
+
+    Args:
+        decoded: float [B, A, 5 + num_classes] ``(cx, cy, w, h, obj_prob, class probs...)`` in input pixels
+            (the output of ``RVTDetector.forward_detect`` or of the ONNX graph); numpy array or torch tensor.
+            It is not modified (the official code modifies its input in place; this one copies).
+        conf_threshold: keep anchors with ``obj · max class prob ≥ conf_threshold`` (0.001 for the reported
+            Gen1 evaluation, 0.1 by default in RVT).
+        nms_threshold: class-wise IoU threshold (boxes with IoU > it are suppressed).
+        num_classes: number of class columns; default ``decoded.shape[-1] - 5``.
+
+    Returns:
+        One entry per image: float32 [K, 7] rows ``(x1, y1, x2, y2, obj, class_conf, class_pred)`` by
+        decreasing ``obj · class_conf``, or ``None`` when nothing passes.
+
+    Raises:
+        ShapeError: ``decoded`` is not [B, A, 5 + num_classes].
+
+    Example:
+        >>> det = np.array([[[50, 50, 20, 20, 0.9, 0.1, 0.8], [52, 50, 20, 20, 0.9, 0.2, 0.7]]], np.float32)
+        >>> out = postprocess(det, conf_threshold=0.1)
+        >>> out[0].shape, out[0][0, 6]
+        ((1, 7), np.float32(1.0))
+    """
+    pred = _to_numpy(decoded)
+    if pred.ndim != 3 or pred.shape[-1] < 6:
+        raise ShapeError(f"decoded: expected [B, A, 5 + num_classes], got {pred.shape}")
+    if num_classes is None:
+        num_classes = pred.shape[-1] - 5
+    if pred.shape[-1] < 5 + num_classes or num_classes < 1:
+        raise ShapeError(f"decoded: expected last dim >= 5 + {num_classes}, got {pred.shape}")
+    pred = pred.astype(np.float32, copy=False)
+    half_w = pred[..., 2] / np.float32(2)
+    half_h = pred[..., 3] / np.float32(2)
+    corners = np.stack(
+        [pred[..., 0] - half_w, pred[..., 1] - half_h, pred[..., 0] + half_w, pred[..., 1] + half_h], axis=-1
+    )
+    threshold = np.float32(conf_threshold)
+    output: list[np.ndarray | None] = []
+    for image in range(pred.shape[0]):
+        class_probs = pred[image, :, 5 : 5 + num_classes]
+        if class_probs.shape[0] == 0:
+            output.append(None)
+            continue
+        class_pred = np.argmax(class_probs, axis=1)
+        class_conf = np.take_along_axis(class_probs, class_pred[:, None], axis=1)[:, 0]
+        obj = pred[image, :, 4]
+        keep = obj * class_conf >= threshold
+        if not keep.any():
+            output.append(None)
+            continue
+        detections = np.concatenate(
+            [
+                corners[image][keep],
+                obj[keep, None],
+                class_conf[keep, None],
+                class_pred[keep, None].astype(np.float32),
+            ],
+            axis=1,
+        )
+        order = batched_nms(detections[:, :4], detections[:, 4] * detections[:, 5], detections[:, 6], nms_threshold)
+        output.append(detections[order])
+    return output
