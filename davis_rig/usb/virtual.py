@@ -1,0 +1,666 @@
+"""A virtual DAVIS346 behind a real ``usb.backend.IBackend``, so the unmodified pyusb code path runs without a camera.
+
+Modelled on pyftdi's virtual backend (``pyftdi/tests/backend/usbvirt.py``): the backend answers descriptor and
+standard requests, routes vendor control transfers and bulk reads to a :class:`VirtualDavis346` device model.
+Pass it explicitly: ``usb.core.find(backend=VirtualDavis346Backend(VirtualDavis346()))`` or
+``Davis346.open(backend=...)`` — there is no environment switch.
+
+The device model
+
+- presents VID 0x152A / PID 0x841A, bcdDevice with the firmware version in its low byte, a serial string,
+  one configuration with interface 0 and endpoints 0x82 (bulk IN) and 0x81 (interrupt IN);
+- answers the read-only registers libcaer reads at open (PROTOCOL.md §5) from a
+  :class:`~davis_rig.protocol.layout.SensorLayout`-like mapping, clocks, versions and feature flags — all
+  configurable (e.g. a wrong logic version to test the version gate);
+- keeps a register file, and **records every control transfer** (:attr:`VirtualDavis346.control_log`,
+  :attr:`VirtualDavis346.writes`) so tests can assert the exact §6/§7 sequences;
+- honours the RUN flags: bulk data flows only while MUX RUN, USB RUN and at least one of DVS RUN / APS RUN are set;
+- serves bulk reads on 0x82 from a :class:`~davis_rig.usb.sources.DataSource`, one transfer per read, and
+  injects :class:`~davis_rig.usb.sources.Faults` (disconnect, stalls, timeouts, short/odd transfers, garbage,
+  permission/busy errors) with the errno/libusb codes libusb-1.0 reports.
+"""
+
+from __future__ import annotations
+
+import errno as errno_mod
+import struct
+import threading
+import time
+from dataclasses import dataclass, fields
+from typing import Any, Callable, Mapping
+
+import numpy as np
+import usb.backend
+import usb.core
+
+from davis_rig.protocol.config import (
+    DATA_ENDPOINT,
+    DAVIS_FX3_PID,
+    DEBUG_ENDPOINT,
+    INIVATION_VID,
+    REQUEST_TYPE_VENDOR_IN,
+    REQUEST_TYPE_VENDOR_OUT,
+    VR_FPGA_CONFIG,
+    VR_FPGA_CONFIG_MULTIPLE,
+    Aps,
+    Clocks,
+    ConfigWrite,
+    DeviceFeatures,
+    Dvs,
+    ExtInput,
+    Imu,
+    Module,
+    Mux,
+    SysInfo,
+    Usb,
+    decode_multiple,
+)
+from davis_rig.usb.sources import DataSource, Faults
+
+#: libusb-1.0 error codes (what pyusb's libusb1 backend puts in ``backend_error_code``).
+LIBUSB_ERROR_IO = -1
+LIBUSB_ERROR_ACCESS = -3
+LIBUSB_ERROR_NO_DEVICE = -4
+LIBUSB_ERROR_BUSY = -6
+LIBUSB_ERROR_TIMEOUT = -7
+LIBUSB_ERROR_PIPE = -9
+_ERRNO_TO_LIBUSB = {
+    errno_mod.EIO: LIBUSB_ERROR_IO,
+    errno_mod.EACCES: LIBUSB_ERROR_ACCESS,
+    errno_mod.ENODEV: LIBUSB_ERROR_NO_DEVICE,
+    errno_mod.EBUSY: LIBUSB_ERROR_BUSY,
+    errno_mod.ETIMEDOUT: LIBUSB_ERROR_TIMEOUT,
+    errno_mod.EPIPE: LIBUSB_ERROR_PIPE,
+}
+_STRERROR = {
+    LIBUSB_ERROR_IO: "Input/output error",
+    LIBUSB_ERROR_ACCESS: "Access denied (insufficient permissions)",
+    LIBUSB_ERROR_NO_DEVICE: "No such device (it may have been disconnected)",
+    LIBUSB_ERROR_BUSY: "Resource busy",
+    LIBUSB_ERROR_TIMEOUT: "Operation timed out",
+    LIBUSB_ERROR_PIPE: "Pipe error",
+}
+
+
+def usb_error(errno: int) -> usb.core.USBError:
+    """The pyusb exception libusb-1.0 would raise for ``errno`` (timeouts as ``USBTimeoutError``)."""
+    code = _ERRNO_TO_LIBUSB.get(errno, -99)
+    text = _STRERROR.get(code, "Unknown error")
+    if errno == errno_mod.ETIMEDOUT:
+        return usb.core.USBTimeoutError(text, code, errno)
+    return usb.core.USBError(text, code, errno)
+
+
+#: Raw read-outs of a DAVIS346 as the test vectors assume them (346 cols × 260 rows, orientation 0, chip id 5).
+DAVIS346_DEVICE_INFO = {
+    "dvs_size_columns": 346,
+    "dvs_size_rows": 260,
+    "dvs_orientation_info": 0,
+    "aps_size_columns": 346,
+    "aps_size_rows": 260,
+    "aps_orientation_info": 0,
+    "imu_type": 1,
+    "imu_orientation_info": 0,
+    "chip_id": 5,
+    "aps_color_filter": 0,
+}
+#: Clocks of the virtual device. Placeholders (jAER's fallback values), not a statement about real DAVIS346 hardware.
+VIRTUAL_CLOCKS = Clocks(logic_mhz=90, adc_mhz=30, usb_mhz=30, deviation=1000)
+#: Feature flags of the virtual device: a global-shutter APS, no optional DVS filters.
+VIRTUAL_FEATURES = DeviceFeatures(aps_has_global_shutter=True)
+
+
+def _as_info_dict(layout: Any) -> dict[str, int]:
+    if layout is None:
+        return dict(DAVIS346_DEVICE_INFO)
+    if isinstance(layout, Mapping):
+        src = dict(layout)
+    else:
+        src = {k: getattr(layout, k) for k in DAVIS346_DEVICE_INFO if hasattr(layout, k)}
+    missing = [k for k in DAVIS346_DEVICE_INFO if k not in src]
+    if missing:
+        raise ValueError(f"virtual DAVIS layout: missing read-outs {missing}")
+    return {k: int(src[k]) for k in DAVIS346_DEVICE_INFO}
+
+
+class _Desc:
+    """A descriptor: attribute bag pyusb reads with getattr."""
+
+    def __init__(self, **kw: Any):
+        self.__dict__.update(kw)
+
+
+@dataclass(frozen=True)
+class ControlRecord:
+    """One control transfer the virtual device received.
+
+    Attributes:
+        request_type: ``bmRequestType``.
+        request: ``bRequest``.
+        value: ``wValue``.
+        index: ``wIndex``.
+        data: OUT data stage (bytes), or ``b""`` for IN requests.
+        length: IN ``wLength`` (0 for OUT).
+    """
+
+    request_type: int
+    request: int
+    value: int
+    index: int
+    data: bytes
+    length: int
+
+
+class VirtualDavis346:
+    """Device model of a DAVIS346 (FX3) for :class:`VirtualDavis346Backend`.
+
+    Args:
+        serial: serial string (≤ 8 chars); ``None`` = no serial descriptor (host falls back to ``TMPnnnnn``).
+        layout: raw read-outs — a ``SensorLayout`` or a mapping with the test vectors' ``device_info`` names;
+            default :data:`DAVIS346_DEVICE_INFO`.
+        clocks: SYSINFO 3-6.
+        features: ``HAS_*`` read-only flags.
+        firmware_version: bcdDevice low byte (6 passes the FX3 gate).
+        logic_version: SYSINFO 0 (18 passes the gate).
+        logic_patch: SYSINFO 7 (>= 1 passes).
+        product_id: USB PID (0x841A FX3).
+        source: the bulk data source (can be set later with :meth:`attach_source`).
+        faults: fault injection.
+        bus, address: USB position (enumeration order and the ``TMPnnnnn`` fallback use them).
+        clock: monotonic clock in seconds, for pacing (tests may inject one).
+
+    Attributes:
+        registers: ``{(module, param): value}`` register file.
+        control_log: every control transfer, in arrival order.
+        clear_halts: endpoints on which CLEAR_FEATURE(HALT) was received, in order.
+        transfers_served: bulk transfers (pieces) handed out on 0x82.
+        bytes_served: bytes handed out on 0x82.
+        claimed: whether interface 0 is claimed.
+    """
+
+    def __init__(
+        self,
+        *,
+        serial: str | None = "VIRT0001",
+        layout: Any = None,
+        clocks: Clocks = VIRTUAL_CLOCKS,
+        features: DeviceFeatures = VIRTUAL_FEATURES,
+        firmware_version: int = 6,
+        logic_version: int = 18,
+        logic_patch: int = 1,
+        product_id: int = DAVIS_FX3_PID,
+        source: DataSource | None = None,
+        faults: Faults = Faults(),
+        bus: int = 1,
+        address: int = 2,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.serial = serial
+        self.device_info = _as_info_dict(layout)
+        self.clocks = clocks
+        self.features = features
+        self.firmware_version = int(firmware_version)
+        self.product_id = int(product_id)
+        self.source = source
+        self.faults = faults
+        self.bus = int(bus)
+        self.address = int(address)
+        self._clock = clock
+        self.registers: dict[tuple[int, int], int] = {}
+        self.control_log: list[ControlRecord] = []
+        self.clear_halts: list[int] = []
+        self.transfers_served = 0
+        self.bytes_served = 0
+        self.claimed = False
+        self.configuration = 0
+        self.unplugged = False
+        self._halted = False
+        self._bulk_reads = 0
+        self._transfer_count = 0
+        self._run_start: float | None = None
+        self._rng = np.random.default_rng(faults.seed)
+        self._cond = threading.Condition()
+        self._read_only = self._build_read_only(logic_version, logic_patch)
+
+    # --- construction helpers ---------------------------------------------------------------------
+    def _build_read_only(self, logic_version: int, logic_patch: int) -> dict[tuple[int, int], int]:
+        info, c, f = self.device_info, self.clocks, self.features
+        ro = {
+            (Module.SYSINFO, SysInfo.LOGIC_VERSION): logic_version,
+            (Module.SYSINFO, SysInfo.CHIP_IDENTIFIER): info["chip_id"],
+            (Module.SYSINFO, SysInfo.DEVICE_IS_MASTER): 1,
+            (Module.SYSINFO, SysInfo.LOGIC_CLOCK): c.logic_mhz,
+            (Module.SYSINFO, SysInfo.ADC_CLOCK): c.adc_mhz,
+            (Module.SYSINFO, SysInfo.USB_CLOCK): c.usb_mhz,
+            (Module.SYSINFO, SysInfo.CLOCK_DEVIATION): c.deviation,
+            (Module.SYSINFO, SysInfo.LOGIC_PATCH): logic_patch,
+            (Module.DVS, Dvs.SIZE_COLUMNS): info["dvs_size_columns"],
+            (Module.DVS, Dvs.SIZE_ROWS): info["dvs_size_rows"],
+            (Module.DVS, Dvs.ORIENTATION_INFO): info["dvs_orientation_info"],
+            (Module.DVS, Dvs.HAS_PIXEL_FILTER): f.dvs_has_pixel_filter,
+            (Module.DVS, Dvs.HAS_BACKGROUND_ACTIVITY_FILTER): f.dvs_has_background_activity_filter,
+            (Module.DVS, Dvs.HAS_ROI_FILTER): f.dvs_has_roi_filter,
+            (Module.DVS, Dvs.HAS_SKIP_FILTER): f.dvs_has_skip_filter,
+            (Module.DVS, Dvs.HAS_POLARITY_FILTER): f.dvs_has_polarity_filter,
+            (Module.DVS, Dvs.HAS_STATISTICS): f.dvs_has_statistics,
+            (Module.APS, Aps.SIZE_COLUMNS): info["aps_size_columns"],
+            (Module.APS, Aps.SIZE_ROWS): info["aps_size_rows"],
+            (Module.APS, Aps.ORIENTATION_INFO): info["aps_orientation_info"],
+            (Module.APS, Aps.COLOR_FILTER): info["aps_color_filter"],
+            (Module.APS, Aps.HAS_GLOBAL_SHUTTER): f.aps_has_global_shutter,
+            (Module.IMU, Imu.TYPE): info["imu_type"],
+            (Module.IMU, Imu.ORIENTATION_INFO): info["imu_orientation_info"],
+            (Module.EXTINPUT, ExtInput.HAS_GENERATOR): f.extinput_has_generator,
+            (Module.MUX, Mux.HAS_STATISTICS): f.mux_has_statistics,
+        }
+        return {(int(m), int(p)): int(v) for (m, p), v in ro.items()}
+
+    @classmethod
+    def from_replay(cls, path: Any, *, paced: bool = False, **kwargs: Any) -> "VirtualDavis346":
+        """A virtual camera that reports the read-outs stored in a replay file and serves its transfers.
+
+        Args:
+            path: replay file.
+            paced: release transfers at their recorded host times.
+            **kwargs: overrides for the constructor.
+        """
+        from davis_rig.usb.sources import ReplaySource
+
+        source = ReplaySource(path, paced=paced)
+        header = source.header
+        params: dict[str, Any] = dict(layout=header.device_info, source=source)
+        if header.serial:
+            params["serial"] = header.serial
+        if header.clocks:
+            params["clocks"] = Clocks(**header.clocks)
+        for name in ("firmware_version", "logic_version", "logic_patch"):
+            if getattr(header, name):
+                params[name] = getattr(header, name)
+        if isinstance(header.extra.get("features"), dict):
+            known = {f.name for f in fields(DeviceFeatures)}
+            params["features"] = DeviceFeatures(**{k: bool(v) for k, v in header.extra["features"].items() if k in known})
+        params.update(kwargs)
+        return cls(**params)
+
+    def attach_source(self, source: DataSource) -> None:
+        """Set (or replace) the bulk data source."""
+        with self._cond:
+            self.source = source
+            self._cond.notify_all()
+
+    # --- observation helpers for tests ------------------------------------------------------------
+    @property
+    def writes(self) -> list[ConfigWrite]:
+        """Every register write received (0xBF singles and expanded 0xC2 records), in order."""
+        out: list[ConfigWrite] = []
+        for rec in self.control_log:
+            if rec.request_type == REQUEST_TYPE_VENDOR_OUT and rec.request == VR_FPGA_CONFIG:
+                out.append(ConfigWrite(rec.value, rec.index, struct.unpack(">I", rec.data)[0]))
+            elif rec.request_type == REQUEST_TYPE_VENDOR_OUT and rec.request == VR_FPGA_CONFIG_MULTIPLE:
+                out += decode_multiple(rec.data, rec.value)
+        return out
+
+    @property
+    def reads(self) -> list[tuple[int, int]]:
+        """Every register read ``(module, param)`` received, in order."""
+        return [
+            (rec.value, rec.index)
+            for rec in self.control_log
+            if rec.request_type == REQUEST_TYPE_VENDOR_IN and rec.request == VR_FPGA_CONFIG
+        ]
+
+    def register(self, module: int, param: int) -> int:
+        """Current value of a register (read-only registers report their read-out)."""
+        key = (int(module), int(param))
+        return self._read_only.get(key, self.registers.get(key, 0))
+
+    @property
+    def streaming(self) -> bool:
+        """Whether the device would send data: MUX RUN, USB RUN and DVS RUN or APS RUN set."""
+        r = self.register
+        return bool(
+            r(Module.MUX, Mux.RUN) and r(Module.USB, Usb.RUN) and (r(Module.DVS, Dvs.RUN) or r(Module.APS, Aps.RUN))
+        )
+
+    def unplug(self) -> None:
+        """Simulate pulling the cable now: every later request fails with ENODEV."""
+        with self._cond:
+            self.unplugged = True
+            self._cond.notify_all()
+
+    # --- requests from the backend ----------------------------------------------------------------
+    def _check_present(self) -> None:
+        if self.unplugged:
+            raise usb_error(errno_mod.ENODEV)
+
+    def control(self, request_type: int, request: int, value: int, index: int, data: Any) -> Any:
+        """Handle a vendor control transfer; returns bytes written (OUT) or the reply bytes (IN)."""
+        with self._cond:
+            self._check_present()
+            if request_type & 0x80:
+                length = len(data)
+                self.control_log.append(ControlRecord(request_type, request, value, index, b"", length))
+                if request_type == REQUEST_TYPE_VENDOR_IN and request == VR_FPGA_CONFIG:
+                    return struct.pack(">I", self.register(value, index) & 0xFFFFFFFF)[:length]
+                raise usb_error(errno_mod.EPIPE)  # unsupported request → stall, like a real device
+            payload = bytes(data)
+            self.control_log.append(ControlRecord(request_type, request, value, index, payload, 0))
+            if request == VR_FPGA_CONFIG:
+                if len(payload) != 4:
+                    raise usb_error(errno_mod.EPIPE)
+                self._write(value, index, struct.unpack(">I", payload)[0])
+            elif request == VR_FPGA_CONFIG_MULTIPLE:
+                if len(payload) != 6 * value:
+                    raise usb_error(errno_mod.EPIPE)
+                for w in decode_multiple(payload, value):
+                    self._write(w.module, w.param, w.value)
+            else:
+                raise usb_error(errno_mod.EPIPE)
+            return len(payload)
+
+    def _write(self, module: int, param: int, value: int) -> None:
+        key = (int(module), int(param))
+        if key in self._read_only:
+            return  # the FPGA ignores writes to read-only registers
+        was_streaming = self.streaming
+        self.registers[key] = int(value)
+        if not was_streaming and self.streaming:
+            self._run_start = self._clock()
+        self._cond.notify_all()
+
+    def clear_halt(self, endpoint: int) -> None:
+        """CLEAR_FEATURE(ENDPOINT_HALT)."""
+        with self._cond:
+            self._check_present()
+            self.clear_halts.append(int(endpoint))
+            if endpoint == DATA_ENDPOINT:
+                self._halted = False
+
+    def _wait(self, deadline: float | None, until: float | None = None) -> bool:
+        """Wait on the condition until notified, ``until`` or ``deadline``; False once the deadline passed."""
+        now = time.monotonic()
+        if deadline is not None and now >= deadline:
+            return False
+        limits = [x for x in (deadline, until) if x is not None]
+        self._cond.wait(timeout=(min(limits) - now) if limits else None)
+        return True
+
+    def bulk_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
+        """Serve one bulk read on 0x82 into ``buff``; returns the byte count (see class docstring for faults)."""
+        deadline = None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
+        with self._cond:
+            self._check_present()
+            if endpoint != DATA_ENDPOINT:
+                raise usb_error(errno_mod.EPIPE)
+            if self._halted:
+                raise usb_error(errno_mod.EPIPE)
+            self._bulk_reads += 1
+            f = self.faults
+            if f.stall_every and self._bulk_reads % f.stall_every == 0:
+                self._halted = True
+                raise usb_error(errno_mod.EPIPE)
+            if f.timeout_every and self._bulk_reads % f.timeout_every == 0:
+                raise usb_error(errno_mod.ETIMEDOUT)
+            while True:
+                self._check_present()
+                if self.streaming and self.source is not None:
+                    release_us = self.source.peek_release_us()
+                    if release_us is not None:
+                        elapsed_us = (self._clock() - (self._run_start or 0.0)) * 1e6
+                        if release_us <= elapsed_us:
+                            break
+                        wake = time.monotonic() + (release_us - elapsed_us) / 1e6
+                        if not self._wait(deadline, wake):
+                            raise usb_error(errno_mod.ETIMEDOUT)
+                        continue
+                if not self._wait(deadline):
+                    raise usb_error(errno_mod.ETIMEDOUT)
+            data = self._shape_transfer(self.source.pop())
+            n = min(len(data), len(buff))
+            if n < len(data):
+                self.source.push_front(data[n:])
+            memoryview(buff).cast("B")[:n] = data[:n]
+            self.transfers_served += 1
+            self.bytes_served += n
+            if f.disconnect_after_transfers is not None and self.transfers_served >= f.disconnect_after_transfers:
+                self.unplugged = True
+                self._cond.notify_all()
+            return n
+
+    def _shape_transfer(self, data: bytes) -> bytes:
+        """Apply odd-length, garbage and short-transfer faults to a transfer just taken from the source."""
+        f = self.faults
+        self._transfer_count += 1
+        if f.odd_length and self._transfer_count % f.odd_length == 0:
+            data = data + b"\xa5"
+        if f.garbage_rate > 0 and data:
+            arr = np.frombuffer(data, dtype=np.uint8).copy()
+            hit = self._rng.random(arr.size) < f.garbage_rate
+            arr[hit] = self._rng.integers(0, 256, int(hit.sum()), dtype=np.uint8)
+            data = arr.tobytes()
+        if f.short_transfer_bytes and len(data) > f.short_transfer_bytes:
+            assert self.source is not None
+            self.source.push_front(data[f.short_transfer_bytes :])
+            data = data[: f.short_transfer_bytes]
+        return data
+
+    def intr_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
+        """Interrupt endpoint 0x81 (debug messages): the model never has any, so it times out."""
+        deadline = None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
+        with self._cond:
+            self._check_present()
+            if endpoint != DEBUG_ENDPOINT:
+                raise usb_error(errno_mod.EPIPE)
+            while self._wait(deadline):
+                self._check_present()
+            raise usb_error(errno_mod.ETIMEDOUT)
+
+    # --- descriptors ------------------------------------------------------------------------------
+    def strings(self) -> dict[int, str]:
+        """String descriptors by index (1 manufacturer, 2 product, 3 serial if any)."""
+        out = {1: "iniVation", 2: "DAVIS FX3"}
+        if self.serial:
+            out[3] = self.serial
+        return out
+
+    def device_descriptor(self) -> _Desc:
+        """USB device descriptor (plus pyusb's bus/address/port/speed extras)."""
+        return _Desc(
+            bLength=18,
+            bDescriptorType=1,
+            bcdUSB=0x0300,
+            bDeviceClass=0,
+            bDeviceSubClass=0,
+            bDeviceProtocol=0,
+            bMaxPacketSize0=9,
+            idVendor=INIVATION_VID,
+            idProduct=self.product_id,
+            bcdDevice=0x0000 | (self.firmware_version & 0xFF),
+            iManufacturer=1,
+            iProduct=2,
+            iSerialNumber=3 if self.serial else 0,
+            bNumConfigurations=1,
+            address=self.address,
+            bus=self.bus,
+            port_number=1,
+            port_numbers=(1,),
+            speed=5,  # LIBUSB_SPEED_SUPER
+        )
+
+
+_CONFIG_DESC = dict(
+    bLength=9,
+    bDescriptorType=2,
+    wTotalLength=9 + 9 + 7 + 7,
+    bNumInterfaces=1,
+    bConfigurationValue=1,
+    iConfiguration=0,
+    bmAttributes=0x80,
+    bMaxPower=112,
+    extra_descriptors=[],
+)
+_INTERFACE_DESC = dict(
+    bLength=9,
+    bDescriptorType=4,
+    bInterfaceNumber=0,
+    bAlternateSetting=0,
+    bNumEndpoints=2,
+    bInterfaceClass=0xFF,
+    bInterfaceSubClass=0,
+    bInterfaceProtocol=0,
+    iInterface=0,
+    extra_descriptors=[],
+)
+_ENDPOINT_DESCS = (
+    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DATA_ENDPOINT, bmAttributes=0x02, wMaxPacketSize=1024,
+         bInterval=0, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
+    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DEBUG_ENDPOINT, bmAttributes=0x03, wMaxPacketSize=64,
+         bInterval=4, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
+)
+
+
+class _Handle:
+    def __init__(self, device: VirtualDavis346, number: int):
+        self.device = device
+        self.number = number
+
+
+class VirtualDavis346Backend(usb.backend.IBackend):
+    """pyusb backend serving one or more :class:`VirtualDavis346` devices.
+
+    Args:
+        *devices: the virtual cameras on this "bus" (enumeration order = argument order).
+
+    Attributes:
+        devices: the device models.
+        open_handles: number of currently open device handles.
+    """
+
+    def __init__(self, *devices: VirtualDavis346):
+        self.devices = list(devices)
+        self._handles = 0
+        self.open_handles = 0
+        self._lock = threading.Lock()
+
+    def add_device(self, device: VirtualDavis346) -> None:
+        """Plug in another virtual camera."""
+        self.devices.append(device)
+
+    # enumeration and descriptors
+    def enumerate_devices(self):
+        return [d for d in self.devices if not d.unplugged]
+
+    def get_parent(self, dev):
+        return None
+
+    def get_device_descriptor(self, dev):
+        return dev.device_descriptor()
+
+    def get_configuration_descriptor(self, dev, config):
+        if config != 0:
+            raise IndexError(f"configuration index {config} out of range")
+        return _Desc(**_CONFIG_DESC)
+
+    def get_interface_descriptor(self, dev, intf, alt, config):
+        if config != 0 or intf != 0 or alt != 0:
+            raise IndexError(f"interface ({intf}, {alt}) out of range")
+        return _Desc(**_INTERFACE_DESC)
+
+    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
+        if config != 0 or intf != 0 or alt != 0 or not 0 <= ep < len(_ENDPOINT_DESCS):
+            raise IndexError(f"endpoint {ep} out of range")
+        return _Desc(**_ENDPOINT_DESCS[ep])
+
+    # handles, configuration, interfaces
+    def open_device(self, dev):
+        dev._check_present()
+        if dev.faults.open_errno is not None:
+            raise usb_error(dev.faults.open_errno)
+        with self._lock:
+            self._handles += 1
+            self.open_handles += 1
+            return _Handle(dev, self._handles)
+
+    def close_device(self, dev_handle):
+        with self._lock:
+            self.open_handles -= 1
+
+    def set_configuration(self, dev_handle, config_value):
+        dev_handle.device._check_present()
+        if config_value not in (0, 1):
+            raise usb_error(errno_mod.EIO)
+        dev_handle.device.configuration = int(config_value)
+
+    def get_configuration(self, dev_handle):
+        dev_handle.device._check_present()
+        return dev_handle.device.configuration
+
+    def set_interface_altsetting(self, dev_handle, intf, altsetting):
+        dev_handle.device._check_present()
+
+    def claim_interface(self, dev_handle, intf):
+        dev = dev_handle.device
+        dev._check_present()
+        if dev.faults.claim_errno is not None:
+            raise usb_error(dev.faults.claim_errno)
+        if dev.claimed:
+            raise usb_error(errno_mod.EBUSY)
+        dev.claimed = True
+
+    def release_interface(self, dev_handle, intf):
+        dev = dev_handle.device
+        dev.claimed = False
+        dev._check_present()
+
+    # transfers
+    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
+        return dev_handle.device.bulk_read(ep, buff, timeout)
+
+    def bulk_write(self, dev_handle, ep, intf, data, timeout):
+        dev_handle.device._check_present()
+        raise usb_error(errno_mod.EPIPE)  # the DAVIS has no OUT data endpoint
+
+    def intr_read(self, dev_handle, ep, intf, buff, timeout):
+        return dev_handle.device.intr_read(ep, buff, timeout)
+
+    def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
+        dev = dev_handle.device
+        if (bmRequestType & 0x60) == 0x00:  # standard request
+            return self._standard_request(dev, bmRequestType, bRequest, wValue, wIndex, data)
+        reply = dev.control(bmRequestType, bRequest, wValue, wIndex, data)
+        if bmRequestType & 0x80:
+            memoryview(data).cast("B")[: len(reply)] = reply
+            return len(reply)
+        return reply
+
+    def _standard_request(self, dev, bmRequestType, bRequest, wValue, wIndex, data):
+        dev._check_present()
+        if bmRequestType == 0x80 and bRequest == 6 and (wValue >> 8) == 3:  # GET_DESCRIPTOR(STRING)
+            index = wValue & 0xFF
+            if index == 0:
+                payload = struct.pack("<BBH", 4, 3, 0x0409)
+            else:
+                text = dev.strings().get(index)
+                if text is None:
+                    raise usb_error(errno_mod.EPIPE)
+                encoded = text.encode("utf-16-le")
+                payload = struct.pack("<BB", 2 + len(encoded), 3) + encoded
+            n = min(len(payload), len(data))
+            memoryview(data).cast("B")[:n] = payload[:n]
+            return n
+        raise usb_error(errno_mod.EPIPE)
+
+    def clear_halt(self, dev_handle, ep):
+        dev_handle.device.clear_halt(ep)
+
+    def reset_device(self, dev_handle):
+        dev_handle.device._check_present()
+
+    def is_kernel_driver_active(self, dev_handle, intf):
+        return False
+
+    def detach_kernel_driver(self, dev_handle, intf):
+        return None
+
+    def attach_kernel_driver(self, dev_handle, intf):
+        return None
