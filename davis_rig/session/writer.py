@@ -229,6 +229,11 @@ class SessionWriter:
         """Items accepted so far: ``{"events", "frames", "specials", "imu"}`` (buffered + written)."""
         return dict(self._counts)
 
+    @property
+    def last_t_us(self) -> int | None:
+        """Device time of the last accepted event, µs (``None`` before the first event)."""
+        return self._last_t
+
     def set_stats(self, stats: Mapping) -> None:
         """Record counters kept outside the writer (device drops, decoder stats); stored in the ``stats`` attr.
 

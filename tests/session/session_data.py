@@ -41,3 +41,96 @@ def split_chunks(events: np.ndarray, sizes) -> list[np.ndarray]:
     """Split events at the given cumulative chunk sizes (copies)."""
     bounds = np.cumsum(sizes)
     return [part.copy() for part in np.split(events, bounds[bounds < len(events)])]
+
+
+def synth_stream(events: np.ndarray) -> bytes:
+    """The DAVIS346 word stream of ``events`` (wrap, timestamp, Y, X words per event), for decoder-level tests.
+
+    Independent of protocol.encoder on purpose (a second, minimal writer of the same wire format).
+    """
+    from davis_rig.protocol import words as w
+
+    t = events["t"].astype(np.int64)
+    high = t >> 15
+    wraps = np.diff(np.concatenate([[0], high]))
+    if np.any(wraps < 0) or np.any(wraps > 4095):
+        raise ValueError("synth_stream: timestamps must be non-decreasing with gaps < 4095 * 32768 µs")
+    out = np.zeros((len(t), 4), dtype=np.int64)
+    out[:, 0] = (7 << 12) | wraps
+    out[:, 1] = 0x8000 | (t & 0x7FFF)
+    out[:, 2] = (1 << 12) | events["y"]
+    out[:, 3] = ((2 + events["p"].astype(np.int64)) << 12) | events["x"]
+    keep = np.ones_like(out, dtype=bool)
+    keep[:, 0] = wraps > 0
+    return w.words_to_bytes(out[keep])
+
+
+class FakeCamera:
+    """A minimal stand-in with the Davis346 recording API, fed by raw transfers through the real decoder.
+
+    Used by the session tests so they do not depend on the USB layer; the end-to-end tests use the real
+    Davis346 on the virtual backend.
+
+    Args:
+        transfers: raw transfers (bytes) served in order, one per chunk.
+        disconnect_after: raise DeviceDisconnectedError after serving this many transfers.
+        delay_s: sleep per transfer (to make recordings last in wall-clock time).
+    """
+
+    def __init__(self, transfers, disconnect_after=None, delay_s=0.0):
+        from davis_rig.protocol.decoder import StreamDecoder
+        from davis_rig.protocol.layout import SensorLayout
+
+        self.layout = SensorLayout.davis346()
+        self.info = {"serial": "FAKE0001", "firmware_version": 0, "logic_version": 18, "chip_id": 5,
+                     "layout": self.layout.to_dict()}
+        self.biases = {"PrBp": 1}
+        self.transfers = list(transfers)
+        self.disconnect_after = disconnect_after
+        self.delay_s = delay_s
+        self.decoder = StreamDecoder(self.layout)
+        self.listeners = []
+        self.calls = []
+        self.served = 0
+
+    def send_default_config(self):
+        self.calls.append("send_default_config")
+
+    def set_exposure(self, us):
+        self.calls.append(("set_exposure", us))
+
+    def set_frame_interval(self, us):
+        self.calls.append(("set_frame_interval", us))
+
+    def add_raw_listener(self, listener):
+        self.listeners.append(listener)
+
+    def start(self):
+        self.calls.append("start")
+
+    def stop(self):
+        self.calls.append("stop")
+
+    @property
+    def stats(self):
+        return {"transfers": self.served, "dropped_transfers": 0, "decoder": self.decoder.stats.as_dict()}
+
+    def chunks(self, timeout_s=0.1):
+        import time
+
+        from davis_rig.errors import DeviceDisconnectedError
+
+        for data in self.transfers:
+            if self.disconnect_after is not None and self.served >= self.disconnect_after:
+                raise DeviceDisconnectedError("fake camera unplugged")
+            if self.delay_s:
+                time.sleep(self.delay_s)
+            for listener in self.listeners:
+                listener(data)
+            self.served += 1
+            yield self.decoder.feed(data)
+
+
+def cut(data: bytes, size: int = 8192) -> list[bytes]:
+    """Cut a byte stream into transfers of ``size`` bytes."""
+    return [data[i : i + size] for i in range(0, len(data), size)]

@@ -1,0 +1,199 @@
+"""Record a camera into a session.h5: the one API call behind ``davis-record``.
+
+Capture path: this module never imports torch (nor the device package: the camera is passed in).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from davis_rig.errors import DeviceDisconnectedError, SessionError
+from davis_rig.session.writer import SessionWriter, to_jsonable
+
+#: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
+POLL_TIMEOUT_S = 0.1
+
+
+@dataclass(frozen=True)
+class RecordingProgress:
+    """A snapshot passed to the ``progress`` callback about twice per second.
+
+    Attributes:
+        elapsed_s: wall-clock time since start, s.
+        events, frames: items written so far.
+        event_rate_hz: events per second over the last interval, Hz.
+        dropped_transfers: USB transfers the camera dropped so far (its ring buffer overflowed).
+        decoder_errors: unknown words + out-of-range DVS addresses + dropped frames/samples so far.
+    """
+
+    elapsed_s: float
+    events: int
+    frames: int
+    event_rate_hz: float
+    dropped_transfers: int
+    decoder_errors: int
+
+
+@dataclass(frozen=True)
+class RecordingSummary:
+    """What :func:`record_session` recorded.
+
+    Attributes:
+        path: the session file.
+        duration_s: wall-clock recording time, s.
+        events, frames, specials, imu: items in the file.
+        stopped_by: ``"duration"``, ``"stop"`` (stop_event / Ctrl-C), ``"disconnected"`` or ``"end"`` (the
+            camera's chunk stream ended, e.g. a replay ran out).
+        camera_stats: the camera's counters at the end (transfers, bytes, dropped_transfers, decoder stats).
+    """
+
+    path: Path
+    duration_s: float
+    events: int
+    frames: int
+    specials: int
+    imu: int
+    stopped_by: str
+    camera_stats: dict = field(default_factory=dict)
+
+    @property
+    def dropped_transfers(self) -> int:
+        """USB transfers the camera dropped during the recording."""
+        return int(self.camera_stats.get("dropped_transfers", 0) or 0)
+
+
+def _camera_stats(camera) -> dict:
+    stats = getattr(camera, "stats", None)
+    if callable(stats):
+        stats = stats()
+    return to_jsonable(stats) if stats is not None else {}
+
+
+def _decoder_errors(stats: dict) -> int:
+    decoder = stats.get("decoder") or {}
+    if not isinstance(decoder, dict):
+        return 0
+    keys = ("unknown_words", "dvs_out_of_range", "aps_frames_dropped", "aps_samples_dropped", "imu_samples_dropped")
+    return int(sum(int(decoder.get(key, 0) or 0) for key in keys))
+
+
+def record_session(
+    camera,
+    path: str | os.PathLike,
+    *,
+    duration_s: float | None = None,
+    exposure_us: int | None = None,
+    frame_interval_us: int | None = None,
+    overwrite: bool = False,
+    journal: bool = True,
+    send_default_config: bool = True,
+    stop_event: threading.Event | None = None,
+    progress: Callable[[RecordingProgress], None] | None = None,
+    progress_interval_s: float = 0.5,
+) -> RecordingSummary:
+    """Configure an open camera, record it into ``path`` until ``duration_s`` / ``stop_event`` / unplug, and stop.
+
+    The raw USB transfers are journaled next to the file (``<path>.journal``, see
+    :mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild
+    the file after a crash; the journal is deleted when the recording ends cleanly. An unplug
+    (:class:`DeviceDisconnectedError`) ends the recording normally: everything decoded before it is written and
+    the file is closed (``stopped_by="disconnected"``).
+
+    Args:
+        camera: an open ``davis_rig.device.camera.Davis346`` (or an object with the same methods: ``info``,
+            ``send_default_config``, ``set_exposure``, ``set_frame_interval``, ``biases``, ``start``, ``stop``,
+            ``chunks(timeout_s=)``, ``stats``, ``add_raw_listener``).
+        path: session.h5 to create.
+        duration_s: stop after this wall-clock time, s (``None``: until ``stop_event`` or the stream ends).
+        exposure_us: APS exposure, µs (``None``: the camera default).
+        frame_interval_us: APS frame interval, µs (``None``: the camera default).
+        overwrite: replace an existing file.
+        journal: keep the raw-transfer journal (crash recovery).
+        send_default_config: send libcaer's default configuration before the settings above.
+        stop_event: set it (e.g. from a SIGINT handler) to stop cleanly.
+        progress: called with a :class:`RecordingProgress` every ``progress_interval_s`` s.
+        progress_interval_s: progress period, s.
+
+    Returns:
+        A :class:`RecordingSummary`.
+
+    Raises:
+        SessionError: the file exists (without ``overwrite``) or cannot be written (disk full: the file is
+            closed cleanly with the data written so far, see :class:`SessionWriter`).
+        DeviceError: the camera failed before or while starting.
+    """
+    if duration_s is not None and duration_s < 0:
+        raise ValueError(f"duration_s must be >= 0, got {duration_s}")
+    if send_default_config:
+        camera.send_default_config()
+    if exposure_us is not None:
+        camera.set_exposure(int(exposure_us))
+    if frame_interval_us is not None:
+        camera.set_frame_interval(int(frame_interval_us))
+    config = {
+        "exposure_us": exposure_us,
+        "frame_interval_us": frame_interval_us,
+        "default_config_sent": send_default_config,
+        "biases": to_jsonable(getattr(camera, "biases", None)) or {},
+    }
+    stop_event = stop_event or threading.Event()
+    path = Path(path)
+    stopped_by = "end"
+    with SessionWriter(path, device_info=camera.info, config=config, overwrite=overwrite,
+                       journal=journal) as writer:
+        camera.add_raw_listener(writer.append_raw)
+        t_start = time.monotonic()
+        last_progress, last_events = t_start, 0
+        camera.start()
+        try:
+            for chunk in camera.chunks(timeout_s=POLL_TIMEOUT_S):
+                if chunk is not None:
+                    writer.append(chunk)
+                else:
+                    writer.maybe_flush()
+                now = time.monotonic()
+                if now - last_progress >= progress_interval_s:
+                    stats = _camera_stats(camera)
+                    writer.set_stats({"camera": stats})
+                    if writer.journal is not None:
+                        writer.journal.note({"camera": stats})
+                    if progress is not None:
+                        events = writer.counts["events"]
+                        progress(RecordingProgress(
+                            elapsed_s=now - t_start,
+                            events=events,
+                            frames=writer.counts["frames"],
+                            event_rate_hz=(events - last_events) / (now - last_progress),
+                            dropped_transfers=int(stats.get("dropped_transfers", 0) or 0),
+                            decoder_errors=_decoder_errors(stats),
+                        ))
+                    last_progress, last_events = now, writer.counts["events"]
+                if stop_event.is_set():
+                    stopped_by = "stop"
+                    break
+                if duration_s is not None and now - t_start >= duration_s:
+                    stopped_by = "duration"
+                    break
+        except DeviceDisconnectedError:
+            stopped_by = "disconnected"
+        finally:
+            duration = time.monotonic() - t_start
+            if stopped_by != "disconnected":
+                try:
+                    camera.stop()
+                except DeviceDisconnectedError:
+                    stopped_by = "disconnected"
+        stats = _camera_stats(camera)
+        writer.set_stats({"camera": stats, "stopped_by": stopped_by})
+        counts = writer.counts
+    return RecordingSummary(path=path, duration_s=duration, events=counts["events"], frames=counts["frames"],
+                            specials=counts["specials"], imu=counts["imu"], stopped_by=stopped_by,
+                            camera_stats=stats)
+
+
+__all__ = ["RecordingProgress", "RecordingSummary", "record_session", "SessionError"]
