@@ -1,0 +1,147 @@
+"""``davis-record``: record a DAVIS346 (or a replayed virtual one) into a session.h5; ``--recover`` after a crash.
+
+Thin front end: the arguments map onto :func:`davis_rig.session.record.record_session` (or
+:func:`davis_rig.session.recovery.recover_session`); errors become one message and an exit code in
+:mod:`davis_rig.cli._common`. Heavy imports (h5py, pyusb) happen after argument parsing so ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+from davis_rig.cli._common import EXIT_OK, EXIT_USAGE, run_command
+
+NAME = "davis-record"
+
+EPILOG = """\
+examples:
+  davis-record --out session.h5 --duration 10 --exposure 4000 --frame-interval 40000
+  davis-record --out test.h5 --fake recordings/replay.bin --duration 5     # virtual camera replaying a file
+  davis-record --recover session.h5       # rebuild session.h5 from session.h5.journal after a crash
+
+Ctrl-C stops cleanly (the file is closed and complete). Exit codes: 0 ok, 1 error, 2 bad arguments,
+3 camera/USB problem, 4 file problem (exists, disk full, corrupt), 5 missing dependency, 130 interrupted.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``davis-record``."""
+    parser = argparse.ArgumentParser(
+        prog=NAME,
+        description="Record DVS events, APS frames, special events and IMU samples of a DAVIS346 into a session.h5.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--out", metavar="SESSION_H5", help="session file to create")
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    parser.add_argument("--exposure", type=int, metavar="US", help="APS exposure, µs (default: camera default)")
+    parser.add_argument("--frame-interval", type=int, metavar="US",
+                        help="APS frame interval, µs (default: camera default)")
+    parser.add_argument("--serial", metavar="SN", help="open the camera with this serial number")
+    parser.add_argument("--fake", metavar="REPLAY",
+                        help="use a virtual DAVIS346 that replays this replay file (davis_rig.usb.replay format)")
+    parser.add_argument("--fake-fast", action="store_true",
+                        help="with --fake: serve the replay as fast as possible instead of in real time")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
+    parser.add_argument("--no-journal", action="store_true",
+                        help="do not keep the raw-transfer journal (no crash recovery)")
+    parser.add_argument("--quiet", action="store_true", help="no live progress line")
+    parser.add_argument("--recover", metavar="SESSION_H5",
+                        help="rebuild SESSION_H5 from SESSION_H5.journal after a crash and exit")
+    return parser
+
+
+def open_camera(serial: str | None, fake: str | None, fake_fast: bool = False):
+    """Open the real camera, or a virtual DAVIS346 replaying ``fake``; returns a ``Davis346`` context manager."""
+    from davis_rig.device.camera import Davis346
+
+    backend = None
+    if fake is not None:
+        from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+
+        backend = VirtualDavis346Backend(VirtualDavis346.from_replay(fake, paced=not fake_fast))
+    return Davis346.open(serial=serial, backend=backend)
+
+
+def _progress_line(progress) -> None:
+    print(
+        f"\r{progress.elapsed_s:7.1f} s  {progress.event_rate_hz / 1e6:7.3f} Mev/s  events {progress.events:>12,d}  "
+        f"frames {progress.frames:>6d}  dropped transfers {progress.dropped_transfers}  "
+        f"decoder errors {progress.decoder_errors}",
+        end="",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _record(args: argparse.Namespace) -> int:
+    from davis_rig.session.record import record_session
+
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    try:
+        with open_camera(args.serial, args.fake, args.fake_fast) as camera:
+            summary = record_session(
+                camera,
+                args.out,
+                duration_s=args.duration,
+                exposure_us=args.exposure,
+                frame_interval_us=args.frame_interval,
+                overwrite=args.overwrite,
+                journal=not args.no_journal,
+                stop_event=stop,
+                progress=None if args.quiet else _progress_line,
+            )
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if not args.quiet:
+            print(file=sys.stderr)
+    rate = summary.events / summary.duration_s / 1e6 if summary.duration_s > 0 else 0.0
+    print(
+        f"{summary.path}: {summary.events} events ({rate:.3f} Mev/s), {summary.frames} frames, "
+        f"{summary.specials} special events, {summary.imu} IMU samples in {summary.duration_s:.1f} s; "
+        f"stopped by {summary.stopped_by}; dropped transfers: {summary.dropped_transfers}"
+    )
+    return EXIT_OK
+
+
+def _recover(path: str) -> int:
+    from davis_rig.session.recovery import recover_session
+
+    report = recover_session(path)
+    if report.recovered:
+        print(
+            f"{report.path}: rebuilt from the journal: {report.transfers} transfers, {report.events} events, "
+            f"{report.frames} frames (last event t={report.t_last_us} µs; {report.discarded_bytes} damaged bytes "
+            "at the journal's end dropped)"
+        )
+    else:
+        print(f"{report.path}: intact, no journal: nothing to recover ({report.events} events, {report.frames} frames)")
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``davis-record``; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.recover is not None:
+        if args.out is not None:
+            parser.print_usage(sys.stderr)
+            print(f"{NAME}: error: --recover cannot be combined with --out", file=sys.stderr)
+            return EXIT_USAGE
+        return run_command(NAME, lambda: _recover(args.recover))
+    if args.out is None:
+        parser.print_usage(sys.stderr)
+        print(f"{NAME}: error: --out is required (or --recover SESSION_H5)", file=sys.stderr)
+        return EXIT_USAGE
+    if args.fake_fast and args.fake is None:
+        print(f"{NAME}: error: --fake-fast needs --fake REPLAY", file=sys.stderr)
+        return EXIT_USAGE
+    return run_command(NAME, lambda: _record(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,126 @@
+"""davis-record: arguments map onto record_session / recover_session; errors become exit codes."""
+
+from __future__ import annotations
+
+import contextlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from davis_rig.cli import record as cli
+from davis_rig.cli._common import EXIT_DATA, EXIT_DEVICE, EXIT_USAGE
+from davis_rig.errors import DeviceNotFoundError, SessionError
+from davis_rig.session.record import RecordingSummary
+
+
+def test_help_is_fast_and_imports_nothing_heavy():
+    code = (
+        "import sys, io, contextlib\n"
+        "from davis_rig.cli.record import main\n"
+        "buf = io.StringIO()\n"
+        "with contextlib.redirect_stdout(buf):\n"
+        "    try: main(['--help'])\n"
+        "    except SystemExit: pass\n"
+        "assert '--out' in buf.getvalue() and '--recover' in buf.getvalue()\n"
+        "print(sorted(m for m in ('h5py', 'usb', 'torch', 'numpy', 'hdf5plugin') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+class FakeOpen:
+    def __init__(self):
+        self.calls = []
+        self.camera = object()
+
+    def __call__(self, serial, fake, fake_fast=False):
+        self.calls.append((serial, fake, fake_fast))
+
+        @contextlib.contextmanager
+        def opened():
+            yield self.camera
+
+        return opened()
+
+
+def _summary(path):
+    return RecordingSummary(path=Path(path), duration_s=2.0, events=10, frames=1, specials=0, imu=0,
+                            stopped_by="duration", camera_stats={"dropped_transfers": 0})
+
+
+def test_arguments_map_onto_record_session(monkeypatch, capsys, tmp_path):
+    opener = FakeOpen()
+    calls = []
+
+    def fake_record(camera, path, **kwargs):
+        calls.append((camera, path, kwargs))
+        return _summary(path)
+
+    monkeypatch.setattr(cli, "open_camera", opener)
+    monkeypatch.setattr("davis_rig.session.record.record_session", fake_record)
+    out = str(tmp_path / "s.h5")
+    code = cli.main(["--out", out, "--duration", "2.5", "--exposure", "4000", "--frame-interval", "40000",
+                     "--serial", "SN1", "--fake", "replay.bin", "--fake-fast", "--overwrite", "--quiet"])
+    assert code == 0
+    assert opener.calls == [("SN1", "replay.bin", True)]
+    assert len(calls) == 1
+    camera, path, kwargs = calls[0]
+    stop_event = kwargs.pop("stop_event")
+    assert camera is opener.camera and path == out
+    assert kwargs == dict(duration_s=2.5, exposure_us=4000, frame_interval_us=40000, overwrite=True, journal=True,
+                          progress=None)
+    assert not stop_event.is_set()
+    assert "10 events" in capsys.readouterr().out
+
+
+def test_defaults(monkeypatch, tmp_path):
+    opener = FakeOpen()
+    calls = []
+    monkeypatch.setattr(cli, "open_camera", opener)
+    monkeypatch.setattr("davis_rig.session.record.record_session",
+                        lambda camera, path, **kwargs: calls.append(kwargs) or _summary(path))
+    assert cli.main(["--out", str(tmp_path / "s.h5"), "--no-journal"]) == 0
+    assert opener.calls == [(None, None, False)]
+    assert calls[0]["duration_s"] is None and calls[0]["exposure_us"] is None and calls[0]["journal"] is False
+    assert calls[0]["progress"] is cli._progress_line
+
+
+def test_recover_maps_onto_recover_session(monkeypatch, capsys):
+    from davis_rig.session.recovery import RecoveryReport
+
+    seen = []
+    monkeypatch.setattr("davis_rig.session.recovery.recover_session",
+                        lambda path: seen.append(path) or RecoveryReport(Path(path), True, transfers=3, events=7))
+    assert cli.main(["--recover", "x.h5"]) == 0
+    assert seen == ["x.h5"]
+    assert "rebuilt from the journal" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [([], "--out is required"), (["--recover", "a.h5", "--out", "b.h5"], "cannot be combined"),
+     (["--out", "a.h5", "--fake-fast"], "needs --fake")],
+)
+def test_usage_errors(argv, message, capsys):
+    assert cli.main(argv) == EXIT_USAGE
+    assert message in capsys.readouterr().err
+
+
+def test_bad_number_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--out", "a.h5", "--duration", "soon"])
+    assert info.value.code == EXIT_USAGE
+
+
+@pytest.mark.parametrize("error, code", [(DeviceNotFoundError("no DAVIS346 attached"), EXIT_DEVICE),
+                                         (SessionError("a.h5: file exists"), EXIT_DATA)])
+def test_errors_become_one_message_and_an_exit_code(monkeypatch, capsys, error, code):
+    def failing_open(serial, fake, fake_fast=False):
+        raise error
+
+    monkeypatch.setattr(cli, "open_camera", failing_open)
+    assert cli.main(["--out", "a.h5", "--quiet"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith("davis-record: error: ") and str(error) in err and "Traceback" not in err
