@@ -8,7 +8,9 @@ from davis_rig.models.rvt.layers import BaseConv, CSPLayer
 
 
 def _upsample2(x: torch.Tensor) -> torch.Tensor:
-    return F.interpolate(x, scale_factor=2, mode="nearest-exact")
+    # The official code uses mode="nearest-exact"; for an integer ×2 factor it picks the same source pixel
+    # (floor((i + 0.5) / 2) == floor(i / 2)), so "nearest" is identical and also exports to ONNX (Resize).
+    return F.interpolate(x, scale_factor=2.0, mode="nearest")
 
 
 class PAFPN(nn.Module):
