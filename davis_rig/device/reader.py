@@ -1,0 +1,213 @@
+"""Background USB reader: keeps bulk reads going on 0x82 while the caller decodes and writes.
+
+Why a thread with large reads keeps up with the DAVIS346's peak rate
+-----------------------------------------------------------------------
+pyusb only offers synchronous reads, while libcaer keeps 8 × 8 KiB asynchronous transfers in flight. At the sensor's
+~12 Mev/s peak the stream is at most ~2 words per event (a shared row word, a column word, sparse timestamp
+words), i.e. ~48 MB/s in the worst case. Each :meth:`UsbTransport.read_data` call here asks for ``read_bytes``
+(default 128 KiB = 16 × 8 KiB): libusb splits one synchronous bulk transfer of that size into several URBs that
+are all queued on the host controller at once, so the device always has buffers to fill — the same effect as
+libcaer's ring of transfers. A read returns as soon as the buffer is full or the FX3 ends a transfer with a short
+packet (at least every early-packet delay, 1 ms), so at 48 MB/s one read covers ~2.7 ms of data and the host-side
+gap between two reads (one Python call, tens of µs) is ~1-2 % of the time, well inside what the FX3's FIFO
+absorbs. The thread does nothing but read and enqueue (pyusb's read releases the GIL inside libusb), so decoding
+and disk writes never delay the next read; if the consumer falls behind for longer than the bounded queue
+(``queue_transfers``) covers, whole transfers are dropped and counted in :attr:`ReaderStats.dropped_transfers`
+(plus one warning) instead of blocking USB — the same policy as libcaer's ring buffer (and the FPGA's own
+"drop DVS on transfer stall").
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+
+#: Default bytes per synchronous bulk read: 16 libcaer-sized (8 KiB) transfers.
+DEFAULT_READ_BYTES = 16 * 8192
+#: Default read timeout, ms (bounds how long stop() waits for the thread).
+DEFAULT_READ_TIMEOUT_MS = 100
+#: Default queue depth, in reads.
+DEFAULT_QUEUE_TRANSFERS = 512
+
+
+@dataclass
+class ReaderStats:
+    """Counters of a :class:`TransferReader` (snapshot copies are returned).
+
+    Attributes:
+        transfers: reads that returned data.
+        bytes: bytes received.
+        dropped_transfers: reads discarded because the queue was full.
+        dropped_bytes: bytes in those reads.
+        timeouts: reads that returned no data within the timeout (idle camera, not an error).
+    """
+
+    transfers: int = 0
+    bytes: int = 0
+    dropped_transfers: int = 0
+    dropped_bytes: int = 0
+    timeouts: int = 0
+
+
+class _End:
+    """Queue sentinel: the reader stopped (``error`` set when it died of an error)."""
+
+    def __init__(self, error: BaseException | None):
+        self.error = error
+
+
+class TransferReader:
+    """A thread that calls ``read(size, timeout_ms)`` in a loop and queues the results.
+
+    Args:
+        read: ``read(size_bytes, timeout_ms) -> bytes | None`` (``None`` = timed out), e.g.
+            :meth:`UsbTransport.read_data`. Errors it raises end the thread and are re-raised by :meth:`get`
+            after every transfer read before them has been handed out.
+        read_bytes: bytes per read (a multiple of 8192 is best).
+        timeout_ms: per-read timeout, ms.
+        queue_transfers: queue depth in reads; when full, new reads are dropped and counted.
+
+    Use as a context manager or call :meth:`start` / :meth:`stop`.
+    """
+
+    def __init__(
+        self,
+        read: Callable[[int, int], bytes | None],
+        *,
+        read_bytes: int = DEFAULT_READ_BYTES,
+        timeout_ms: int = DEFAULT_READ_TIMEOUT_MS,
+        queue_transfers: int = DEFAULT_QUEUE_TRANSFERS,
+    ):
+        self._read = read
+        self.read_bytes = int(read_bytes)
+        self.timeout_ms = int(timeout_ms)
+        self._queue: queue.Queue = queue.Queue(maxsize=int(queue_transfers))
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._stats = ReaderStats()
+        self._lock = threading.Lock()
+        self._warned = False
+        self._finished = False
+        #: the exception that ended the thread, if any
+        self.error: BaseException | None = None
+
+    # --- control --------------------------------------------------------------------------------
+    def start(self) -> "TransferReader":
+        """Start the reader thread (once)."""
+        if self._thread is not None:
+            raise RuntimeError("TransferReader already started")
+        self._thread = threading.Thread(target=self._run, name="davis-usb-reader", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, join_timeout_s: float = 5.0) -> None:
+        """Ask the thread to stop after its current read and wait for it (queued data stays available)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(join_timeout_s)
+
+    @property
+    def running(self) -> bool:
+        """Whether the thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def stats(self) -> ReaderStats:
+        """A snapshot of the counters."""
+        with self._lock:
+            return ReaderStats(**vars(self._stats))
+
+    # --- thread body ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        error: BaseException | None = None
+        try:
+            while not self._stop.is_set():
+                data = self._read(self.read_bytes, self.timeout_ms)
+                if not data:
+                    with self._lock:
+                        self._stats.timeouts += 1
+                    continue
+                try:
+                    self._queue.put_nowait(data)
+                except queue.Full:
+                    with self._lock:
+                        self._stats.dropped_transfers += 1
+                        self._stats.dropped_bytes += len(data)
+                    if not self._warned:
+                        self._warned = True
+                        warnings.warn(
+                            "DAVIS reader: the consumer is too slow, USB transfers are being dropped "
+                            "(see stats.dropped_transfers)",
+                            RuntimeWarning,
+                            stacklevel=1,
+                        )
+                    continue
+                with self._lock:
+                    self._stats.transfers += 1
+                    self._stats.bytes += len(data)
+        except Exception as exc:  # handed to the consumer, re-raised by get()
+            error = exc
+        finally:
+            self.error = error
+            # the sentinel must get through even if the queue is full: block until the consumer makes room
+            # or the consumer is gone (stop() called), then give up after a short while
+            end = _End(error)
+            while True:
+                try:
+                    self._queue.put(end, timeout=0.05)
+                    break
+                except queue.Full:
+                    if self._stop.is_set():
+                        break  # nobody will drain the queue any more; the error stays in self.error
+
+    # --- consumer side ----------------------------------------------------------------------------
+    def get(self, timeout_s: float | None = None) -> bytes | None:
+        """Next transfer, in arrival order.
+
+        Args:
+            timeout_s: how long to wait, s (``None`` = until data or the end of the thread).
+
+        Returns:
+            The transfer's bytes, or ``None`` if nothing arrived in time or the reader has ended and its queue is
+            drained (see :attr:`finished`).
+
+        Raises:
+            Exception: the error that ended the reader (e.g. ``DeviceDisconnectedError``), raised once all
+                transfers read before it have been returned.
+        """
+        if self._finished:
+            return None
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                item = self._queue.get(timeout=0.1 if wait is None else min(wait, 0.1))
+            except queue.Empty:
+                if self._thread is not None and not self._thread.is_alive() and self._queue.empty():
+                    self._finished = True
+                    return None
+                if deadline is not None and time.monotonic() >= deadline:
+                    return None
+                continue
+            if isinstance(item, _End):
+                self._finished = True
+                if item.error is not None:
+                    raise item.error
+                return None
+            return item
+
+    @property
+    def finished(self) -> bool:
+        """True once :meth:`get` has seen the end of the stream (thread stopped and queue drained)."""
+        return self._finished
+
+    def __enter__(self) -> "TransferReader":
+        return self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
