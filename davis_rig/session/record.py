@@ -47,8 +47,8 @@ class RecordingSummary:
         path: the session file.
         duration_s: wall-clock recording time, s.
         events, frames, specials, imu: items in the file.
-        stopped_by: ``"duration"``, ``"stop"`` (stop_event / Ctrl-C), ``"disconnected"`` or ``"end"`` (the
-            camera's chunk stream ended, e.g. a replay ran out).
+        stopped_by: ``"duration"``, ``"stop"`` (stop_event / Ctrl-C), ``"disconnected"`` or ``"end"``
+            (acquisition was stopped by someone else).
         camera_stats: the camera's counters at the end (transfers, bytes, dropped_transfers, decoder stats).
     """
 
@@ -107,7 +107,7 @@ def record_session(
     Args:
         camera: an open ``davis_rig.device.camera.Davis346`` (or an object with the same methods: ``info``,
             ``send_default_config``, ``set_exposure``, ``set_frame_interval``, ``biases``, ``start``, ``stop``,
-            ``chunks(timeout_s=)``, ``stats``, ``add_raw_listener``).
+            ``read(timeout_s)``, ``running``, ``stats``, ``add_raw_listener``).
         path: session.h5 to create.
         duration_s: stop after this wall-clock time, s (``None``: until ``stop_event`` or the stream ends).
         exposure_us: APS exposure, µs (``None``: the camera default).
@@ -151,9 +151,12 @@ def record_session(
         last_progress, last_events = t_start, 0
         camera.start()
         try:
-            for chunk in camera.chunks(timeout_s=POLL_TIMEOUT_S):
+            while True:
+                chunk = camera.read(POLL_TIMEOUT_S)
                 if chunk is not None:
                     writer.append(chunk)
+                elif not camera.running:
+                    break  # acquisition ended elsewhere and everything read was delivered
                 else:
                     writer.maybe_flush()
                 now = time.monotonic()
@@ -179,15 +182,14 @@ def record_session(
                 if duration_s is not None and now - t_start >= duration_s:
                     stopped_by = "duration"
                     break
+            camera.stop()
+            # Transfers read before the stop are still queued: write them too.
+            while (chunk := camera.read(0)) is not None:
+                writer.append(chunk)
         except DeviceDisconnectedError:
             stopped_by = "disconnected"
-        finally:
-            duration = time.monotonic() - t_start
-            if stopped_by != "disconnected":
-                try:
-                    camera.stop()
-                except DeviceDisconnectedError:
-                    stopped_by = "disconnected"
+            camera.stop()  # safe after an unplug: only stops the reader thread
+        duration = time.monotonic() - t_start
         stats = _camera_stats(camera)
         writer.set_stats({"camera": stats, "stopped_by": stopped_by})
         counts = writer.counts

@@ -92,6 +92,8 @@ class FakeCamera:
         self.listeners = []
         self.calls = []
         self.served = 0
+        self.running = False
+        self._pending = iter(())
 
     def send_default_config(self):
         self.calls.append("send_default_config")
@@ -107,28 +109,36 @@ class FakeCamera:
 
     def start(self):
         self.calls.append("start")
+        self.running = True
+        self._pending = iter(self.transfers)
 
     def stop(self):
         self.calls.append("stop")
+        self.running = False
 
     @property
     def stats(self):
         return {"transfers": self.served, "dropped_transfers": 0, "decoder": self.decoder.stats.as_dict()}
 
-    def chunks(self, timeout_s=0.1):
+    def read(self, timeout_s=None):
+        """Next decoded transfer; None (and running=False) once the transfers are exhausted, like a stopped camera."""
         import time
 
         from davis_rig.errors import DeviceDisconnectedError
 
-        for data in self.transfers:
-            if self.disconnect_after is not None and self.served >= self.disconnect_after:
-                raise DeviceDisconnectedError("fake camera unplugged")
-            if self.delay_s:
-                time.sleep(self.delay_s)
-            for listener in self.listeners:
-                listener(data)
-            self.served += 1
-            yield self.decoder.feed(data)
+        if self.disconnect_after is not None and self.served >= self.disconnect_after:
+            self.running = False
+            raise DeviceDisconnectedError("fake camera unplugged")
+        data = next(self._pending, None) if self.running else None
+        if data is None:
+            self.running = False
+            return None
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        for listener in self.listeners:
+            listener(data)
+        self.served += 1
+        return self.decoder.feed(data)
 
 
 def cut(data: bytes, size: int = 8192) -> list[bytes]:

@@ -38,7 +38,6 @@ def test_unplug_keeps_the_data_before_it(tmp_path, rng):
     camera = FakeCamera(transfers, disconnect_after=20)
     summary = record_session(camera, tmp_path / "s.h5")
     assert summary.stopped_by == "disconnected"
-    assert "stop" not in camera.calls  # no control transfer to a device that is gone
     expected = np.concatenate([FakeCamera(transfers).decoder.feed(b"".join(transfers[:20])).events])
     with SessionReader(tmp_path / "s.h5") as reader:
         assert reader.complete
