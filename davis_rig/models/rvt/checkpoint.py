@@ -49,9 +49,77 @@ def _last_line(text: str) -> str:
     return lines[-1][:300] if lines else ""
 
 
-def _read_torch_file(path: Path) -> dict[str, torch.Tensor]:
+class InertGlobal:
+    """Stand-in for a class or function referenced by a checkpoint pickle in ``inert_unknown_globals`` mode.
+
+    Calling it (pickle REDUCE/NEWOBJ) only records the arguments; ``__setstate__`` only records the state.
+    Nothing named by the pickle is imported or executed.
+    """
+
+    qualified_name = "?"
+
+    def __init__(self, *args, **kwargs):
+        self.args = args
+        self.kwargs = kwargs
+
+    def __setstate__(self, state):
+        self.state = state
+
+    def __repr__(self) -> str:
+        return f"<inert {self.qualified_name}>"
+
+
+def _inert_pickle_module():
+    """A ``pickle_module`` for ``torch.load`` that resolves only torch's weights-only allow-list.
+
+    Every other global becomes a fresh :class:`InertGlobal` subclass, so loading never imports or runs code
+    named by the file; tensors are rebuilt by the same functions ``weights_only=True`` allows.
+    """
+    import pickle
+    import types
+
     try:
-        obj = torch.load(str(path), map_location="cpu", weights_only=True)
+        from torch._weights_only_unpickler import _get_allowed_globals
+
+        allowed = dict(_get_allowed_globals())
+    except (ImportError, AttributeError):  # pragma: no cover - older/newer torch without the private helper
+        import collections
+
+        allowed = {"collections.OrderedDict": collections.OrderedDict}
+        for name in ("_rebuild_tensor", "_rebuild_tensor_v2", "_rebuild_tensor_v3", "_rebuild_parameter"):
+            if hasattr(torch._utils, name):
+                allowed[f"torch._utils.{name}"] = getattr(torch._utils, name)
+
+    class InertUnpickler(pickle.Unpickler):
+        def find_class(self, module, name):
+            found = allowed.get(f"{module}.{name}")
+            if found is not None:
+                return found
+            if module == "torch" and isinstance(getattr(torch, name, None), torch.dtype):
+                return getattr(torch, name)
+            return type(f"Inert_{name}", (InertGlobal,), {"qualified_name": f"{module}.{name}"})
+
+    module = types.ModuleType("davis_rig_inert_pickle")
+    module.Unpickler = InertUnpickler
+    module.load = lambda file, **kwargs: InertUnpickler(file, **kwargs).load()
+    module.__version__ = pickle.format_version
+    return module
+
+
+def _read_torch_file(path: Path, inert_unknown_globals: bool = False) -> dict[str, torch.Tensor]:
+    if inert_unknown_globals:
+        import zipfile
+
+        if not zipfile.is_zipfile(path):
+            raise CheckpointError(
+                f"{path}: inert_unknown_globals needs the zip checkpoint format (torch >= 1.6); "
+                f"this file is not a zip archive (legacy format or corrupt)"
+            )
+    try:
+        if inert_unknown_globals:
+            obj = torch.load(str(path), map_location="cpu", weights_only=False, pickle_module=_inert_pickle_module())
+        else:
+            obj = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... depending on the damage
         text = str(exc)
         blocked = re.search(r"GLOBAL ([\w.]+)", text)
@@ -59,8 +127,8 @@ def _read_torch_file(path: Path) -> dict[str, torch.Tensor]:
             raise CheckpointError(
                 f"{path}: refused to unpickle: torch.load(weights_only=True) does not allow the global "
                 f"{blocked.group(1)!r} (the pickle references code or a custom class; nothing was executed). "
-                f"If the file is from a trusted source, re-save only its weights in a trusted environment, e.g. "
-                f"torch.save(torch.load(p, weights_only=False)['state_dict'], 'weights.pt')"
+                f"To extract only the weights, pass inert_unknown_globals=True (unknown globals become inert "
+                f"placeholders, nothing is imported or run), or re-save the state_dict in a trusted environment"
             ) from exc
         raise CheckpointError(
             f"{path}: not a readable PyTorch checkpoint (corrupt or truncated?): {type(exc).__name__}: "
@@ -88,11 +156,16 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
     return _strip_prefix(tensors), metadata
 
 
-def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
+def read_state_dict(path: str | Path, *, inert_unknown_globals: bool = False) -> dict[str, torch.Tensor]:
     """Read the detector weights of a checkpoint, without the ``mdl.`` prefix.
 
     Args:
         path: ``.ckpt`` (Lightning), ``.pt``/``.pth`` (plain state dict) or ``.safetensors`` file.
+        inert_unknown_globals: for ``.ckpt``/``.pt``/``.pth``: instead of refusing a pickle that references
+            classes or functions outside torch's weights-only allow-list (e.g. a Lightning checkpoint whose
+            scheduler state holds a bound method), load it with every such global replaced by an inert
+            :class:`InertGlobal` placeholder. Nothing named by the file is imported or executed; only the
+            tensors are used.
 
     Returns:
         name → tensor (CPU), names as in ``RVTDetector.state_dict()``.
@@ -101,17 +174,19 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         CheckpointError: missing or unreadable file, a pickle that needs code (``weights_only`` refused), or
             content that is not a mapping of tensors.
     """
-    return _read_with_metadata(Path(path))[0]
+    return _read_with_metadata(Path(path), inert_unknown_globals)[0]
 
 
-def _read_with_metadata(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+def _read_with_metadata(
+    path: Path, inert_unknown_globals: bool = False
+) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
     suffix = path.suffix.lower()
     if suffix == ".safetensors":
         state_dict, metadata = _read_safetensors(path)
     elif suffix in _TORCH_SUFFIXES:
-        state_dict, metadata = _read_torch_file(path), {}
+        state_dict, metadata = _read_torch_file(path, inert_unknown_globals), {}
     else:
         raise CheckpointError(
             f"{path}: unknown checkpoint type {suffix!r}; expected one of .ckpt, .pt, .pth, .safetensors"
@@ -220,13 +295,16 @@ def check_state_dict(model: "torch.nn.Module", state_dict: Mapping[str, torch.Te
     raise CheckpointError("\n".join(lines))
 
 
-def load_detector(path: str | Path, config: RVTConfig | None = None) -> RVTDetector:
+def load_detector(
+    path: str | Path, config: RVTConfig | None = None, *, inert_unknown_globals: bool = False
+) -> RVTDetector:
     """Build an :class:`RVTDetector` from a checkpoint file, in eval mode, on the CPU.
 
     Args:
         path: ``.ckpt`` / ``.pt`` / ``.pth`` / ``.safetensors`` (see :func:`read_state_dict`).
         config: the architecture; default: the metadata ``config`` if present, else inferred from the
             shapes (T/S/B/mini presets, see :func:`infer_config`).
+        inert_unknown_globals: see :func:`read_state_dict` (off: such pickles are refused).
 
     Returns:
         The detector with the weights loaded (float32 parameters; other float dtypes are converted).
@@ -235,7 +313,7 @@ def load_detector(path: str | Path, config: RVTConfig | None = None) -> RVTDetec
         CheckpointError: unreadable file, unknown variant, or keys/shapes that do not match (readable report).
     """
     path = Path(path)
-    state_dict, metadata = _read_with_metadata(path)
+    state_dict, metadata = _read_with_metadata(path, inert_unknown_globals)
     if config is None:
         config = infer_config(state_dict, metadata)
     model = RVTDetector(config)

@@ -88,6 +88,40 @@ def test_pickle_with_code_is_refused_and_not_executed(tmp_path, mini_weights):
     assert not marker.exists()
 
 
+def test_inert_mode_extracts_weights_without_running_code(tmp_path, mini_weights):
+    marker = tmp_path / "executed"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    path = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {"mdl." + k: v for k, v in mini_weights.items()}, "callbacks": Payload()}, path)
+    model = load_detector(path, inert_unknown_globals=True)
+    assert not marker.exists()
+    _assert_same_weights(model, mini_weights)
+
+
+def test_inert_mode_reads_lightning_like_checkpoint_with_scheduler_objects(tmp_path, mini_weights):
+    """Old Lightning/torch checkpoints keep e.g. a scheduler's bound method: weights_only refuses, inert mode works."""
+    parameter = torch.nn.Parameter(torch.zeros(3))
+    optimizer = torch.optim.AdamW([parameter], lr=1e-3)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=1e-3, total_steps=10)
+    checkpoint = {
+        "epoch": 1,
+        "state_dict": {"mdl." + k: v for k, v in mini_weights.items()},
+        "optimizer_states": [optimizer.state_dict()],
+        "lr_schedulers": [{**scheduler.state_dict(), "anneal_func": scheduler.step}],  # a bound method
+    }
+    path = tmp_path / "lightning.ckpt"
+    torch.save(checkpoint, path)
+    with pytest.raises(CheckpointError, match="inert_unknown_globals=True"):
+        read_state_dict(path)
+    weights = read_state_dict(path, inert_unknown_globals=True)
+    assert set(weights) == set(mini_weights)
+    assert all(torch.equal(weights[k], v) for k, v in mini_weights.items())
+
+
 def test_custom_class_is_refused(tmp_path):
     path = tmp_path / "paths.pt"
     torch.save({"state_dict": {"a": torch.zeros(1)}, "dirpath": tmp_path}, path)
