@@ -215,6 +215,7 @@ class VirtualDavis346:
         self.configuration = 0
         self.unplugged = False
         self._halted = False
+        self._pending: bytes | None = None
         self._bulk_reads = 0
         self._transfer_count = 0
         self._run_start: float | None = None
@@ -401,25 +402,32 @@ class VirtualDavis346:
                 raise usb_error(errno_mod.EPIPE)
             if f.timeout_every and self._bulk_reads % f.timeout_every == 0:
                 raise usb_error(errno_mod.ETIMEDOUT)
-            while True:
-                self._check_present()
-                if self.streaming and self.source is not None:
-                    release_us = self.source.peek_release_us()
-                    if release_us is not None:
-                        elapsed_us = (self._clock() - (self._run_start or 0.0)) * 1e6
-                        if release_us <= elapsed_us:
-                            break
-                        wake = time.monotonic() + (release_us - elapsed_us) / 1e6
-                        if not self._wait(deadline, wake):
-                            raise usb_error(errno_mod.ETIMEDOUT)
-                        continue
-                if not self._wait(deadline):
-                    raise usb_error(errno_mod.ETIMEDOUT)
-            data = self._shape_transfer(self.source.pop())
-            n = min(len(data), len(buff))
-            if n < len(data):
-                self.source.push_front(data[n:])
-            memoryview(buff).cast("B")[:n] = data[:n]
+            if self._pending is not None:
+                data, self._pending = self._pending, None
+            else:
+                while True:
+                    self._check_present()
+                    if self.streaming and self.source is not None:
+                        release_us = self.source.peek_release_us()
+                        if release_us is not None:
+                            elapsed_us = (self._clock() - (self._run_start or 0.0)) * 1e6
+                            if release_us <= elapsed_us:
+                                break
+                            wake = time.monotonic() + (release_us - elapsed_us) / 1e6
+                            if not self._wait(deadline, wake):
+                                raise usb_error(errno_mod.ETIMEDOUT)
+                            continue
+                    if not self._wait(deadline):
+                        raise usb_error(errno_mod.ETIMEDOUT)
+                data = self._shape_transfer(self.source.pop())
+            limit = len(buff)
+            if f.short_transfer_bytes:
+                limit = min(limit, f.short_transfer_bytes)
+            if len(data) > limit:
+                self._pending = data[limit:]  # the rest comes with the next read, like a device FIFO
+                data = data[:limit]
+            n = len(data)
+            memoryview(buff).cast("B")[:n] = data
             self.transfers_served += 1
             self.bytes_served += n
             if f.disconnect_after_transfers is not None and self.transfers_served >= f.disconnect_after_transfers:
@@ -428,7 +436,7 @@ class VirtualDavis346:
             return n
 
     def _shape_transfer(self, data: bytes) -> bytes:
-        """Apply odd-length, garbage and short-transfer faults to a transfer just taken from the source."""
+        """Apply the odd-length and garbage faults to a transfer just taken from the source."""
         f = self.faults
         self._transfer_count += 1
         if f.odd_length and self._transfer_count % f.odd_length == 0:
@@ -438,10 +446,6 @@ class VirtualDavis346:
             hit = self._rng.random(arr.size) < f.garbage_rate
             arr[hit] = self._rng.integers(0, 256, int(hit.sum()), dtype=np.uint8)
             data = arr.tobytes()
-        if f.short_transfer_bytes and len(data) > f.short_transfer_bytes:
-            assert self.source is not None
-            self.source.push_front(data[f.short_transfer_bytes :])
-            data = data[: f.short_transfer_bytes]
         return data
 
     def intr_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
