@@ -1,1 +1,1 @@
-"""models"""
+"""Detectors used by the rig: ``davis_rig.models.rvt`` (RVT, recurrent event-camera detector)."""

@@ -1,8 +1,12 @@
 """RVT (Recurrent Vision Transformer, uzh-rpg/RVT) event-camera detector.
 
 Importing this package does not import torch: :class:`RVTConfig` is pure Python and the torch-based names
-(``RVTDetector``, ``pad_to_input``, ``load_detector``, ``read_state_dict``, ``save_safetensors``) are loaded
-on first access (``MissingDependencyError`` naming the ``torch`` extra if torch is absent).
+(``RVTDetector``, ``pad_to_input``, ``load_detector``, ``read_state_dict``, ``save_safetensors``,
+``export_step_onnx``) are loaded on first access (``MissingDependencyError`` naming the ``torch`` extra if torch
+is absent). ``postprocess`` (numpy) and ``RVTOnnxRunner`` (onnxruntime) work without torch.
+
+Modules: ``config`` (RVTConfig), ``layers`` / ``backbone`` / ``fpn`` / ``head`` / ``detector`` (the PyTorch
+model), ``checkpoint`` (safe checkpoint io), ``postprocess`` (NMS), ``onnx_export``, ``ort_runner``.
 """
 
 from __future__ import annotations
@@ -17,6 +21,10 @@ _LAZY = {
     "load_detector": "davis_rig.models.rvt.checkpoint",
     "read_state_dict": "davis_rig.models.rvt.checkpoint",
     "save_safetensors": "davis_rig.models.rvt.checkpoint",
+    # numpy / onnxruntime parts (no torch needed)
+    "postprocess": "davis_rig.models.rvt.postprocess",
+    "export_step_onnx": "davis_rig.models.rvt.onnx_export",
+    "RVTOnnxRunner": "davis_rig.models.rvt.ort_runner",
 }
 
 

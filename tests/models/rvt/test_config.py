@@ -116,6 +116,7 @@ def test_from_dict_errors():
 def test_package_import_does_not_import_torch():
     code = (
         "import sys; import davis_rig.models.rvt as r; c = r.RVTConfig.tiny(); "
-        "assert c.num_anchors == 1680; assert 'torch' not in sys.modules, 'torch imported'"
+        "assert c.num_anchors == 1680; assert 'torch' not in sys.modules, 'torch imported'; "
+        "d = r.RVTDetector; assert 'torch' in sys.modules and d.__name__ == 'RVTDetector'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
