@@ -1,5 +1,8 @@
 """Replay file format: writer/reader round trip, truncation, errors, and serving a replay through pyusb."""
 
+import json
+from pathlib import Path
+
 import struct
 
 import pytest
@@ -10,7 +13,7 @@ from davis_rig.usb.sources import ReplaySource
 from davis_rig.usb.transport import UsbTransport
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
-from conftest import VECTORS
+VECTORS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json").read_text())["vectors"]
 
 INFO = VECTORS[0]["device_info"]
 HEADER = ReplayHeader(

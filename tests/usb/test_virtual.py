@@ -1,6 +1,8 @@
 """The virtual DAVIS346 is a faithful pyusb backend: descriptors, strings, run flags, pacing and faults."""
 
 import errno
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +13,12 @@ from davis_rig.usb.sources import DataSource, Faults, TransferListSource
 from davis_rig.usb.transport import UsbTransport
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
-from conftest import VECTORS, vector_device
+VECTORS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json").read_text())["vectors"]
+
+
+def vector_device(vector, **kwargs) -> VirtualDavis346:
+    """A virtual camera reporting a vector's device_info and serving its transfers exactly."""
+    return VirtualDavis346(layout=vector["device_info"], source=TransferListSource.from_hex(vector["transfers_hex"]), **kwargs)
 
 
 def _start(t):
