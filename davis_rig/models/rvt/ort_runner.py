@@ -1,0 +1,294 @@
+"""Run an exported RVT step graph with onnxruntime — no torch needed (numpy + onnxruntime only).
+
+Typical use: score a recorded event stream window by window with the recurrent states carried::
+
+    runner = RVTOnnxRunner("rvt_t.onnx", intra_op_threads=2)
+    detections = runner.score_stream(x, y, t_us, p, window_end_us=ends, conf_threshold=0.1)
+    # detections[i]: float32 [K, 7] (x1, y1, x2, y2, obj, class_conf, class_id) or None
+
+The graph must have the signature written by :func:`davis_rig.models.rvt.onnx_export.export_step_onnx`
+(checked on load; anything else raises :class:`~davis_rig.errors.ModelFormatError`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatError, ShapeError
+from davis_rig.events.histogram import WINDOW_US, stacked_histograms
+from davis_rig.models.rvt.config import RVTConfig
+from davis_rig.models.rvt.postprocess import postprocess
+from davis_rig.types import RVT_HW
+
+__all__ = ["RVTOnnxRunner", "GraphSignature"]
+
+_INPUT_NAME = "histogram"
+_OUTPUT_NAME = "detections"
+_STATE_NAMES = tuple(f"{kind}{stage}" for stage in range(1, 5) for kind in ("h", "c"))
+_STATE_OUT_NAMES = tuple(f"{name}_out" for name in _STATE_NAMES)
+
+#: One recurrent state: 4 × (h, c), float32 numpy arrays [B, C_s, H_s, W_s].
+States = list[tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class GraphSignature:
+    """What the runner learned from the graph: sizes of the input, states and output.
+
+    Attributes:
+        in_res_hw: padded input (height, width), px.
+        input_channels: histogram channels (20).
+        state_channels: channels C_s of the 4 stages.
+        state_hw: (height, width) of the 4 stages' state maps.
+        num_anchors: anchors A of the decoded output (1680 at 256x320).
+        num_outputs: values per anchor (5 + number of classes).
+        batch: the fixed batch size, or ``None`` when the graph's batch is dynamic.
+        config: the model config from the metadata, or ``None`` if the graph has none.
+    """
+
+    in_res_hw: tuple[int, int]
+    input_channels: int
+    state_channels: tuple[int, int, int, int]
+    state_hw: tuple[tuple[int, int], ...]
+    num_anchors: int
+    num_outputs: int
+    batch: int | None
+    config: RVTConfig | None
+
+
+def _dims(shape) -> list[int | None]:
+    return [d if isinstance(d, int) and d > 0 else None for d in shape]
+
+
+def _read_signature(session, path: Path) -> GraphSignature:
+    """Check the graph's inputs/outputs against the RVT step signature; raise ModelFormatError otherwise."""
+    inputs = {arg.name: arg for arg in session.get_inputs()}
+    outputs = {arg.name: arg for arg in session.get_outputs()}
+    want_in = [_INPUT_NAME, *_STATE_NAMES]
+    want_out = [_OUTPUT_NAME, *_STATE_OUT_NAMES]
+    if sorted(inputs) != sorted(want_in) or not set(want_out) <= set(outputs):
+        raise ModelFormatError(
+            f"{path}: not an RVT step graph: expected inputs {want_in} and outputs {want_out}, "
+            f"got inputs {list(inputs)} and outputs {list(outputs)}"
+        )
+    problems = []
+    for name, arg in list(inputs.items()) + [(n, outputs[n]) for n in want_out]:
+        if arg.type != "tensor(float)":
+            problems.append(f"{name}: expected tensor(float), got {arg.type}")
+        if len(arg.shape) != (3 if name == _OUTPUT_NAME else 4):
+            problems.append(f"{name}: expected rank {3 if name == _OUTPUT_NAME else 4}, got shape {arg.shape}")
+    if problems:
+        raise ModelFormatError(f"{path}: wrong RVT step graph: " + "; ".join(problems))
+
+    config = None
+    meta = session.get_modelmeta().custom_metadata_map
+    if "config" in meta:
+        try:
+            config = RVTConfig.from_dict(json.loads(meta["config"]))
+        except (json.JSONDecodeError, FormatError) as exc:
+            raise ModelFormatError(f"{path}: unreadable config in the ONNX metadata: {exc}") from exc
+
+    hist_shape = _dims(inputs[_INPUT_NAME].shape)
+    if config is not None:
+        channels, height, width = config.input_channels, *config.in_res_hw
+    else:
+        channels, height, width = hist_shape[1:]
+    if None in (channels, height, width):
+        raise ModelFormatError(
+            f"{path}: histogram input {inputs[_INPUT_NAME].shape} has symbolic C/H/W and no config metadata"
+        )
+    expected_hist = [channels, height, width]
+    if [d for d in hist_shape[1:]] != expected_hist:
+        problems.append(f"histogram: expected [B, {channels}, {height}, {width}], got {inputs[_INPUT_NAME].shape}")
+    strides = (4, 8, 16, 32)
+    state_channels, state_hw = [], []
+    for stage, stride in enumerate(strides, start=1):
+        hw = (height // stride, width // stride)
+        expected_c = config.stage_dims[stage - 1] if config is not None else None
+        for name in (f"h{stage}", f"c{stage}", f"h{stage}_out", f"c{stage}_out"):
+            arg = inputs.get(name) or outputs[name]
+            dims = _dims(arg.shape)
+            if expected_c is None:
+                expected_c = dims[1]
+            if dims[1:] != [expected_c, *hw]:
+                problems.append(f"{name}: expected [B, {expected_c}, {hw[0]}, {hw[1]}], got {arg.shape}")
+        state_channels.append(expected_c)
+        state_hw.append(hw)
+    num_anchors = sum((height // s) * (width // s) for s in (8, 16, 32))
+    num_outputs = config.num_outputs if config is not None else _dims(outputs[_OUTPUT_NAME].shape)[2]
+    out_dims = _dims(outputs[_OUTPUT_NAME].shape)
+    if out_dims[1] not in (None, num_anchors) or out_dims[2] not in (None, num_outputs) or (num_outputs or 0) < 6:
+        problems.append(f"detections: expected [B, {num_anchors}, 5 + classes], got {outputs[_OUTPUT_NAME].shape}")
+    batches = {_dims(arg.shape)[0] for arg in list(inputs.values()) + [outputs[n] for n in want_out]}
+    if len(batches) != 1:
+        problems.append(f"inconsistent batch dimensions {sorted(map(str, batches))}")
+    if problems:
+        raise ModelFormatError(f"{path}: wrong RVT step graph: " + "; ".join(problems))
+    return GraphSignature(
+        in_res_hw=(int(height), int(width)),
+        input_channels=int(channels),
+        state_channels=tuple(int(c) if c is not None else 0 for c in state_channels),
+        state_hw=tuple(state_hw),
+        num_anchors=num_anchors,
+        num_outputs=int(num_outputs),
+        batch=batches.pop(),
+        config=config,
+    )
+
+
+class RVTOnnxRunner:
+    """onnxruntime session for one RVT recurrent step, with explicit numpy states.
+
+    Args:
+        path: the ``.onnx`` file written by ``export_step_onnx``.
+        providers: onnxruntime execution providers; default ``["CPUExecutionProvider"]``.
+        intra_op_threads: onnxruntime intra-op threads; default: onnxruntime's choice.
+
+    Raises:
+        MissingDependencyError: onnxruntime is not installed.
+        ModelFormatError: the file is not a loadable ONNX model or has the wrong inputs/outputs/shapes.
+    """
+
+    def __init__(self, path: str | Path, providers: Sequence[str] | None = None, intra_op_threads: int | None = None):
+        try:
+            import onnxruntime as ort
+        except ImportError as exc:  # pragma: no cover - onnxruntime is a core dependency
+            raise MissingDependencyError("RVTOnnxRunner needs onnxruntime: pip install onnxruntime") from exc
+        self.path = Path(path)
+        options = ort.SessionOptions()
+        if intra_op_threads is not None:
+            options.intra_op_num_threads = int(intra_op_threads)
+            options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(
+                str(self.path), sess_options=options, providers=list(providers or ["CPUExecutionProvider"])
+            )
+        except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/NoSuchFile types
+            raise ModelFormatError(f"{self.path}: onnxruntime cannot load the model: {exc}") from exc
+        self.signature = _read_signature(self._session, self.path)
+
+    @property
+    def config(self) -> RVTConfig | None:
+        """The model config stored in the graph's metadata (``None`` if absent)."""
+        return self.signature.config
+
+    # ------------------------------------------------------------------ states
+    def initial_states(self, batch: int = 1) -> States:
+        """Zero LSTM states: 4 × (h, c), float32 [B, C_s, H_s, W_s]."""
+        return [
+            (np.zeros((batch, c, *hw), np.float32), np.zeros((batch, c, *hw), np.float32))
+            for c, hw in zip(self.signature.state_channels, self.signature.state_hw)
+        ]
+
+    def _check_states(self, states, batch: int) -> States:
+        if len(states) != 4:
+            raise ShapeError(f"states: expected 4 (h, c) pairs, got {len(states)}")
+        checked = []
+        for stage, (pair, c, hw) in enumerate(zip(states, self.signature.state_channels, self.signature.state_hw), 1):
+            h_state, c_state = (np.ascontiguousarray(a, dtype=np.float32) for a in pair)
+            expected = (batch, c, *hw)
+            if h_state.shape != expected or c_state.shape != expected:
+                raise ShapeError(
+                    f"state of stage {stage}: expected h, c {expected}, got {h_state.shape}, {c_state.shape}"
+                )
+            checked.append((h_state, c_state))
+        return checked
+
+    def _prepare_histogram(self, hist) -> np.ndarray:
+        hist = np.asarray(hist)
+        channels = self.signature.input_channels
+        height, width = self.signature.in_res_hw
+        if hist.ndim != 4 or hist.shape[1] != channels:
+            raise ShapeError(f"histogram: expected [B, {channels}, H, W], got shape {hist.shape}")
+        if hist.shape[2:] == (height, width):
+            return np.ascontiguousarray(hist, dtype=np.float32)
+        if hist.shape[2] > height or hist.shape[3] > width:
+            raise ShapeError(
+                f"histogram: expected [B, {channels}, {RVT_HW[0]}, {RVT_HW[1]}] (padded automatically) or "
+                f"[B, {channels}, {height}, {width}], got shape {hist.shape}"
+            )
+        if hist.shape[2:] != RVT_HW:
+            raise ShapeError(
+                f"histogram: expected spatial size {RVT_HW} or {(height, width)}, got {hist.shape[2:]}"
+            )
+        padded = np.zeros((hist.shape[0], channels, height, width), np.float32)
+        padded[:, :, : hist.shape[2], : hist.shape[3]] = hist
+        return padded
+
+    # ------------------------------------------------------------------ inference
+    def step(self, hist, states: States | None = None) -> tuple[np.ndarray, States]:
+        """Run one recurrent step.
+
+        Args:
+            hist: uint8 or float histogram [B, 20, 240, 304] (zero-padded bottom/right here) or already
+                padded [B, 20, 256, 320].
+            states: the previous 4 × (h, c) float32 states, or ``None`` for zeros.
+
+        Returns:
+            (decoded float32 [B, A, 5 + classes] — cx, cy, w, h in px, obj, class probs — and the new states).
+
+        Raises:
+            ShapeError: wrong histogram resolution/channels or state shapes, or a batch the graph cannot take.
+        """
+        x = self._prepare_histogram(hist)
+        batch = x.shape[0]
+        if self.signature.batch is not None and batch != self.signature.batch:
+            raise ShapeError(f"histogram: this graph has a fixed batch of {self.signature.batch}, got {batch}")
+        states = self.initial_states(batch) if states is None else self._check_states(states, batch)
+        feeds = {_INPUT_NAME: x}
+        for stage, (h_state, c_state) in enumerate(states, start=1):
+            feeds[f"h{stage}"] = h_state
+            feeds[f"c{stage}"] = c_state
+        results = self._session.run([_OUTPUT_NAME, *_STATE_OUT_NAMES], feeds)
+        new_states = [(results[1 + 2 * i], results[2 + 2 * i]) for i in range(4)]
+        return results[0], new_states
+
+    def score_stream(
+        self,
+        x,
+        y,
+        t_us,
+        p,
+        window_end_us,
+        conf_threshold: float = 0.1,
+        *,
+        nms_threshold: float = 0.45,
+        window_us: int = WINDOW_US,
+        states: States | None = None,
+    ) -> list[np.ndarray | None]:
+        """Score a time-sorted event stream: one histogram + step + postprocess per window, states carried.
+
+        Args:
+            x, y: event columns/rows in the 304x240 RVT frame, integer [N] (crop DAVIS346 events first).
+            t_us: timestamps, int µs [N], non-decreasing.
+            p: polarities {0, 1}, integer [N].
+            window_end_us: window ends, int µs [T]; window i holds ``end_i - window_us <= t <= end_i``.
+            conf_threshold: postprocess confidence threshold (obj · class prob).
+            nms_threshold: class-wise NMS IoU threshold.
+            window_us: window duration, µs.
+            states: initial states (batch 1), ``None`` = zeros (start of a sequence).
+
+        Returns:
+            One entry per window: float32 [K, 7] ``(x1, y1, x2, y2, obj, class_conf, class_id)`` by decreasing
+            obj · class_conf, or ``None``.
+
+        Raises:
+            ShapeError, FormatError: bad event columns (see ``stacked_histogram``) or states.
+        """
+        ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
+        hists = stacked_histograms((x, y, t_us, p), ends, window_us=window_us)
+        detections: list[np.ndarray | None] = []
+        for hist in hists:
+            decoded, states = self.step(hist[None], states)
+            detections.extend(postprocess(decoded, conf_threshold, nms_threshold))
+        return detections
+
+    def __repr__(self) -> str:
+        name = self.config.name if self.config is not None else "unknown config"
+        return f"RVTOnnxRunner({str(self.path)!r}, {name}, in_res_hw={self.signature.in_res_hw})"
