@@ -184,3 +184,27 @@ def test_pad_to_input():
         pad_to_input(torch.zeros(1, 20, 260, 346))
     with pytest.raises(ShapeError, match=r"expected \[B, C, H, W\]"):
         pad_to_input(torch.zeros(20, 240, 304))
+
+
+@pytest.mark.gpu
+def test_mini_fixture_on_cuda(mini_fixture):
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device (torch.cuda.is_available() is False)")
+    model = load_detector(mini_fixture.path).cuda()
+    hist = mini_fixture.tensor("input.hist_uint8_unpadded").cuda()
+    previous = (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False  # fp32 like the fixture
+    try:
+        states = None
+        with torch.inference_mode():
+            for step in range(mini_fixture.num_steps):
+                decoded, states = model(pad_to_input(hist[step : step + 1]), states)
+                ref = mini_fixture.tensor(f"step{step}.head.decoded")
+                assert decoded.device.type == "cuda"
+                assert _max_rel(decoded[..., :4].cpu(), ref[..., :4]) <= RTOL_BOX
+                assert _max_abs(decoded[..., 4:].cpu(), ref[..., 4:]) <= ATOL_SCORE
+                for stage in range(1, 5):
+                    h_ref = mini_fixture.tensor(f"step{step}.backbone.stage{stage}")
+                    assert _max_abs(states[stage - 1][0].cpu(), h_ref) <= ATOL_BACKBONE
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = previous
