@@ -1,9 +1,8 @@
 """Replay file format: writer/reader round trip, truncation, errors, and serving a replay through pyusb."""
 
 import json
-from pathlib import Path
-
 import struct
+from pathlib import Path
 
 import pytest
 

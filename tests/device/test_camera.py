@@ -1,0 +1,242 @@
+"""Davis346 over the virtual backend: §5 read-out, §6/§7 sequences on the wire, data path, faults, clean stop."""
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from davis_rig.device.camera import Davis346
+from davis_rig.device.info import DEVICE_INFO_READS
+from davis_rig.errors import DeviceDisconnectedError, DeviceError, ProtocolError
+from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, CoarseFineBias, VdacBias
+from davis_rig.protocol.config import Clocks, ConfigWrite, DeviceFeatures
+from davis_rig.protocol.decoder import DecodedChunk
+from davis_rig.protocol.sequences import ClearHalt, Sleep, config_writes, default_config_sequence, start_sequence, stop_sequence
+from davis_rig.usb.sources import Faults, TransferListSource
+from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+
+VECTORS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json").read_text())["vectors"]
+CLOCKS = Clocks(logic_mhz=104, adc_mhz=30, usb_mhz=80, deviation=1000)
+FEATURES = DeviceFeatures(dvs_has_background_activity_filter=True, dvs_has_roi_filter=True, aps_has_global_shutter=True)
+
+
+def open_camera(device, **kwargs):
+    sleeps = []
+    cam = Davis346.open(backend=VirtualDavis346Backend(device), sleep=sleeps.append, read_timeout_ms=10, **kwargs)
+    return cam, sleeps
+
+
+def test_open_reads_device_info():
+    dev = VirtualDavis346(serial="CAM00042", clocks=CLOCKS, features=FEATURES)
+    cam, _ = open_camera(dev)
+    with cam:
+        info = cam.info
+        assert (info.serial, info.firmware_version, info.logic_version, info.logic_patch) == ("CAM00042", 6, 18, 1)
+        assert info.chip_id == 5 and info.is_davis346 and info.is_master
+        assert info.layout.dvs_hw == (260, 346) and info.dvs_size_xy == (346, 260) == info.aps_size_xy
+        assert info.clocks == CLOCKS and info.features == FEATURES
+        assert info.to_dict()["device_info"]["dvs_size_columns"] == 346
+    assert dev.reads == [(6, 0), (6, 7)] + list(DEVICE_INFO_READS)
+
+
+def test_open_with_inverted_orientation_reports_user_sizes():
+    layout = dict(VECTORS[0]["device_info"], dvs_size_columns=260, dvs_size_rows=346, dvs_orientation_info=4)
+    cam, _ = open_camera(VirtualDavis346(layout=layout))
+    with cam:
+        assert cam.info.dvs_size_xy == (346, 260)
+
+
+def test_send_default_config_writes_exactly_libcaer_defaults():
+    dev = VirtualDavis346(clocks=CLOCKS, features=FEATURES)
+    cam, _ = open_camera(dev)
+    with cam:
+        cam.send_default_config()
+    expected = config_writes(
+        default_config_sequence(
+            dvs_size_xy=(346, 260), aps_size_xy=(346, 260), features=FEATURES, clocks=CLOCKS, imu_type=1
+        )
+    )
+    assert dev.writes == expected
+    # spot checks straight from PROTOCOL.md §6: first bias, chip config, GS, exposure @ 30 MHz ADC, USB delay @ 80 MHz
+    assert dev.writes[0] == ConfigWrite(5, 0, 0x019B)
+    assert [w.value for w in dev.writes[:28]] == [e.bias.encode() for e in DAVIS346_DEFAULT_BIASES]
+    assert ConfigWrite(5, 142, 1) in dev.writes and ConfigWrite(2, 7, 1) in dev.writes
+    assert ConfigWrite(2, 12, 120_000) in dev.writes and ConfigWrite(2, 13, 1_200_000) in dev.writes
+    assert dev.writes[-1] == ConfigWrite(9, 1, 80_000)
+    assert all(r.request == 0xBF for r in dev.control_log if r.request_type == 0x40)  # one write per request
+
+
+def test_start_and_stop_sequences_on_the_wire_imu_off_by_default():
+    dev = VirtualDavis346()
+    cam, sleeps = open_camera(dev)
+    with cam:
+        n0 = len(dev.writes)
+        cam.start()
+        assert cam.running and dev.streaming
+        started = dev.writes[n0:]
+        cam.stop()
+        stopped = dev.writes[n0 + len(started):]
+    expected_start = start_sequence(imu=False)
+    assert started == config_writes(expected_start)
+    assert ConfigWrite(3, 2, 1) not in started  # IMU stays off for recording
+    assert sleeps == [s.duration_us / 1e6 for s in expected_start if isinstance(s, Sleep)] == [0.01, 0.2, 0.05]
+    assert dev.clear_halts == [0x82]
+    assert stopped == config_writes(stop_sequence())
+    assert not dev.streaming and not dev.claimed
+
+
+def test_start_with_imu_enabled_is_libcaers_full_sequence():
+    dev = VirtualDavis346()
+    cam, _ = open_camera(dev)
+    with cam:
+        cam.set_imu_enabled(True)
+        cam.start()
+        cam.stop()
+    assert dev.writes[: len(config_writes(start_sequence()))] == config_writes(start_sequence())
+
+
+def test_typed_setters():
+    dev = VirtualDavis346(clocks=CLOCKS)
+    cam, _ = open_camera(dev)
+    with cam:
+        cam.set_exposure(8000)
+        cam.set_frame_interval(33333)
+        cam.set_bias("onbn", CoarseFineBias(6, 255))
+        cam.set_bias("ADCREFHIGH", 0x0198)  # raw value → VDAC(24, 6)
+        cam.set_global_shutter(False)
+        cam.timestamp_reset()
+        assert cam.exposure_us == 8000 and cam.frame_interval_us == 33333
+        assert cam.biases["ONBN"] == CoarseFineBias(6, 255) and cam.biases["ADCREFHIGH"] == VdacBias(24, 6)
+        with pytest.raises(ProtocolError, match="expects CoarseFineBias, got VdacBias"):
+            cam.set_bias("ONBN", VdacBias(1, 1))
+        with pytest.raises(ProtocolError, match="0..4194303"):
+            cam.set_exposure(5_000_000)
+    assert dev.writes == [
+        ConfigWrite(2, 12, 240_000),
+        ConfigWrite(2, 13, 999_990),
+        ConfigWrite(5, 11, CoarseFineBias(6, 255).encode()),
+        ConfigWrite(5, 2, 0x0198),
+        ConfigWrite(5, 142, 0),
+        ConfigWrite(2, 7, 0),
+        ConfigWrite(0, 2, 1),
+        ConfigWrite(0, 2, 0),
+    ]
+    assert dev.control_log[-1].request == 0xC2  # the reset pulse is one multiple-write request
+
+
+def test_producer_switches_apply_immediately_while_running():
+    dev = VirtualDavis346()
+    cam, _ = open_camera(dev)
+    with cam:
+        cam.set_aps_enabled(False)
+        cam.start()
+        assert ConfigWrite(2, 4, 1) not in dev.writes
+        cam.set_aps_enabled(True)
+        cam.set_dvs_enabled(False)
+        assert dev.writes[-2:] == [ConfigWrite(2, 4, 1), ConfigWrite(1, 3, 0)]
+        with pytest.raises(DeviceError, match="already started"):
+            cam.start()
+
+
+def _decode_all(vector, **faults):
+    dev = VirtualDavis346(layout=vector["device_info"], source=TransferListSource.from_hex(vector["transfers_hex"]), faults=Faults(**faults))
+    cam, _ = open_camera(dev)
+    raw = []
+    with cam:
+        cam.add_raw_listener(raw.append)
+        cam.start()
+        chunks = list(cam.chunks(timeout_s=0.2))
+        stats = cam.stats
+    return DecodedChunk.concatenate(chunks), raw, stats
+
+
+@pytest.mark.parametrize("vector", VECTORS, ids=[v["id"] for v in VECTORS])
+def test_every_vector_decodes_through_the_real_pyusb_path(vector):
+    chunk, raw, stats = _decode_all(vector)
+    expected = vector["expected"]
+    assert chunk.events.tolist() == [tuple(e) for e in expected["dvs"]]
+    assert len(chunk.frames) == len(expected["frames"])
+    for frame, exp in zip(chunk.frames, expected["frames"]):
+        assert frame.pixels.shape == (exp["length_y"], exp["length_x"])
+        assert frame.pixels.ravel().tolist() == exp["pixels_row_major"]
+        assert (frame.position_x, frame.position_y) == (exp["position_x"], exp["position_y"])
+        assert (frame.t_start_of_frame_us, frame.t_end_of_frame_us) == (exp["ts_start_of_frame"], exp["ts_end_of_frame"])
+    assert raw == [bytes.fromhex(h) for h in vector["transfers_hex"] if h]
+    assert stats.transfers == len(raw) == stats.decoded_transfers and stats.dropped_transfers == 0
+
+
+def test_faults_that_lose_no_data_give_identical_output():
+    vector = next(v for v in VECTORS if v["id"].startswith("V12"))
+    clean, _, _ = _decode_all(vector)
+    faulty, _, stats = _decode_all(vector, stall_every=2, timeout_every=3, short_transfer_bytes=2)
+    assert faulty.events.tolist() == clean.events.tolist()
+    assert [f.pixels.tolist() for f in faulty.frames] == [f.pixels.tolist() for f in clean.frames]
+    assert stats.stalls > 0
+
+
+def test_odd_length_transfers_drop_the_extra_byte():
+    vector = next(v for v in VECTORS if v["id"].startswith("V01"))
+    chunk, raw, stats = _decode_all(vector, odd_length=1)
+    assert chunk.events.tolist() == [tuple(e) for e in vector["expected"]["dvs"]]
+    assert raw[0].endswith(b"\xa5") and stats.decoder.odd_bytes_dropped == 1
+
+
+def test_garbage_does_not_crash_the_pipeline():
+    vector = next(v for v in VECTORS if v["id"].startswith("V12"))
+    chunk, raw, stats = _decode_all(vector, garbage_rate=0.3, seed=3)
+    assert stats.decoder.words == sum(len(r) // 2 for r in raw)
+
+
+def test_unplug_delivers_data_read_before_then_raises():
+    transfers = [bytes.fromhex("64800a101430"), bytes.fromhex("96800a101530"), bytes.fromhex("c8800a101630")]
+    dev = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(disconnect_after_transfers=2))
+    cam, _ = open_camera(dev)
+    got = []
+    with cam:
+        cam.start()
+        with pytest.raises(DeviceDisconnectedError):
+            for chunk in cam.chunks(timeout_s=2.0):
+                got.append(chunk)
+        assert not cam.running
+    # close() after the unplug did not raise; both transfers read before it were delivered
+    assert [c.events.tolist() for c in got] == [[(100, 20, 10, 1)], [(150, 21, 10, 1)]]
+
+
+def test_stop_ends_chunks_from_another_thread_and_joins_the_reader():
+    dev = VirtualDavis346(source=TransferListSource([bytes.fromhex("64800a101430")]))
+    cam, _ = open_camera(dev)
+    before = threading.active_count()
+    with cam:
+        cam.start()
+        timer = threading.Timer(0.2, cam.stop)
+        timer.start()
+        chunks = list(cam.chunks())  # no timeout: ends only because stop() was called
+        timer.join()
+        assert len(chunks) == 1 and not cam.running
+    assert threading.active_count() == before
+    assert all(t.name != "davis-usb-reader" for t in threading.enumerate())
+
+
+def test_slow_consumer_drops_whole_transfers_and_counts_them():
+    transfers = [bytes.fromhex("64800a101430")] * 20
+    dev = VirtualDavis346(source=TransferListSource(transfers))
+    cam, _ = open_camera(dev, queue_transfers=4)
+    with cam:
+        with pytest.warns(RuntimeWarning, match="dropped"):
+            cam.start()
+            for _ in range(200):
+                if len(dev.source) == 0 and cam.stats.transfers + cam.stats.dropped_transfers == 20:
+                    break
+                threading.Event().wait(0.01)
+        chunks = list(cam.chunks(timeout_s=0.1))
+        stats = cam.stats
+    assert len(chunks) == stats.transfers == 4 and stats.dropped_transfers == 16
+    assert stats.dropped_bytes == 16 * 6
+
+
+def test_read_before_start_is_an_error():
+    cam, _ = open_camera(VirtualDavis346())
+    with cam, pytest.raises(DeviceError, match="not started"):
+        cam.read(0.01)
