@@ -216,7 +216,7 @@ class EncodedSource(DataSource):
             return
         t_first, t_last = min(times), max(times)
         edges = _slice_edges(t_first, t_last, int(slice_us), spans)
-        bounds = np.concatenate([edges, [t_last + 1]]).astype(np.int64)
+        bounds = np.concatenate([edges[edges <= t_last], [t_last + 1]]).astype(np.int64)
         # events [lo, hi) of slice k are those with t < bounds[k] (and >= bounds[k-1])
         ev_idx = np.searchsorted(t, bounds, side="left")
         fr_slice = np.searchsorted(bounds, spans[:, 1], side="right") if spans.size else np.zeros(0, dtype=np.int64)
