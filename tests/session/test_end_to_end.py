@@ -135,3 +135,51 @@ def test_garbage_bytes_are_counted(tmp_path, rng):
         assert decoder["words"] == sum(len(t) for t in transfers) // 2
         assert decoder["unknown_words"] + decoder["dvs_out_of_range"] + decoder["non_monotonic_timestamps"] > 0
         assert 0 < reader.num_events
+
+
+def test_kill_9_of_davis_record_then_recover(tmp_path, rng):
+    """kill -9 of a `davis-record --fake` subprocess, then `davis-record --recover`: at most ~1 s is lost."""
+    import re
+    import signal
+    import time
+
+    span_us, slice_us = 20_000_000, 10_000
+    events = random_events(rng, 1_000_000, t0_us=0, span_us=span_us)
+    replay = tmp_path / "long.replay"
+    encoder = StreamEncoder(LAYOUT)
+    bounds = np.searchsorted(events["t"], np.arange(0, span_us + slice_us, slice_us))
+    with ReplayWriter(replay, ReplayHeader(device_info=LAYOUT.to_dict(), serial="RPLY0002", firmware_version=6,
+                                           logic_version=18, logic_patch=1)) as writer:
+        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+            writer.write(encoder.encode(events[a:b]), host_time_ns=k * slice_us * 1000)
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
+    seen = []  # (wall time, events written) from the live progress line
+    buffer = b""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        piece = proc.stderr.read1(4096)
+        if not piece:
+            break
+        buffer += piece
+        for match in re.finditer(rb"events\s+([\d,]+)", buffer):
+            seen.append((time.monotonic(), int(match.group(1).replace(b",", b""))))
+        buffer = buffer[buffer.rfind(b"\r") + 1:]
+        if seen and seen[-1][0] - seen[0][0] > 2.5:
+            break
+    proc.send_signal(signal.SIGKILL)
+    killed_at = time.monotonic()
+    proc.wait(timeout=30)
+    assert seen, "davis-record printed no progress"
+    assert journal_path(out).exists()
+    result = subprocess.run([sys.executable, "-m", "davis_rig.cli.record", "--recover", str(out)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "rebuilt from the journal" in result.stdout
+    with SessionReader(out) as reader:
+        recovered = reader.events()
+    np.testing.assert_array_equal(recovered, events[: len(recovered)])
+    written_a_second_before = max((n for t, n in seen if t <= killed_at - 1.0), default=0)
+    assert len(recovered) >= written_a_second_before > 0
+    assert not journal_path(out).exists()
