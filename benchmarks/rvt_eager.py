@@ -87,7 +87,12 @@ def _cases(model: RVTDetector, generator: torch.Generator):
             decoded, states = model(x, states)
         (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
 
-    return {"forward_step": forward_step, "backbone": backbone, "fwd_bwd_1step": fwd_bwd_1step, "bptt_3steps": bptt_3steps}
+    return {
+        "forward_step": forward_step,
+        "backbone": backbone,
+        "fwd_bwd_1step": fwd_bwd_1step,
+        "bptt_3steps": bptt_3steps,
+    }
 
 
 def main() -> None:
@@ -120,7 +125,10 @@ def main() -> None:
                 results[(variant, threads, name)] = median_ms
                 official = OFFICIAL_1T_MS.get((variant, name)) if threads == 1 else None
                 ratio = f"  ours/official(1 thread) {median_ms / official:.2f}" if official else ""
-                print(f"{config.name:8s} threads {threads}  {name:14s} median {median_ms:8.1f} ms  IQR {iqr_ms:6.1f} ms{ratio}")
+                print(
+                    f"{config.name:8s} threads {threads}  {name:14s} median {median_ms:8.1f} ms  "
+                    f"IQR {iqr_ms:6.1f} ms{ratio}"
+                )
     print("# ratios")
     for threads in args.threads:
         for name in ("forward_step", "backbone", "fwd_bwd_1step", "bptt_3steps"):

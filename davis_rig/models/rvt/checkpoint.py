@@ -264,7 +264,9 @@ def infer_config(state_dict: Mapping[str, torch.Tensor], metadata: Mapping[str, 
     )
 
 
-def check_state_dict(model: "torch.nn.Module", state_dict: Mapping[str, torch.Tensor], *, source: str = "checkpoint") -> None:
+def check_state_dict(
+    model: torch.nn.Module, state_dict: Mapping[str, torch.Tensor], *, source: str = "checkpoint"
+) -> None:
     """Strict key and shape check of ``state_dict`` against ``model.state_dict()``.
 
     Raises:

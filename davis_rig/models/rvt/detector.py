@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
+
 from davis_rig.errors import ShapeError
 from davis_rig.models.rvt._torch import F, nn, torch
 from davis_rig.models.rvt.backbone import LstmState, RVTBackbone
@@ -42,8 +44,6 @@ def pad_to_input(hist, in_res_hw: tuple[int, int] = (256, 320)) -> torch.Tensor:
         ShapeError: not 4-D, or larger than ``in_res_hw``.
     """
     if not isinstance(hist, torch.Tensor):
-        import numpy as np
-
         hist = torch.from_numpy(np.ascontiguousarray(hist))
     if hist.ndim != 4:
         raise ShapeError(f"pad_to_input: expected [B, C, H, W], got shape {tuple(hist.shape)}")

@@ -7,7 +7,7 @@ from davis_rig.models.rvt.layers import BaseConv
 
 
 class YOLOXHead(nn.Module):
-    """Decoupled YOLOX head over 3 levels; keys ``stems``, ``cls_convs``, ``reg_convs``, ``{cls,reg,obj}_preds``.
+    """Decoupled YOLOX head over 3 levels (keys ``stems``, ``cls_convs``, ``reg_convs``, ``*_preds``).
 
     Per level k: ``stem`` (1×1) → cls branch (2× 3×3) → ``cls_preds``; reg branch (2× 3×3) → ``reg_preds`` and
     ``obj_preds``. No buffers: the decode grids are computed from the feature sizes on every call (so no

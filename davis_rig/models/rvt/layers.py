@@ -152,9 +152,23 @@ class PartitionAttention(nn.Module):
 class AttentionPair(nn.Module):
     """Window block then grid block (official ``MaxVitAttentionPairCl``): keys ``att_window``, ``att_grid``."""
 
-    def __init__(self, dim: int, *, skip_first_norm: bool, partition_hw, dim_head: int, mlp_ratio: int, ls_init_value):
+    def __init__(
+        self,
+        dim: int,
+        *,
+        skip_first_norm: bool,
+        partition_hw: tuple[int, int],
+        dim_head: int,
+        mlp_ratio: int,
+        ls_init_value: float,
+    ):
         super().__init__()
-        common = {"partition_hw": partition_hw, "dim_head": dim_head, "mlp_ratio": mlp_ratio, "ls_init_value": ls_init_value}
+        common = {
+            "partition_hw": partition_hw,
+            "dim_head": dim_head,
+            "mlp_ratio": mlp_ratio,
+            "ls_init_value": ls_init_value,
+        }
         self.att_window = PartitionAttention(dim, grid=False, skip_first_norm=skip_first_norm, **common)
         self.att_grid = PartitionAttention(dim, grid=True, skip_first_norm=False, **common)
 

@@ -135,7 +135,8 @@ def test_corrupt_files_raise_checkpoint_error(tmp_path, mini_weights, damage):
     torch.save({"state_dict": mini_weights}, good)
     path = tmp_path / "bad.ckpt"
     data = good.read_bytes()
-    path.write_bytes({"garbage": b"\x00not a checkpoint" * 64, "truncated": data[: len(data) // 2], "empty": b""}[damage])
+    damaged = {"garbage": b"\x00not a checkpoint" * 64, "truncated": data[: len(data) // 2], "empty": b""}
+    path.write_bytes(damaged[damage])
     with pytest.raises(CheckpointError, match="not a readable PyTorch checkpoint"):
         load_detector(path)
     bad_st = tmp_path / "bad.safetensors"

@@ -35,7 +35,9 @@ def test_state_dict_matches_official_listing(preset, letter, num_params, num_ent
     assert list(ours) == list(official)  # same order as the official module registers them
     assert len(ours) == num_entries == listing["num_state_dict_entries"]
     assert sum(p.numel() for p in model.parameters()) == num_params == listing["num_parameters_total"]
-    per_part = {part: sum(p.numel() for p in getattr(model, part).parameters()) for part in ("backbone", "fpn", "yolox_head")}
+    per_part = {
+        part: sum(p.numel() for p in getattr(model, part).parameters()) for part in ("backbone", "fpn", "yolox_head")
+    }
     assert per_part == listing["num_parameters_per_part"]
     assert len(list(model.buffers())) == listing["num_buffer_tensors"]
 
