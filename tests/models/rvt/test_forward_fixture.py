@@ -147,6 +147,20 @@ def test_batch_equals_single_samples(mini_fixture):
             assert _max_abs(states[3][1][i : i + 1], single_states[3][1]) < 1e-5
 
 
+def test_forward_does_not_mutate_inputs(mini_fixture):
+    model = load_detector(mini_fixture.path)
+    hist = mini_fixture.tensor("input.hist_uint8_unpadded")
+    x = pad_to_input(hist[1:2])
+    x_before = x.clone()
+    with torch.inference_mode():
+        _, states = model(pad_to_input(hist[0:1]))
+        states_before = [(h.clone(), c.clone()) for h, c in states]
+        model(x, states)
+    assert torch.equal(x, x_before)
+    for (h, c), (h0, c0) in zip(states, states_before):
+        assert torch.equal(h, h0) and torch.equal(c, c0)
+
+
 def test_initial_states_shapes():
     model = RVTDetector(RVTConfig.mini())
     states = model.initial_states(2, dtype=torch.float64)
