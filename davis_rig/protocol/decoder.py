@@ -97,7 +97,8 @@ class DecoderStats:
         imu_samples_dropped: IMU samples started but not delivered (byte count ≠ 14 at IMU end, or interrupted).
         timestamp_resets: timestamp-reset specials seen.
         big_wraps: wraps that overflowed the 31-bit timestamp (libcaer TIMESTAMP_WRAP).
-        non_monotonic_timestamps: timestamp/wrap words that moved the stream clock backwards (resets excluded).
+        non_monotonic_timestamps: DVS events earlier than the previous DVS event (a timestamp reset between the
+            two restarts the comparison); the events are delivered unchanged.
     """
 
     words: int = 0
@@ -269,11 +270,15 @@ class StreamDecoder:
         self._base_us = 0
         self._offset_us = 0
         self._last_y = 0
+        self._last_event_t: int | None = None
         self._odd_byte: int | None = None
         self._aps = _ApsState(layout)
         self._imu = _ImuState(layout)
+        # work buffers reused by every block (fresh large allocations cost page faults on each call)
         self._idx15 = np.empty(0, np.int64)
         self._idx12 = np.empty(0, np.int64)
+        self._key_t = np.empty(0, np.int64)
+        self._key_y = np.empty(0, np.int64)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -357,144 +362,137 @@ class StreamDecoder:
             idx = np.arange(1, size + 1, dtype=np.int64)
             self._idx15 = idx << _TS_KEY_SHIFT
             self._idx12 = idx << _Y_KEY_SHIFT
+            self._key_t = np.empty(size, np.int64)
+            self._key_y = np.empty(size, np.int64)
         return self._idx15[:n], self._idx12[:n]
 
     def _decode_block(self, w: np.ndarray) -> DecodedChunk:
         n = w.shape[0]
         idx15, idx12 = self._index_keys(n)
-        counts = np.bincount(w >> 12, minlength=16)
-        n_wrap = int(counts[7])
-        n_special = int(counts[0])
-        n_rare = n_special + int(counts[4] + counts[5] + counts[6])
-        n_ts = int(counts[8:].sum())
         codes = w >> 12
-
-        # --- timestamp offset: forward fill of (index << 15 | t15) over time-setting words ----------------------
+        is_wrap = codes == 7
+        n_wrap = int(np.count_nonzero(is_wrap))
+        n_special = int(np.count_nonzero(codes == 0))
+        n_rare = n_special + int(np.count_nonzero((codes - np.uint16(4)) <= 2))  # codes 4, 5, 6 (uint16 wrap)
         is_ts = w >= 0x8000
-        key_t = np.empty(n + 1, np.int64)
-        key_t[0] = self._offset_us
-        body = key_t[1:]
-        np.bitwise_or(idx15, w & 0x7FFF, out=body)
-        if n_wrap or n_special:
-            is_reset = w == Special.TIMESTAMP_RESET
-            is_wrap = codes == 7
-            setter = is_ts | is_wrap | is_reset
-            # wraps and resets set the offset to 0 (the t15 part must not leak in)
-            np.multiply(body, setter, out=body)
-            body[~is_ts & setter] &= ~np.int64(0x7FFF)
-        else:
-            is_reset = None
-            is_wrap = None
-            setter = is_ts
-            np.multiply(body, is_ts, out=body)
-        np.maximum.accumulate(key_t, out=key_t)
-        offset = key_t & 0x7FFF  # offset[i + 1] = offset after word i
-
-        # --- timestamp base: cumulative wraps, restarting at resets ---------------------------------------------
-        base_prev = self._base_us
         n_reset = 0
-        if n_wrap or n_special:
-            n_reset = int(np.count_nonzero(is_reset)) if n_special else 0
+        is_reset = None
+        if n_special:
+            is_reset = w == Special.TIMESTAMP_RESET
+            n_reset = int(np.count_nonzero(is_reset))
+
+        # --- 15-bit offset: forward fill of ((index + 1) << 15 | t15) over time-setting words --------------------
+        # Non-setters get key 0; positions before the block's first setter fall back to the carried offset
+        # (any setter key is >= 1 << 15 > carried offset), applied with np.maximum on gathered keys only.
+        key_t = np.bitwise_or(idx15, w & 0x7FFF, out=self._key_t[:n])
+        np.multiply(key_t, is_ts, out=key_t)
+        offset_in = self._offset_us
+
+        # --- wrap base: only changes at wrap and reset words, which are few; computed on those positions ---------
+        # base = (overflow << 31) + wrapAdd, 64-bit; a wrap adds n << 15, a reset restarts at 0.
+        base_prev = self._base_us
+        changes = None
         if n_wrap or n_reset:
-            inc = np.where(is_wrap, (w & 0x0FFF).astype(np.int64) << 15, 0) if n_wrap else np.zeros(n, np.int64)
-            base = np.cumsum(inc)
+            is_change = is_wrap | is_reset if n_reset else is_wrap
+            changes = np.flatnonzero(is_change)
+            key_t[changes] = idx15[changes]  # wraps and resets are setters with offset 0
+            change_words = w[changes]
+            increments = (change_words & 0x0FFF).astype(np.int64) << 15
+            change_is_reset = change_words == Special.TIMESTAMP_RESET
+            increments[change_is_reset] = 0
+            change_base = np.cumsum(increments)
             if n_reset:
-                last_reset = np.maximum.accumulate(np.where(is_reset, np.arange(n), -1))
-                base += np.where(last_reset >= 0, -base[np.maximum(last_reset, 0)], base_prev)
+                k = np.arange(changes.shape[0])
+                last_reset = np.maximum.accumulate(np.where(change_is_reset, k, -1))
+                change_base += np.where(last_reset >= 0, -change_base[np.maximum(last_reset, 0)], base_prev)
             else:
-                base += base_prev
-            base_end = int(base[-1])
+                change_base += base_prev
+            base_end = int(change_base[-1])
         else:
-            inc = None
-            base = None
             base_end = base_prev
+        np.maximum.accumulate(key_t, out=key_t)
 
-        # --- non-monotonic clock updates -----------------------------------------------------------------------
-        if base is None:
-            t15 = w[is_ts] & 0x7FFF
-            if t15.shape[0]:
-                self._stats.non_monotonic_timestamps += int(np.count_nonzero(t15[1:] < t15[:-1]))
-                if t15[0] < self._offset_us:
-                    self._stats.non_monotonic_timestamps += 1
-        else:
-            set_pos = np.flatnonzero(setter)
-            clock = base[set_pos] + offset[set_pos + 1]
-            prev = np.empty_like(clock)
-            prev[0] = base_prev + self._offset_us
-            prev[1:] = clock[:-1]
-            backwards = clock < prev
-            if n_reset:
-                backwards &= ~is_reset[set_pos]
-            self._stats.non_monotonic_timestamps += int(np.count_nonzero(backwards))
+        def base_at(positions: np.ndarray):
+            """Wrap base in effect at (after) each word position; a scalar when the block has no change."""
+            if changes is None:
+                return base_prev
+            j = np.searchsorted(changes, positions, side="right") - 1
+            return np.where(j >= 0, change_base[np.maximum(j, 0)], base_prev)
 
-        # --- last Y: forward fill of (index << 12 | y) over in-range Y words ----------------------------------------
-        key_y = np.empty(n + 1, np.int64)
-        key_y[0] = self._last_y
-        ybody = key_y[1:]
+        # --- last Y: forward fill of ((index + 1) << 12 | y) over in-range Y words ---------------------------------
         data = w & 0x0FFF
-        np.bitwise_or(idx12, data, out=ybody)
         is_y = codes == 1
-        n_y = int(counts[1])
-        if n_y:
-            valid_y = is_y & (data < self._dvs_rows)
-            n_valid_y = int(np.count_nonzero(valid_y))
-            self._stats.dvs_out_of_range += n_y - n_valid_y
-            np.multiply(ybody, valid_y, out=ybody)
-        else:
-            ybody[:] = 0
+        valid_y = is_y & (data < self._dvs_rows)
+        self._stats.dvs_out_of_range += int(np.count_nonzero(is_y)) - int(np.count_nonzero(valid_y))
+        key_y = np.bitwise_or(idx12, data, out=self._key_y[:n])
+        np.multiply(key_y, valid_y, out=key_y)
         np.maximum.accumulate(key_y, out=key_y)
+        last_y_in = self._last_y
 
-        # --- DVS events -------------------------------------------------------------------------------------------
-        n_x = int(counts[2] + counts[3])
-        if n_x:
-            xi = np.flatnonzero((codes >> 1) == 1)
+        # --- DVS events ----------------------------------------------------------------------------------------------
+        xi = np.flatnonzero((codes >> 1) == 1)  # codes 2 and 3
+        if xi.shape[0]:
             xdata = data[xi]
             ok = xdata < self._dvs_cols
             n_ok = int(np.count_nonzero(ok))
-            if n_ok != n_x:
-                self._stats.dvs_out_of_range += n_x - n_ok
+            if n_ok != xi.shape[0]:
+                self._stats.dvs_out_of_range += xi.shape[0] - n_ok
                 xi = xi[ok]
                 xdata = xdata[ok]
+        if xi.shape[0]:
+            t = key_t[xi]
+            np.maximum(t, offset_in, out=t)
+            t &= 0x7FFF
+            t += base_at(xi)
+            y = key_y[xi]
+            np.maximum(y, last_y_in, out=y)
+            y &= 0x0FFF
             events = np.empty(xi.shape[0], EVENT_DTYPE)
-            t = offset[xi + 1]
-            if base is None:
-                t += base_prev
-            else:
-                t += base[xi]
-            ydata = key_y[xi + 1] & 0x0FFF
             events["t"] = t
             if self._dvs_invert:
-                events["x"] = ydata
+                events["x"] = y
                 events["y"] = xdata
             else:
                 events["x"] = xdata
-                events["y"] = ydata
+                events["y"] = y
             events["p"] = codes[xi] & 1
+            # non-monotonic event times (a reset between two events restarts the comparison)
+            backwards = t[1:] < t[:-1]
+            first_backwards = self._last_event_t is not None and int(t[0]) < self._last_event_t
+            if n_reset:
+                epoch = np.searchsorted(np.flatnonzero(is_reset), xi)
+                backwards &= epoch[1:] == epoch[:-1]
+                first_backwards = first_backwards and int(epoch[0]) == 0
+            self._stats.non_monotonic_timestamps += int(np.count_nonzero(backwards)) + int(first_backwards)
+            self._last_event_t = int(t[-1])
         else:
             events = np.empty(0, EVENT_DTYPE)
+            if n_reset:
+                self._last_event_t = None
 
         chunk = DecodedChunk(events=events)
 
         # --- control words: specials, misc8, misc10, big wraps; ADC samples as column segments ---------------------
         big_wrap_pos = None
         if n_wrap:
-            wrap_pos = np.flatnonzero(is_wrap)
-            after = base[wrap_pos]
-            before = after - inc[wrap_pos]
-            crossed = (after >> _BIG_WRAP_SHIFT) != (before >> _BIG_WRAP_SHIFT)
+            before = change_base - increments
+            crossed = (change_base >> _BIG_WRAP_SHIFT) != (before >> _BIG_WRAP_SHIFT)
+            crossed &= ~change_is_reset
             if crossed.any():
-                big_wrap_pos = wrap_pos[crossed]
-        if n_rare or big_wrap_pos is not None or self._aps.pending:
-            self._control(w, codes, counts, base, base_prev, offset, big_wrap_pos, chunk)
+                big_wrap_pos = changes[crossed]
+        if n_rare or big_wrap_pos is not None:
+            self._control(w, codes, key_t, offset_in, base_at, big_wrap_pos, chunk)
+            if n_reset and xi.shape[0] and int(np.count_nonzero(is_reset[xi[-1]:])):
+                self._last_event_t = None  # a reset after the block's last event
 
         # --- carry state -------------------------------------------------------------------------------------------
         self._base_us = base_end
-        self._offset_us = int(offset[-1])
-        self._last_y = int(key_y[-1] & 0x0FFF)
+        self._offset_us = max(int(key_t[-1]), offset_in) & 0x7FFF
+        self._last_y = max(int(key_y[-1]), last_y_in) & 0x0FFF
         return chunk
 
     # ------------------------------------------------------------------ control-word path
-    def _control(self, w, codes, counts, base, base_prev, offset, big_wrap_pos, chunk: DecodedChunk) -> None:
+    def _control(self, w, codes, key_t, offset_in, base_at, big_wrap_pos, chunk: DecodedChunk) -> None:
         aps = self._aps
         imu = self._imu
         stats = self._stats
@@ -502,17 +500,16 @@ class StreamDecoder:
         if big_wrap_pos is not None:
             ctrl_mask[big_wrap_pos] = True
         ctrl_pos = np.flatnonzero(ctrl_mask)
-        if counts[4]:
-            adc_pos = np.flatnonzero(codes == 4)
+        adc_pos = np.flatnonzero(codes == 4)
+        if adc_pos.shape[0]:
             adc_vals = (w[adc_pos] & 0x0FFF).astype(np.int32)
             adc_cut = np.searchsorted(adc_pos, ctrl_pos).tolist()
         else:
-            adc_pos = None
             adc_vals = np.empty(0, np.int32)
             adc_cut = [0] * ctrl_pos.shape[0]
         n_adc = adc_vals.shape[0]
-        times = offset[ctrl_pos + 1]
-        times = times + (base[ctrl_pos] if base is not None else base_prev)
+        times = np.maximum(key_t[ctrl_pos], offset_in) & 0x7FFF
+        times += base_at(ctrl_pos)
         specials: list[tuple[int, int]] = []
         imu_rows: list[tuple] = []
         adc_done = 0
