@@ -344,3 +344,26 @@ def test_stats_snapshot_is_independent(davis346, proto):
     assert before.unknown_words == 0
     assert decoder.stats.unknown_words == 1
     assert decoder.stats.as_dict()["words"] == 1
+
+
+@pytest.mark.parametrize("reassemble", [False, True])
+def test_feed_many_equals_feeding_one_by_one(davis346, reassemble):
+    rng = np.random.default_rng(11)
+    stream = np.where(
+        rng.random(20_000) < 0.3,
+        0x8000 | rng.integers(0, 0x8000, 20_000),
+        (rng.integers(1, 4, 20_000) << 12) | rng.integers(0, 300, 20_000),
+    ).astype("<u2").tobytes()
+    sizes = rng.integers(0, 3000, 40)
+    transfers, pos = [], 0
+    for size in sizes:
+        transfers.append(stream[pos : pos + int(size)])
+        pos += int(size)
+    one = StreamDecoder(davis346, reassemble_odd_bytes=reassemble)
+    expected = DecodedChunk.concatenate([one.feed(t) for t in transfers])
+    many = StreamDecoder(davis346, reassemble_odd_bytes=reassemble)
+    got = DecodedChunk.concatenate([many.feed_many(transfers[:15]), many.feed_many(transfers[15:])])
+    np.testing.assert_array_equal(got.events, expected.events)
+    assert len(got.events) > 1000
+    assert many.stats == one.stats
+    assert (many.stats.odd_bytes_dropped > 0) != reassemble
