@@ -42,6 +42,15 @@ def test_matches_official_fixture_histograms(reference_windows):
     np.testing.assert_array_equal(hist, ref["hist_uint8_unpadded"])
 
 
+def test_dense_counting_path_matches_official_fixture_histograms(reference_windows, monkeypatch):
+    import davis_rig.events.histogram as histogram_module
+
+    monkeypatch.setattr(histogram_module, "_SPARSE_FRACTION", 10**9)  # force the np.bincount path
+    ref = reference_windows
+    events = {k: ref[f"events_{k}"] for k in ("x", "y", "t_us", "p")}
+    np.testing.assert_array_equal(stacked_histograms(events, ref["window_end_ts_us"]), ref["hist_uint8_unpadded"])
+
+
 def test_structured_array_and_tuple_inputs_give_the_same_result(reference_windows):
     ref = reference_windows
     x, y, t_us, p = (ref[f"events_{k}"] for k in ("x", "y", "t_us", "p"))
@@ -89,7 +98,12 @@ def test_empty_window_is_all_zeros():
 
 
 @pytest.mark.parametrize(("count", "expected"), [(9, 9), (10, 10), (11, 10), (255, 10), (256, 0), (260, 4)])
-def test_uint8_wrap_happens_before_the_clip(count, expected):
+@pytest.mark.parametrize("dense", [False, True])
+def test_uint8_wrap_happens_before_the_clip(count, expected, dense, monkeypatch):
+    import davis_rig.events.histogram as histogram_module
+
+    if dense:
+        monkeypatch.setattr(histogram_module, "_SPARSE_FRACTION", 10**9)
     n = count
     hist = stacked_histogram(np.full(n, 3), np.full(n, 4), np.zeros(n, np.int64), np.ones(n, np.uint8))
     assert hist[10, 4, 3] == expected
@@ -195,11 +209,19 @@ def test_window_without_events_is_zero_and_custom_window_length():
         max_size=400,
     ),
     num_bins=st.integers(1, 4),
+    dense=st.booleans(),
 )
-def test_matches_official_transcription_on_random_windows(data, num_bins):
+def test_matches_official_transcription_on_random_windows(data, num_bins, dense):
+    import davis_rig.events.histogram as histogram_module
+
+    fraction = histogram_module._SPARSE_FRACTION
+    histogram_module._SPARSE_FRACTION = 10**9 if dense else 0
     rows = np.array(data, dtype=np.int64).reshape(-1, 4)
     rows = rows[np.argsort(rows[:, 2], kind="stable")]
     x, y, t_us, p = rows.T
     expected = _official_torch_histogram(x, y, t_us, p, 4, 6, num_bins, 3)
-    got = stacked_histogram(x, y, t_us, p, height=4, width=6, num_bins=num_bins, count_cutoff=3)
+    try:
+        got = stacked_histogram(x, y, t_us, p, height=4, width=6, num_bins=num_bins, count_cutoff=3)
+    finally:
+        histogram_module._SPARSE_FRACTION = fraction
     np.testing.assert_array_equal(got, expected)
