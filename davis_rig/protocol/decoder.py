@@ -708,7 +708,7 @@ class StreamDecoder:
         aps.in_frame = False
 
     def _flush_aps(self, adc_vals: np.ndarray) -> None:
-        """Write queued ADC column segments into the reset/pixel buffers, one scatter per same-type run."""
+        """Write queued ADC column segments into the reset/pixel buffers, one vectorised write per same-type run."""
         aps = self._aps
         pending = aps.pending
         if not pending:
@@ -716,30 +716,85 @@ class StreamDecoder:
         aps.pending = []
         seg = np.array(pending, dtype=np.int64)  # columns: readout, count_x, first_row, start, stop
         readout = seg[:, 0]
-        boundaries = np.flatnonzero(readout[1:] != readout[:-1]) + 1
-        for group in np.split(seg, boundaries):
-            lengths = group[:, 4] - group[:, 3]
-            total = int(lengths.sum())
-            first = np.cumsum(lengths) - lengths
-            within = np.arange(total) - np.repeat(first, lengths)
-            sample = np.repeat(group[:, 3], lengths) + within
-            pos_y = np.repeat(group[:, 2], lengths) + within
-            pos_x = np.repeat(group[:, 1], lengths)
-            if aps.flip_x:
-                pos_x = aps.expected_x - 1 - pos_x
-            if aps.flip_y:
-                pos_y = aps.expected_y - 1 - pos_y
-            if aps.invert_xy:
-                pos_x, pos_y = pos_y, pos_x
-            index = pos_y * aps.size_x + pos_x
-            values = adc_vals[sample]
-            if group[0, 0] == _READOUT_RESET:
-                aps.reset_buffer[index] = values
+        cuts = [0, *(np.flatnonzero(readout[1:] != readout[:-1]) + 1).tolist(), seg.shape[0]]
+        for lo, hi in zip(cuts[:-1], cuts[1:]):
+            group = seg[lo:hi]
+            if self._is_full_column_run(group):
+                self._write_column_block(group, adc_vals)
             else:
-                reset = aps.reset_buffer[index]
-                cds = np.clip(reset - values, 0, APS_PIXEL_MAX)
-                cds[(reset < APS_RESET_MIN) | (values == 0)] = APS_PIXEL_MAX
-                aps.pixel_buffer[index] = (cds << APS_PIXEL_SHIFT).astype(np.uint16)
+                self._write_segments(group, adc_vals)
+
+    def _is_full_column_run(self, group: np.ndarray) -> bool:
+        """True when the segments are whole, consecutive columns of consecutive samples (the normal case)."""
+        k = group.shape[0]
+        expected_y = self._aps.expected_y
+        steps = np.arange(k)
+        return bool(
+            np.all(group[:, 2] == 0)
+            and np.all(group[:, 4] - group[:, 3] == expected_y)
+            and np.all(group[:, 1] == group[0, 1] + steps)
+            and np.all(group[:, 3] == group[0, 3] + steps * expected_y)
+        )
+
+    def _write_column_block(self, group: np.ndarray, adc_vals: np.ndarray) -> None:
+        """Fast path: k whole device columns → one rectangular slice of the ROI buffers."""
+        aps = self._aps
+        k = group.shape[0]
+        first_col = int(group[0, 1])
+        start = int(group[0, 3])
+        device = adc_vals[start : start + k * aps.expected_y].reshape(k, aps.expected_y)  # [column, sample]
+        if aps.flip_y:
+            device = device[:, ::-1]
+        if aps.flip_x:
+            device = device[::-1, :]
+            lo = aps.expected_x - first_col - k
+        else:
+            lo = first_col
+        npix = aps.size_x * aps.size_y
+        reset2d = aps.reset_buffer[:npix].reshape(aps.size_y, aps.size_x)
+        pixel2d = aps.pixel_buffer[:npix].reshape(aps.size_y, aps.size_x)
+        if aps.invert_xy:  # device columns are output rows
+            region = (slice(lo, lo + k), slice(None))
+            values = device
+        else:
+            region = (slice(None), slice(lo, lo + k))
+            values = device.T
+        if group[0, 0] == _READOUT_RESET:
+            reset2d[region] = values
+        else:
+            pixel2d[region] = self._cds(reset2d[region], values)
+
+    def _write_segments(self, group: np.ndarray, adc_vals: np.ndarray) -> None:
+        """General path: arbitrary (partial, repeated) segments, scattered sample by sample (vectorised)."""
+        aps = self._aps
+        lengths = group[:, 4] - group[:, 3]
+        total = int(lengths.sum())
+        if total == 0:
+            return
+        first = np.cumsum(lengths) - lengths
+        within = np.arange(total) - np.repeat(first, lengths)
+        sample = np.repeat(group[:, 3], lengths) + within
+        pos_y = np.repeat(group[:, 2], lengths) + within
+        pos_x = np.repeat(group[:, 1], lengths)
+        if aps.flip_x:
+            pos_x = aps.expected_x - 1 - pos_x
+        if aps.flip_y:
+            pos_y = aps.expected_y - 1 - pos_y
+        if aps.invert_xy:
+            pos_x, pos_y = pos_y, pos_x
+        index = pos_y * aps.size_x + pos_x
+        values = adc_vals[sample]
+        if group[0, 0] == _READOUT_RESET:
+            aps.reset_buffer[index] = values
+        else:
+            aps.pixel_buffer[index] = self._cds(aps.reset_buffer[index], values)
+
+    @staticmethod
+    def _cds(reset: np.ndarray, signal: np.ndarray) -> np.ndarray:
+        """libcaer CDS: clamp(reset - signal, 0, 1023), forced to 1023 if reset < 384 or signal == 0; << 6."""
+        cds = np.clip(reset - signal, 0, APS_PIXEL_MAX)
+        cds[(reset < APS_RESET_MIN) | (signal == 0)] = APS_PIXEL_MAX
+        return (cds << APS_PIXEL_SHIFT).astype(np.uint16)
 
     # ------------------------------------------------------------------ IMU
     @staticmethod
