@@ -717,10 +717,16 @@ class StreamDecoder:
         seg = np.array(pending, dtype=np.int64)  # columns: readout, count_x, first_row, start, stop
         readout = seg[:, 0]
         cuts = [0, *(np.flatnonzero(readout[1:] != readout[:-1]) + 1).tolist(), seg.shape[0]]
+        expected_y = aps.expected_y
         for lo, hi in zip(cuts[:-1], cuts[1:]):
             group = seg[lo:hi]
-            if self._is_full_column_run(group):
-                self._write_column_block(group, adc_vals)
+            # a transfer boundary can leave a partial column at either end of a run of whole columns
+            head = 0 if group[0, 2] == 0 and group[0, 4] - group[0, 3] == expected_y else 1
+            tail = group.shape[0] - (0 if group[-1, 2] == 0 and group[-1, 4] - group[-1, 3] == expected_y else 1)
+            if tail - head >= 1 and self._is_full_column_run(group[head:tail]):
+                self._write_segments(group[:head], adc_vals)
+                self._write_column_block(group[head:tail], adc_vals)
+                self._write_segments(group[tail:], adc_vals)
             else:
                 self._write_segments(group, adc_vals)
 
@@ -767,6 +773,8 @@ class StreamDecoder:
     def _write_segments(self, group: np.ndarray, adc_vals: np.ndarray) -> None:
         """General path: arbitrary (partial, repeated) segments, scattered sample by sample (vectorised)."""
         aps = self._aps
+        if group.shape[0] == 0:
+            return
         lengths = group[:, 4] - group[:, 3]
         total = int(lengths.sum())
         if total == 0:
@@ -792,7 +800,9 @@ class StreamDecoder:
     @staticmethod
     def _cds(reset: np.ndarray, signal: np.ndarray) -> np.ndarray:
         """libcaer CDS: clamp(reset - signal, 0, 1023), forced to 1023 if reset < 384 or signal == 0; << 6."""
-        cds = np.clip(reset - signal, 0, APS_PIXEL_MAX)
+        cds = reset - signal
+        np.maximum(cds, 0, out=cds)
+        np.minimum(cds, APS_PIXEL_MAX, out=cds)
         cds[(reset < APS_RESET_MIN) | (signal == 0)] = APS_PIXEL_MAX
         return (cds << APS_PIXEL_SHIFT).astype(np.uint16)
 
