@@ -69,36 +69,76 @@ def nms(boxes, scores, iou_threshold: float) -> np.ndarray:
     n = boxes.shape[0]
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    x1, y1, x2, y2 = (np.ascontiguousarray(boxes[:, k]) for k in range(4))
-    areas = (x2 - x1) * (y2 - y1)
     order = _stable_argsort_desc(scores)
-    suppressed = np.zeros(n, dtype=bool)
+    # Work in score order: position k is the k-th box the kernel visits.
+    x1, y1, x2, y2 = (np.ascontiguousarray(boxes[order, k]) for k in range(4))
+    areas = (x2 - x1) * (y2 - y1)
+    rows, cols = _suppression_pairs(x1, y1, x2, y2, areas, float(iou_threshold))
+    # Greedy pass (sequential by nature): a box not yet suppressed is kept and suppresses its later partners.
+    row_starts = np.searchsorted(rows, np.arange(n + 1)).tolist()
+    cols_list = cols.tolist()
+    suppressed = bytearray(n)
     keep = []
+    for pos in range(n):
+        if suppressed[pos]:
+            continue
+        keep.append(pos)
+        for other in cols_list[row_starts[pos] : row_starts[pos + 1]]:
+            suppressed[other] = 1
+    return order[np.asarray(keep, dtype=np.int64)].astype(np.int64)
+
+
+def _float32_above(threshold: float) -> np.float32:
+    """The float32 ``t`` with ``v > t`` ⟺ ``float64(v) > threshold`` for every float32 ``v``."""
+    t32 = np.float32(threshold)
+    if float(t32) > threshold:
+        t32 = np.nextafter(t32, np.float32(-np.inf))
+    return np.float32(t32)
+
+
+def _suppression_pairs(x1, y1, x2, y2, areas, threshold: float, block_rows: int = 512):
+    """All pairs (i < j, score order) whose IoU, computed like torchvision's kernel, is > ``threshold``.
+
+    The IoU arithmetic is the kernel's, elementwise in float32 with the kept box as first operand:
+    ``xx1 = max(x1_i, x1_j)`` (C++ ``std::max``), ``w = max(0, xx2 - xx1)``, ``inter = w·h``,
+    ``ovr = inter / (area_i + area_j - inter)``. Pairs whose boxes cannot overlap are skipped first (such
+    pairs give ``inter = 0`` or NaN in the kernel, never a suppression), so the exact formula runs only on
+    overlapping candidates. Returns ``(rows, cols)`` int64 arrays sorted by row.
+    """
+    n = x1.shape[0]
+    t32 = _float32_above(threshold)
     zero = np.float32(0)
-    threshold = float(iou_threshold)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for pos in range(n):
-            i = order[pos]
-            if suppressed[i]:
+    all_rows, all_cols = [], []
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        for start in range(0, n, block_rows):
+            stop = min(start + block_rows, n)
+            # candidates j > i with strictly overlapping extents (a superset of the suppressing pairs)
+            ax1, ay1, ax2, ay2 = x1[start:stop, None], y1[start:stop, None], x2[start:stop, None], y2[start:stop, None]
+            candidate = (x1[None, start:] < ax2) & (ax1 < x2[None, start:])
+            candidate &= (y1[None, start:] < ay2) & (ay1 < y2[None, start:])
+            i, j = np.nonzero(candidate)
+            j = j + start
+            i = i + start
+            later = j > i
+            i, j = i[later], j[later]
+            if i.size == 0:
                 continue
-            keep.append(i)
-            rest = order[pos + 1 :]
-            rest = rest[~suppressed[rest]]
-            if rest.size == 0:
-                break
-            # std::max / std::min on floats: (a < b) ? b : a — keep the first operand on NaN like C++.
-            xx1 = np.where(x1[i] < x1[rest], x1[rest], x1[i])
-            yy1 = np.where(y1[i] < y1[rest], y1[rest], y1[i])
-            xx2 = np.where(x2[rest] < x2[i], x2[rest], x2[i])
-            yy2 = np.where(y2[rest] < y2[i], y2[rest], y2[i])
+            xx1 = np.where(x1[i] < x1[j], x1[j], x1[i])
+            yy1 = np.where(y1[i] < y1[j], y1[j], y1[i])
+            xx2 = np.where(x2[j] < x2[i], x2[j], x2[i])
+            yy2 = np.where(y2[j] < y2[i], y2[j], y2[i])
             w = xx2 - xx1
             h = yy2 - yy1
             w = np.where(zero < w, w, zero)
             h = np.where(zero < h, h, zero)
             inter = w * h
-            ovr = inter / (areas[i] + areas[rest] - inter)
-            suppressed[rest[ovr.astype(np.float64) > threshold]] = True
-    return np.asarray(keep, dtype=np.int64)
+            ovr = inter / (areas[i] + areas[j] - inter)
+            hit = ovr > t32
+            all_rows.append(i[hit])
+            all_cols.append(j[hit])
+    if not all_rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(all_rows).astype(np.int64), np.concatenate(all_cols).astype(np.int64)
 
 
 def torch_cpu_unstable_argsort_desc(values) -> np.ndarray:

@@ -176,3 +176,16 @@ def test_unstable_sort_emulation_matches_torch():
             values[rng.integers(0, n, 2)] = np.nan
         expected = torch.from_numpy(values).sort(descending=True)[1].numpy()
         np.testing.assert_array_equal(torch_cpu_unstable_argsort_desc(values), expected, err_msg=f"trial {trial}")
+
+
+def test_degenerate_and_duplicate_boxes_match_torch_transcription():
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(11)
+    boxes, scores, idxs = _random_boxes(rng, 400, classes=2)
+    boxes[:40, 2] = boxes[:40, 0]  # zero width
+    boxes[40:80, [0, 2]] = boxes[40:80, [2, 0]]  # inverted x (negative width)
+    boxes[80:120] = boxes[120:160]  # exact duplicates
+    scores[80:100] = scores[120:140]  # ... some with the same score
+    for path_boxes in (boxes, boxes * np.float32(37.3)):  # large coordinates: offsets change the rounding
+        expected = _torch_batched_nms(torch, *(torch.from_numpy(a) for a in (path_boxes, scores, idxs)), 0.45)
+        np.testing.assert_array_equal(batched_nms(path_boxes, scores, idxs, 0.45), expected.numpy())

@@ -1,0 +1,204 @@
+"""Benchmark: RVT detector step latency, PyTorch eager vs onnxruntime, on the CPU (batch 1, 256x320, fp32).
+
+For RVT-T and RVT-B (**random weights** — latency does not depend on the values) at 1 and 2 intra-op threads:
+
+* ``eager_step``: one recurrent step (backbone + FPN + head, with states) under ``torch.inference_mode``;
+* ``ort_step``: the same step exported with ``export_step_onnx`` and run by :class:`RVTOnnxRunner`
+  (input already padded float32); ratio eager / ORT;
+* ``bptt_3steps``: 3 recurrent steps forward + backward w.r.t. the three inputs (the digital optimizer's inner
+  cost; loss = Σ obj · max class prob of the last step);
+* ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1.
+
+Accuracy: max |ORT − PyTorch| over 3 steps with states carried, for the random-weight models and, when the
+``shared/rvt/rvt_t_fixture.safetensors`` reference is beside the repository, for RVT-T with the fixture's
+weights on its official histograms (also vs the official decoded output stored in the fixture).
+
+Run: ``python benchmarks/model.py [--repeats N] [--variants tiny base] [--threads 1 2] [--no-bptt]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+import torch
+
+from davis_rig.models.rvt import RVTConfig
+from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
+from davis_rig.models.rvt.onnx_export import export_step_onnx
+from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+from davis_rig.models.rvt.postprocess import postprocess
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RVT_T_FIXTURE = (REPO_ROOT / ".." / "shared" / "rvt" / "rvt_t_fixture.safetensors").resolve()
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - start) * 1e3)
+    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
+    return statistics.median(samples), quartiles[2] - quartiles[0]
+
+
+def _compare(model: RVTDetector, runner: RVTOnnxRunner, hists: list[np.ndarray]) -> dict[str, float]:
+    """Max abs differences ORT vs PyTorch over the steps (states carried separately in each)."""
+    torch_states = ort_states = None
+    diffs = {"scores": 0.0, "boxes_px": 0.0, "boxes_rel": 0.0, "states": 0.0}
+    decoded_steps = []
+    for hist in hists:
+        with torch.no_grad():
+            decoded, torch_states = model(torch.from_numpy(hist), torch_states)
+        ort_decoded, ort_states = runner.step(hist, ort_states)
+        ref = decoded.numpy()
+        decoded_steps.append(ort_decoded)
+        box_err = np.abs(ort_decoded[..., :4] - ref[..., :4])
+        diffs["scores"] = max(diffs["scores"], float(np.abs(ort_decoded[..., 4:] - ref[..., 4:]).max()))
+        diffs["boxes_px"] = max(diffs["boxes_px"], float(box_err.max()))
+        diffs["boxes_rel"] = max(diffs["boxes_rel"], float((box_err / np.maximum(np.abs(ref[..., :4]), 1)).max()))
+        for (th, tc), (oh, oc) in zip(torch_states, ort_states):
+            diffs["states"] = max(
+                diffs["states"], float(np.abs(th.numpy() - oh).max()), float(np.abs(tc.numpy() - oc).max())
+            )
+    diffs["_decoded"] = decoded_steps  # type: ignore[assignment]
+    return diffs
+
+
+def _format_diffs(diffs: dict) -> str:
+    return ", ".join(f"{k} {v:.2e}" for k, v in diffs.items() if not k.startswith("_"))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--variants", nargs="+", default=["tiny", "base"], choices=["tiny", "small", "base", "mini"])
+    parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--no-bptt", action="store_true", help="skip the 3-step forward+backward timing")
+    args = parser.parse_args()
+
+    print("# RVT model benchmark: PyTorch eager vs onnxruntime (random weights, batch 1, 20x256x320, fp32, CPU)")
+    print(
+        f"# commit {_commit()}  torch {torch.__version__}  onnxruntime {onnxruntime.__version__}  "
+        f"numpy {np.__version__}  python {platform.python_version()}  cpu {platform.processor() or platform.machine()}"
+        f"  torch capability {torch.backends.cpu.get_cpu_capability()}  repeats {args.repeats} (+{args.warmup} warm-up)"
+    )
+    rng = np.random.default_rng(0)
+    hists = []
+    for _ in range(3):
+        hist = np.zeros((1, 20, 256, 320), np.float32)
+        hist[:, :, :240, :304] = np.minimum(rng.poisson(0.3, size=(1, 20, 240, 304)), 10)
+        hists.append(hist)
+    results: dict[tuple[str, int, str], float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for variant in args.variants:
+            torch.manual_seed(0)
+            config = getattr(RVTConfig, variant)()
+            model = RVTDetector(config).eval()
+            for parameter in model.parameters():
+                parameter.requires_grad_(False)
+            start = time.perf_counter()
+            onnx_path = export_step_onnx(model, Path(tmp) / f"{variant}.onnx")
+            print(f"{config.name}: ONNX export {time.perf_counter() - start:.1f} s, "
+                  f"{onnx_path.stat().st_size / 1e6:.1f} MB")
+            inputs = [torch.from_numpy(h) for h in hists]
+            with torch.no_grad():
+                _, warm_states = model(inputs[0])
+            for threads in args.threads:
+                torch.set_num_threads(threads)
+                runner = RVTOnnxRunner(onnx_path, intra_op_threads=threads)
+                _, ort_warm = runner.step(hists[0])
+
+                def eager_step():
+                    with torch.inference_mode():
+                        model(inputs[1], warm_states)
+
+                def ort_step():
+                    runner.step(hists[1], ort_warm)
+
+                cases = {"eager_step": eager_step, "ort_step": ort_step}
+                if not args.no_bptt:
+
+                    def bptt_3steps():
+                        xs = [x.clone().requires_grad_(True) for x in inputs]
+                        states = None
+                        for x in xs:
+                            decoded, states = model(x, states)
+                        (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
+
+                    cases["bptt_3steps"] = bptt_3steps
+                for name, fn in cases.items():
+                    repeats = args.repeats if name != "bptt_3steps" else max(3, args.repeats // 2)
+                    median_ms, iqr_ms = _time_ms(fn, args.warmup, repeats)
+                    results[(variant, threads, name)] = median_ms
+                    print(f"{config.name:6s} threads {threads}  {name:12s} median {median_ms:8.1f} ms  IQR {iqr_ms:6.1f} ms")
+                eager, ort_ms = results[(variant, threads, "eager_step")], results[(variant, threads, "ort_step")]
+                print(f"{config.name:6s} threads {threads}  ratio eager/ORT {eager / ort_ms:.2f}")
+            diffs = _compare(model, RVTOnnxRunner(onnx_path), hists)
+            print(f"{config.name:6s} ORT vs PyTorch (random weights, 3 steps): {_format_diffs(diffs)}")
+            if variant == args.variants[0]:
+                decoded = diffs["_decoded"][-1]
+                for conf in (0.001, 0.1):
+                    median_ms, iqr_ms = _time_ms(lambda: postprocess(decoded, conf), 2, args.repeats)
+                    kept = postprocess(decoded, conf)[0]
+                    print(f"postprocess conf {conf:<5}  median {median_ms:6.1f} ms  IQR {iqr_ms:5.1f} ms  "
+                          f"({0 if kept is None else len(kept)} detections kept)")
+
+        if RVT_T_FIXTURE.is_file():
+            from safetensors.numpy import load_file
+
+            from davis_rig.models.rvt.checkpoint import load_detector
+
+            torch.set_num_threads(2)
+            model = load_detector(RVT_T_FIXTURE)
+            fixture = load_file(str(RVT_T_FIXTURE))
+            path = export_step_onnx(model, Path(tmp) / "rvt_t_fixture.onnx")
+            fixture_hists = [pad_to_input(torch.from_numpy(h[None].astype(np.float32))).numpy()
+                             for h in fixture["input.hist_uint8_unpadded"]]
+            diffs = _compare(model, RVTOnnxRunner(path, intra_op_threads=2), fixture_hists)
+            print(f"RVT-T fixture weights, ORT vs PyTorch (3 steps): {_format_diffs(diffs)}")
+            official = [fixture[f"step{s}.head.decoded"] for s in range(3)]
+            score_err = max(float(np.abs(d[..., 4:] - o[..., 4:]).max()) for d, o in zip(diffs["_decoded"], official))
+            box_err = max(
+                float((np.abs(d[..., :4] - o[..., :4]) / np.maximum(np.abs(o[..., :4]), 1)).max())
+                for d, o in zip(diffs["_decoded"], official)
+            )
+            print(f"RVT-T fixture weights, ORT vs official decoded: scores {score_err:.2e}, boxes_rel {box_err:.2e}")
+        else:
+            print(f"# RVT-T fixture not found at {RVT_T_FIXTURE}: fixture accuracy check skipped")
+
+    print("# ratios")
+    for threads in args.threads:
+        for name in ("eager_step", "ort_step", "bptt_3steps"):
+            if ("tiny", threads, name) in results and ("base", threads, name) in results:
+                print(f"B/T  threads {threads}  {name:12s} {results[('base', threads, name)] / results[('tiny', threads, name)]:.2f}")
+    if 1 in args.threads and 2 in args.threads:
+        for variant in args.variants:
+            for name in ("eager_step", "ort_step"):
+                print(f"{variant:5s} 1->2 threads speed-up {name:12s} "
+                      f"{results[(variant, 1, name)] / results[(variant, 2, name)]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
