@@ -261,7 +261,8 @@ class RVTOnnxRunner:
         nms_threshold: float = 0.45,
         window_us: int = WINDOW_US,
         states: States | None = None,
-    ) -> list[np.ndarray | None]:
+        return_states: bool = False,
+    ) -> list[np.ndarray | None] | tuple[list[np.ndarray | None], States]:
         """Score a time-sorted event stream: one histogram + step + postprocess per window, states carried.
 
         Args:
@@ -273,10 +274,12 @@ class RVTOnnxRunner:
             nms_threshold: class-wise NMS IoU threshold.
             window_us: window duration, µs.
             states: initial states (batch 1), ``None`` = zeros (start of a sequence).
+            return_states: also return the states after the last window (to continue a long recording
+                chunk by chunk).
 
         Returns:
             One entry per window: float32 [K, 7] ``(x1, y1, x2, y2, obj, class_conf, class_id)`` by decreasing
-            obj · class_conf, or ``None``.
+            obj · class_conf, or ``None``; with ``return_states`` the tuple ``(detections, states)``.
 
         Raises:
             ShapeError, FormatError: bad event columns (see ``stacked_histogram``) or states.
@@ -287,6 +290,8 @@ class RVTOnnxRunner:
         for hist in hists:
             decoded, states = self.step(hist[None], states)
             detections.extend(postprocess(decoded, conf_threshold, nms_threshold))
+        if return_states:
+            return detections, states if states is not None else self.initial_states(1)
         return detections
 
     def __repr__(self) -> str:

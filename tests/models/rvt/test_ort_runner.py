@@ -97,6 +97,16 @@ def test_score_stream_is_histogram_step_postprocess(runner, mini_fixture):
         np.testing.assert_allclose(detections[step][:10, 4:], official[:10, 4:], atol=1e-4)
 
 
+def test_score_stream_in_chunks_equals_one_pass(runner, mini_fixture):
+    x, y, t_us, p = _events(mini_fixture)
+    ends = mini_fixture["input.window_end_ts_us"]
+    whole = runner.score_stream(x, y, t_us, p, ends, conf_threshold=0.1)
+    first, states = runner.score_stream(x, y, t_us, p, ends[:1], conf_threshold=0.1, return_states=True)
+    rest = runner.score_stream(x, y, t_us, p, ends[1:], conf_threshold=0.1, states=states)
+    for a, b in zip(whole, first + rest):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_wrong_histogram_resolution_and_states_raise_shape_error(runner):
     with pytest.raises(ShapeError, match=r"240, 304\] \(padded automatically\) or \[B, 20, 256, 320\]"):
         runner.step(np.zeros((1, 20, 300, 400), np.uint8))
