@@ -238,38 +238,53 @@ class StreamEncoder:
         n = events.shape[0]
         if n == 0:
             return np.empty(0, np.uint16)
-        t = events["t"].astype(np.int64)
+        t = events["t"]
+        if t.dtype != np.int64:
+            t = t.astype(np.int64)
         if self.layout.dvs_invert_xy:
-            y_raw = events["x"].astype(np.int64)
-            x_raw = events["y"].astype(np.int64)
+            y_raw = events["x"].astype(np.uint16)
+            x_raw = events["y"].astype(np.uint16)
         else:
-            y_raw = events["y"].astype(np.int64)
-            x_raw = events["x"].astype(np.int64)
-        base = t & ~np.int64(TIMESTAMP_MASK)
-        prev_base = np.empty(n, np.int64)
-        prev_base[0] = self._base_us
-        prev_base[1:] = base[:-1]
-        jump = (base - prev_base) >> _WRAP_SHIFT
-        n_wrap = (jump + (WRAP_MAX_MULTIPLIER - 1)) // WRAP_MAX_MULTIPLIER
-        prev_t = np.empty(n, np.int64)
-        prev_t[0] = self._time_us
-        prev_t[1:] = t[:-1]
+            y_raw = events["y"].astype(np.uint16)
+            x_raw = events["x"].astype(np.uint16)
+        # wrap-base jumps (in wrap units) from the previous event / the carried clock
+        wrap_index = t >> _WRAP_SHIFT
+        jump = np.empty(n, np.int64)
+        jump[0] = wrap_index[0] - (self._base_us >> _WRAP_SHIFT)
+        np.subtract(wrap_index[1:], wrap_index[:-1], out=jump[1:])
         wrapped = jump > 0
-        need_ts = (t != prev_t) & ~(wrapped & ((t & TIMESTAMP_MASK) == 0))
-        prev_y = np.empty(n, np.int64)
-        prev_y[0] = -1 if self._last_y is None else self._last_y
-        prev_y[1:] = y_raw[:-1]
-        need_y = wrapped | need_ts | (y_raw != prev_y)
+        n_wrap = wrapped.astype(np.int64)
+        long_gaps = np.flatnonzero(jump > WRAP_MAX_MULTIPLIER)
+        if long_gaps.shape[0]:
+            n_wrap[long_gaps] = -(-jump[long_gaps] // WRAP_MAX_MULTIPLIER)
+        # a timestamp word when the time changes, unless the event sits exactly on a new wrap base
+        need_ts = np.empty(n, bool)
+        need_ts[0] = t[0] != self._time_us
+        np.not_equal(t[1:], t[:-1], out=need_ts[1:])
+        on_base = (t & TIMESTAMP_MASK) == 0
+        on_base &= wrapped
+        need_ts &= ~on_base
+        # a row word when the row or the clock changes
+        need_y = np.empty(n, bool)
+        need_y[0] = self._last_y is None or int(y_raw[0]) != self._last_y
+        np.not_equal(y_raw[1:], y_raw[:-1], out=need_y[1:])
+        need_y |= wrapped
+        need_y |= need_ts
 
-        counts = n_wrap + need_ts + need_y + 1
+        counts = n_wrap + need_ts
+        counts += need_y
+        counts += 1
         ends = np.cumsum(counts)
         out = np.empty(int(ends[-1]), np.uint16)
         x_pos = ends - 1
-        out[x_pos] = ((Code.X_ADDR_OFF << 12) | (events["p"].astype(np.int64) << 12) | x_raw).astype(np.uint16)
+        x_words = events["p"].astype(np.uint16) << 12
+        x_words |= x_raw
+        x_words |= np.uint16(Code.X_ADDR_OFF << 12)
+        out[x_pos] = x_words
         y_at = np.flatnonzero(need_y)
-        out[x_pos[y_at] - 1] = ((Code.Y_ADDR << 12) | y_raw[y_at]).astype(np.uint16)
+        out[x_pos[y_at] - 1] = y_raw[y_at] | np.uint16(Code.Y_ADDR << 12)
         ts_at = np.flatnonzero(need_ts)
-        out[x_pos[ts_at] - 1 - need_y[ts_at]] = (TIMESTAMP_FLAG | (t[ts_at] & TIMESTAMP_MASK)).astype(np.uint16)
+        out[x_pos[ts_at] - 1 - need_y[ts_at]] = (t[ts_at] & TIMESTAMP_MASK).astype(np.uint16) | np.uint16(TIMESTAMP_FLAG)
         wrap_at = np.flatnonzero(n_wrap)
         if wrap_at.shape[0]:
             reps = n_wrap[wrap_at]
@@ -282,7 +297,8 @@ class StreamEncoder:
             multipliers[last] = jump[wrap_at] - WRAP_MAX_MULTIPLIER * (reps - 1)
             out[positions] = ((Code.TS_WRAP << 12) | multipliers).astype(np.uint16)
 
-        self._base_us = int(base[-1])
+        base = t[-1:] & ~np.int64(TIMESTAMP_MASK)
+        self._base_us = int(base[0])
         self._time_us = int(t[-1])
         self._last_y = int(y_raw[-1])
         return out
