@@ -25,11 +25,14 @@ Event times are stored relative to ``t_offset`` (as DSEC does) so that ``ms_to_i
 millisecond of the recording; every other ``t*`` dataset holds absolute device µs. :class:`SessionReader` hides
 the offset: it always returns device µs.
 
-Compression (measured on this project's 2-core dev machine, 6 M synthetic events at the DAVIS346 peak rate,
-``benchmarks/io.py`` repeats the measurement): gzip-1 10.8 M ev/s, 2.59 B/ev; lzf 15.7 M ev/s, 3.23 B/ev;
-Blosc-lz4 78 M ev/s, 3.17 B/ev; **Blosc-zstd level 1 + byte shuffle 45.6 M ev/s, 2.48 B/ev** (chosen: the
-smallest files that still keep ~4x headroom over the 12 M ev/s peak on one core); Blosc-zstd-5 8.6 M ev/s;
-uncompressed 13 B/ev. gzip and lzf cannot keep up with the peak rate while the decoder shares the core.
+Compression: Blosc lz4 (level 5) with byte shuffle, chosen for speed at the DAVIS346 peak of 12 M ev/s. Measured
+on this project's 2-core dev machine, 6 M synthetic events, h5py direct writes, machine idle: uncompressed
+100.8 M ev/s, 13.07 B/ev; gzip-1 10.8 M ev/s, 2.59 B/ev; lzf 15.7 M ev/s, 3.23 B/ev; **Blosc-lz4-5 78.1 M ev/s,
+3.17 B/ev**; Blosc-zstd-1 45.6 M ev/s, 2.48 B/ev; Blosc-zstd-5 8.6 M ev/s, 2.37 B/ev. Through
+:class:`SessionWriter` under load (load average 4 on 2 cores): lz4-5 20.9 M ev/s vs zstd-1 16.9 M ev/s. gzip and
+lzf cannot keep up with the peak at all; zstd-1 files are 22 % smaller but leave too little headroom once the
+decoder (~39 M ev/s) shares the core, so lz4 it is (recompress offline with h5repack if size matters).
+``benchmarks/io.py`` repeats these measurements.
 """
 
 from __future__ import annotations
@@ -90,7 +93,7 @@ SMALL_CHUNK: Final = 1024
 
 
 def compression_options() -> dict:
-    """Return the h5py ``create_dataset`` keyword arguments of the session compression (Blosc zstd-1 + shuffle).
+    """Return the h5py ``create_dataset`` keyword arguments of the session compression (Blosc lz4-5 + shuffle).
 
     Returns:
         A dict with ``compression``, ``compression_opts`` (and no ``shuffle``: Blosc shuffles itself).
@@ -99,7 +102,7 @@ def compression_options() -> dict:
         MissingDependencyError: ``hdf5plugin`` is not installed.
     """
     hdf5plugin = import_hdf5plugin()
-    return dict(hdf5plugin.Blosc(cname="zstd", clevel=1, shuffle=hdf5plugin.Blosc.SHUFFLE))
+    return dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
 
 
 def import_hdf5plugin():

@@ -306,9 +306,9 @@ class SessionWriter:
             return
         t = events["t"]
         floor = self._last_t if self._last_t is not None else t[0]
-        running_max = np.maximum.accumulate(t)
-        keep = (t >= running_max) & (t >= floor)
-        if not keep.all():
+        ordered = t[0] >= floor and (len(t) < 2 or bool(np.all(t[1:] >= t[:-1])))
+        keep = None if ordered else (t >= np.maximum.accumulate(t)) & (t >= floor)
+        if keep is not None:
             dropped = int((~keep).sum())
             if self._dropped_non_monotonic == 0:
                 warnings.warn(
@@ -392,14 +392,16 @@ class SessionWriter:
     def _write_buffers(self) -> None:
         f = self._file
         if self._buffers["events"]:
-            events = np.concatenate(self._buffers["events"])
-            self._buffers["events"] = []
+            parts, self._buffers["events"] = self._buffers["events"], []
             self._buffered_events = 0
             group = f[schema.EVENTS_GROUP]
             n0 = self._n_events_written
-            t_rel = events["t"] - self._t_offset
-            for name, column in (("t", t_rel), ("x", events["x"]), ("y", events["y"]), ("p", events["p"])):
-                _extend(group[name], column)
+            # Column by column: contiguous arrays straight from the strided views, no structured copy.
+            t_rel = np.concatenate([part["t"] for part in parts])
+            t_rel -= self._t_offset
+            _extend(group["t"], t_rel)
+            for name in ("x", "y", "p"):
+                _extend(group[name], np.concatenate([part[name] for part in parts]))
             # ms m is final once an event with t >= 1000 m has been seen (later events are not older).
             last_ms = int(t_rel[-1]) // 1000
             if last_ms >= self._ms_written:
@@ -407,8 +409,8 @@ class SessionWriter:
                 idx = n0 + np.searchsorted(t_rel, ms, side="left")
                 _extend(group[schema.MS_TO_IDX], idx.astype(schema.MS_TO_IDX_DTYPE))
                 self._ms_written = last_ms + 1
-            self._n_events_written = n0 + len(events)
-            self._last_t_written = int(events["t"][-1])
+            self._n_events_written = n0 + len(t_rel)
+            self._last_t_written = int(t_rel[-1]) + self._t_offset
         if self._buffers["frames"]:
             frames, self._buffers["frames"] = self._buffers["frames"], []
             height, width = self._frame_hw
