@@ -15,6 +15,7 @@ column segments and written into the frame buffers with one vectorised scatter p
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, fields
 from typing import Final
 
@@ -32,6 +33,8 @@ from davis_rig.protocol.words import (
     SpecialType,
 )
 from davis_rig.types import EVENT_DTYPE
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "SPECIAL_DTYPE",
@@ -63,6 +66,16 @@ _BLOCK_WORDS: Final = 1 << 15
 _TS_KEY_SHIFT: Final = 15
 _Y_KEY_SHIFT: Final = 12
 _BIG_WRAP_SHIFT: Final = 31
+
+_LOSS_COUNTERS: Final = (
+    "odd_bytes_dropped",
+    "unknown_words",
+    "dvs_out_of_range",
+    "aps_frames_dropped",
+    "aps_samples_dropped",
+    "imu_samples_dropped",
+    "non_monotonic_timestamps",
+)
 
 _READOUT_RESET: Final = 0
 _READOUT_SIGNAL: Final = 1
@@ -248,6 +261,11 @@ class StreamDecoder:
       i.e. ``0``. libcaer instead stamps both with the marker ``INT32_MAX`` (2147483647). The stream-order position
       of the special (between the last event before and the first event after) is what carries the information.
 
+    Points libcaer leaves open, decided here: the pixel buffer is zeroed at each frame start (pixels of a valid frame
+    whose columns came short stay 0), the reset-read buffer is not; a frame-end word without a preceding frame start
+    delivers nothing. Data loss (odd bytes, unknown words, out-of-range addresses, dropped frames/samples) is counted
+    in :attr:`stats` and logged once per kind as a warning on the ``davis_rig.protocol.decoder`` logger.
+
     Args:
         layout: the device's raw geometry/orientation read-outs.
         reassemble_odd_bytes: if True, a trailing odd byte is carried into the next transfer (its low byte first);
@@ -263,6 +281,7 @@ class StreamDecoder:
         self.layout = layout
         self.reassemble_odd_bytes = bool(reassemble_odd_bytes)
         self._stats = DecoderStats()
+        self._warned: set[str] = set()
         self._dvs_cols = layout.dvs_size_columns
         self._dvs_rows = layout.dvs_size_rows
         self._dvs_invert = layout.dvs_invert_xy
@@ -367,12 +386,26 @@ class StreamDecoder:
             words = words.astype(np.uint16)
         n = words.shape[0]
         if n == 0:
+            self._warn_once()
             return DecodedChunk()
         self._stats.words += n
         if n <= _BLOCK_WORDS:
-            return self._decode_block(words)
-        parts = [self._decode_block(words[s : s + _BLOCK_WORDS]) for s in range(0, n, _BLOCK_WORDS)]
-        return DecodedChunk.concatenate(parts)
+            chunk = self._decode_block(words)
+        else:
+            chunk = DecodedChunk.concatenate(
+                [self._decode_block(words[s : s + _BLOCK_WORDS]) for s in range(0, n, _BLOCK_WORDS)]
+            )
+        self._warn_once()
+        return chunk
+
+    def _warn_once(self) -> None:
+        """Log the first occurrence of each kind of data loss (the counters keep the totals)."""
+        stats = self._stats
+        for name in _LOSS_COUNTERS:
+            if name not in self._warned and getattr(stats, name):
+                self._warned.add(name)
+                _log.warning("DAVIS stream decoder: %s (first occurrence; total so far %d, see decoder.stats)",
+                             name.replace("_", " "), getattr(stats, name))
 
     # ------------------------------------------------------------------ internals
     @staticmethod

@@ -367,3 +367,15 @@ def test_feed_many_equals_feeding_one_by_one(davis346, reassemble):
     assert len(got.events) > 1000
     assert many.stats == one.stats
     assert (many.stats.odd_bytes_dropped > 0) != reassemble
+
+
+def test_data_loss_is_logged_once_per_kind(davis346, proto, caplog):
+    decoder = StreamDecoder(davis346)
+    with caplog.at_level("WARNING", logger="davis_rig.protocol.decoder"):
+        decoder.feed(b"\x01")
+        decoder.feed(proto.words(special_word(0), special_word(0)) + b"\x00")
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 2
+    assert "odd bytes dropped" in messages[0]
+    assert "unknown words" in messages[1]
+    assert decoder.stats.odd_bytes_dropped == 2 and decoder.stats.unknown_words == 2
