@@ -20,6 +20,9 @@ Word-stream rules (what a logic-18 FPGA does, PROTOCOL.md §8-§11):
   signal 0, which the decoder's clamp rule turns into 1023. So **every 16-bit pixel value that is a multiple of 64
   (v in 0..1023) round-trips exactly**; values with any of the low 6 bits set cannot be produced by a DAVIS and are
   rejected.
+* Big wraps: when the wrap base crosses a multiple of 2**31 µs (every ~35.8 min of stream time) the decoder, like
+  libcaer, drops the APS frame in progress; a frame whose SOF and EOF lie on different sides of such a boundary is
+  encoded faithfully but will not decode (as with a real camera).
 """
 
 from __future__ import annotations
