@@ -505,11 +505,13 @@ class StreamDecoder:
                 xdata = xdata[ok]
         if xi.shape[0]:
             t = key_t[xi]
-            np.maximum(t, offset_in, out=t)
+            if t[0] < (1 << _TS_KEY_SHIFT):  # events before the block's first setter use the carried offset
+                np.maximum(t, offset_in, out=t)
             t &= 0x7FFF
             t += base_at(xi)
             y = key_y[xi]
-            np.maximum(y, last_y_in, out=y)
+            if y[0] < (1 << _Y_KEY_SHIFT):  # events before the block's first Y word use the carried row
+                np.maximum(y, last_y_in, out=y)
             y &= 0x0FFF
             events = np.empty(xi.shape[0], EVENT_DTYPE)
             events["t"] = t
