@@ -170,78 +170,93 @@ def torch_cpu_unstable_argsort_desc(values) -> np.ndarray:
 
 def _introsort_desc(values: np.ndarray) -> np.ndarray:
     """Step-by-step emulation of libstdc++ ``std::sort`` with torch's descending comparator."""
-    keys = [float(v) for v in values.tolist()]
-    idx = list(range(len(keys)))
+    keys = values.tolist()
 
-    def comp(a: float, b: float) -> bool:  # KeyValueCompDesc: NaN first, then larger first
-        a_nan, b_nan = a != a, b != b
-        return (a_nan and not b_nan) or (not a_nan and not b_nan and a > b)
+    def comp(a: int, b: int) -> bool:  # torch KeyValueCompDesc: NaN first, then larger first
+        ka, kb = keys[a], keys[b]
+        a_nan, b_nan = ka != ka, kb != kb
+        return (a_nan and not b_nan) or (not a_nan and not b_nan and ka > kb)
 
-    def swap(i: int, j: int) -> None:
-        keys[i], keys[j] = keys[j], keys[i]
-        idx[i], idx[j] = idx[j], idx[i]
+    return np.asarray(libstdcxx_sort(list(range(len(keys))), comp), dtype=np.int64)
+
+
+def libstdcxx_sort(items: list, comp) -> list:
+    """libstdc++'s ``std::sort`` (introsort) on a Python list, operation for operation; returns the list.
+
+    Median-of-three (``first+1``, middle, ``last-1``) quicksort with an unguarded partition down to
+    16-element ranges, heap sort once ``2·floor(log2 n)`` levels are exceeded, then a final insertion sort —
+    so elements that compare equal end up in exactly the order the C++ library gives them.
+
+    Args:
+        items: the elements (sorted in place).
+        comp: strict weak ordering ``comp(a, b) -> bool`` (``a`` goes before ``b``).
+
+    Returns:
+        ``items``, sorted.
+    """
 
     def move_median_to_first(result: int, a: int, b: int, c: int) -> None:
-        if comp(keys[a], keys[b]):
-            if comp(keys[b], keys[c]):
-                swap(result, b)
-            elif comp(keys[a], keys[c]):
-                swap(result, c)
+        if comp(items[a], items[b]):
+            if comp(items[b], items[c]):
+                pick = b
+            elif comp(items[a], items[c]):
+                pick = c
             else:
-                swap(result, a)
-        elif comp(keys[a], keys[c]):
-            swap(result, a)
-        elif comp(keys[b], keys[c]):
-            swap(result, c)
+                pick = a
+        elif comp(items[a], items[c]):
+            pick = a
+        elif comp(items[b], items[c]):
+            pick = c
         else:
-            swap(result, b)
+            pick = b
+        items[result], items[pick] = items[pick], items[result]
 
     def unguarded_partition(first: int, last: int, pivot: int) -> int:
         while True:
-            while comp(keys[first], keys[pivot]):
+            while comp(items[first], items[pivot]):
                 first += 1
             last -= 1
-            while comp(keys[pivot], keys[last]):
+            while comp(items[pivot], items[last]):
                 last -= 1
             if not first < last:
                 return first
-            swap(first, last)
+            items[first], items[last] = items[last], items[first]
             first += 1
 
-    def adjust_heap(first: int, hole: int, length: int, key: float, index: int) -> None:
+    def adjust_heap(first: int, hole: int, length: int, value) -> None:
         top = hole
         child = hole
         while child < (length - 1) // 2:
             child = 2 * (child + 1)
-            if comp(keys[first + child], keys[first + child - 1]):
+            if comp(items[first + child], items[first + child - 1]):
                 child -= 1
-            keys[first + hole], idx[first + hole] = keys[first + child], idx[first + child]
+            items[first + hole] = items[first + child]
             hole = child
         if (length & 1) == 0 and child == (length - 2) // 2:
             child = 2 * (child + 1)
-            keys[first + hole], idx[first + hole] = keys[first + child - 1], idx[first + child - 1]
+            items[first + hole] = items[first + child - 1]
             hole = child - 1
         parent = (hole - 1) // 2  # __push_heap
-        while hole > top and comp(keys[first + parent], key):
-            keys[first + hole], idx[first + hole] = keys[first + parent], idx[first + parent]
+        while hole > top and comp(items[first + parent], value):
+            items[first + hole] = items[first + parent]
             hole = parent
             parent = (hole - 1) // 2
-        keys[first + hole], idx[first + hole] = key, index
+        items[first + hole] = value
 
     def heap_sort(first: int, last: int) -> None:  # __partial_sort(first, last, last)
         length = last - first
         if length >= 2:  # __make_heap
             parent = (length - 2) // 2
             while True:
-                adjust_heap(first, parent, length, keys[first + parent], idx[first + parent])
+                adjust_heap(first, parent, length, items[first + parent])
                 if parent == 0:
                     break
                 parent -= 1
-        while last - first > 1:  # __sort_heap / __pop_heap
+        while last - first > 1:  # __sort_heap: __pop_heap(first, last - 1, last - 1)
             last -= 1
-            key, index = keys[last], idx[last]
-            keys[last], idx[last] = keys[first], idx[first]
-            adjust_heap(first, 0, last - first, key, index)
+            value = items[last]
+            items[last] = items[first]
+            adjust_heap(first, 0, last - first, value)
 
     def introsort_loop(first: int, last: int, depth_limit: int) -> None:
         while last - first > 16:
@@ -256,24 +271,26 @@ def _introsort_desc(values: np.ndarray) -> np.ndarray:
             last = cut
 
     def unguarded_linear_insert(last: int) -> None:
-        key, index = keys[last], idx[last]
+        value = items[last]
         nxt = last - 1
-        while comp(key, keys[nxt]):
-            keys[last], idx[last] = keys[nxt], idx[nxt]
+        while comp(value, items[nxt]):
+            items[last] = items[nxt]
             last = nxt
             nxt -= 1
-        keys[last], idx[last] = key, index
+        items[last] = value
 
     def insertion_sort(first: int, last: int) -> None:
         for i in range(first + 1, last):
-            if comp(keys[i], keys[first]):
-                key, index = keys[i], idx[i]
-                keys[first + 1 : i + 1], idx[first + 1 : i + 1] = keys[first:i], idx[first:i]
-                keys[first], idx[first] = key, index
+            if comp(items[i], items[first]):
+                value = items[i]
+                items[first + 1 : i + 1] = items[first:i]
+                items[first] = value
             else:
                 unguarded_linear_insert(i)
 
-    n = len(keys)
+    n = len(items)
+    if n < 2:
+        return items
     introsort_loop(0, n, 2 * (n.bit_length() - 1))
     if n > 16:
         insertion_sort(0, 16)
@@ -281,7 +298,7 @@ def _introsort_desc(values: np.ndarray) -> np.ndarray:
             unguarded_linear_insert(i)
     else:
         insertion_sort(0, n)
-    return np.asarray(idx, dtype=np.int64)
+    return items
 
 
 def batched_nms(boxes, scores, idxs, iou_threshold: float, *, path: str = "auto") -> np.ndarray:
