@@ -3,7 +3,7 @@
 Importing this package does not import torch: :class:`RVTConfig` is pure Python and the torch-based names
 (``RVTDetector``, ``pad_to_input``, ``load_detector``, ``read_state_dict``, ``save_safetensors``,
 ``export_step_onnx``) are loaded on first access (``MissingDependencyError`` naming the ``torch`` extra if torch
-is absent). ``postprocess`` (numpy) and ``RVTOnnxRunner`` (onnxruntime) work without torch.
+is absent). ``RVTOnnxRunner`` (onnxruntime) and ``postprocess.postprocess`` (numpy) work without torch.
 
 Modules: ``config`` (RVTConfig), ``layers`` / ``backbone`` / ``fpn`` / ``head`` / ``detector`` (the PyTorch
 model), ``checkpoint`` (safe checkpoint io), ``postprocess`` (NMS), ``onnx_export``, ``ort_runner``.
@@ -21,8 +21,8 @@ _LAZY = {
     "load_detector": "davis_rig.models.rvt.checkpoint",
     "read_state_dict": "davis_rig.models.rvt.checkpoint",
     "save_safetensors": "davis_rig.models.rvt.checkpoint",
-    # numpy / onnxruntime parts (no torch needed)
-    "postprocess": "davis_rig.models.rvt.postprocess",
+    # not "postprocess": the submodule of that name would shadow the function after its first import;
+    # use ``from davis_rig.models.rvt.postprocess import postprocess``
     "export_step_onnx": "davis_rig.models.rvt.onnx_export",
     "RVTOnnxRunner": "davis_rig.models.rvt.ort_runner",
 }
