@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
 from davis_rig.types import RVT_HW
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -83,6 +83,7 @@ def stacked_histogram_torch(
 
     Raises:
         ShapeError: columns of different lengths, or coordinates outside the frame.
+        FormatError: polarities above 1 or decreasing timestamps.
 
     Example:
         >>> import torch
@@ -117,7 +118,9 @@ def stacked_histogram_torch(
             f"got x in [{int(x.min())}, {int(x.max())}], y in [{int(y.min())}, {int(y.max())}]"
         )
     if int(p.max()) > 1:
-        raise ShapeError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
+        raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
+    if n > 1 and bool((t_us[1:] < t_us[:-1]).any()):
+        raise FormatError("t_us: expected non-decreasing timestamps within a window")
     bins = time_bins_torch(t_us, num_bins)
     flat = x + width * y + (height * width) * bins + (num_bins * height * width) * p
     source = weights.to(out_dtype) if weights is not None else torch.ones(n, dtype=out_dtype, device=device)

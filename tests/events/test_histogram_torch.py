@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from davis_rig.errors import ShapeError  # noqa: E402
+from davis_rig.errors import FormatError, ShapeError  # noqa: E402
 from davis_rig.events import stacked_histogram, window_indices  # noqa: E402
 from davis_rig.events.histogram_torch import (  # noqa: E402
     StackedHistogramTorch,
@@ -98,3 +98,7 @@ def test_validation_errors():
         stacked_histogram_torch([304], [0], [0], [0])
     with pytest.raises(ShapeError, match=r"y: expected shape \(1,\)"):
         stacked_histogram_torch([0], [0, 1], [0], [0])
+    with pytest.raises(FormatError, match="polarity"):
+        stacked_histogram_torch([0], [0], [0], [2])
+    with pytest.raises(FormatError, match="non-decreasing"):
+        stacked_histogram_torch([0, 1], [0, 0], [5, 4], [0, 0])
