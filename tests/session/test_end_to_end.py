@@ -102,14 +102,14 @@ def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
 def test_unplug_mid_recording_keeps_the_data_before_it(tmp_path, rng):
     events, _ = scene(rng, n_frames=0)
     transfers = split_transfers(StreamEncoder(LAYOUT).encode(events), 4096)
-    n_before = len(transfers) // 2
     device = VirtualDavis346(source=TransferListSource(transfers),
-                             faults=Faults(disconnect_after_transfers=n_before))
-    # Unpaced source: a queue deep enough for the whole stream keeps the test free of drops under load.
-    with Davis346.open(backend=VirtualDavis346Backend(device), queue_transfers=4096) as camera:
+                             faults=Faults(disconnect_after_transfers=len(transfers) // 2))
+    # One transfer per read; unpaced source: a queue deep enough for the whole stream keeps it free of drops.
+    with Davis346.open(backend=VirtualDavis346Backend(device), read_bytes=4096, queue_transfers=4096) as camera:
         summary = record_session(camera, tmp_path / "s.h5", duration_s=60)
     assert summary.stopped_by == "disconnected"
-    expected = StreamDecoder(LAYOUT).feed(b"".join(transfers[:n_before])).events
+    received = summary.camera_stats["bytes"]
+    expected = StreamDecoder(LAYOUT).feed(b"".join(transfers)[:received]).events
     assert 0 < len(expected) < len(events)
     with SessionReader(tmp_path / "s.h5") as reader:
         assert reader.complete and reader.stats["stopped_by"] == "disconnected"
@@ -121,7 +121,7 @@ def test_garbage_bytes_are_counted(tmp_path, rng):
     events, _ = scene(rng, n_events=20_000, n_frames=0)
     transfers = split_transfers(StreamEncoder(LAYOUT).encode(events), 4096)
     device = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(garbage_rate=0.002, seed=5))
-    with Davis346.open(backend=VirtualDavis346Backend(device), queue_transfers=4096) as camera:
+    with Davis346.open(backend=VirtualDavis346Backend(device), read_bytes=4096, queue_transfers=4096) as camera:
         stop = threading.Event()
 
         def progress(p):
