@@ -4,7 +4,10 @@ Accepted files:
 
 - ``.ckpt``: an official PyTorch-Lightning checkpoint; ``ckpt["state_dict"]`` holds the weights with the
   ``mdl.`` prefix. Read with ``torch.load(weights_only=True)``: a file that needs arbitrary classes or code
-  to unpickle is refused with :class:`CheckpointError` (nothing of it is executed).
+  to unpickle is refused with :class:`CheckpointError` (nothing of it is executed). Opt-in
+  ``inert_unknown_globals=True`` reads such a file anyway with every unknown global replaced by an inert
+  placeholder (:class:`InertGlobal`): for Lightning checkpoints whose optimizer/scheduler/callback state
+  names classes or bound methods (the released RVT checkpoints may, see ARCHITECTURE.md §1).
 - ``.pt`` / ``.pth``: a plain state dict (or a dict with ``state_dict``), with or without ``mdl.``.
 - ``.safetensors``: a state dict (with or without ``mdl.``), or a reference fixture file whose weights are
   stored under ``state_dict.mdl.*``; the model config may be in the metadata key ``config`` (JSON).
