@@ -147,7 +147,7 @@ def main(argv=None) -> int:
 
     aps_seconds = min(args.seconds, 1.0)
     events, frames = aps_scene(aps_seconds)
-    encoder_time, q1, q3 = timed(lambda: StreamEncoder(LAYOUT).encode(events, frames), args.repeats)
+    encoder_time, enc_q1, enc_q3 = timed(lambda: StreamEncoder(LAYOUT).encode(events, frames), args.repeats)
     aps_data = StreamEncoder(LAYOUT).encode(events, frames)
     n_aps_words = len(aps_data) // 2
     print(f"\nAPS-heavy stream: {len(frames)} full frames + {len(events) / 1e6:.2f} M events = "
@@ -157,7 +157,7 @@ def main(argv=None) -> int:
         print(f"  decode, {mode:5s} feeds {n_aps_words / median / 1e6:7.1f} M words/s  "
               f"({len(frames) / median:6.0f} frames/s)  median {median * 1e3:.1f} ms, IQR {q1 * 1e3:.1f}-{q3 * 1e3:.1f} ms")
     print(f"  encode (events + frames) {n_aps_words / encoder_time / 1e6:7.1f} M words/s  "
-          f"median {encoder_time * 1e3:.1f} ms, IQR {q1 * 1e3:.1f}-{q3 * 1e3:.1f} ms")
+          f"median {encoder_time * 1e3:.1f} ms, IQR {enc_q1 * 1e3:.1f}-{enc_q3 * 1e3:.1f} ms")
 
     rng = np.random.default_rng(2)
     n = int(12e6 * min(args.seconds, 1.0))

@@ -392,8 +392,19 @@ class StreamDecoder:
         if n <= _BLOCK_WORDS:
             chunk = self._decode_block(words)
         else:
-            chunk = DecodedChunk.concatenate(
-                [self._decode_block(words[s : s + _BLOCK_WORDS]) for s in range(0, n, _BLOCK_WORDS)]
+            # one output array for all blocks (an upper bound: every X word), filled block by block
+            out = np.empty(int(np.count_nonzero((words >> 13) == 1)), EVENT_DTYPE)
+            filled = 0
+            parts = []
+            for s in range(0, n, _BLOCK_WORDS):
+                part = self._decode_block(words[s : s + _BLOCK_WORDS], out=out[filled:])
+                filled += part.events.shape[0]
+                parts.append(part)
+            chunk = DecodedChunk(
+                events=out[:filled],
+                frames=[f for part in parts for f in part.frames],
+                specials=np.concatenate([part.specials for part in parts]),
+                imu=np.concatenate([part.imu for part in parts]),
             )
         self._warn_once()
         return chunk
@@ -430,7 +441,7 @@ class StreamDecoder:
             self._key_y = np.empty(size, np.int64)
         return self._idx15[:n], self._idx12[:n]
 
-    def _decode_block(self, w: np.ndarray) -> DecodedChunk:
+    def _decode_block(self, w: np.ndarray, out: np.ndarray | None = None) -> DecodedChunk:
         n = w.shape[0]
         idx15, idx12 = self._index_keys(n)
         codes = w >> 12
@@ -513,7 +524,7 @@ class StreamDecoder:
             if y[0] < (1 << _Y_KEY_SHIFT):  # events before the block's first Y word use the carried row
                 np.maximum(y, last_y_in, out=y)
             y &= 0x0FFF
-            events = np.empty(xi.shape[0], EVENT_DTYPE)
+            events = np.empty(xi.shape[0], EVENT_DTYPE) if out is None else out[: xi.shape[0]]
             events["t"] = t
             if self._dvs_invert:
                 events["x"] = y
