@@ -268,3 +268,25 @@ def test_piecewise_encoding_round_trips(seed, pieces):
 def test_empty_encode(davis346):
     assert StreamEncoder(davis346).encode() == b""
     assert StreamEncoder(davis346).encode(np.empty(0, EVENT_DTYPE)) == b""
+
+
+@pytest.mark.parametrize("aps_orientation", [0, 7])
+def test_full_sensor_frames_round_trip_in_one_feed_and_in_8k_transfers(aps_orientation):
+    """Full 346×260 frames span several decoder blocks and many transfers."""
+    layout = _layout(False, aps_orientation)
+    rng = np.random.default_rng(21)
+    frames = []
+    for k in range(2):
+        pixels = (rng.integers(0, 1024, (layout.aps_height, layout.aps_width)) << 6).astype(np.uint16)
+        sof = 1000 + k * 40_000
+        frames.append(ApsFrame(pixels, 0, 0, sof, sof + 100, sof + 5000, sof + 20_000))
+    n = 50_000
+    t = np.sort(rng.integers(0, 100_000, n))
+    events = make_events(t, rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n))
+    data = StreamEncoder(layout).encode(events, frames)
+    assert len(data) // 2 > 4 * 2**15
+    for transfers in ([data], split_transfers(data, 8192)):
+        decoded, decoder = _decode(layout, transfers)
+        np.testing.assert_array_equal(decoded.events, events)
+        assert decoded.frames == frames
+        assert decoder.stats.aps_samples_dropped == 0
