@@ -377,12 +377,14 @@ class StreamDecoder:
             The :class:`DecodedChunk` completed by these words.
 
         Raises:
-            ProtocolError: not a 1-D array.
+            ProtocolError: not a 1-D array, or values outside 0..65535.
         """
         words = np.asarray(words)
         if words.ndim != 1:
             raise ProtocolError(f"words: expected a 1-D array, got shape {words.shape}")
         if words.dtype != np.uint16:
+            if words.size and (words.dtype.kind not in "iu" or words.min() < 0 or words.max() > 0xFFFF):
+                raise ProtocolError(f"words: expected integers in 0..65535, got {words.dtype} values")
             words = words.astype(np.uint16)
         n = words.shape[0]
         if n == 0:
@@ -428,7 +430,11 @@ class StreamDecoder:
         if isinstance(transfer, (bytes, bytearray)):
             return transfer
         if isinstance(transfer, memoryview):
-            return transfer.cast("B") if transfer.format != "B" or transfer.ndim != 1 else transfer
+            if transfer.format == "B" and transfer.ndim == 1:
+                return transfer
+            if not transfer.c_contiguous:
+                raise ProtocolError("transfer: expected a C-contiguous memoryview")
+            return transfer.cast("B")
         raise ProtocolError(f"transfer: expected bytes, bytearray, memoryview or uint8 array, got {type(transfer).__name__}")
 
     def _index_keys(self, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -379,3 +379,12 @@ def test_data_loss_is_logged_once_per_kind(davis346, proto, caplog):
     assert "odd bytes dropped" in messages[0]
     assert "unknown words" in messages[1]
     assert decoder.stats.odd_bytes_dropped == 2 and decoder.stats.unknown_words == 2
+
+
+def test_decode_words_validates_values(davis346):
+    decoder = StreamDecoder(davis346)
+    chunk = decoder.decode_words(np.array([0x8005, 0x1002, 0x3003], np.int64))
+    assert chunk.events.tolist() == [(5, 3, 2, 1)]
+    for bad in (np.array([70000]), np.array([-1]), np.array([1.5]), np.zeros((2, 2), np.uint16)):
+        with pytest.raises(ProtocolError, match="words"):
+            decoder.decode_words(bad)
