@@ -126,6 +126,7 @@ def stacked_histogram(
     if n == 0:
         return np.zeros((2 * num_bins, height, width), dtype=np.uint8)
 
+    t_us = t_us.astype(np.int64, copy=False)  # (unsigned input: differences must be able to go negative)
     x = x.astype(np.int64, copy=False)
     y = y.astype(np.int64, copy=False)
     p = np.clip(p.astype(np.int64, copy=False), 0, None)

@@ -161,6 +161,8 @@ def test_bad_polarity_time_order_and_dtype_raise_format_error():
         stacked_histogram([0], [0], [0], [2])
     with pytest.raises(FormatError, match="non-decreasing"):
         stacked_histogram([0, 1], [0, 0], [10, 5], [0, 0])
+    with pytest.raises(FormatError, match="non-decreasing"):
+        stacked_histogram([0, 1], [0, 0], np.array([10, 5], np.uint64), [0, 0])
     with pytest.raises(FormatError, match="integer"):
         stacked_histogram([0.5], [0], [0], [0])
 
