@@ -143,7 +143,7 @@ def end_to_end(events: np.ndarray, transfer_bytes: int, queue_transfers: int) ->
                 if p.events and "first" not in marks:
                     marks["first"] = now - p.elapsed_s % 0.05  # data arrived within the last interval
                 stats = camera.stats
-                if stats.transfers + stats.dropped_transfers >= source.transfers and "done" not in marks:
+                if stats.bytes + stats.dropped_bytes >= source.total_bytes and "done" not in marks:
                     marks["done"] = now
                     stop.set()
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from davis_rig.errors import DeviceDisconnectedError, SessionError
+from davis_rig.errors import DavisRigError, DeviceDisconnectedError, SessionError
 from davis_rig.session.writer import SessionWriter, to_jsonable
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
@@ -189,6 +189,17 @@ def record_session(
         except DeviceDisconnectedError:
             stopped_by = "disconnected"
             camera.stop()  # safe after an unplug: only stops the reader thread
+        except BaseException:
+            # Disk full, Ctrl-C outside the CLI, a bug: leave the camera stopped, then let the error through.
+            try:
+                camera.stop()
+            except DavisRigError:
+                pass
+            raise
+        finally:
+            remove = getattr(camera, "remove_raw_listener", None)
+            if remove is not None:
+                remove(writer.append_raw)
         duration = time.monotonic() - t_start
         stats = _camera_stats(camera)
         writer.set_stats({"camera": stats, "stopped_by": stopped_by})

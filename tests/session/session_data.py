@@ -107,6 +107,10 @@ class FakeCamera:
     def add_raw_listener(self, listener):
         self.listeners.append(listener)
 
+    def remove_raw_listener(self, listener):
+        if listener in self.listeners:
+            self.listeners.remove(listener)
+
     def start(self):
         self.calls.append("start")
         self.running = True

@@ -92,3 +92,17 @@ def test_existing_file_is_not_overwritten(tmp_path, rng):
     with pytest.raises(SessionError, match="file exists"):
         record_session(FakeCamera([]), path)
     assert path.read_bytes() == b"precious"
+
+
+def test_a_writer_error_stops_the_camera_and_propagates(tmp_path, rng, monkeypatch):
+    from davis_rig.session.writer import SessionWriter
+
+    def failing_append(self, chunk):
+        raise SessionError(f"{self.path}: disk nearly full")
+
+    monkeypatch.setattr(SessionWriter, "append", failing_append)
+    camera = FakeCamera(cut(synth_stream(random_events(rng, 1000))))
+    with pytest.raises(SessionError, match="disk nearly full"):
+        record_session(camera, tmp_path / "s.h5")
+    assert camera.calls[-1] == "stop" and not camera.running
+    assert camera.listeners == []
