@@ -93,6 +93,19 @@ class RVTConfig:
             problems.append(f"in_res_hw: expected 2 positive multiples of {multiple}, got {self.in_res_hw}")
         if self.stem_patch_size not in (2, 4, 8):
             problems.append(f"stem_patch_size: expected 2, 4 or 8, got {self.stem_patch_size}")
+        if not problems:
+            partition = self.partition_size
+            for stage in range(1, 5):
+                stage_hw = self.stage_hw(stage)
+                stride = self.stage_strides[stage - 1]
+                if any(v % stride for v in self.in_res_hw) or any(
+                    size % part for size, part in zip(stage_hw, partition)
+                ):
+                    problems.append(
+                        f"stage {stage} map {stage_hw} (stride {stride}) is not divisible by the attention "
+                        f"partition {partition} (from in_res_hw {self.in_res_hw})"
+                    )
+                    break
         if self.fpn_depth <= 0 or self.input_channels < 1 or self.num_classes < 1 or self.mlp_ratio < 1:
             problems.append("fpn_depth, input_channels, num_classes and mlp_ratio must be positive")
         if problems:

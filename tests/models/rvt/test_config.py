@@ -97,6 +97,7 @@ def test_unsupported_official_options_are_refused():
         ({"embed_dim": 32, "dim_head": 32, "in_res_hw": (240, 304)}, r"in_res_hw: expected 2 positive multiples of 32"),
         ({"embed_dim": 32, "dim_head": 32, "num_blocks": (1, 1, 1)}, "num_blocks"),
         ({"embed_dim": 32, "dim_head": 32, "partition_split_32": 3}, "partition_split_32"),
+        ({"embed_dim": 32, "dim_head": 32, "stem_patch_size": 8}, r"stage 4 map \(4, 5\) \(stride 64\) is not divisible"),
     ],
 )
 def test_invalid_configs_raise(kwargs, message):
