@@ -196,8 +196,9 @@ class _ApsState:
         npix = self.width * self.height
         self.reset_buffer = np.zeros(npix, np.int32)
         self.pixel_buffer = np.zeros(npix, np.uint16)
-        # queued column segments (readout, count_x, first_row, adc_start, adc_stop) into the current block's samples
-        self.pending: list[tuple[int, int, int, int, int]] = []
+        # queued column segments (readout, count_x, first_row, adc_start, adc_stop) into the current block's samples:
+        # single tuples from the per-word path, (k, 5) int64 arrays from the whole-column bulk path
+        self.pending: list = []
 
     def set_roi(self) -> None:
         start_col, start_row, end_col, end_row = self.roi_values
@@ -584,12 +585,14 @@ class StreamDecoder:
             ctrl_mask[big_wrap_pos] = True
         ctrl_pos = np.flatnonzero(ctrl_mask)
         adc_pos = np.flatnonzero(codes == 4)
+        ctrl_words = w[ctrl_pos]
         if adc_pos.shape[0]:
             adc_vals = (w[adc_pos] & 0x0FFF).astype(np.int32)
-            adc_cut = np.searchsorted(adc_pos, ctrl_pos).tolist()
+            cut_array = np.searchsorted(adc_pos, ctrl_pos)
         else:
             adc_vals = np.empty(0, np.int32)
-            adc_cut = [0] * ctrl_pos.shape[0]
+            cut_array = np.zeros(ctrl_pos.shape[0], np.int64)
+        adc_cut = cut_array.tolist()
         n_adc = adc_vals.shape[0]
         times = np.maximum(key_t[ctrl_pos], offset_in) & 0x7FFF
         times += base_at(ctrl_pos)
@@ -619,7 +622,30 @@ class StreamDecoder:
                 aps.pending.append((r, cx, cy, start, start + take))
                 aps.count_y[r] = cy + take
 
-        for word, t, cut in zip(w[ctrl_pos].tolist(), times.tolist(), adc_cut):
+        words_list = ctrl_words.tolist()
+        times_list = times.tolist()
+        n_ctrl = len(words_list)
+        i = -1
+        while i + 1 < n_ctrl:
+            i += 1
+            word = words_list[i]
+            t = times_list[i]
+            cut = adc_cut[i]
+            if (
+                (word == Special.APS_RESET_COLUMN_START or word == Special.APS_SIGNAL_COLUMN_START)
+                and not aps.ignore
+                and i + 3 < n_ctrl
+                and words_list[i + 1] == Special.APS_COLUMN_END
+                and words_list[i + 2] == word
+                and adc_cut[i + 1] - cut == aps.expected_y
+            ):
+                # a run of whole columns (start, expected_y samples, end, start, ...): handled in bulk
+                pairs = self._column_run(ctrl_words, cut_array, i)
+                if pairs >= 2:
+                    take_samples(cut)
+                    adc_done = self._bulk_columns(word, pairs, cut_array, i)
+                    i += 2 * pairs - 1
+                    continue
             code = word >> 12
             sub = word & 0x0FFF
             if code == 0:
@@ -725,6 +751,38 @@ class StreamDecoder:
         if imu_rows:
             chunk.imu = np.array(imu_rows, dtype=IMU6_DTYPE)
 
+    def _column_run(self, ctrl_words: np.ndarray, cuts: np.ndarray, i: int) -> int:
+        """Number of consecutive whole-column (start, end) pairs of the same readout type starting at control i."""
+        expected_y = self._aps.expected_y
+        pairs = min((ctrl_words.shape[0] - i) // 2, 2 * max(self._aps.expected_x, 1) + 2)
+        words = ctrl_words[i : i + 2 * pairs].reshape(pairs, 2)
+        starts = cuts[i : i + 2 * pairs : 2]
+        ends = cuts[i + 1 : i + 2 * pairs : 2]
+        ok = (words[:, 0] == words[0, 0]) & (words[:, 1] == Special.APS_COLUMN_END) & (ends - starts == expected_y)
+        ok[1:] &= starts[1:] == ends[:-1]  # no samples between a column end and the next column start
+        return pairs if ok.all() else int(np.argmin(ok))
+
+    def _bulk_columns(self, start_word: int, pairs: int, cuts: np.ndarray, i: int) -> int:
+        """Apply ``pairs`` whole columns at once (same effect as the per-word path); return the ADC index done."""
+        aps = self._aps
+        readout = _READOUT_RESET if start_word == Special.APS_RESET_COLUMN_START else _READOUT_SIGNAL
+        aps.readout = readout
+        first_col = aps.count_x[readout]
+        accepted = max(0, min(pairs, aps.expected_x - first_col))
+        if accepted:
+            starts = cuts[i : i + 2 * accepted : 2]
+            segments = np.empty((accepted, 5), np.int64)
+            segments[:, 0] = readout
+            segments[:, 1] = first_col + np.arange(accepted)
+            segments[:, 2] = 0
+            segments[:, 3] = starts
+            segments[:, 4] = starts + aps.expected_y
+            aps.pending.append(segments)
+        self._stats.aps_samples_dropped += (pairs - accepted) * aps.expected_y
+        aps.count_x[readout] = first_col + pairs
+        aps.count_y[readout] = aps.expected_y if accepted == pairs else 0
+        return int(cuts[i + 2 * pairs - 1])
+
     def _interrupt(self, aps: _ApsState, imu: _ImuState) -> None:
         """Timestamp reset or big wrap: drop the frame / IMU sample in progress and ignore until the next start."""
         if aps.in_frame and not aps.ignore:
@@ -766,7 +824,20 @@ class StreamDecoder:
         if not pending:
             return
         aps.pending = []
-        seg = np.array(pending, dtype=np.int64)  # columns: readout, count_x, first_row, start, stop
+        # rows: readout, count_x, first_row, adc start, adc stop; items are single tuples or bulk (k, 5) arrays
+        blocks: list[np.ndarray] = []
+        singles: list[tuple] = []
+        for item in pending:
+            if isinstance(item, tuple):
+                singles.append(item)
+            else:
+                if singles:
+                    blocks.append(np.array(singles, dtype=np.int64))
+                    singles = []
+                blocks.append(item)
+        if singles:
+            blocks.append(np.array(singles, dtype=np.int64))
+        seg = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
         readout = seg[:, 0]
         cuts = [0, *(np.flatnonzero(readout[1:] != readout[:-1]) + 1).tolist(), seg.shape[0]]
         expected_y = aps.expected_y

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from davis_rig.errors import ProtocolError
 from davis_rig.protocol import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, SensorLayout, SpecialType, StreamDecoder
@@ -388,3 +390,38 @@ def test_decode_words_validates_values(davis346):
     for bad in (np.array([70000]), np.array([-1]), np.array([1.5]), np.zeros((2, 2), np.uint16)):
         with pytest.raises(ProtocolError, match="words"):
             decoder.decode_words(bad)
+
+
+@st.composite
+def column_soup(draw):
+    """APS word streams made of frame starts, ROIs, (mostly regular) columns, exposure and frame-end words."""
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    words: list[int] = []
+    for _ in range(draw(st.integers(1, 4))):
+        width, height = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        words += [timestamp_word(int(rng.integers(0, 30000))), special_word(8)]
+        if rng.random() < 0.8:
+            words += roi_words(2, 3, 2 + width - 1, 3 + height - 1)
+        for kind in (11, 12):
+            for _ in range(int(rng.integers(0, width + 3))):
+                rows = height if rng.random() < 0.8 else int(rng.integers(0, height + 2))
+                words += column(kind, rng.integers(0, 1024, rows).tolist())
+                if rng.random() < 0.05:
+                    words.append(special_word(int(rng.choice([1, 14, 15]))))
+        if rng.random() < 0.9:
+            words.append(special_word(10))
+    return words
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(column_soup(), st.integers(1, 64))
+def test_bulk_column_path_equals_word_by_word_path(davis346, proto, stream, transfer_words):
+    data = proto.words(*stream)
+    transfers = [data[i : i + 2 * transfer_words] for i in range(0, len(data), 2 * transfer_words)]
+    fast, fast_decoder = proto.decode_all(davis346, transfers)
+    slow_decoder = StreamDecoder(davis346)
+    slow_decoder._column_run = lambda *args: 0  # disable the bulk path
+    slow = DecodedChunk.concatenate([slow_decoder.feed(t) for t in transfers])
+    assert fast.frames == slow.frames
+    np.testing.assert_array_equal(fast.specials, slow.specials)
+    assert fast_decoder.stats == slow_decoder.stats
