@@ -389,6 +389,7 @@ class BodyModel:
         self._relative_rest = relative.to(self.dtype)
         weights = np.zeros((a.num_vertices, a.num_bones), dtype=np.float64)
         np.add.at(weights, (np.arange(a.num_vertices)[:, None], a.skin_indices.astype(np.int64)), a.skin_weights)
+        weights /= weights.sum(axis=1, keepdims=True)  # float32 storage: make each row sum to 1 again
         self.skin_weights_dense = torch.as_tensor(weights, **kw)
         self._levels = _depth_levels(a.bone_parents)
         self._level_tensors = [
