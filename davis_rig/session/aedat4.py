@@ -24,6 +24,9 @@ from davis_rig.errors import FormatError, MissingDependencyError
 from davis_rig.session.writer import SessionWriter
 from davis_rig.types import EVENT_DTYPE, make_events
 
+#: First bytes of every AEDAT 4.0 file.
+AEDAT4_MAGIC = b"#!AER-DAT4.0\r\n"
+
 #: dv.TriggerType value -> libcaer special type id (``davis_rig.protocol.words.SpecialType``).
 TRIGGER_TO_SPECIAL = {0: 1, 1: 2, 2: 3, 3: 4, 4: 12, 5: 13, 6: 14, 7: 15, 8: 16, 9: 17}
 
@@ -108,6 +111,10 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
     src = Path(src)
     if not src.exists():
         raise FormatError(f"{src}: no such AEDAT4 file")
+    with open(src, "rb") as file:
+        magic = file.read(len(AEDAT4_MAGIC))
+    if magic != AEDAT4_MAGIC:
+        raise FormatError(f"{src}: not an AEDAT4 file (starts with {magic!r}, expected {AEDAT4_MAGIC!r})")
     try:
         recording = dv.io.MonoCameraRecording(str(src))
     except RuntimeError as exc:
@@ -128,30 +135,34 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
     config = {"source": "aedat4", "frame_scale": "dv 8-bit value << 8"}
 
     with SessionWriter(dst, device_info=device_info, config=config, overwrite=overwrite) as writer:
-        if recording.isEventStreamAvailable():
-            while (batch := recording.getNextEventBatch()) is not None:
-                raw = batch.numpy()
-                if len(raw):
-                    writer.append_events(make_events(raw["timestamp"], raw["x"], raw["y"],
-                                                     raw["polarity"].astype(np.uint8)))
-                    writer.maybe_flush()
-        if recording.isFrameStreamAvailable():
-            while (frame := recording.getNextFrame()) is not None:
-                writer.append_frame(_frame(frame))
-        if recording.isTriggerStreamAvailable():
-            specials = []
-            while (batch := recording.getNextTriggerBatch()) is not None:
-                specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
-            if specials:
-                writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)))
-        if recording.isImuStreamAvailable():
-            samples = []
-            while (batch := recording.getNextImuBatch()) is not None:
-                samples += [(int(s.timestamp), s.accelerometerX, s.accelerometerY, s.accelerometerZ, s.gyroscopeX,
-                             s.gyroscopeY, s.gyroscopeZ, s.temperature) for s in batch]
-            if samples:
-                writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, _SPECIAL_DTYPE),
-                                     np.array(samples, dtype=_IMU_DTYPE)))
+        try:
+            if recording.isEventStreamAvailable():
+                while (batch := recording.getNextEventBatch()) is not None:
+                    raw = batch.numpy()
+                    if len(raw):
+                        writer.append_events(make_events(raw["timestamp"], raw["x"], raw["y"],
+                                                         raw["polarity"].astype(np.uint8)))
+                        writer.maybe_flush()
+            if recording.isFrameStreamAvailable():
+                while (frame := recording.getNextFrame()) is not None:
+                    writer.append_frame(_frame(frame))
+            if recording.isTriggerStreamAvailable():
+                specials = []
+                while (batch := recording.getNextTriggerBatch()) is not None:
+                    specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
+                if specials:
+                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)))
+            if recording.isImuStreamAvailable():
+                samples = []
+                while (batch := recording.getNextImuBatch()) is not None:
+                    samples += [(int(s.timestamp), s.accelerometerX, s.accelerometerY, s.accelerometerZ, s.gyroscopeX,
+                                 s.gyroscopeY, s.gyroscopeZ, s.temperature) for s in batch]
+                if samples:
+                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, _SPECIAL_DTYPE),
+                                         np.array(samples, dtype=_IMU_DTYPE)))
+        except RuntimeError as exc:  # dv-processing reports damaged packets as RuntimeError
+            raise FormatError(f"{src}: damaged AEDAT4 data after {writer.counts['events']} events ({exc}); "
+                              f"{dst} keeps what was read and is marked incomplete") from exc
         counts = writer.counts
     return Aedat4ImportSummary(path=Path(dst), camera_name=camera_name, events=counts["events"],
                                frames=counts["frames"], specials=counts["specials"], imu=counts["imu"])

@@ -131,7 +131,8 @@ class SessionWriter:
         self._frame_hw = frame_hw_from_device_info(info)
         compression = schema.compression_options()
         try:
-            self._file = h5py.File(self.path, "w")  # default libver: no "open for write" flag that blocks reading after a crash
+            # Default libver: no superblock "open for write" flag that would block reading after a crash.
+            self._file = h5py.File(self.path, "w")
             f = self._file
             f.attrs[schema.ATTR_FORMAT] = schema.FORMAT_NAME
             f.attrs[schema.ATTR_FORMAT_VERSION] = schema.FORMAT_VERSION
@@ -576,4 +577,6 @@ def _extend(dataset, values: np.ndarray) -> None:
 
 
 def _is_disk_full(exc: OSError) -> bool:
-    return exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT) or "No space" in str(exc) or "File too large" in str(exc)
+    text = str(exc)
+    return getattr(exc, "errno", None) in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT) or "No space" in text \
+        or "File too large" in text

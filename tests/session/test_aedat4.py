@@ -83,8 +83,8 @@ def test_tool_script(tmp_path, aedat4_file):
 
 def test_not_an_aedat4_file(tmp_path):
     bad = tmp_path / "bad.aedat4"
-    bad.write_bytes(b"#!AER-DAT4.0\r\nnonsense")
-    with pytest.raises(FormatError, match="not a readable AEDAT4"):
+    bad.write_bytes(b"AEDAT3 or something else")
+    with pytest.raises(FormatError, match="not an AEDAT4 file"):
         import_aedat4(bad, tmp_path / "s.h5")
     with pytest.raises(FormatError, match="no such"):
         import_aedat4(tmp_path / "missing.aedat4", tmp_path / "s.h5")
@@ -96,3 +96,12 @@ def test_missing_dv_processing_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "dv_processing", None)
     with pytest.raises(MissingDependencyError, match=r"davis_rig\[aedat4\]"):
         import_aedat4(tmp_path / "x.aedat4", tmp_path / "s.h5")
+
+
+def test_truncated_aedat4_file(tmp_path, aedat4_file):
+    path, _, _ = aedat4_file
+    data = path.read_bytes()
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(FormatError, match="AEDAT4"):
+        import_aedat4(cut, tmp_path / "s.h5")

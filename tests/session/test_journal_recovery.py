@@ -155,3 +155,33 @@ def test_kill_9_then_recover_loses_at_most_one_second(tmp_path):
     assert before, "the recorder ran for less than a second"
     assert len(recovered) >= max(before)
     assert report.events == len(recovered)
+
+
+def test_hdf5_write_failure_keeps_the_journal_for_recovery(tmp_path, rng, monkeypatch):
+    """Monkeypatches SessionWriter._write_buffers (the low-level HDF5 write) to fail with ENOSPC."""
+    import errno
+
+    events = random_events(rng, 20_000, span_us=1_000_000)
+    transfers = cut(synth_stream(events), 4096)
+    path = tmp_path / "s.h5"
+    camera = FakeCamera(transfers)
+    writer = SessionWriter(path, device_info=camera.info, journal=True, flush_interval_s=0.0).open()
+    half = len(transfers) // 2
+    for data in transfers[:half]:
+        writer.append_raw(data)
+        writer.append(camera.decoder.feed(data))
+
+    def no_space(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(SessionWriter, "_write_buffers", no_space)
+    writer.append_raw(transfers[half])
+    with pytest.raises(SessionError, match=r"disk full while writing.*davis-record --recover"):
+        writer.append(camera.decoder.feed(transfers[half]))
+    monkeypatch.undo()
+    assert journal_path(path).exists()
+    report = recover_session(path)
+    assert report.transfers == half + 1
+    with SessionReader(path) as reader:
+        expected = FakeCamera(transfers).decoder.feed(b"".join(transfers[: half + 1])).events
+        np.testing.assert_array_equal(reader.events(), expected)
