@@ -12,6 +12,8 @@ event part unchanged (``import hdf5plugin`` first, the datasets are Blosc-compre
     /events/p      uint8   [N]  polarity, 0 = OFF, 1 = ON
     /events/ms_to_idx uint64 [M] ms_to_idx[m] = index of the first event with t >= 1000 * m (DSEC convention)
                                  attrs: t_offset (int64, device µs, a whole millisecond)
+    /ms_to_idx     hard link to /events/ms_to_idx, and /t_offset int64 scalar = the same t_offset: where DSEC's
+                                 EventSlicer looks for them, so DSEC/RVT tools slice session files unchanged
     /frames/data   uint16  [F, H, W] APS frames, full sensor (H=260, W=346), libcaer 16-bit scale:
                                  value = 10-bit ADC CDS value << 6 (0..65472); pixels outside the ROI are 0
     /frames/roi    int32   [F, 4]    (position_x, position_y, width, height) of the read-out region, px

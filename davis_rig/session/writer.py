@@ -154,6 +154,9 @@ class SessionWriter:
                 chunks=(schema.SMALL_CHUNK * 4,), **compression,
             )
             events.attrs[schema.T_OFFSET_ATTR] = np.int64(0)
+            # DSEC's EventSlicer reads /ms_to_idx and /t_offset at the root: a hard link and a scalar dataset.
+            f[schema.MS_TO_IDX] = events[schema.MS_TO_IDX]
+            f.create_dataset(schema.T_OFFSET_ATTR, data=np.int64(0))
             frames = f.create_group(schema.FRAMES_GROUP)
             height, width = self._frame_hw
             frames.create_dataset(
@@ -324,6 +327,7 @@ class SessionWriter:
         if self._t_offset is None:
             self._t_offset = int(events["t"][0]) // 1000 * 1000
             self._file[schema.EVENTS_GROUP].attrs[schema.T_OFFSET_ATTR] = np.int64(self._t_offset)
+            self._file[schema.T_OFFSET_ATTR][()] = np.int64(self._t_offset)
         self._buffers["events"].append(events)
         self._buffered_events += len(events)
         self._counts["events"] += len(events)

@@ -90,6 +90,9 @@ def test_ms_to_idx_follows_dsec_convention(tmp_path, rng):
     np.testing.assert_array_equal(t_rel + t_offset, events["t"])
     np.testing.assert_array_equal(ms_to_idx, brute_ms_to_idx(t_rel))
     assert ms_to_idx[-1] == len(events)
+    with h5py.File(path, "r") as f:  # where DSEC's EventSlicer looks
+        np.testing.assert_array_equal(f["ms_to_idx"][:], ms_to_idx)
+        assert int(f["t_offset"][()]) == t_offset
 
 
 def test_events_between_is_half_open(tmp_path):
