@@ -225,6 +225,7 @@ class UsbTransport:
         self.stalls = 0
         self._closed = False
         self._gone = False
+        self._buffer = None
 
     # --- opening ----------------------------------------------------------------------------------
     @classmethod
@@ -418,8 +419,10 @@ class UsbTransport:
             TransportError: any other USB failure.
         """
         self._check_open()
+        if self._buffer is None or len(self._buffer) != size:
+            self._buffer = usb.util.create_buffer(size)  # reused: pyusb would allocate one per read
         try:
-            data = self.device.read(DATA_ENDPOINT, size, timeout_ms)
+            n = self.device.read(DATA_ENDPOINT, self._buffer, timeout_ms)
         except usb.core.USBTimeoutError:
             return None
         except usb.core.USBError as exc:
@@ -440,7 +443,7 @@ class UsbTransport:
             if isinstance(err, DeviceDisconnectedError):
                 self._gone = True
             raise err from exc
-        return data.tobytes()
+        return memoryview(self._buffer)[:n].tobytes()
 
     @property
     def disconnected(self) -> bool:

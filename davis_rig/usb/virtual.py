@@ -17,7 +17,9 @@ The device model
 - honours the RUN flags: bulk data flows only while MUX RUN, USB RUN and at least one of DVS RUN / APS RUN are set;
 - serves bulk reads on 0x82 from a :class:`~davis_rig.usb.sources.DataSource`, one transfer per read, and
   injects :class:`~davis_rig.usb.sources.Faults` (disconnect, stalls, timeouts, short/odd transfers, garbage,
-  permission/busy errors) with the errno/libusb codes libusb-1.0 reports.
+  permission/busy errors) with the errno/libusb codes libusb-1.0 reports. Like a real bulk read, a read
+  completes at the end of a transfer that ends with a short packet; transfers made of whole 1024-byte packets
+  run on into the next released transfer until the host buffer is full.
 """
 
 from __future__ import annotations
@@ -90,6 +92,9 @@ def usb_error(errno: int) -> usb.core.USBError:
         return usb.core.USBTimeoutError(text, code, errno)
     return usb.core.USBError(text, code, errno)
 
+
+#: wMaxPacketSize of the bulk endpoint at SuperSpeed, bytes.
+MAX_PACKET_BYTES = 1024
 
 #: Raw read-outs of a DAVIS346 as the test vectors assume them (346 cols × 260 rows, orientation 0, chip id 5).
 DAVIS346_DEVICE_INFO = {
@@ -423,6 +428,21 @@ class VirtualDavis346:
             limit = len(buff)
             if f.short_transfer_bytes:
                 limit = min(limit, f.short_transfer_bytes)
+            # USB semantics: a bulk read only completes early on a short packet. A device transfer made of whole
+            # max-size packets does not end the read, so further released transfers keep filling the buffer.
+            while (
+                data
+                and len(data) % MAX_PACKET_BYTES == 0
+                and len(data) < limit
+                and self.streaming
+                and self.source is not None
+                and (nxt := self.source.peek_release_us()) is not None
+                and nxt <= (self._clock() - (self._run_start or 0.0)) * 1e6
+            ):
+                more = self._shape_transfer(self.source.pop())
+                if not more:
+                    break  # a zero-length packet ends the read
+                data = data + more
             if len(data) > limit:
                 self._pending = data[limit:]  # the rest comes with the next read, like a device FIFO
                 data = data[:limit]
@@ -516,7 +536,7 @@ _INTERFACE_DESC = dict(
     extra_descriptors=[],
 )
 _ENDPOINT_DESCS = (
-    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DATA_ENDPOINT, bmAttributes=0x02, wMaxPacketSize=1024,
+    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DATA_ENDPOINT, bmAttributes=0x02, wMaxPacketSize=MAX_PACKET_BYTES,
          bInterval=0, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
     dict(bLength=7, bDescriptorType=5, bEndpointAddress=DEBUG_ENDPOINT, bmAttributes=0x03, wMaxPacketSize=64,
          bInterval=4, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
