@@ -19,6 +19,7 @@ Run: ``python benchmarks/model.py [--repeats N] [--variants tiny base] [--thread
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import subprocess
@@ -50,7 +51,8 @@ def _commit() -> str:
         return "unknown"
 
 
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
+def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float, float]:
+    """Median, IQR and minimum (ms) of ``repeats`` timed calls after ``warmup`` untimed ones."""
     for _ in range(warmup):
         fn()
     samples = []
@@ -59,7 +61,7 @@ def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
         fn()
         samples.append((time.perf_counter() - start) * 1e3)
     quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0]
+    return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
 
 
 def _compare(model: RVTDetector, runner: RVTOnnxRunner, hists: list[np.ndarray]) -> dict[str, float]:
@@ -104,6 +106,7 @@ def main() -> None:
         f"numpy {np.__version__}  python {platform.python_version()}  cpu {platform.processor() or platform.machine()}"
         f"  torch capability {torch.backends.cpu.get_cpu_capability()}  repeats {args.repeats} (+{args.warmup} warm-up)"
     )
+    print(f"# cpus {os.cpu_count()}  load average before the run {os.getloadavg()[0]:.2f} (figures are wall-clock)")
     rng = np.random.default_rng(0)
     hists = []
     for _ in range(3):
@@ -150,9 +153,9 @@ def main() -> None:
                     cases["bptt_3steps"] = bptt_3steps
                 for name, fn in cases.items():
                     repeats = args.repeats if name != "bptt_3steps" else max(3, args.repeats // 2)
-                    median_ms, iqr_ms = _time_ms(fn, args.warmup, repeats)
+                    median_ms, iqr_ms, min_ms = _time_ms(fn, args.warmup, repeats)
                     results[(variant, threads, name)] = median_ms
-                    print(f"{config.name:6s} threads {threads}  {name:12s} median {median_ms:8.1f} ms  IQR {iqr_ms:6.1f} ms")
+                    print(f"{config.name:6s} threads {threads}  {name:12s} median {median_ms:8.1f} ms  IQR {iqr_ms:6.1f} ms  min {min_ms:8.1f} ms")
                 eager, ort_ms = results[(variant, threads, "eager_step")], results[(variant, threads, "ort_step")]
                 print(f"{config.name:6s} threads {threads}  ratio eager/ORT {eager / ort_ms:.2f}")
             diffs = _compare(model, RVTOnnxRunner(onnx_path), hists)
@@ -160,9 +163,9 @@ def main() -> None:
             if variant == args.variants[0]:
                 decoded = diffs["_decoded"][-1]
                 for conf in (0.001, 0.1):
-                    median_ms, iqr_ms = _time_ms(lambda: postprocess(decoded, conf), 2, args.repeats)
+                    median_ms, iqr_ms, min_ms = _time_ms(lambda: postprocess(decoded, conf), 2, args.repeats)
                     kept = postprocess(decoded, conf)[0]
-                    print(f"postprocess conf {conf:<5}  median {median_ms:6.1f} ms  IQR {iqr_ms:5.1f} ms  "
+                    print(f"postprocess conf {conf:<5}  median {median_ms:6.1f} ms  IQR {iqr_ms:5.1f} ms  min {min_ms:6.1f} ms  "
                           f"({0 if kept is None else len(kept)} detections kept)")
 
         if RVT_T_FIXTURE.is_file():

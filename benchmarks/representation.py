@@ -17,6 +17,7 @@ Run: ``python benchmarks/representation.py [--repeats N] [--rates-mev 1 12] [--t
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import subprocess
@@ -45,7 +46,8 @@ def _commit() -> str:
         return "unknown"
 
 
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
+def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float, float]:
+    """Median, IQR and minimum (ms) of ``repeats`` timed calls after ``warmup`` untimed ones."""
     for _ in range(warmup):
         fn()
     samples = []
@@ -54,7 +56,7 @@ def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
         fn()
         samples.append((time.perf_counter() - start) * 1e3)
     quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0]
+    return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
 
 
 def synthetic_events(rate_mev_s: float, duration_us: int, seed: int = 0):
@@ -102,14 +104,15 @@ def main() -> None:
         f"cpu {platform.processor() or platform.machine()}  torch threads {args.threads}  "
         f"repeats {args.repeats} (+{args.warmup} warm-up)"
     )
+    print(f"# cpus {os.cpu_count()}  load average before the run {os.getloadavg()[0]:.2f} (figures are wall-clock)")
     for rate in args.rates_mev:
         x, y, t_us, p = synthetic_events(rate, WINDOW_US, seed=int(rate * 10))
         n = t_us.shape[0]
         results: dict[str, float] = {}
 
-        median, iqr = _time_ms(lambda: stacked_histogram(x, y, t_us, p), args.warmup, args.repeats)
+        median, iqr, min_ms = _time_ms(lambda: stacked_histogram(x, y, t_us, p), args.warmup, args.repeats)
         results["numpy"] = median
-        print(f"{rate:5.1f} Mev/s ({n:7d} ev/window)  numpy          median {median:8.2f} ms  IQR {iqr:6.2f} ms")
+        print(f"{rate:5.1f} Mev/s ({n:7d} ev/window)  numpy          median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
         if torch is not None:
             from davis_rig.events.histogram_torch import stacked_histogram_torch
@@ -117,27 +120,27 @@ def main() -> None:
             tx, ty, tt, tp = (torch.from_numpy(a.astype(np.int64)) for a in (x, y, t_us, p))
             reference = _official_torch(torch, tx, ty, tt, tp).numpy()
             assert np.array_equal(reference, stacked_histogram(x, y, t_us, p)), "numpy != official torch"
-            median, iqr = _time_ms(lambda: _official_torch(torch, tx, ty, tt, tp), args.warmup, args.repeats)
+            median, iqr, min_ms = _time_ms(lambda: _official_torch(torch, tx, ty, tt, tp), args.warmup, args.repeats)
             results["official_torch"] = median
-            print(f"{'':30s} official_torch median {median:8.2f} ms  IQR {iqr:6.2f} ms")
+            print(f"{'':30s} official_torch median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
             weights = torch.rand(n)
-            median, iqr = _time_ms(lambda: stacked_histogram_torch(tx, ty, tt, tp, weights), args.warmup, args.repeats)
+            median, iqr, min_ms = _time_ms(lambda: stacked_histogram_torch(tx, ty, tt, tp, weights), args.warmup, args.repeats)
             results["torch_float"] = median
-            print(f"{'':30s} torch_float    median {median:8.2f} ms  IQR {iqr:6.2f} ms")
+            print(f"{'':30s} torch_float    median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
             def forward_backward():
                 w = weights.clone().requires_grad_(True)
                 hist = stacked_histogram_torch(tx, ty, tt, tp, w)
                 (hist * hist).sum().backward()
 
-            median, iqr = _time_ms(forward_backward, args.warmup, args.repeats)
+            median, iqr, min_ms = _time_ms(forward_backward, args.warmup, args.repeats)
             results["torch_float_fwd_bwd"] = median
-            print(f"{'':30s} torch_fwd_bwd  median {median:8.2f} ms  IQR {iqr:6.2f} ms")
+            print(f"{'':30s} torch_fwd_bwd  median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
         xs, ys, ts, ps = synthetic_events(rate, 1_000_000, seed=int(rate * 10) + 1)
         ends = np.arange(50_000, 1_000_001, 50_000)
-        median, iqr = _time_ms(lambda: stacked_histograms((xs, ys, ts, ps), ends), 1, max(3, args.repeats // 4))
+        median, iqr, min_ms = _time_ms(lambda: stacked_histograms((xs, ys, ts, ps), ends), 1, max(3, args.repeats // 4))
         results["windows_1s_per_window"] = median / len(ends)
         print(
             f"{'':30s} windows_1s     median {median / len(ends):8.2f} ms/window  "
