@@ -77,6 +77,9 @@ _LOSS_COUNTERS: Final = (
     "non_monotonic_timestamps",
 )
 
+#: Whole-column runs at least this long are written as one rectangular slice; shorter ones by one scatter.
+_MIN_BLOCK_COLUMNS: Final = 16
+
 _READOUT_RESET: Final = 0
 _READOUT_SIGNAL: Final = 1
 
@@ -846,7 +849,7 @@ class StreamDecoder:
             # a transfer boundary can leave a partial column at either end of a run of whole columns
             head = 0 if group[0, 2] == 0 and group[0, 4] - group[0, 3] == expected_y else 1
             tail = group.shape[0] - (0 if group[-1, 2] == 0 and group[-1, 4] - group[-1, 3] == expected_y else 1)
-            if tail - head >= 1 and self._is_full_column_run(group[head:tail]):
+            if tail - head >= _MIN_BLOCK_COLUMNS and self._is_full_column_run(group[head:tail]):
                 self._write_segments(group[:head], adc_vals)
                 self._write_column_block(group[head:tail], adc_vals)
                 self._write_segments(group[tail:], adc_vals)
@@ -926,8 +929,9 @@ class StreamDecoder:
         cds = reset - signal
         np.maximum(cds, 0, out=cds)
         np.minimum(cds, APS_PIXEL_MAX, out=cds)
-        cds[(reset < APS_RESET_MIN) | (signal == 0)] = APS_PIXEL_MAX
-        return (cds << APS_PIXEL_SHIFT).astype(np.uint16)
+        np.putmask(cds, (reset < APS_RESET_MIN) | (signal == 0), APS_PIXEL_MAX)
+        np.left_shift(cds, APS_PIXEL_SHIFT, out=cds)
+        return cds.astype(np.uint16)
 
     # ------------------------------------------------------------------ IMU
     @staticmethod

@@ -270,7 +270,7 @@ def test_empty_encode(davis346):
     assert StreamEncoder(davis346).encode(np.empty(0, EVENT_DTYPE)) == b""
 
 
-@pytest.mark.parametrize("aps_orientation", [0, 7])
+@pytest.mark.parametrize("aps_orientation", [0, 1, 2, 4, 7])
 def test_full_sensor_frames_round_trip_in_one_feed_and_in_8k_transfers(aps_orientation):
     """Full 346×260 frames span several decoder blocks and many transfers."""
     layout = _layout(False, aps_orientation)
