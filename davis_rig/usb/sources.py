@@ -93,11 +93,6 @@ class DataSource:
         with self._lock:
             return self._queue.popleft()[1]
 
-    def push_front(self, data: bytes) -> None:
-        """Put back the unserved rest of a transfer (released immediately)."""
-        with self._lock:
-            self._queue.appendleft((0.0, bytes(data)))
-
     def __len__(self) -> int:
         with self._lock:
             return len(self._queue)

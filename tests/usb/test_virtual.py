@@ -75,6 +75,18 @@ def test_small_host_buffer_gets_the_rest_on_the_next_read():
         assert _drain(t, size=4) == [bytes(range(4)), bytes(range(4, 8)), bytes(range(8, 10))]
 
 
+def test_whole_packet_transfers_run_on_until_a_short_packet():
+    full = bytes(range(256)) * 8  # 2048 bytes = two 1024-byte packets, no short packet at its end
+    dev = VirtualDavis346(source=TransferListSource([full, full, b"\x01\x02", full, b"", full]))
+    with UsbTransport.open(backend=VirtualDavis346Backend(dev)) as t:
+        _start(t)
+        got = _drain(t, size=65536)
+        assert got == [full + full + b"\x01\x02", full, full]  # short packet / zero-length packet end a read
+    with UsbTransport.open(backend=VirtualDavis346Backend(VirtualDavis346(source=TransferListSource([full] * 3)))) as t:
+        _start(t)
+        assert _drain(t, size=3072) == [full + full[:1024], full[1024:] + full]  # a full buffer ends a read
+
+
 def test_fault_short_and_odd_transfers():
     dev = VirtualDavis346(
         source=TransferListSource([bytes(range(6)), bytes(range(6, 10))]),
