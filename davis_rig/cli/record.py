@@ -42,7 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="APS frame interval, µs (default: camera default)")
     parser.add_argument("--serial", metavar="SN", help="open the camera with this serial number")
     parser.add_argument("--fake", metavar="REPLAY",
-                        help="use a virtual DAVIS346 that replays this replay file (davis_rig.usb.replay format)")
+                        help="use a virtual DAVIS346 that replays this replay file (davis_rig.usb.replay format); "
+                             "the recording ends with the replay (or earlier with --duration / Ctrl-C)")
     parser.add_argument("--fake-fast", action="store_true",
                         help="with --fake: serve the replay as fast as possible instead of in real time")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
@@ -54,16 +55,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def open_camera(serial: str | None, fake: str | None, fake_fast: bool = False):
-    """Open the real camera, or a virtual DAVIS346 replaying ``fake``; returns a ``Davis346`` context manager."""
+def fake_backend(replay: str, fast: bool = False):
+    """A virtual DAVIS346 replaying ``replay``; returns ``(backend, exhausted)``.
+
+    ``exhausted()`` is true once every transfer of the replay has been handed to the host.
+    """
+    from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+
+    device = VirtualDavis346.from_replay(replay, paced=not fast)
+
+    def exhausted() -> bool:
+        return len(device.source) == 0 and getattr(device, "_pending", None) is None
+
+    return VirtualDavis346Backend(device), exhausted
+
+
+def open_camera(serial: str | None, backend=None):
+    """Open the camera (``backend=None``: real USB) and return the ``Davis346`` (a context manager)."""
     from davis_rig.device.camera import Davis346
 
-    backend = None
-    if fake is not None:
-        from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
-
-        backend = VirtualDavis346Backend(VirtualDavis346.from_replay(fake, paced=not fake_fast))
     return Davis346.open(serial=serial, backend=backend)
+
+
+def _stop_when(condition, stop: threading.Event, grace_s: float = 0.5) -> threading.Thread:
+    """Start a daemon thread that sets ``stop`` ``grace_s`` after ``condition()`` first holds."""
+
+    def watch() -> None:
+        while not stop.is_set():
+            if condition():
+                stop.wait(grace_s)  # let the reader thread pick up the last transfers
+                stop.set()
+                return
+            stop.wait(0.1)
+
+    thread = threading.Thread(target=watch, name="davis-record-replay-end", daemon=True)
+    thread.start()
+    return thread
 
 
 def _progress_line(progress) -> None:
@@ -81,9 +108,13 @@ def _record(args: argparse.Namespace) -> int:
     from davis_rig.session.record import record_session
 
     stop = threading.Event()
+    backend = None
+    if args.fake is not None:
+        backend, exhausted = fake_backend(args.fake, args.fake_fast)
+        _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
     previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     try:
-        with open_camera(args.serial, args.fake, args.fake_fast) as camera:
+        with open_camera(args.serial, backend) as camera:
             summary = record_session(
                 camera,
                 args.out,

@@ -35,8 +35,8 @@ class FakeOpen:
         self.calls = []
         self.camera = object()
 
-    def __call__(self, serial, fake, fake_fast=False):
-        self.calls.append((serial, fake, fake_fast))
+    def __call__(self, serial, backend=None):
+        self.calls.append((serial, backend))
 
         @contextlib.contextmanager
         def opened():
@@ -58,13 +58,18 @@ def test_arguments_map_onto_record_session(monkeypatch, capsys, tmp_path):
         calls.append((camera, path, kwargs))
         return _summary(path)
 
+    backend = object()
+    fakes = []
     monkeypatch.setattr(cli, "open_camera", opener)
+    monkeypatch.setattr(cli, "fake_backend",
+                        lambda replay, fast: fakes.append((replay, fast)) or (backend, lambda: False))
     monkeypatch.setattr("davis_rig.session.record.record_session", fake_record)
     out = str(tmp_path / "s.h5")
     code = cli.main(["--out", out, "--duration", "2.5", "--exposure", "4000", "--frame-interval", "40000",
                      "--serial", "SN1", "--fake", "replay.bin", "--fake-fast", "--overwrite", "--quiet"])
     assert code == 0
-    assert opener.calls == [("SN1", "replay.bin", True)]
+    assert fakes == [("replay.bin", True)]
+    assert opener.calls == [("SN1", backend)]
     assert len(calls) == 1
     camera, path, kwargs = calls[0]
     stop_event = kwargs.pop("stop_event")
@@ -82,7 +87,7 @@ def test_defaults(monkeypatch, tmp_path):
     monkeypatch.setattr("davis_rig.session.record.record_session",
                         lambda camera, path, **kwargs: calls.append(kwargs) or _summary(path))
     assert cli.main(["--out", str(tmp_path / "s.h5"), "--no-journal"]) == 0
-    assert opener.calls == [(None, None, False)]
+    assert opener.calls == [(None, None)]
     assert calls[0]["duration_s"] is None and calls[0]["exposure_us"] is None and calls[0]["journal"] is False
     assert calls[0]["progress"] is cli._progress_line
 
@@ -117,7 +122,7 @@ def test_bad_number_is_a_usage_error(capsys):
 @pytest.mark.parametrize("error, code", [(DeviceNotFoundError("no DAVIS346 attached"), EXIT_DEVICE),
                                          (SessionError("a.h5: file exists"), EXIT_DATA)])
 def test_errors_become_one_message_and_an_exit_code(monkeypatch, capsys, error, code):
-    def failing_open(serial, fake, fake_fast=False):
+    def failing_open(serial, backend=None):
         raise error
 
     monkeypatch.setattr(cli, "open_camera", failing_open)
