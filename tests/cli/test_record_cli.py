@@ -129,3 +129,14 @@ def test_errors_become_one_message_and_an_exit_code(monkeypatch, capsys, error, 
     assert cli.main(["--out", "a.h5", "--quiet"]) == code
     err = capsys.readouterr().err
     assert err.startswith("davis-record: error: ") and str(error) in err and "Traceback" not in err
+
+
+def test_capture_path_does_not_import_torch():
+    code = (
+        "import sys\n"
+        "import davis_rig.cli.record, davis_rig.session, davis_rig.session.record, davis_rig.session.recovery\n"
+        "import davis_rig.session.reader, davis_rig.session.writer\n"
+        "print('torch' in sys.modules, 'dv_processing' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False False"
