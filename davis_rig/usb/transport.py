@@ -411,8 +411,8 @@ class UsbTransport:
             timeout_ms: how long to wait for data, ms (0 = forever).
 
         Returns:
-            The bytes received (one or more device transfers), or ``None`` if the read timed out or the endpoint
-            stalled (the stall is cleared and counted in :attr:`stalls`).
+            The bytes received (one or more device transfers; ``b""`` for a zero-length transfer), or ``None`` if
+            the read timed out or the endpoint stalled (the stall is cleared and counted in :attr:`stalls`).
 
         Raises:
             DeviceDisconnectedError: the camera vanished (ENODEV, or EPIPE/EIO with the stall not clearable).
