@@ -4,7 +4,8 @@ For RVT-T and RVT-B (**random weights** — latency does not depend on the value
 
 * ``eager_step``: one recurrent step (backbone + FPN + head, with states) under ``torch.inference_mode``;
 * ``ort_step``: the same step exported with ``export_step_onnx`` and run by :class:`RVTOnnxRunner`
-  (input already padded float32); ratio eager / ORT;
+  (input already padded float32); ratio eager / ORT (the two are timed alternately, so load drift on a
+  shared machine affects both alike);
 * ``bptt_3steps``: 3 recurrent steps forward + backward w.r.t. the three inputs (the digital optimizer's inner
   cost; loss = Σ obj · max class prob of the last step);
 * ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1.
@@ -62,6 +63,24 @@ def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float, float]:
         samples.append((time.perf_counter() - start) * 1e3)
     quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
     return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
+
+
+def _time_interleaved_ms(fns: dict, warmup: int, repeats: int) -> dict[str, tuple[float, float, float]]:
+    """Like :func:`_time_ms` for several functions, called in turn so that load drift hits all alike."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    samples: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            samples[name].append((time.perf_counter() - start) * 1e3)
+    out = {}
+    for name, values in samples.items():
+        quartiles = statistics.quantiles(values, n=4) if len(values) >= 2 else [values[0]] * 3
+        out[name] = (statistics.median(values), quartiles[2] - quartiles[0], min(values))
+    return out
 
 
 def _compare(model: RVTDetector, runner: RVTOnnxRunner, hists: list[np.ndarray]) -> dict[str, float]:
@@ -140,7 +159,9 @@ def main() -> None:
                 def ort_step():
                     runner.step(hists[1], ort_warm)
 
-                cases = {"eager_step": eager_step, "ort_step": ort_step}
+                timings = _time_interleaved_ms(
+                    {"eager_step": eager_step, "ort_step": ort_step}, args.warmup, args.repeats
+                )
                 if not args.no_bptt:
 
                     def bptt_3steps():
@@ -150,12 +171,13 @@ def main() -> None:
                             decoded, states = model(x, states)
                         (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
 
-                    cases["bptt_3steps"] = bptt_3steps
-                for name, fn in cases.items():
-                    repeats = args.repeats if name != "bptt_3steps" else max(3, args.repeats // 2)
-                    median_ms, iqr_ms, min_ms = _time_ms(fn, args.warmup, repeats)
+                    timings["bptt_3steps"] = _time_ms(bptt_3steps, 1, max(3, args.repeats // 2))
+                for name, (median_ms, iqr_ms, min_ms) in timings.items():
                     results[(variant, threads, name)] = median_ms
-                    print(f"{config.name:6s} threads {threads}  {name:12s} median {median_ms:8.1f} ms  IQR {iqr_ms:6.1f} ms  min {min_ms:8.1f} ms")
+                    print(
+                        f"{config.name:6s} threads {threads}  {name:12s} median {median_ms:8.1f} ms  "
+                        f"IQR {iqr_ms:6.1f} ms  min {min_ms:8.1f} ms"
+                    )
                 eager, ort_ms = results[(variant, threads, "eager_step")], results[(variant, threads, "ort_step")]
                 print(f"{config.name:6s} threads {threads}  ratio eager/ORT {eager / ort_ms:.2f}")
             diffs = _compare(model, RVTOnnxRunner(onnx_path), hists)
