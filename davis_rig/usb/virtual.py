@@ -328,6 +328,12 @@ class VirtualDavis346:
             r(Module.MUX, Mux.RUN) and r(Module.USB, Usb.RUN) and (r(Module.DVS, Dvs.RUN) or r(Module.APS, Aps.RUN))
         )
 
+    @property
+    def drained(self) -> bool:
+        """True once every transfer of the source has been handed to the host (nothing pending either)."""
+        with self._cond:
+            return self._pending is None and (self.source is None or len(self.source) == 0)
+
     def unplug(self) -> None:
         """Simulate pulling the cable now: every later request fails with ENODEV."""
         with self._cond:
