@@ -17,7 +17,6 @@ complete record and sets :attr:`ReplayReader.truncated`.
 
 from __future__ import annotations
 
-import io
 import json
 import struct
 import time
@@ -222,7 +221,7 @@ class ReplayReader:
             self.open()
         assert self._file is not None
         self._file.seek(self._data_offset)
-        reader = io.BufferedReader(self._file, buffer_size=1 << 20) if not isinstance(self._file, io.BufferedReader) else self._file
+        reader = self._file
         while True:
             head = reader.read(_RECORD.size)
             if not head:

@@ -4,7 +4,6 @@ import json
 import threading
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from davis_rig.device.camera import Davis346
@@ -13,7 +12,7 @@ from davis_rig.errors import DeviceDisconnectedError, DeviceError, ProtocolError
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, CoarseFineBias, VdacBias
 from davis_rig.protocol.config import Clocks, ConfigWrite, DeviceFeatures
 from davis_rig.protocol.decoder import DecodedChunk
-from davis_rig.protocol.sequences import ClearHalt, Sleep, config_writes, default_config_sequence, start_sequence, stop_sequence
+from davis_rig.protocol.sequences import Sleep, config_writes, default_config_sequence, start_sequence, stop_sequence
 from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
