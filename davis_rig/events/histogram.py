@@ -39,6 +39,7 @@ __all__ = [
     "NUM_BINS",
     "WINDOW_US",
     "event_columns",
+    "regular_window_ends",
     "stacked_histogram",
     "stacked_histograms",
     "time_bins",
@@ -176,6 +177,34 @@ def window_indices(t_us, window_end_us, window_us: int = WINDOW_US):
     if ends.ndim == 0:
         return int(start), int(stop)
     return start.astype(np.int64), stop.astype(np.int64)
+
+
+def regular_window_ends(t_start_us: int, t_stop_us: int, *, window_us: int = WINDOW_US, step_us: int | None = None):
+    """Ends of back-to-back windows covering ``[t_start_us, t_stop_us]``: ``t_start + window_us + k * step_us``.
+
+    The model runs "at discrete steps of 50 ms" (RVT maintainers); with ``step_us = window_us`` (default) every
+    event is seen, boundary events twice (windows are inclusive at both ends). The official Gen1 evaluation
+    instead places 2 windows per 250 ms label period after the first label (125 ms apart, see ARCHITECTURE §2.2).
+
+    Args:
+        t_start_us: start of the first window, µs.
+        t_stop_us: last allowed window end, µs.
+        window_us: window duration, µs.
+        step_us: distance between consecutive ends, µs; default ``window_us``.
+
+    Returns:
+        int64 [T] window ends ``<= t_stop_us`` (empty when the span is shorter than one window).
+
+    Raises:
+        ShapeError: non-positive ``window_us`` or ``step_us``.
+    """
+    step_us = window_us if step_us is None else step_us
+    if window_us <= 0 or step_us <= 0:
+        raise ShapeError(f"window_us and step_us: expected > 0, got {window_us} and {step_us}")
+    first_end = int(t_start_us) + int(window_us)
+    if first_end > int(t_stop_us):
+        return np.zeros(0, dtype=np.int64)
+    return np.arange(first_end, int(t_stop_us) + 1, int(step_us), dtype=np.int64)
 
 
 def event_columns(events) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

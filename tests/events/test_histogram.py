@@ -8,7 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.events import stacked_histogram, stacked_histograms, time_bins, window_indices
+from davis_rig.events import (
+    regular_window_ends,
+    stacked_histogram,
+    stacked_histograms,
+    time_bins,
+    window_indices,
+)
 from davis_rig.types import make_events
 
 
@@ -200,6 +206,15 @@ def test_window_without_events_is_zero_and_custom_window_length():
     hist = stacked_histograms((np.zeros(3, int), np.zeros(3, int), t_us, np.zeros(3, int)), [20, 500], window_us=10)
     assert int(hist[0].sum()) == 2
     assert not hist[1].any()
+
+
+def test_regular_window_ends():
+    np.testing.assert_array_equal(regular_window_ends(0, 150_000), [50_000, 100_000, 150_000])
+    np.testing.assert_array_equal(regular_window_ends(0, 149_999), [50_000, 100_000])
+    np.testing.assert_array_equal(regular_window_ends(1_000, 300_000, step_us=125_000), [51_000, 176_000])
+    assert regular_window_ends(0, 49_999).shape == (0,)
+    with pytest.raises(ShapeError, match="expected > 0"):
+        regular_window_ends(0, 10, window_us=0)
 
 
 # --- property test against a transcription of the official torch code ---------------------------------------
