@@ -1,6 +1,8 @@
 """Bias encodings (PROTOCOL.md §6.1) and the 28 DAVIS346 defaults of §6.2, value by value."""
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from davis_rig.errors import ProtocolError
 from davis_rig.protocol.biases import (
@@ -77,3 +79,21 @@ def test_bias_kinds_and_validation():
         CoarseFineBias(0, 256)
     with pytest.raises(ProtocolError, match="0..511"):
         VdacBias.decode(0x200)
+
+
+@given(st.integers(0, 63), st.integers(0, 7))
+def test_vdac_round_trip(voltage, current):
+    bias = VdacBias(voltage, current)
+    assert VdacBias.decode(bias.encode()) == bias and bias.encode() < 1 << 9
+
+
+@given(st.integers(0, 7), st.integers(0, 255), st.booleans(), st.booleans(), st.booleans(), st.booleans())
+def test_coarse_fine_round_trip(coarse, fine, enabled, sex_n, type_normal, level_normal):
+    bias = CoarseFineBias(coarse, fine, enabled, sex_n, type_normal, level_normal)
+    assert CoarseFineBias.decode(bias.encode()) == bias and bias.encode() < 1 << 15
+
+
+@given(st.integers(0, 63), st.integers(0, 63), st.integers(0, 2), st.integers(0, 2))
+def test_shifted_source_round_trip(ref, reg, mode, level):
+    bias = ShiftedSourceBias(ref, reg, mode, level)
+    assert ShiftedSourceBias.decode(bias.encode()) == bias and bias.encode() < 1 << 16

@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from davis_rig.errors import ProtocolError
 from davis_rig.protocol.config import (
@@ -94,3 +96,23 @@ def test_exposure_and_interval_writes_use_adc_clock_and_ranges():
         frame_interval_write(-1, clocks)
     with pytest.raises(ProtocolError, match="adc_mhz must be > 0"):
         Clocks(logic_mhz=1, adc_mhz=0, usb_mhz=1)
+
+
+@given(st.lists(st.tuples(st.integers(0, 255), st.integers(0, 255), st.integers(0, 2**32 - 1)), min_size=1, max_size=20))
+def test_multiple_write_round_trip(records):
+    writes = [ConfigWrite(*r) for r in records]
+    data = encode_multiple(writes)
+    assert len(data) == 6 * len(writes)
+    assert decode_multiple(data, len(writes)) == writes
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_value_round_trip(value):
+    assert decode_value(encode_value(value)) == value
+
+
+@given(st.integers(0, 4_194_303), st.sampled_from([30, 50, 64]), st.integers(900, 1100))
+def test_us_to_cycles_matches_float32_reference(us, clock_mhz, deviation):
+    actual = np.float32(clock_mhz * (deviation / 1000.0))
+    expected = int(np.floor(np.float64(np.float32(us) * actual) + 0.5))
+    assert us_to_cycles(us, clock_mhz, deviation) == expected
