@@ -32,7 +32,7 @@ from davis_rig.device.reader import (
     TransferReader,
 )
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, Bias, BiasEntry, bias_param, check_bias_for, decode_bias
-from davis_rig.protocol.config import Dvs, Imu, Module, Aps, exposure_write, frame_interval_write
+from davis_rig.protocol.config import Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
 from davis_rig.protocol.decoder import DecodedChunk, DecoderStats, StreamDecoder
 from davis_rig.protocol.sequences import (
     DEFAULT_EXPOSURE_US,
@@ -290,6 +290,35 @@ class Davis346:
     def snapshot(self) -> None:
         """Request one APS frame (APS RUN pulse, one 0xC2 request)."""
         self._steps([aps_snapshot_pulse()])
+
+    def fpga_statistics(self) -> dict[str, int]:
+        """The FPGA's 64-bit statistics counters the device has (empty if it reports none).
+
+        ``mux_dvs_dropped`` / ``mux_extinput_dropped`` count events the FPGA dropped because USB stalled
+        (DROP_*_ON_TRANSFER_STALL, on by default) — data lost before it ever reached the host; ``dvs_*`` are the
+        DVS module's transaction and filter counters.
+
+        Returns:
+            ``{name: count}``.
+
+        Raises:
+            TransportError / DeviceDisconnectedError: USB failure.
+        """
+        f = self.info.features
+        wanted = []
+        if f.mux_has_statistics:
+            wanted += [("mux_extinput_dropped", Module.MUX, Mux.STATISTICS_EXTINPUT_DROPPED),
+                       ("mux_dvs_dropped", Module.MUX, Mux.STATISTICS_DVS_DROPPED)]
+        if f.dvs_has_statistics:
+            wanted += [("dvs_events_row", Module.DVS, Dvs.STATISTICS_EVENTS_ROW),
+                       ("dvs_events_column", Module.DVS, Dvs.STATISTICS_EVENTS_COLUMN),
+                       ("dvs_events_dropped", Module.DVS, Dvs.STATISTICS_EVENTS_DROPPED)]
+            if f.dvs_has_pixel_filter:
+                wanted.append(("dvs_filtered_pixels", Module.DVS, Dvs.STATISTICS_FILTERED_PIXELS))
+            if f.dvs_has_background_activity_filter:
+                wanted += [("dvs_filtered_background_activity", Module.DVS, Dvs.STATISTICS_FILTERED_BACKGROUND_ACTIVITY),
+                           ("dvs_filtered_refractory_period", Module.DVS, Dvs.STATISTICS_FILTERED_REFRACTORY_PERIOD)]
+        return {name: self.transport.config_read_u64(module, param) for name, module, param in wanted}
 
     # --- acquisition ----------------------------------------------------------------------------
     @property

@@ -357,6 +357,23 @@ class UsbTransport:
             raise TransportError(f"DAVIS {self.serial}: config read ({module}, {param}) returned {len(data)} bytes, expected 4")
         return decode_value(data)
 
+    def config_read_u64(self, module: int, param: int) -> int:
+        """Read a 64-bit statistics counter as libcaer does: upper word at ``param``, lower at ``param + 1``,
+        upper re-read to detect a carry between the two reads (then the lower word is read again).
+
+        Returns:
+            The unsigned 64-bit value.
+
+        Raises:
+            TransportError / DeviceDisconnectedError: USB failure.
+        """
+        upper = self.config_read(module, param)
+        lower = self.config_read(module, param + 1)
+        upper_again = self.config_read(module, param)
+        if upper_again != upper:
+            lower = self.config_read(module, param + 1)
+        return (upper_again << 32) | lower
+
     def config_write(self, module: int, param: int, value: int) -> None:
         """Write one FPGA register (``0x40/0xBF``, value as 4 bytes big-endian).
 

@@ -239,3 +239,40 @@ def test_read_before_start_is_an_error():
     cam, _ = open_camera(VirtualDavis346())
     with cam, pytest.raises(DeviceError, match="not started"):
         cam.read(0.01)
+
+
+class _CountingDevice(VirtualDavis346):
+    """A camera whose MUX DVS-dropped counter carries into the upper word between two reads."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.upper_reads = 0
+
+    def register(self, module, param):
+        if (module, param) == (0, 83):  # upper word: 0 on the first read, 1 afterwards
+            self.upper_reads += 1
+            return 0 if self.upper_reads == 1 else 1
+        if (module, param) == (0, 84):  # lower word: 0xFFFFFFFF before the carry, 2 after it
+            return 0xFFFFFFFF if self.upper_reads == 1 else 2
+        return super().register(module, param)
+
+
+def test_fpga_statistics_read_64_bit_counters_with_carry_detection():
+    features = DeviceFeatures(mux_has_statistics=True, dvs_has_statistics=True)
+    dev = _CountingDevice(features=features)
+    dev.registers.update({(1, 85): 1, (1, 86): 7, (0, 81): 0, (0, 82): 3})
+    cam, _ = open_camera(dev)
+    with cam:
+        n0 = len(dev.reads)
+        stats = cam.fpga_statistics()
+    assert stats == {
+        "mux_extinput_dropped": 3,
+        "mux_dvs_dropped": (1 << 32) | 2,  # carry seen: upper re-read differs, lower read again
+        "dvs_events_row": 0,
+        "dvs_events_column": 0,
+        "dvs_events_dropped": (1 << 32) | 7,
+    }
+    assert dev.reads[n0 + 3 : n0 + 7] == [(0, 83), (0, 84), (0, 83), (0, 84)]
+    cam2, _ = open_camera(VirtualDavis346())
+    with cam2:
+        assert cam2.fpga_statistics() == {}
