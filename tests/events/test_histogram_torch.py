@@ -102,3 +102,30 @@ def test_validation_errors():
         stacked_histogram_torch([0], [0], [0], [2])
     with pytest.raises(FormatError, match="non-decreasing"):
         stacked_histogram_torch([0, 1], [0, 0], [5, 4], [0, 0])
+
+
+def test_gradient_reaches_event_weights_through_the_detector(reference_windows):
+    """Events -> float histogram -> mini RVT -> loss: d loss / d w_e equals d loss / d hist at the event's cell."""
+    from pathlib import Path
+
+    from davis_rig.models.rvt.checkpoint import load_detector
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    mini_path = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+    model = load_detector(mini_path)
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    ref = reference_windows
+    start, stop = window_indices(ref["events_t_us"], int(ref["window_end_ts_us"][0]))
+    cols = [torch.from_numpy(ref[f"events_{k}"][start:stop].astype(np.int64)) for k in ("x", "y", "t_us", "p")]
+    weights = torch.ones(stop - start, dtype=torch.float32, requires_grad=True)
+    hist = stacked_histogram_torch(*cols, weights)
+    hist_leaf = hist.detach().clone().requires_grad_(True)
+    for source in (hist, hist_leaf):
+        decoded, _ = model(pad_to_input(source[None]))
+        (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
+    x, y, t_us, p = cols
+    channel = p * 10 + time_bins_torch(t_us)
+    expected = hist_leaf.grad[channel, y, x]
+    assert torch.count_nonzero(weights.grad) > 0
+    torch.testing.assert_close(weights.grad, expected, rtol=1e-5, atol=1e-8)
