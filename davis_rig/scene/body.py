@@ -497,10 +497,12 @@ class BodyModel:
         if transforms.ndim != 4 or tuple(transforms.shape[1:]) != (j, 4, 4):
             raise ShapeError(f"transforms must be [T, {j}, 4, 4], got {tuple(transforms.shape)}")
         n = transforms.shape[0]
-        blended = torch.matmul(self.skin_weights_dense, transforms[:, :, :3, :].reshape(n, j, 12))
-        blended = blended.reshape(n, -1, 3, 4)  # [T, V, 3, 4]
+        # one [V, J] @ [J, T*12] product (a broadcast batched matmul is ~3x slower on CPU)
+        flat = transforms[:, :, :3, :].to(self.dtype).permute(1, 0, 2, 3).reshape(j, n * 12)
+        blended = (self.skin_weights_dense @ flat).reshape(-1, n, 3, 4)  # [V, T, 3, 4]
         rest = self.rest_vertices_m[shape_index]
-        return (blended[..., :3] @ rest[None, :, :, None])[..., 0] + blended[..., 3]
+        posed = torch.einsum("vtij,vj->tvi", blended[..., :3], rest) + blended[..., 3].transpose(0, 1)
+        return posed
 
     def pose(
         self,
