@@ -54,6 +54,9 @@ def test_signature_and_initial_states(runner):
     assert [h.shape for h, _ in states] == [(2, 8, 64, 80), (2, 8, 32, 40), (2, 16, 16, 20), (2, 32, 8, 10)]
     assert all(not h.any() and not c.any() and h.dtype == np.float32 for h, c in states)
     assert "RVT-mini" in repr(runner)
+    decoded, new_states = runner.step(np.zeros((2, 20, 240, 304), np.uint8), states)  # dynamic batch
+    assert decoded.shape == (2, 1680, 7)
+    assert [h.shape for h, _ in new_states] == [h.shape for h, _ in states]
 
 
 def test_uint8_unpadded_and_float_padded_inputs_agree(runner, mini_fixture):
