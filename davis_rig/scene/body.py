@@ -524,6 +524,19 @@ class BodyModel:
         return self.skin(shape_index, transforms)
 
     # ------------------------------------------------------------------ walk
+    def walk_cycle(self, shape_index: int = 0) -> tuple["torch.Tensor", "torch.Tensor"]:
+        """The stored walk frames of one shape as tensors on the model's device.
+
+        Returns:
+            ``(rotations_wxyz [T, J, 4], root_translation_m [T, 3])``, in place (see :class:`WalkCycle`
+            for the frame rate and forward speed: ``self.asset.walk_cycle(shape_index)``).
+        """
+        torch = _torch()
+        walk = self.asset.walk_cycle(shape_index)
+        kw = dict(device=self.device, dtype=self.dtype)
+        return (torch.as_tensor(np.array(walk.rotations_wxyz), **kw),
+                torch.as_tensor(np.array(walk.root_translation_m), **kw))
+
     def sample_walk(
         self, shape_index: int, t_s: "torch.Tensor | np.ndarray | Sequence[float]", advance: bool = True
     ) -> tuple["torch.Tensor", "torch.Tensor"]:

@@ -232,6 +232,14 @@ def test_walk_frames_are_plausible_bodies(model, asset, shape_index):
     assert dy.max() > 0.2 and dy.min() < -0.2
 
 
+def test_model_walk_cycle_tensors(model, asset):
+    quats, root = model.walk_cycle(6)
+    walk = asset.walk_cycle(6)
+    assert quats.dtype == torch.float32 and quats.shape == (walk.num_frames, asset.num_bones, 4)
+    np.testing.assert_array_equal(quats.numpy(), walk.rotations_wxyz)
+    np.testing.assert_array_equal(root.numpy(), walk.root_translation_m)
+
+
 def test_sample_walk_matches_frames_and_repeats(model, asset):
     walk = asset.walk_cycle(4)
     t_s = np.arange(walk.num_frames) / walk.fps_hz
