@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
 from davis_rig.errors import DeviceDisconnectedError, DeviceError
+from davis_rig.device.debug import DebugMessage, DebugReader
 from davis_rig.device.info import DeviceInfo, read_device_info
 from davis_rig.device.reader import (
     DEFAULT_QUEUE_TRANSFERS,
@@ -32,7 +33,7 @@ from davis_rig.device.reader import (
     TransferReader,
 )
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, Bias, BiasEntry, bias_param, check_bias_for, decode_bias
-from davis_rig.protocol.config import Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
+from davis_rig.protocol.config import DAVIS_FX3_PID, Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
 from davis_rig.protocol.decoder import DecodedChunk, DecoderStats, StreamDecoder
 from davis_rig.protocol.sequences import (
     DEFAULT_EXPOSURE_US,
@@ -108,6 +109,7 @@ class Davis346:
         self._producers = {"dvs": True, "aps": True, "imu": False, "extinput": True}
         self._listeners: list[Callable[[bytes], Any]] = []
         self._reader: TransferReader | None = None
+        self._debug_reader: DebugReader | None = None
         self._decoder: StreamDecoder | None = None
         self._decoded_transfers = 0
         self._running = False
@@ -352,8 +354,12 @@ class Davis346:
                 self._steps([step])
                 if isinstance(step, ClearHalt):
                     self._reader.start()
+                    if self.info.product_id == DAVIS_FX3_PID:  # FX2 boards have no debug endpoint
+                        self._debug_reader = DebugReader(self.transport.read_debug).start()
         except BaseException:
             self._reader.stop()
+            if self._debug_reader is not None:
+                self._debug_reader.stop()
             raise
         self._running = True
 
@@ -366,6 +372,8 @@ class Davis346:
         if not self._running:
             if self._reader is not None:
                 self._reader.stop()
+            if self._debug_reader is not None:
+                self._debug_reader.stop()
             return
         self._running = False
         try:
@@ -376,6 +384,13 @@ class Davis346:
         finally:
             if self._reader is not None:
                 self._reader.stop()
+            if self._debug_reader is not None:
+                self._debug_reader.stop()
+
+    @property
+    def debug_messages(self) -> list[DebugMessage]:
+        """Messages from the FX3 debug endpoint (firmware error reports) since the last start, oldest first."""
+        return self._debug_reader.messages if self._debug_reader is not None else []
 
     def add_raw_listener(self, listener: Callable[[bytes], Any]) -> None:
         """Register ``listener(transfer_bytes)``, called with every raw USB transfer (in order, before decoding,

@@ -37,6 +37,7 @@ from davis_rig.errors import (
 )
 from davis_rig.protocol.config import (
     DATA_ENDPOINT,
+    DEBUG_ENDPOINT,
     DAVIS_FX2_PID,
     DAVIS_FX3_PID,
     INIVATION_VID,
@@ -58,6 +59,8 @@ from davis_rig.protocol.config import (
 
 #: Product ids this driver accepts, in libcaer's matching order for "any DAVIS" (FX2 first, then FX3).
 DAVIS_PIDS = (DAVIS_FX2_PID, DAVIS_FX3_PID)
+#: Size of one FX3 debug-endpoint transfer, bytes (libcaer uses 4 × 64-byte interrupt transfers).
+DEBUG_MESSAGE_BYTES = 64
 #: Control transfer timeout, ms.
 CONTROL_TIMEOUT_MS = 1000
 #: Where the udev rule lives in the repository, and how to install it (shown in permission errors).
@@ -461,6 +464,31 @@ class UsbTransport:
                 self._gone = True
             raise err from exc
         return memoryview(self._buffer)[:n].tobytes()
+
+    def read_debug(self, timeout_ms: int) -> bytes | None:
+        """One interrupt read on the FX3 debug endpoint 0x81 (≤ 64 bytes).
+
+        Args:
+            timeout_ms: how long to wait, ms.
+
+        Returns:
+            The message bytes, or ``None`` if none arrived in time.
+
+        Raises:
+            DeviceDisconnectedError: the camera vanished.
+            TransportError: any other USB failure (FX2 devices have no such endpoint).
+        """
+        self._check_open()
+        try:
+            data = self.device.read(DEBUG_ENDPOINT, DEBUG_MESSAGE_BYTES, timeout_ms)
+        except usb.core.USBTimeoutError:
+            return None
+        except usb.core.USBError as exc:
+            err = map_usb_error(exc, f"DAVIS {self.serial}: interrupt read on 0x{DEBUG_ENDPOINT:02x}")
+            if isinstance(err, DeviceDisconnectedError):
+                self._gone = True
+            raise err from exc
+        return data.tobytes()
 
     @property
     def disconnected(self) -> bool:

@@ -221,6 +221,7 @@ class VirtualDavis346:
         self.unplugged = False
         self._halted = False
         self._pending: bytes | None = None
+        self._debug: list[bytes] = []
         self._bulk_reads = 0
         self._transfer_count = 0
         self._run_start: float | None = None
@@ -474,16 +475,27 @@ class VirtualDavis346:
             data = arr.tobytes()
         return data
 
+    def push_debug_message(self, data: bytes) -> None:
+        """Queue a message the device will send on the debug endpoint 0x81 (≤ 64 bytes)."""
+        with self._cond:
+            self._debug.append(bytes(data[:64]))
+            self._cond.notify_all()
+
     def intr_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
-        """Interrupt endpoint 0x81 (debug messages): the model never has any, so it times out."""
+        """Interrupt endpoint 0x81: serve queued debug messages, else time out."""
         deadline = None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
         with self._cond:
             self._check_present()
             if endpoint != DEBUG_ENDPOINT:
                 raise usb_error(errno_mod.EPIPE)
-            while self._wait(deadline):
+            while not self._debug:
+                if not self._wait(deadline):
+                    raise usb_error(errno_mod.ETIMEDOUT)
                 self._check_present()
-            raise usb_error(errno_mod.ETIMEDOUT)
+            data = self._debug.pop(0)
+            n = min(len(data), len(buff))
+            memoryview(buff).cast("B")[:n] = data[:n]
+            return n
 
     # --- descriptors ------------------------------------------------------------------------------
     def strings(self) -> dict[int, str]:

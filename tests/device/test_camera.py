@@ -276,3 +276,24 @@ def test_fpga_statistics_read_64_bit_counters_with_carry_detection():
     cam2, _ = open_camera(VirtualDavis346())
     with cam2:
         assert cam2.fpga_statistics() == {}
+
+
+def test_fx3_debug_endpoint_messages_are_collected(caplog):
+    dev = VirtualDavis346()
+    cam, _ = open_camera(dev)
+    with cam, caplog.at_level("WARNING", logger="davis_rig.device"):
+        cam.start()
+        dev.push_debug_message(bytes([0x00, 0x2A]) + (1234).to_bytes(4, "little") + b"FIFO overflow\x00junk")
+        dev.push_debug_message(b"\x07\x01")
+        for _ in range(200):
+            if len(cam.debug_messages) == 2:
+                break
+            threading.Event().wait(0.01)
+        cam.stop()
+        messages = cam.debug_messages
+    assert [(m.is_error, m.error_code, m.time_value, m.text) for m in messages] == [
+        (True, 42, 1234, "FIFO overflow"),
+        (False, None, None, ""),
+    ]
+    assert "firmware error 42 at 1234: FIFO overflow" in caplog.text
+    assert all(t.name != "davis-usb-debug" for t in threading.enumerate())
