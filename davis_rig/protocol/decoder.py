@@ -77,6 +77,9 @@ _LOSS_COUNTERS: Final = (
     "non_monotonic_timestamps",
 )
 
+#: Queued ADC samples are written out at the latest when this many are stored (about 3 full DAVIS346 frames).
+_STORE_FLUSH_SAMPLES: Final = 1 << 19
+
 #: Whole-column runs at least this long are written as one rectangular slice; shorter ones by one scatter.
 _MIN_BLOCK_COLUMNS: Final = 16
 
@@ -199,9 +202,12 @@ class _ApsState:
         npix = self.width * self.height
         self.reset_buffer = np.zeros(npix, np.int32)
         self.pixel_buffer = np.zeros(npix, np.uint16)
-        # queued column segments (readout, count_x, first_row, adc_start, adc_stop) into the current block's samples:
-        # single tuples from the per-word path, (k, 5) int64 arrays from the whole-column bulk path
+        # queued column segments (readout, count_x, first_row, start, stop) indexing the sample store: single
+        # tuples from the per-word path, (k, 5) int64 arrays from the whole-column bulk path. The store keeps the
+        # ADC values of the blocks since the last write, so a frame split over many transfers is written at once.
         self.pending: list = []
+        self.store: list[np.ndarray] = []
+        self.store_len = 0
 
     def set_roi(self) -> None:
         start_col, start_row, end_col, end_row = self.roi_values
@@ -597,6 +603,10 @@ class StreamDecoder:
             cut_array = np.zeros(ctrl_pos.shape[0], np.int64)
         adc_cut = cut_array.tolist()
         n_adc = adc_vals.shape[0]
+        store_base = aps.store_len  # block ADC index i is store index store_base + i
+        if n_adc:
+            aps.store.append(adc_vals)
+            aps.store_len += n_adc
         times = np.maximum(key_t[ctrl_pos], offset_in) & 0x7FFF
         times += base_at(ctrl_pos)
         specials: list[tuple[int, int]] = []
@@ -622,7 +632,7 @@ class StreamDecoder:
             take = min(k, max(aps.expected_y - cy, 0))
             stats.aps_samples_dropped += k - take
             if take:
-                aps.pending.append((r, cx, cy, start, start + take))
+                aps.pending.append((r, cx, cy, store_base + start, store_base + start + take))
                 aps.count_y[r] = cy + take
 
         words_list = ctrl_words.tolist()
@@ -646,7 +656,7 @@ class StreamDecoder:
                 pairs = self._column_run(ctrl_words, cut_array, i)
                 if pairs >= 2:
                     take_samples(cut)
-                    adc_done = self._bulk_columns(word, pairs, cut_array, i)
+                    adc_done = self._bulk_columns(word, pairs, cut_array, i, store_base)
                     i += 2 * pairs - 1
                     continue
             code = word >> 12
@@ -654,7 +664,7 @@ class StreamDecoder:
             if code == 0:
                 if sub == Special.TIMESTAMP_RESET:
                     take_samples(cut)
-                    self._flush_aps(adc_vals)
+                    self._flush_aps()
                     stats.timestamp_resets += 1
                     self._interrupt(aps, imu)
                     specials.append((t, SpecialType.TIMESTAMP_RESET))
@@ -679,7 +689,7 @@ class StreamDecoder:
                     imu.in_sample = False
                 elif sub in (Special.APS_FRAME_START_GS, Special.APS_FRAME_START_RS):
                     take_samples(cut)
-                    self._flush_aps(adc_vals)
+                    self._flush_aps()
                     if aps.in_frame and not aps.ignore:
                         stats.aps_frames_dropped += 1
                     aps.ignore = False
@@ -711,7 +721,7 @@ class StreamDecoder:
                         elif sub == Special.APS_COLUMN_END:
                             aps.count_x[aps.readout] += 1
                         else:  # frame end
-                            self._flush_aps(adc_vals)
+                            self._flush_aps()
                             specials.append((t, SpecialType.APS_FRAME_END))
                             self._end_frame(t, chunk)
                 else:
@@ -730,7 +740,7 @@ class StreamDecoder:
                     aps.roi_counter += 1
                     if slot == 3:
                         take_samples(cut)
-                        self._flush_aps(adc_vals)
+                        self._flush_aps()
                         aps.set_roi()
                 elif misc == 3:
                     if not imu.ignore:
@@ -743,12 +753,16 @@ class StreamDecoder:
                 # sub-code 0 = exposure value parts, only used by libcaer's auto-exposure: consumed.
             else:  # big wrap (code 7)
                 take_samples(cut)
-                self._flush_aps(adc_vals)
+                self._flush_aps()
                 stats.big_wraps += 1
                 self._interrupt(aps, imu)
                 specials.append((t, SpecialType.TIMESTAMP_WRAP))
         take_samples(n_adc)
-        self._flush_aps(adc_vals)
+        if aps.pending and aps.store_len > _STORE_FLUSH_SAMPLES:  # bound memory on streams that never end a frame
+            self._flush_aps()
+        if not aps.pending:  # nothing refers to the stored samples any more
+            aps.store = []
+            aps.store_len = 0
         if specials:
             chunk.specials = np.array(specials, dtype=SPECIAL_DTYPE)
         if imu_rows:
@@ -765,7 +779,7 @@ class StreamDecoder:
         ok[1:] &= starts[1:] == ends[:-1]  # no samples between a column end and the next column start
         return pairs if ok.all() else int(np.argmin(ok))
 
-    def _bulk_columns(self, start_word: int, pairs: int, cuts: np.ndarray, i: int) -> int:
+    def _bulk_columns(self, start_word: int, pairs: int, cuts: np.ndarray, i: int, store_base: int) -> int:
         """Apply ``pairs`` whole columns at once (same effect as the per-word path); return the ADC index done."""
         aps = self._aps
         readout = _READOUT_RESET if start_word == Special.APS_RESET_COLUMN_START else _READOUT_SIGNAL
@@ -773,7 +787,7 @@ class StreamDecoder:
         first_col = aps.count_x[readout]
         accepted = max(0, min(pairs, aps.expected_x - first_col))
         if accepted:
-            starts = cuts[i : i + 2 * accepted : 2]
+            starts = cuts[i : i + 2 * accepted : 2] + store_base
             segments = np.empty((accepted, 5), np.int64)
             segments[:, 0] = readout
             segments[:, 1] = first_col + np.arange(accepted)
@@ -820,13 +834,16 @@ class StreamDecoder:
             self._stats.aps_frames_dropped += 1
         aps.in_frame = False
 
-    def _flush_aps(self, adc_vals: np.ndarray) -> None:
+    def _flush_aps(self) -> None:
         """Write queued ADC column segments into the reset/pixel buffers, one vectorised write per same-type run."""
         aps = self._aps
         pending = aps.pending
         if not pending:
             return
         aps.pending = []
+        if len(aps.store) > 1:
+            aps.store = [np.concatenate(aps.store)]
+        adc_vals = aps.store[0]
         # rows: readout, count_x, first_row, adc start, adc stop; items are single tuples or bulk (k, 5) arrays
         blocks: list[np.ndarray] = []
         singles: list[tuple] = []
@@ -841,6 +858,7 @@ class StreamDecoder:
         if singles:
             blocks.append(np.array(singles, dtype=np.int64))
         seg = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+        seg = self._merge_split_columns(seg)
         readout = seg[:, 0]
         cuts = [0, *(np.flatnonzero(readout[1:] != readout[:-1]) + 1).tolist(), seg.shape[0]]
         expected_y = aps.expected_y
@@ -855,6 +873,27 @@ class StreamDecoder:
                 self._write_segments(group[tail:], adc_vals)
             else:
                 self._write_segments(group, adc_vals)
+
+    @staticmethod
+    def _merge_split_columns(seg: np.ndarray) -> np.ndarray:
+        """Join consecutive segments that continue the same column (a column cut by a transfer boundary)."""
+        if seg.shape[0] < 2:
+            return seg
+        prev, cur = seg[:-1], seg[1:]
+        continues = (
+            (cur[:, 0] == prev[:, 0])
+            & (cur[:, 1] == prev[:, 1])
+            & (cur[:, 2] == prev[:, 2] + prev[:, 4] - prev[:, 3])
+            & (cur[:, 3] == prev[:, 4])
+        )
+        if not continues.any():
+            return seg
+        keep = np.ones(seg.shape[0], bool)
+        keep[1:] = ~continues
+        merged = seg[keep]
+        last_of_group = np.flatnonzero(np.append(keep[1:], True))
+        merged[:, 4] = seg[last_of_group, 4]
+        return merged
 
     def _is_full_column_run(self, group: np.ndarray) -> bool:
         """True when the segments are whole, consecutive columns of consecutive samples (the normal case)."""

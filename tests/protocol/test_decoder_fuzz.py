@@ -88,3 +88,25 @@ def test_long_garbage_stream_keeps_memory_bounded():
         tracemalloc.stop()
     assert retained < 1_000_000  # bytes: no growth with the amount of data fed
     assert decoder.stats.words == 5 * 8 * 4096
+
+
+def test_frame_that_never_ends_keeps_memory_bounded():
+    """ADC samples queued for a frame without frame end are written out before they pile up."""
+    layout = SensorLayout.davis346()
+    decoder = StreamDecoder(layout)
+    column = np.array([0x000B, *([0x4000 | 900] * 260), 0x000D], dtype="<u2")
+    start = np.array([0x0008, 0x5100, 0x5200, 0x5100, 0x5200, 0x5101, 0x5259, 0x5101, 0x5203], dtype="<u2")
+    decoder.feed(start.tobytes())
+    transfer = np.tile(column, 31).tobytes()  # ~16 KiB of reset columns (beyond 346 columns they are dropped)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        baseline = tracemalloc.get_traced_memory()[0]
+        for _ in range(400):  # 3.3 M words
+            decoder.feed(transfer)
+        gc.collect()
+        retained = tracemalloc.get_traced_memory()[0] - baseline
+    finally:
+        tracemalloc.stop()
+    assert retained < 4_000_000  # bytes; the whole stream's samples would be > 13 MB
+    assert decoder.stats.aps_samples_dropped > 3_000_000
