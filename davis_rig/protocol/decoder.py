@@ -8,9 +8,11 @@ instead of libcaer's ``INT32_MAX`` marker.
 Implementation: the DVS/timestamp path has no per-word Python loop. Per block of words, the timestamp base is a
 cumulative sum of wrap increments segmented at resets, the 15-bit timestamp and the last row address are
 forward-filled with ``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with
-masks. Control words (specials, misc8, misc10, big wraps) — a few thousand per APS frame at most — run through a
-compact Python loop; APS ADC samples are never looped over: runs of samples between two control words are queued as
-column segments and written into the frame buffers with one vectorised scatter per group of same-type segments.
+masks. Control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
+APS columns (column start, expected rows of samples, column end, ...), which are recognised with numpy and applied in
+bulk. APS ADC samples are never looped over: they are queued as column segments (their values kept in a bounded
+store across transfers) and written into the frame buffers once per frame — runs of whole columns as one rectangular
+slice, anything irregular with one vectorised scatter per group of same-type segments.
 """
 
 from __future__ import annotations
