@@ -170,7 +170,16 @@ class Davis346:
         run_config_steps(self.transport, steps, self._sleep)
 
     def send_default_config(self) -> None:
-        """Send libcaer's default configuration: biases, chip, FPGA, USB (§6); resets the tracked settings."""
+        """Send libcaer's default configuration: biases, chip, FPGA, USB (§6); resets the tracked settings.
+
+        Raises:
+            DeviceError: the chip is not a DAVIS346 (the bias table here is the DAVIS346 one).
+        """
+        if not self.info.is_davis346:
+            raise DeviceError(
+                f"DAVIS {self.info.serial}: chip id {self.info.chip_id} is not a DAVIS346 (expected 4, 5 or 9); "
+                "its default biases are not implemented"
+            )
         self._biases = {e.name: e.bias for e in DAVIS346_DEFAULT_BIASES}
         self._exposure_us = DEFAULT_EXPOSURE_US
         self._frame_interval_us = DEFAULT_FRAME_INTERVAL_US

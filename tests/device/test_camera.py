@@ -297,3 +297,12 @@ def test_fx3_debug_endpoint_messages_are_collected(caplog):
     ]
     assert "firmware error 42 at 1234: FIFO overflow" in caplog.text
     assert all(t.name != "davis-usb-debug" for t in threading.enumerate())
+
+
+def test_default_config_refuses_non_davis346_chips():
+    layout = dict(VECTORS[0]["device_info"], chip_id=2)  # DAVIS240C
+    dev = VirtualDavis346(layout=layout)
+    cam, _ = open_camera(dev)
+    with cam, pytest.raises(DeviceError, match="chip id 2 is not a DAVIS346"):
+        cam.send_default_config()
+    assert dev.writes == []
