@@ -148,10 +148,13 @@ def stacked_histogram(
     # uint8 accumulation wraps modulo 256 (torch put_(accumulate=True) on a uint8 tensor), then the clip.
     # The int64 -> uint8 cast keeps the low byte, i.e. exactly that wrap.
     if n * _SPARSE_FRACTION < size:
-        # sparse window: count the occupied cells only (sort-based), instead of touching every bin in int64
-        cells, counts = np.unique(flat, return_counts=True)
+        # sparse window: count the occupied cells only (sort + run lengths), instead of touching every bin
+        # in int64; int32 keys sort about twice as fast as int64 ones.
+        keys = np.sort(flat.astype(np.int32) if size < 2**31 else flat)
+        starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+        counts = np.diff(np.append(starts, n))
         out = np.zeros(size, dtype=np.uint8)
-        out[cells] = np.minimum(counts.astype(np.uint8), cutoff)
+        out[keys[starts]] = np.minimum(counts.astype(np.uint8), cutoff)
     else:
         out = np.bincount(flat, minlength=size).astype(np.uint8)
         np.minimum(out, cutoff, out=out)
