@@ -101,7 +101,9 @@ def main() -> None:
     transfers = make_transfers(args.events)
     total_bytes = sum(len(t) for t in transfers)
     print(f"commit {commit} | python {platform.python_version()} | numpy {np.__version__} | pyusb {usb.__version__}")
-    print(f"cpus {os.cpu_count()} | threads: main + 1 reader | machine {platform.machine()}")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"cpus {os.cpu_count()} | threads: main + 1 reader (+ FX3 debug poller) | machine {platform.machine()} | "
+          f"load avg (1 min) {load:.2f}")
     print(f"scene: {args.events} events, {len(transfers)} transfers, {total_bytes / 1e6:.2f} MB; repeats {args.repeats} + 1 warm-up")
 
     run_transport(transfers)  # warm-up
@@ -124,6 +126,12 @@ def main() -> None:
     print(f"camera     median {med_c * 1e3:8.1f} ms  {total_bytes / med_c / 1e6:8.1f} MB/s  "
           f"{mev_camera:6.2f} Mev/s  = {mev_camera * 1e6 / PEAK_EVENTS_PER_S:5.2f} x peak")
     print(f"ratio camera/transport time: {med_c / med_t:.2f}")
+
+    def spread(xs: list[float]) -> str:
+        q = statistics.quantiles(xs, n=4) if len(xs) >= 2 else [xs[0]] * 3
+        return f"min {min(xs) * 1e3:.1f} ms, IQR {(q[2] - q[0]) * 1e3:.1f} ms"
+
+    print(f"transport {spread(t_transport)} | camera {spread(t_camera)}")
 
 
 if __name__ == "__main__":
