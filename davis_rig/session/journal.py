@@ -2,7 +2,8 @@
 
 HDF5 files are not crash-safe: a ``kill -9`` or a power cut between two flushes can leave ``session.h5``
 unreadable. While recording, every raw USB transfer is therefore also appended to a small journal next to the
-file, flushed to the OS at least every 0.25 s and ``fsync``'d at least once per second. On a clean close the
+file, flushed to the OS at least every 0.25 s (while data arrives) and ``fsync``'d once per second by a
+background thread (fsync blocks, the recording thread must not). On a clean close the
 journal is deleted; after a crash :func:`davis_rig.session.recovery.recover_session` re-decodes it into a valid
 ``session.h5``.
 
@@ -87,7 +88,30 @@ class SessionJournal:
         except OSError as exc:
             raise SessionError(f"{self.path}: cannot create the recording journal: {exc}") from exc
         self._last_flush = self._last_fsync = time.monotonic()
+        self._closing = threading.Event()
+        self._syncer = threading.Thread(target=self._fsync_loop, name="davis-rig-journal-fsync", daemon=True)
+        self._syncer.start()
         return self
+
+    def _fsync_loop(self) -> None:
+        """Background thread: flush and fsync every FSYNC_INTERVAL_S, off the recording thread (fsync blocks)."""
+        while not self._closing.wait(FSYNC_INTERVAL_S):
+            try:
+                self._flush_and_fsync()
+            except OSError as exc:
+                self._error = self._error or exc
+                return
+
+    def _flush_and_fsync(self) -> None:
+        with self._lock:
+            if self._file is None or self._error is not None:
+                return
+            self._file.flush()
+            self._last_flush = time.monotonic()
+            fileno = self._file.fileno()
+        # Outside the lock so appends go on meanwhile; close() joins this thread before closing the descriptor.
+        os.fsync(fileno)
+        self._last_fsync = time.monotonic()
 
     def __enter__(self) -> "SessionJournal":
         return self.open()
@@ -125,31 +149,18 @@ class SessionJournal:
                 self.bytes += len(payload)
 
     def sync(self, force: bool = False) -> None:
-        """Flush to the OS and ``fsync`` when the last fsync is older than :data:`FSYNC_INTERVAL_S` (or ``force``).
+        """Check for write errors; with ``force`` also flush and ``fsync`` now (else a background thread fsyncs
+        every :data:`FSYNC_INTERVAL_S`).
 
         Raises:
-            SessionError: an earlier append or this sync failed (e.g. disk full).
+            SessionError: an earlier append, a background fsync or this sync failed (e.g. disk full).
         """
-        now = time.monotonic()
-        if not force and now - self._last_fsync < FSYNC_INTERVAL_S:
-            return
-        with self._lock:
-            if self._file is None:
-                return
-            if self._error is None:
-                try:
-                    self._file.flush()
-                except OSError as exc:
-                    self._error = exc
-            self._last_flush = now
-            fileno = self._file.fileno()
+        if force:
+            try:
+                self._flush_and_fsync()
+            except OSError as exc:
+                self._error = self._error or exc
         self._raise_if_failed()
-        try:
-            os.fsync(fileno)
-        except OSError as exc:
-            self._error = exc
-            self._raise_if_failed()
-        self._last_fsync = now
 
     def _raise_if_failed(self) -> None:
         if self._error is not None:
@@ -164,6 +175,10 @@ class SessionJournal:
         Raises:
             SessionError: buffered records could not be written (the file is kept).
         """
+        if getattr(self, "_syncer", None) is not None:
+            self._closing.set()
+            self._syncer.join()
+            self._syncer = None
         with self._lock:
             file, self._file = self._file, None
         if file is None:

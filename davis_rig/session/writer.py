@@ -382,7 +382,7 @@ class SessionWriter:
         self._committed_t_us = self._last_t
         self._last_flush = time.monotonic()
         if self.journal is not None:
-            self.journal.sync(force=True)
+            self.journal.sync()  # raises a journal write error; the journal fsyncs in its own thread
 
     def _flush_file(self) -> None:
         self._file.attrs[schema.ATTR_STATS] = json.dumps(self.stats())
