@@ -117,6 +117,8 @@ def _read_signature(session, path: Path) -> GraphSignature:
                 expected_c = dims[1]
             if dims[1:] != [expected_c, *hw]:
                 problems.append(f"{name}: expected [B, {expected_c}, {hw[0]}, {hw[1]}], got {arg.shape}")
+        if expected_c is None:
+            problems.append(f"h{stage}: symbolic channel dimension and no config metadata")
         state_channels.append(expected_c)
         state_hw.append(hw)
     num_anchors = sum((height // s) * (width // s) for s in (8, 16, 32))
@@ -132,7 +134,7 @@ def _read_signature(session, path: Path) -> GraphSignature:
     return GraphSignature(
         in_res_hw=(int(height), int(width)),
         input_channels=int(channels),
-        state_channels=tuple(int(c) if c is not None else 0 for c in state_channels),
+        state_channels=tuple(int(c) for c in state_channels),
         state_hw=tuple(state_hw),
         num_anchors=num_anchors,
         num_outputs=int(num_outputs),
