@@ -463,10 +463,15 @@ class StreamDecoder:
         n = w.shape[0]
         idx15, idx12 = self._index_keys(n)
         codes = w >> 12
-        is_wrap = codes == 7
-        n_wrap = int(np.count_nonzero(is_wrap))
         n_special = int(np.count_nonzero(codes == 0))
-        n_rare = n_special + int(np.count_nonzero((codes - np.uint16(4)) <= 2))  # codes 4, 5, 6 (uint16 wrap)
+        n_high = int(np.count_nonzero((codes - np.uint16(4)) <= 3))  # codes 4-7 (uint16 arithmetic wraps below 4)
+        if n_high:
+            is_wrap = codes == 7
+            n_wrap = int(np.count_nonzero(is_wrap))
+        else:
+            is_wrap = None
+            n_wrap = 0
+        n_rare = n_special + n_high - n_wrap  # specials, ADC samples, misc8, misc10
         is_ts = w >= 0x8000
         n_reset = 0
         is_reset = None
@@ -486,7 +491,12 @@ class StreamDecoder:
         base_prev = self._base_us
         changes = None
         if n_wrap or n_reset:
-            is_change = is_wrap | is_reset if n_reset else is_wrap
+            if not n_reset:
+                is_change = is_wrap
+            elif is_wrap is None:
+                is_change = is_reset
+            else:
+                is_change = is_wrap | is_reset
             changes = np.flatnonzero(is_change)
             key_t[changes] = idx15[changes]  # wraps and resets are setters with offset 0
             change_words = w[changes]
@@ -513,25 +523,25 @@ class StreamDecoder:
             return np.where(j >= 0, change_base[np.maximum(j, 0)], base_prev)
 
         # --- last Y: forward fill of ((index + 1) << 12 | y) over in-range Y words ---------------------------------
-        data = w & 0x0FFF
-        is_y = codes == 1
-        valid_y = is_y & (data < self._dvs_rows)
-        self._stats.dvs_out_of_range += int(np.count_nonzero(is_y)) - int(np.count_nonzero(valid_y))
-        key_y = np.bitwise_or(idx12, data, out=self._key_y[:n])
+        y_data = w - np.uint16(0x1000)  # the row for Y words; >= 0x1000 (so never "in range") for any other word
+        valid_y = y_data < self._dvs_rows
+        self._stats.dvs_out_of_range += int(np.count_nonzero(codes == 1)) - int(np.count_nonzero(valid_y))
+        key_y = np.bitwise_or(idx12, y_data, out=self._key_y[:n])
         np.multiply(key_y, valid_y, out=key_y)
         np.maximum.accumulate(key_y, out=key_y)
         last_y_in = self._last_y
 
         # --- DVS events ----------------------------------------------------------------------------------------------
-        xi = np.flatnonzero((codes >> 1) == 1)  # codes 2 and 3
+        xi = np.flatnonzero((w >> 13) == 1)  # codes 2 and 3
         if xi.shape[0]:
-            xdata = data[xi]
-            ok = xdata < self._dvs_cols
-            n_ok = int(np.count_nonzero(ok))
-            if n_ok != xi.shape[0]:
-                self._stats.dvs_out_of_range += xi.shape[0] - n_ok
+            x_words = w[xi]
+            xdata = x_words & 0x0FFF
+            if int(xdata.max()) >= self._dvs_cols:
+                ok = xdata < self._dvs_cols
+                self._stats.dvs_out_of_range += xi.shape[0] - int(np.count_nonzero(ok))
                 xi = xi[ok]
                 xdata = xdata[ok]
+                x_words = x_words[ok]
         if xi.shape[0]:
             t = key_t[xi]
             if t[0] < (1 << _TS_KEY_SHIFT):  # events before the block's first setter use the carried offset
@@ -550,7 +560,7 @@ class StreamDecoder:
             else:
                 events["x"] = xdata
                 events["y"] = y
-            events["p"] = codes[xi] & 1
+            events["p"] = (x_words >> 12) & 1
             # non-monotonic event times (a reset between two events restarts the comparison)
             backwards = t[1:] < t[:-1]
             first_backwards = self._last_event_t is not None and int(t[0]) < self._last_event_t
