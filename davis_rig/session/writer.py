@@ -124,6 +124,11 @@ class SessionWriter:
             return self
         if self.path.exists() and not self.overwrite:
             raise SessionError(f"{self.path}: file exists (pass overwrite=True / --overwrite to replace it)")
+        if journal_path(self.path).exists() and not self.overwrite:
+            raise SessionError(
+                f"{journal_path(self.path)} exists: an interrupted recording was never recovered; run "
+                f"`davis-record --recover {self.path}` first (or pass overwrite=True / --overwrite to discard it)"
+            )
         info = to_jsonable(self.device_info) if self.device_info is not None else {}
         config = to_jsonable(self.config) if self.config is not None else {}
         start_us = self.start_unix_us if self.start_unix_us is not None else time.time_ns() // 1000

@@ -185,3 +185,11 @@ def test_hdf5_write_failure_keeps_the_journal_for_recovery(tmp_path, rng, monkey
     with SessionReader(path) as reader:
         expected = FakeCamera(transfers).decoder.feed(b"".join(transfers[: half + 1])).events
         np.testing.assert_array_equal(reader.events(), expected)
+
+
+def test_a_leftover_journal_is_not_overwritten_by_a_new_recording(tmp_path):
+    path = tmp_path / "s.h5"
+    journal_path(path).write_bytes(b"journal of a crashed recording")
+    with pytest.raises(SessionError, match="--recover"):
+        SessionWriter(path, journal=True).open()
+    assert journal_path(path).read_bytes() == b"journal of a crashed recording"
