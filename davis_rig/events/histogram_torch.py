@@ -19,7 +19,7 @@ from davis_rig.types import RVT_HW
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-__all__ = ["StackedHistogramTorch", "stacked_histogram_torch", "time_bins_torch"]
+__all__ = ["StackedHistogramTorch", "stacked_histogram_torch", "stacked_histograms_torch", "time_bins_torch"]
 
 
 def _torch():
@@ -126,6 +126,66 @@ def stacked_histogram_torch(
     source = weights.to(out_dtype) if weights is not None else torch.ones(n, dtype=out_dtype, device=device)
     hist = torch.zeros(size, dtype=out_dtype, device=device).index_add(0, flat, source)
     return hist.reshape(2 * num_bins, height, width)
+
+
+def stacked_histograms_torch(
+    x,
+    y,
+    t_us,
+    p,
+    window_end_us,
+    weights: "torch.Tensor | None" = None,
+    *,
+    window_us: int = 50_000,
+    height: int = RVT_HW[0],
+    width: int = RVT_HW[1],
+    num_bins: int = 10,
+    dtype: "torch.dtype | None" = None,
+) -> "torch.Tensor":
+    """Float stacked histograms of a time-sorted stream for several windows, differentiable w.r.t. weights.
+
+    Window ``i`` holds the events with ``end_i - window_us <= t <= end_i`` (both inclusive, as the official
+    pre-processing and :func:`davis_rig.events.window_indices`); each is binned by
+    :func:`stacked_histogram_torch` (its own first/last event times).
+
+    Args:
+        x, y, t_us, p: event columns [N] (tensors or arrays), time-sorted over the whole stream.
+        window_end_us: window ends, µs, sequence or tensor [T].
+        weights: optional float tensor [N] (gradients flow to it).
+        window_us: window duration, µs.
+        height, width, num_bins, dtype: as :func:`stacked_histogram_torch`.
+
+    Returns:
+        Float tensor [T, 2 * num_bins, H, W].
+
+    Raises:
+        ShapeError, FormatError: as :func:`stacked_histogram_torch`.
+    """
+    torch = _torch()
+    device = weights.device if weights is not None else None
+    t_us = torch.as_tensor(t_us, device=device).to(torch.int64)
+    x, y, p = (torch.as_tensor(column, device=t_us.device) for column in (x, y, p))
+    ends = torch.as_tensor(window_end_us, dtype=torch.int64, device=t_us.device).reshape(-1)
+    starts = torch.searchsorted(t_us, ends - int(window_us), right=False).tolist()
+    stops = torch.searchsorted(t_us, ends, right=True).tolist()
+    frames = [
+        stacked_histogram_torch(
+            x[start:stop],
+            y[start:stop],
+            t_us[start:stop],
+            p[start:stop],
+            None if weights is None else weights[start:stop],
+            height=height,
+            width=width,
+            num_bins=num_bins,
+            dtype=dtype,
+        )
+        for start, stop in zip(starts, stops)
+    ]
+    if not frames:
+        out_dtype = dtype or (weights.dtype if weights is not None else torch.float32)
+        return torch.zeros((0, 2 * num_bins, height, width), dtype=out_dtype, device=t_us.device)
+    return torch.stack(frames)
 
 
 class StackedHistogramTorch:

@@ -12,6 +12,7 @@ from davis_rig.events import stacked_histogram, window_indices  # noqa: E402
 from davis_rig.events.histogram_torch import (  # noqa: E402
     StackedHistogramTorch,
     stacked_histogram_torch,
+    stacked_histograms_torch,
     time_bins_torch,
 )
 
@@ -28,6 +29,25 @@ def test_unweighted_counts_wrap_and_clip_to_the_official_histogram(reference_win
         assert float(counts.sum()) == stop - start
         wrapped = (counts.to(torch.int64) % 256).clamp(max=10).to(torch.uint8).numpy()
         np.testing.assert_array_equal(wrapped, ref["hist_uint8_unpadded"][step])
+
+
+def test_multi_window_version_matches_the_official_histograms(reference_windows):
+    ref = reference_windows
+    cols = [torch.from_numpy(ref[f"events_{k}"].astype(np.int64)) for k in ("x", "y", "t_us", "p")]
+    weights = torch.ones(cols[0].shape[0], requires_grad=True)
+    counts = stacked_histograms_torch(*cols, ref["window_end_ts_us"], weights)
+    assert counts.shape == (3, 20, 240, 304)
+    wrapped = (counts.detach().to(torch.int64) % 256).clamp(max=10).to(torch.uint8).numpy()
+    np.testing.assert_array_equal(wrapped, ref["hist_uint8_unpadded"])
+    counts.sum().backward()
+    # events on a window boundary count in both windows -> gradient 2, others 1 or 0 (outside every window)
+    t_all = ref["events_t_us"]
+    in_windows = np.zeros(t_all.shape[0], np.int64)
+    for end in ref["window_end_ts_us"].tolist():
+        start, stop = window_indices(t_all, end)
+        in_windows[start:stop] += 1
+    np.testing.assert_array_equal(weights.grad.numpy(), in_windows.astype(np.float32))
+    assert stacked_histograms_torch(*cols, []).shape == (0, 20, 240, 304)
 
 
 def test_counts_are_not_wrapped_or_clipped():
