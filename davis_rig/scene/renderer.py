@@ -1,0 +1,260 @@
+"""Texture-space renderer: rasterize once (no autograd), then composite differentiably w.r.t. the texture.
+
+For every frame, pixel ``p`` with ``s x s`` samples:
+
+``I(p) = B(p) (1 - alpha(p)) + (1 / s^2) * sum_{covered samples q of p} shade(q) T(uv(q))``
+
+with ``alpha(p)`` the covered fraction of the samples (so ``I = B (1 - alpha) + alpha * mean(shade * T)``),
+``shade`` the Lambert shade (:mod:`.shading`) and ``T(uv)`` the texture (:mod:`.texture`). Geometry, UVs,
+shades and coverage come from :func:`rasterize_mesh` (no gradients); :meth:`RasterizedMesh.compose` is a
+gather + ``index_add``, so gradients flow only to the texture, and
+``dI(p)/dT[k] = (1/s^2) sum_q shade(q) * weight_k(q) * mask_k(q)`` (the analytic sparse map).
+
+Ground-truth boxes per frame: the tight box of the pixels with coverage > 0 (``x0, y0, x1, y1`` in pixel
+edges, i.e. ``x1 = last column + 1``; always inside the frame), and the box of the projected vertices
+clipped to the frame (includes occluded parts). NaN rows for frames without a visible person.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.scene.camera import PinholeCamera
+from davis_rig.scene.rasterize import Fragments, rasterize
+from davis_rig.scene.shading import Light, lambert, vertex_normals
+from davis_rig.scene.texture import TexelLookup, prepare_lookup
+
+__all__ = ["EMPTY_PART", "RasterizedMesh", "boxes_from_coverage", "boxes_from_points", "rasterize_mesh"]
+
+#: Part label of background pixels in part-label images.
+EMPTY_PART = 255
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError as exc:  # pragma: no cover - exercised only without torch
+        raise MissingDependencyError("the renderer needs torch: pip install 'davis_rig[torch]'") from exc
+    return torch
+
+
+@dataclass
+class RasterizedMesh:
+    """Everything needed to composite a textured mesh over a background, per covered sample.
+
+    Attributes:
+        hw: image (height, width), px; supersample: samples per pixel side ``s``; num_frames: T.
+        sample_pixel: int64 [N], flat index ``t*H*W + row*W + col`` of each covered sample's pixel.
+        face: int64 [N], visible face of each covered sample.
+        uv: float [N, 2], texture coordinates (v up) at each sample.
+        shade: float [N], Lambert shade at each sample.
+        coverage: float [T, H, W], covered fraction alpha per pixel.
+        vertex_boxes: float32 [T, 4], box of all projected vertices clipped to the frame (NaN: none).
+        fragments: the raw :class:`~davis_rig.scene.rasterize.Fragments` (dense per-sample maps).
+    """
+
+    hw: tuple[int, int]
+    supersample: int
+    num_frames: int
+    sample_pixel: "object"
+    face: "object"
+    uv: "object"
+    shade: "object"
+    coverage: "object"
+    vertex_boxes: np.ndarray
+    fragments: Fragments
+
+    def lookup(self, size: int = 1024, mode: str = "nearest", grid_n: int | None = None, mask=None) -> TexelLookup:
+        """Texel taps of the covered samples (see :func:`davis_rig.scene.texture.prepare_lookup`)."""
+        return prepare_lookup(self.uv, size=size, mode=mode, grid_n=grid_n, mask=mask)
+
+    def compose(self, values, background):
+        """Composite per-sample texture values over a background (differentiable in both).
+
+        Args:
+            values: float tensor [N] (texture value per covered sample, e.g. ``lookup.sample(T)``), or
+                ``None`` for an all-white texture.
+            background: float tensor/array [H, W] or [T, H, W] (linear intensity).
+
+        Returns:
+            float tensor [T, H, W], the rendered intensity.
+
+        Raises:
+            ShapeError: sizes do not match.
+        """
+        torch = _torch()
+        h, w = self.hw
+        t = self.num_frames
+        dtype = self.coverage.dtype
+        bg = torch.as_tensor(background, device=self.coverage.device)
+        if not torch.is_floating_point(bg):
+            bg = bg.to(dtype)
+        if tuple(bg.shape) not in ((h, w), (t, h, w)):
+            raise ShapeError(f"background must be [{h}, {w}] or [{t}, {h}, {w}], got {tuple(bg.shape)}")
+        lit = self.shade if values is None else self.shade.to(values.dtype) * values
+        if values is not None and tuple(values.shape) != tuple(self.shade.shape):
+            raise ShapeError(f"values must be [{self.shade.shape[0]}], got {tuple(values.shape)}")
+        out_dtype = lit.dtype
+        person = torch.zeros(t * h * w, dtype=out_dtype, device=lit.device).index_add(0, self.sample_pixel, lit)
+        person = person.view(t, h, w) / float(self.supersample**2)
+        return bg.to(out_dtype) * (1 - self.coverage.to(out_dtype)) + person
+
+    def render(self, texture=None, background=0.5, mode: str = "nearest", mask=None, size: int = 1024, fill=1.0):
+        """One-shot texture lookup + :meth:`compose` (build the lookup once yourself when iterating).
+
+        Args:
+            texture: float tensor [n, n] (a grid upsampled to ``size``) or [size, size]; ``None`` = white.
+            background: float [H, W] / [T, H, W] or a scalar intensity.
+            mode, mask, size, fill: see :func:`davis_rig.scene.texture.prepare_lookup`.
+
+        Returns:
+            float tensor [T, H, W].
+        """
+        torch = _torch()
+        if np.isscalar(background):
+            background = torch.full(self.hw, float(background), dtype=self.coverage.dtype, device=self.coverage.device)
+        if texture is None:
+            return self.compose(None, background)
+        n = texture.shape[-1]
+        lookup = self.lookup(size=size, mode=mode, grid_n=None if n == size else n, mask=mask)
+        return self.compose(lookup.sample(texture, fill=fill), background)
+
+    def part_labels(self, face_parts) -> np.ndarray:
+        """Part label per pixel (of the sample nearest the pixel centre), uint8 [T, H, W]; 255 = background.
+
+        Args:
+            face_parts: int array [F], part code per face.
+        """
+        torch = _torch()
+        s = self.supersample
+        centre = self.fragments.face_id[:, s // 2 :: s, s // 2 :: s]
+        parts = torch.as_tensor(np.asarray(face_parts, dtype=np.int64), device=centre.device)
+        labels = torch.where(centre >= 0, parts[centre.clamp(min=0)], torch.full_like(centre, EMPTY_PART))
+        return labels.to(torch.uint8).cpu().numpy()
+
+    def boxes(self) -> np.ndarray:
+        """Tight boxes of the covered pixels per frame, float32 [T, 4] ``(x0, y0, x1, y1)``; NaN if none."""
+        return boxes_from_coverage(self.coverage)
+
+
+def boxes_from_coverage(coverage, threshold: float = 0.0) -> np.ndarray:
+    """Tight boxes of the pixels with coverage > threshold.
+
+    Args:
+        coverage: float tensor/array [T, H, W].
+        threshold: pixels with alpha > threshold count as person.
+
+    Returns:
+        float32 [T, 4], ``(x0, y0, x1, y1)`` in pixel edges (``x1 = last column + 1``); NaN rows if empty.
+    """
+    cov = np.asarray(coverage.detach().cpu() if hasattr(coverage, "detach") else coverage)
+    if cov.ndim != 3:
+        raise ShapeError(f"coverage must be [T, H, W], got {cov.shape}")
+    mask = cov > threshold
+    cols = mask.any(axis=1)  # [T, W]
+    rows = mask.any(axis=2)  # [T, H]
+    out = np.full((cov.shape[0], 4), np.nan, dtype=np.float32)
+    has = cols.any(axis=1)
+    w, h = cov.shape[2], cov.shape[1]
+    out[has, 0] = cols[has].argmax(axis=1)
+    out[has, 2] = w - cols[has, ::-1].argmax(axis=1)
+    out[has, 1] = rows[has].argmax(axis=1)
+    out[has, 3] = h - rows[has, ::-1].argmax(axis=1)
+    return out
+
+
+def boxes_from_points(points_px, hw: tuple[int, int]) -> np.ndarray:
+    """Boxes of projected points clipped to the frame.
+
+    Args:
+        points_px: float tensor [T, N, 3] ``(x_px, y_px, depth)``.
+        hw: frame (height, width).
+
+    Returns:
+        float32 [T, 4] ``(x0, y0, x1, y1)``; NaN rows where a point is behind the camera or the box
+        misses the frame.
+    """
+    p = np.asarray(points_px.detach().cpu() if hasattr(points_px, "detach") else points_px, dtype=np.float64)
+    h, w = hw
+    lo = p[..., :2].min(axis=1)
+    hi = p[..., :2].max(axis=1)
+    out = np.stack(
+        [np.clip(lo[:, 0], 0, w), np.clip(lo[:, 1], 0, h), np.clip(hi[:, 0], 0, w), np.clip(hi[:, 1], 0, h)], axis=1
+    ).astype(np.float32)
+    bad = (p[..., 2] <= 0).any(axis=1) | (out[:, 2] <= out[:, 0]) | (out[:, 3] <= out[:, 1])
+    out[bad] = np.nan
+    return out
+
+
+def rasterize_mesh(
+    vertices_m,
+    faces,
+    face_uvs,
+    camera: PinholeCamera,
+    rotation_w2c,
+    translation_w2c,
+    supersample: int = 2,
+    light: Light | None = None,
+    cull_backfaces: bool = True,
+) -> RasterizedMesh:
+    """Rasterize a mesh sequence and prepare per-sample UVs and shades (no autograd).
+
+    Args:
+        vertices_m: float tensor [T, V, 3], world vertices (m).
+        faces: int tensor [F, 3] (counter-clockwise from outside).
+        face_uvs: float tensor [F, 3, 2], per-corner UVs (v up).
+        camera: intrinsics (output size ``camera.hw``).
+        rotation_w2c: [3, 3] or [T, 3, 3]; translation_w2c: [3] or [T, 3] (world -> camera, m).
+        supersample: samples per pixel side.
+        light: Lambert light (default :class:`Light`).
+        cull_backfaces: see :func:`davis_rig.scene.rasterize.rasterize`.
+
+    Returns:
+        :class:`RasterizedMesh`.
+
+    Raises:
+        ShapeError: shapes do not match.
+    """
+    torch = _torch()
+    light = Light() if light is None else light
+    if vertices_m.ndim != 3 or vertices_m.shape[-1] != 3:
+        raise ShapeError(f"vertices_m must be [T, V, 3], got {tuple(vertices_m.shape)}")
+    if tuple(face_uvs.shape) != (faces.shape[0], 3, 2):
+        raise ShapeError(f"face_uvs must be [{faces.shape[0]}, 3, 2], got {tuple(face_uvs.shape)}")
+    with torch.no_grad():
+        vertices_m = vertices_m.detach()
+        projected = camera.project(vertices_m, rotation_w2c, translation_w2c)
+        frags = rasterize(projected, faces, camera.hw, supersample=supersample, cull_backfaces=cull_backfaces)
+        h, w = camera.hw
+        s = int(supersample)
+        t = vertices_m.shape[0]
+        flat_face = frags.face_id.reshape(-1)
+        sample = torch.nonzero(flat_face >= 0).squeeze(1)
+        face = flat_face[sample]
+        bary = frags.bary.reshape(-1, 3)[sample]
+        frame = torch.div(sample, h * s * w * s, rounding_mode="floor")
+        rest = sample - frame * (h * s * w * s)
+        row = torch.div(rest, w * s, rounding_mode="floor")
+        col = rest - row * (w * s)
+        pixel = frame * (h * w) + torch.div(row, s, rounding_mode="floor") * w + torch.div(col, s, rounding_mode="floor")
+        uvs = torch.as_tensor(face_uvs, device=vertices_m.device).to(vertices_m.dtype)
+        uv = (uvs[face] * bary[..., None]).sum(dim=1)
+        normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
+        corner_normals = normals[frame[:, None], faces.long()[face]]  # [N, 3, 3]
+        shade = lambert((corner_normals * bary[..., None]).sum(dim=1), light)
+        coverage = frags.coverage()
+    return RasterizedMesh(
+        hw=(h, w),
+        supersample=s,
+        num_frames=t,
+        sample_pixel=pixel,
+        face=face,
+        uv=uv,
+        shade=shade,
+        coverage=coverage,
+        vertex_boxes=boxes_from_points(projected, (h, w)),
+        fragments=frags,
+    )
