@@ -64,6 +64,17 @@ class FrameStore:
             raise KeyError(f"unknown frame time column {name!r}; expected one of {schema.FRAME_TIME_COLUMNS}")
         return self._times[name].copy()
 
+    def index_range(self, t0_us: int, t1_us: int, column: str = "t_start_exposure_us") -> range:
+        """Return the indices of the frames with ``t0_us <= column < t1_us`` (half-open, device µs).
+
+        Args:
+            t0_us, t1_us: window, device µs.
+            column: which per-frame time to test (one of ``schema.FRAME_TIME_COLUMNS``).
+        """
+        times = self.times_us(column)
+        start, stop = np.searchsorted(times, [t0_us, t1_us], side="left")
+        return range(int(start), int(max(start, stop)))
+
     @property
     def roi(self) -> np.ndarray:
         """int32 [F, 4]: (position_x, position_y, width, height) of each frame's read-out region, px."""

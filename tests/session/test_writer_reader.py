@@ -68,6 +68,10 @@ def test_round_trip_all_streams(tmp_path, rng):
         assert reader.frames.data[3, 0, 0] == 0  # outside the ROI
         np.testing.assert_array_equal(reader.frames.times_us("t_start_of_frame_us"),
                                       [f.t_start_of_frame_us for f in [*frames, roi_frame]])
+        exposure_starts = [f.t_start_exposure_us for f in [*frames, roi_frame]]
+        assert reader.frames.index_range(exposure_starts[1], exposure_starts[3]) == range(1, 3)
+        assert reader.frames.index_range(exposure_starts[1] + 1, exposure_starts[2] + 1) == range(2, 3)
+        assert reader.frames.index_range(0, exposure_starts[0]) == range(0, 0)
         np.testing.assert_array_equal(reader.specials(), specials)
         got_imu = reader.imu()
         for name in IMU_DTYPE.names:
