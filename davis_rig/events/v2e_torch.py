@@ -1,0 +1,367 @@
+"""The paper's differentiable video-to-event (V2E) conversion, straight into RVT's stacked-histogram layout (torch).
+
+From a luminance video ``I`` [T, H, W] (linear intensity in [0, 1]; RGB [T, 3, H, W] is reduced to
+``Y = 0.299 R + 0.587 G + 0.114 B``) and frame times ``t_us`` [T], every frame pair ``k → k+1`` gets per-pixel ON
+and OFF event counts ``N⁺_k, N⁻_k`` [T-1, H, W], which are summed into RVT's input ``[windows, 2·B, H, W]`` (channel
+``p·B + b``, B = 10 bins per 50 ms window, counts clipped at 10). Log intensity is v2e's lin-log of ``255 · I``
+(:func:`davis_rig.events.simulator.lin_log`), exactly as in the exact simulator.
+
+Count modes (``mode``):
+
+* ``"dvs"`` (default) — the exact simulator's per-pixel reference with hysteresis, unrolled over the frames:
+  ``N⁺ = h(⌊(L_{k+1} − L_ref)/θ_on⌋)``, ``N⁻ = h(⌊(L_ref − L_{k+1})/θ_off⌋)``, ``L_ref += N⁺θ_on − N⁻θ_off``.
+  Forward counts are **identical** to :class:`~davis_rig.events.simulator.EventSimulator` (noise-free, same
+  dtype): same formulas, same operations.
+* ``"floor"`` — the paper's appendix literally: ``Ŝ_k = (L_k − L_0)/θ``, ``S_k = ⌊Ŝ_k⌋ + r_k``, ``D = S_{k+1} − S_k``,
+  ``N⁺ = h(D)``, ``N⁻ = h(−D)``. It counts crossings of a fixed level grid ``L_0 + nθ`` (no hysteresis), which
+  equals the DVS model whenever each pixel's log intensity is monotonic over the clip; at a reversal the grid
+  model fires one extra event (e.g. up 1.5 θ then down 1.0 θ: grid 1 ON + 1 OFF, DVS 1 ON + 0 OFF).
+* ``"official_relaxed"`` — the paper's official code (for comparison only): no floor (``S = Ŝ``), continuous
+  counts ``h(±D)`` scaled by ``10/27`` (``10 / ⌊ln 255 / 0.2⌋``). Its per-bin ±1 "sign-correction residual" is not
+  reproduced. Not events: do not use it to score attacks.
+
+Gradients: ``⌊·⌋`` is the straight-through surrogate of the paper (``S = ⌊Ŝ⌋ + r`` with the residual
+``r = Ŝ − ⌊Ŝ⌋`` treated as a constant, i.e. forward floor, backward identity); ``h`` is ``relu``, so gradient
+flows where a count is positive (pixels that fire), as in the paper. In ``"dvs"`` mode the reference update uses
+the surrogate counts, so ``∂N⁺_k/∂L ≈ (δ_{k+1} − δ_k)/θ`` like the paper's ``D``.
+
+Binning frame pairs into windows (``binning``) — the boundary rules, and how they relate to real event windows:
+
+* ``"rvt_frame_end"`` — a pair is stamped at its end frame ``t_{k+1}``; a window ``[e − w, e]`` takes the pairs with
+  ``e − w ≤ t_{k+1} ≤ e`` (both ends inclusive like RVT), and bins follow RVT's rule exactly (float32,
+  ``t0``/``t1`` = first/last pair in the window **that fired**, i.e. the first/last event time). The result
+  equals ``stacked_histograms(simulate_events(..., timestamps="frame_end"), ends)`` exactly (tests prove it), up to
+  RVT's uint8 wrap at 256 events per cell (not reproduced). Caveat: a pair ending exactly at ``e − w`` counts in
+  both windows (RVT does the same for events on the boundary), and at 200 fps pair ``(e−50, e−45] ms`` lands in
+  bin 1, not 0.
+* ``"interval"`` (default) — a window takes the pairs with ``e − w < t_{k+1} ≤ e`` (the changes observed during the
+  window, no double counting) and each pair goes to the fixed-grid bin of its midpoint,
+  ``⌊(t_mid − (e − w)) / w · B⌋``. With interpolated event times (the realistic simulator) the per-pixel totals of a
+  window are identical; when the frame times lie on the bin grid (200 fps × n) each bin holds exactly the events
+  of its half-open-left time slice; RVT's own bins (from the first/last event) can differ from it at bin edges
+  by the events of one pair.
+
+torch is imported lazily (MissingDependencyError names the extra).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from davis_rig.errors import FormatError, ShapeError
+from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US
+from davis_rig.events.simulator import DEFAULT_THRESHOLD, LIN_LOG_THRESHOLD, _torch, lin_log
+
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+__all__ = [
+    "LUMA_WEIGHTS",
+    "MODES",
+    "BINNINGS",
+    "OFFICIAL_RELAXED_SCALE",
+    "DifferentiableV2E",
+    "floor_ste",
+    "pair_bins",
+    "rgb_to_luma",
+    "v2e_counts",
+    "v2e_histograms",
+]
+
+#: ITU-R BT.601 luma weights (R, G, B), as in the paper's official code.
+LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+#: The official code's histogram scaling, 10 / floor(ln 255 / 0.2) = 10 / 27.
+OFFICIAL_RELAXED_SCALE = 10.0 / 27.0
+MODES = ("dvs", "floor", "official_relaxed")
+BINNINGS = ("interval", "rvt_frame_end")
+
+_FLOOR_STE = None
+
+
+def _floor_ste_fn():
+    global _FLOOR_STE
+    if _FLOOR_STE is None:
+        torch = _torch()
+
+        class FloorSTE(torch.autograd.Function):
+            """Forward ``floor`` (exact), backward identity (straight-through estimator)."""
+
+            @staticmethod
+            def forward(ctx, x):
+                return torch.floor(x)
+
+            @staticmethod
+            def backward(ctx, grad):
+                return grad
+
+        _FLOOR_STE = FloorSTE
+    return _FLOOR_STE
+
+
+def floor_ste(x: "torch.Tensor") -> "torch.Tensor":
+    """``⌊x⌋`` in the forward pass (bit-exact), identity gradient in the backward pass (the paper's ``⌊Ŝ⌋ + r``).
+
+    Args:
+        x: float tensor of any shape.
+
+    Returns:
+        Float tensor shaped like ``x``.
+    """
+    return _floor_ste_fn().apply(x)
+
+
+def rgb_to_luma(rgb: "torch.Tensor") -> "torch.Tensor":
+    """Luma ``Y = 0.299 R + 0.587 G + 0.114 B`` of RGB frames (differentiable).
+
+    Args:
+        rgb: float tensor [..., 3, H, W] (channel axis third from last).
+
+    Returns:
+        Float tensor [..., H, W].
+
+    Raises:
+        ShapeError: the channel axis does not have 3 entries.
+    """
+    if rgb.ndim < 3 or rgb.shape[-3] != 3:
+        raise ShapeError(f"rgb: expected [..., 3, H, W], got {tuple(rgb.shape)}")
+    r, g, b = rgb.unbind(-3)
+    return LUMA_WEIGHTS[0] * r + LUMA_WEIGHTS[1] * g + LUMA_WEIGHTS[2] * b
+
+
+def _log_video(video, intensity_scale: float, lin_log_threshold: float):
+    torch = _torch()
+    if not isinstance(video, torch.Tensor):
+        video = torch.as_tensor(np.asarray(video))
+    if video.ndim == 4:
+        video = rgb_to_luma(video)
+    if video.ndim != 3:
+        raise ShapeError(f"video: expected [T, H, W] or RGB [T, 3, H, W], got {tuple(video.shape)}")
+    if not video.dtype.is_floating_point:
+        raise FormatError(f"video: expected a float tensor of linear intensity, got {video.dtype}")
+    if video.shape[0] < 2:
+        raise ShapeError(f"video: expected at least 2 frames, got {video.shape[0]}")
+    return lin_log(video * intensity_scale, lin_log_threshold)
+
+
+def v2e_counts(
+    video,
+    *,
+    mode: str = "dvs",
+    threshold_on=DEFAULT_THRESHOLD,
+    threshold_off=DEFAULT_THRESHOLD,
+    intensity_scale: float = 255.0,
+    lin_log_threshold: float = LIN_LOG_THRESHOLD,
+) -> tuple["torch.Tensor", "torch.Tensor"]:
+    """Per-frame-pair ON / OFF event counts of a video, differentiable w.r.t. the video (see module docstring).
+
+    Args:
+        video: linear intensity, float tensor [T, H, W] or RGB [T, 3, H, W], T ≥ 2 (gradients flow to it).
+        mode: ``"dvs"``, ``"floor"`` (paper's formula) or ``"official_relaxed"`` (official code, not events).
+        threshold_on: θ_on, log units, float or tensor broadcastable to [H, W] (per-pixel thresholds).
+        threshold_off: θ_off, likewise (``"floor"`` and ``"official_relaxed"`` need ``θ_on == θ_off``).
+        intensity_scale: the video is multiplied by this before the lin-log (255: [0, 1] → 8-bit DN).
+        lin_log_threshold: lin-log knee in scaled units.
+
+    Returns:
+        ``(on, off)``: float tensors [T-1, H, W] in the video's dtype and device; integer-valued except in
+        ``"official_relaxed"`` mode (scaled continuous values).
+
+    Raises:
+        ShapeError: bad video shape. FormatError: non-float video. ValueError: unknown mode, or unequal thresholds
+        in a grid mode.
+
+    Example:
+        >>> import math, torch
+        >>> video = torch.tensor([0.5, 0.5 * math.exp(0.5), 0.5 * math.exp(-0.1)]).reshape(3, 1, 1)
+        >>> on, off = v2e_counts(video)
+        >>> on.flatten().tolist(), off.flatten().tolist()
+        ([2.0, 0.0], [0.0, 2.0])
+    """
+    torch = _torch()
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    log_video = _log_video(video, intensity_scale, lin_log_threshold)
+    if mode == "dvs":
+        floor = floor_ste
+        ref = log_video[0]
+        ons, offs = [], []
+        for k in range(1, log_video.shape[0]):
+            diff = log_video[k] - ref
+            on = torch.relu(floor(diff / threshold_on))
+            off = torch.relu(floor(-diff / threshold_off))
+            ref = ref + on * threshold_on - off * threshold_off
+            ons.append(on)
+            offs.append(off)
+        return torch.stack(ons), torch.stack(offs)
+    if not (isinstance(threshold_on, (int, float)) and isinstance(threshold_off, (int, float))
+            and threshold_on == threshold_off):
+        raise ValueError(f"mode {mode!r} uses one threshold θ: expected equal float thresholds, "
+                         f"got on={threshold_on!r}, off={threshold_off!r}")
+    s_hat = (log_video - log_video[0]) / threshold_on
+    s = floor_ste(s_hat) if mode == "floor" else s_hat
+    d = s[1:] - s[:-1]
+    on, off = torch.relu(d), torch.relu(-d)
+    if mode == "official_relaxed":
+        on, off = on * OFFICIAL_RELAXED_SCALE, off * OFFICIAL_RELAXED_SCALE
+    return on, off
+
+
+def _rvt_bins(t_us: np.ndarray, t0_us: int, t1_us: int, num_bins: int) -> np.ndarray:
+    """RVT's float32 bin rule with given first/last times, clipped to ``0 .. num_bins - 1``."""
+    span = np.float32(max(int(t1_us - t0_us), 1))
+    norm = (t_us - t0_us).astype(np.float32) / span * np.float32(num_bins)
+    return np.clip(np.floor(norm), 0, num_bins - 1).astype(np.int64)
+
+
+def pair_bins(
+    t_us,
+    window_end_us,
+    *,
+    fired=None,
+    window_us: int = WINDOW_US,
+    num_bins: int = NUM_BINS,
+    binning: str = "interval",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Assign frame pairs ``k → k+1`` to (window, time bin) by the chosen binning rule (module docstring).
+
+    Args:
+        t_us: frame times, integer µs, shape [T], strictly increasing.
+        window_end_us: window ends ``e``, integer µs, scalar or [Wn].
+        fired: bool [T-1], whether pair k produced any event (``"rvt_frame_end"`` takes the first/last *firing*
+            pair of a window as RVT's ``t0``/``t1``); default all True.
+        window_us: window duration w, µs.
+        num_bins: bins B per window.
+        binning: ``"interval"`` or ``"rvt_frame_end"``.
+
+    Returns:
+        ``(window_index, bin_index, pair_index)``: int64 arrays [M], one entry per (window, pair) membership.
+
+    Raises:
+        ValueError: unknown binning. ShapeError / FormatError: bad times.
+    """
+    if binning not in BINNINGS:
+        raise ValueError(f"binning: expected one of {BINNINGS}, got {binning!r}")
+    t = np.asarray(t_us)
+    if t.ndim != 1 or t.shape[0] < 2:
+        raise ShapeError(f"t_us: expected shape [T] with T >= 2, got {t.shape}")
+    if not np.issubdtype(t.dtype, np.integer):
+        raise FormatError(f"t_us: expected integer µs, got dtype {t.dtype}")
+    t = t.astype(np.int64)
+    if bool(np.any(np.diff(t) <= 0)):
+        raise FormatError("t_us: expected strictly increasing frame times")
+    ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
+    n_pairs = t.shape[0] - 1
+    fired = np.ones(n_pairs, dtype=bool) if fired is None else np.asarray(fired, dtype=bool)
+    if fired.shape != (n_pairs,):
+        raise ShapeError(f"fired: expected shape ({n_pairs},), got {fired.shape}")
+    t_end = t[1:]
+    windows, bins, pairs = [], [], []
+    for w, e in enumerate(ends.tolist()):
+        if binning == "rvt_frame_end":
+            lo, hi = np.searchsorted(t_end, e - window_us, "left"), np.searchsorted(t_end, e, "right")
+            idx = np.arange(lo, hi)
+            firing = idx[fired[lo:hi]]
+            if firing.size:
+                b = _rvt_bins(t_end[idx], int(t_end[firing[0]]), int(t_end[firing[-1]]), num_bins)
+            else:
+                b = np.zeros(idx.size, dtype=np.int64)
+        else:
+            lo, hi = np.searchsorted(t_end, e - window_us, "right"), np.searchsorted(t_end, e, "right")
+            idx = np.arange(lo, hi)
+            mid = (t[idx] + t_end[idx]) // 2 - (e - window_us)
+            b = np.clip((mid * num_bins) // window_us, 0, num_bins - 1).astype(np.int64)
+        windows.append(np.full(idx.size, w, dtype=np.int64))
+        bins.append(b)
+        pairs.append(idx.astype(np.int64))
+    return np.concatenate(windows), np.concatenate(bins), np.concatenate(pairs)
+
+
+def v2e_histograms(
+    video,
+    t_us,
+    window_end_us,
+    *,
+    mode: str = "dvs",
+    binning: str = "interval",
+    window_us: int = WINDOW_US,
+    num_bins: int = NUM_BINS,
+    count_cutoff: float | None = COUNT_CUTOFF,
+    threshold_on=DEFAULT_THRESHOLD,
+    threshold_off=DEFAULT_THRESHOLD,
+    intensity_scale: float = 255.0,
+    lin_log_threshold: float = LIN_LOG_THRESHOLD,
+) -> "torch.Tensor":
+    """Differentiable RVT input ``[windows, 2·B, H, W]`` of a video (V2E counts binned per window).
+
+    Args:
+        video: linear intensity, float tensor [T, H, W] or RGB [T, 3, H, W] (gradients flow to it).
+        t_us: frame times, integer µs, shape [T], strictly increasing (≥ 200 fps for 10 bins of 5 ms).
+        window_end_us: window ends, integer µs, scalar or [Wn]; window = ``[e − window_us, e]`` (see binning).
+        mode: count mode, see :func:`v2e_counts`.
+        binning: ``"interval"`` or ``"rvt_frame_end"`` (module docstring).
+        window_us: window duration, µs.
+        num_bins: time bins B per polarity.
+        count_cutoff: counts clipped to ``[0, count_cutoff]`` like RVT (clamp: zero gradient above it); None = no clip.
+        threshold_on, threshold_off, intensity_scale, lin_log_threshold: see :func:`v2e_counts`.
+
+    Returns:
+        Float tensor [Wn, 2·B, H, W] (channel ``p·B + b``; p = 0 OFF, 1 ON), video's dtype and device.
+
+    Raises:
+        ShapeError, FormatError, ValueError: see :func:`v2e_counts` and :func:`pair_bins`.
+    """
+    torch = _torch()
+    on, off = v2e_counts(video, mode=mode, threshold_on=threshold_on, threshold_off=threshold_off,
+                         intensity_scale=intensity_scale, lin_log_threshold=lin_log_threshold)
+    t = np.asarray(t_us.detach().cpu().numpy() if hasattr(t_us, "detach") else t_us)
+    if t.shape != (on.shape[0] + 1,):
+        raise ShapeError(f"t_us: expected shape ({on.shape[0] + 1},) like the video's T, got {t.shape}")
+    fired = None
+    if binning == "rvt_frame_end":
+        fired = ((on.detach() + off.detach()).flatten(1) > 0).any(1).cpu().numpy()
+    w_idx, b_idx, p_idx = pair_bins(t, window_end_us, fired=fired, window_us=window_us, num_bins=num_bins,
+                                    binning=binning)
+    n_windows = int(np.atleast_1d(np.asarray(window_end_us)).shape[0])
+    height, width = on.shape[1:]
+    hist = torch.zeros((n_windows * 2 * num_bins, height, width), dtype=on.dtype, device=on.device)
+    if p_idx.size:
+        device = on.device
+        pairs = torch.as_tensor(p_idx, device=device)
+        channel_off = torch.as_tensor(w_idx * 2 * num_bins + b_idx, device=device)
+        hist = hist.index_add(0, channel_off, off.index_select(0, pairs))
+        hist = hist.index_add(0, channel_off + num_bins, on.index_select(0, pairs))
+    hist = hist.reshape(n_windows, 2 * num_bins, height, width)
+    if count_cutoff is not None:
+        hist = torch.clamp(hist, max=float(count_cutoff))
+    return hist
+
+
+class DifferentiableV2E:
+    """Callable holding the V2E settings: ``v2e(video, t_us, window_end_us) -> [Wn, 2·B, H, W]``.
+
+    Args:
+        mode, binning, window_us, num_bins, count_cutoff, threshold_on, threshold_off, intensity_scale,
+            lin_log_threshold: see :func:`v2e_histograms`.
+    """
+
+    def __init__(self, *, mode: str = "dvs", binning: str = "interval", window_us: int = WINDOW_US,
+                 num_bins: int = NUM_BINS, count_cutoff: float | None = COUNT_CUTOFF,
+                 threshold_on=DEFAULT_THRESHOLD, threshold_off=DEFAULT_THRESHOLD, intensity_scale: float = 255.0,
+                 lin_log_threshold: float = LIN_LOG_THRESHOLD):
+        if mode not in MODES:
+            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+        if binning not in BINNINGS:
+            raise ValueError(f"binning: expected one of {BINNINGS}, got {binning!r}")
+        self.settings = dict(mode=mode, binning=binning, window_us=window_us, num_bins=num_bins,
+                             count_cutoff=count_cutoff, threshold_on=threshold_on, threshold_off=threshold_off,
+                             intensity_scale=intensity_scale, lin_log_threshold=lin_log_threshold)
+
+    def __call__(self, video, t_us, window_end_us) -> "torch.Tensor":
+        """See :func:`v2e_histograms`."""
+        return v2e_histograms(video, t_us, window_end_us, **self.settings)
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.settings.items())
+        return f"DifferentiableV2E({args})"
