@@ -553,7 +553,10 @@ class BodyModel:
         """
         torch = _torch()
         walk = self.asset.walk_cycle(shape_index)
-        t_s = torch.as_tensor(np.asarray(t_s, dtype=np.float64), device=self.device)
+        if isinstance(t_s, torch.Tensor):
+            t_s = t_s.detach().to(device=self.device, dtype=torch.float64)
+        else:
+            t_s = torch.as_tensor(np.asarray(t_s, dtype=np.float64), device=self.device)
         if t_s.ndim != 1:
             raise ShapeError(f"t_s must be [N], got {tuple(t_s.shape)}")
         quats = torch.as_tensor(np.array(walk.rotations_wxyz), device=self.device, dtype=self.dtype)

@@ -254,6 +254,8 @@ def test_sample_walk_matches_frames_and_repeats(model, asset):
     torch.testing.assert_close(root_adv[:, 1] - root[:, 1],
                                torch.as_tensor(-walk.speed_m_s * (t_s + walk.duration_s), dtype=torch.float32),
                                atol=1e-5, rtol=0)
+    quats3, root3 = model.sample_walk(4, torch.as_tensor(t_s), advance=False)  # tensor times work too
+    torch.testing.assert_close(quats3, quats, atol=0, rtol=0)
     between = model.walk_vertices(4, [0.5 / walk.fps_hz])
     assert between.shape == (1, asset.num_vertices, 3) and torch.isfinite(between).all()
 
