@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from davis_rig.errors import DavisRigError, DeviceDisconnectedError, SessionError
+from davis_rig.errors import DavisRigError, DeviceDisconnectedError
 from davis_rig.session.writer import SessionWriter, to_jsonable
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
@@ -209,4 +209,4 @@ def record_session(
                             camera_stats=stats)
 
 
-__all__ = ["RecordingProgress", "RecordingSummary", "record_session", "SessionError"]
+__all__ = ["RecordingProgress", "RecordingSummary", "record_session"]

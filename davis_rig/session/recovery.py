@@ -10,7 +10,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from davis_rig.errors import SessionError
+from davis_rig.errors import ProtocolError, SessionError
 from davis_rig.session.journal import KIND_HEADER, KIND_NOTE, KIND_TRANSFER, iter_journal, journal_path
 from davis_rig.session.reader import SessionReader
 from davis_rig.session.writer import SessionWriter, to_jsonable
@@ -79,7 +79,7 @@ def recover_session(path: str | os.PathLike) -> RecoveryReport:
     layout_fields = device_info.get("layout") or {}
     try:
         layout = SensorLayout.from_mapping(layout_fields) if layout_fields else SensorLayout.davis346()
-    except Exception as exc:  # noqa: BLE001 - any malformed layout becomes one clear error
+    except (ProtocolError, TypeError, ValueError) as exc:
         raise SessionError(f"{jpath}: the journal header's sensor layout is unusable: {exc}") from exc
     decoder = StreamDecoder(layout)
     tmp = path.with_name(path.name + ".recovering")
