@@ -1,0 +1,345 @@
+"""Physical evaluation (the paper's Table 3): session.h5 → 50 ms windows → RVT (ONNX) → AP and SeqASR per threshold.
+
+Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
+
+1. **Windows.** Window ends on a fixed grid ``t0 + k · 50 ms`` (k = 1, 2, …) from the session's ``t_offset``
+   (the first event's millisecond) to past the last event and the last label; each window holds the events
+   with ``end − 50 ms ≤ t ≤ end`` (RVT's inclusive windows, :mod:`davis_rig.events.histogram`).
+2. **Events.** Read chunk by chunk (``chunk_windows`` windows per read), cropped to 304×240 at the labels'
+   crop origin (default: centred; the origin stored by ``davis-label`` is used so events and labels share one
+   frame), timestamps made non-decreasing like RVT's reader, stacked histograms (10 bins, cutoff 10).
+3. **RVT.** One ONNX step per window, the LSTM states carried from the first window of the recording (zero
+   states there), the official post-processing (obj · class ≥ threshold, class-wise NMS 0.45) run once per
+   threshold on each window's output (exact per threshold, no re-use of a lower threshold's NMS).
+4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
+   ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
+   the label time, so label-time matching is exact (tolerance 0: APS labels are 40 ms apart, RVT's ±50 ms would
+   give one label image the detections of its neighbours too).
+5. **AP** (:mod:`davis_rig.metrics.ap`): Prophesee filter on labels and detections (``t > t0 + skip_first_us``
+   with 0.5 s by default like RVT, diagonal ≥ 30 px, sides ≥ 10 px), one COCO image per label time, pedestrian
+   COCO mAP@[.5:.95] with the class probability as ranking score.
+6. **SeqASR** (:mod:`davis_rig.metrics.seqasr`): windows that hold a (filtered) pedestrian label, runs of them
+   cut into sequences of ``seq_len`` windows (non-overlapping by default); ``paper`` = any pedestrian box in the
+   sequence, ``strict`` = a pedestrian box with IoU ≥ 0.5 to a label of its window.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from davis_rig.errors import FormatError, SessionError
+from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
+
+__all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
+           "evaluate_sessions", "labels_crop_origin", "score_session"]
+
+#: The paper's confidence thresholds (Tables 2 and 3).
+PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Every setting of the physical evaluation (stored in the report).
+
+    Attributes:
+        thresholds: RVT post-processing confidence thresholds (obj · class prob).
+        seq_len: windows per SeqASR sequence (paper, physical: 10).
+        seq_stride: windows between sequence starts; ``None`` = ``seq_len`` (non-overlapping).
+        window_us: window duration, µs (RVT Gen1: 50 000).
+        crop_origin_xy: crop origin on the sensor; ``None`` = the labels' stored origin, else centred.
+        skip_first_us: AP filter: ignore labels/detections with ``t <= t0 + skip_first_us``; ``None`` = keep all.
+        min_diag_px, min_side_px: Prophesee box filter.
+        nms_threshold: RVT NMS IoU threshold.
+        strict_iou: IoU of the strict SeqASR variant.
+        coco_backend: ``"faster_coco_eval"`` or ``"pycocotools"``.
+        chunk_windows: windows per event read.
+        intra_op_threads: onnxruntime threads (``None``: its default).
+        gif_windows: keep the event images of the first this many windows for the annotated GIF (0: none).
+    """
+
+    thresholds: tuple[float, ...] = PAPER_THRESHOLDS
+    seq_len: int = 10
+    seq_stride: int | None = None
+    window_us: int = 50_000
+    crop_origin_xy: tuple[int, int] | None = None
+    skip_first_us: int | None = 500_000
+    min_diag_px: float = 30.0
+    min_side_px: float = 10.0
+    nms_threshold: float = 0.45
+    strict_iou: float = 0.5
+    coco_backend: str = "faster_coco_eval"
+    chunk_windows: int = 20
+    intra_op_threads: int | None = None
+    gif_windows: int = 0
+
+    def __post_init__(self):
+        if not self.thresholds or any(not 0.0 <= float(t) <= 1.0 for t in self.thresholds):
+            raise ValueError(f"thresholds: expected values in [0, 1], got {self.thresholds}")
+        if self.seq_len < 1 or (self.seq_stride is not None and self.seq_stride < 1):
+            raise ValueError(f"seq_len/seq_stride: expected >= 1, got {self.seq_len}/{self.seq_stride}")
+        if self.window_us <= 0 or self.chunk_windows < 1:
+            raise ValueError(f"window_us and chunk_windows must be positive, got {self.window_us}/{self.chunk_windows}")
+
+
+@dataclass
+class SessionScores:
+    """RVT output of one recording.
+
+    Attributes:
+        path: the session.
+        t0_us: start of the window grid, device µs.
+        window_end_us: int64 [T], device µs.
+        detections: ``{threshold: [T entries: float32 [K, 7] or None]}`` (crop px).
+        labels: BBOX_DTYPE [L] (crop px, device µs), as stored, sorted by time.
+        crop_origin_xy: the crop used.
+        num_events: events read (before the crop).
+        timings_s: ``read``, ``histogram``, ``inference``, ``postprocess`` seconds.
+        event_images: int16 [G, 240, 304] ON − OFF counts of the first windows (for the GIF), maybe empty.
+    """
+
+    path: Path
+    t0_us: int
+    window_end_us: np.ndarray
+    detections: dict
+    labels: np.ndarray
+    crop_origin_xy: tuple[int, int]
+    num_events: int
+    timings_s: dict
+    event_images: np.ndarray = field(default_factory=lambda: np.zeros((0, *RVT_HW), np.int16))
+
+
+@dataclass
+class RecordingResult:
+    """Metrics of one recording: ``metrics[threshold]`` dicts (AP keys, SeqASR paper/strict, counts)."""
+
+    name: str
+    path: str
+    metrics: dict
+    info: dict
+
+    def as_dict(self) -> dict:
+        """JSON-ready dict (thresholds as string keys)."""
+        return {"name": self.name, "path": self.path, "info": self.info,
+                "metrics": {repr(float(t)): m for t, m in self.metrics.items()}}
+
+
+def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
+    """The crop origin ``davis-label`` stored with the labels, or ``None``."""
+    if "crop_origin_x" in attrs and "crop_origin_y" in attrs:
+        return int(attrs["crop_origin_x"]), int(attrs["crop_origin_y"])
+    return None
+
+
+def _open_checked(path: Path):
+    from davis_rig.session import SessionReader
+
+    reader = SessionReader(path).open()
+    try:
+        if reader.num_events == 0:
+            raise SessionError(f"{path}: the session has no events to score")
+        hw = tuple(reader.frames.data.shape[1:]) if len(reader.frames) else DAVIS346_HW
+        layout = reader.device_info.get("layout", {}) if isinstance(reader.device_info, dict) else {}
+        cols, rows = layout.get("dvs_size_columns", DAVIS346_HW[1]), layout.get("dvs_size_rows", DAVIS346_HW[0])
+        if hw != DAVIS346_HW or (cols, rows) != (DAVIS346_HW[1], DAVIS346_HW[0]):
+            raise SessionError(f"{path}: sensor {cols}x{rows}, frames {hw[1]}x{hw[0]} (w x h); expected a DAVIS346 "
+                               f"recording ({DAVIS346_HW[1]}x{DAVIS346_HW[0]})")
+        labels = reader.labels()
+        if labels is None:
+            raise SessionError(f"{path}: the session has no /labels; run `davis-label {path} --yolo MODEL.onnx` first")
+        if len(labels) == 0:
+            raise SessionError(f"{path}: /labels is empty (the labeler found no pedestrian); nothing to evaluate")
+    except BaseException:
+        reader.close()
+        raise
+    return reader, np.sort(labels, order="t", kind="stable")
+
+
+def score_session(path, runner, settings: EvalSettings, *, progress: Callable | None = None) -> SessionScores:
+    """Run RVT over a labelled session window by window (states carried) and post-process per threshold.
+
+    Args:
+        path: session.h5 with ``/labels``.
+        runner: a :class:`~davis_rig.models.rvt.ort_runner.RVTOnnxRunner`.
+        settings: :class:`EvalSettings`.
+        progress: ``progress(total=T, desc=...)`` returning an object with ``update(n)`` and ``close()``
+            (e.g. ``tqdm``); ``None`` for silence.
+
+    Returns:
+        :class:`SessionScores`.
+
+    Raises:
+        SessionError: unreadable session, no events, no labels, not a DAVIS346 recording.
+    """
+    from davis_rig.events.crop import center_crop_origin, crop_events
+    from davis_rig.events.histogram import stacked_histograms
+    from davis_rig.models.rvt.postprocess import postprocess
+
+    path = Path(path)
+    reader, labels = _open_checked(path)
+    timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
+    try:
+        origin = settings.crop_origin_xy or labels_crop_origin(reader.labels_attrs()) or center_crop_origin()
+        window_us = int(settings.window_us)
+        t0 = int(reader.t_offset_us)
+        t_events_end = t0 + 1000 * len(reader.ms_to_idx)
+        t_last = max(t_events_end, int(labels["t"].max()) if len(labels) else 0)
+        n_windows = max(1, -(-(t_last - t0) // window_us))
+        ends = t0 + window_us * np.arange(1, n_windows + 1, dtype=np.int64)
+        detections = {float(th): [] for th in settings.thresholds}
+        states = None
+        running_max = np.iinfo(np.int64).min
+        gif = []
+        bar = progress(total=n_windows, desc=path.name) if progress is not None else None
+        num_events = 0
+        for i0 in range(0, n_windows, settings.chunk_windows):
+            chunk_ends = ends[i0 : i0 + settings.chunk_windows]
+            tic = time.perf_counter()
+            events = reader.events_between(int(chunk_ends[0]) - window_us, int(chunk_ends[-1]) + 1)
+            num_events += len(events)
+            events = crop_events(events, origin, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
+            if len(events):
+                t = np.maximum.accumulate(np.maximum(events["t"], running_max))
+                running_max = int(t[-1])
+                events["t"] = t
+            tac = time.perf_counter()
+            hists = stacked_histograms(events, chunk_ends, window_us=window_us)
+            toc = time.perf_counter()
+            timings["read"] += tac - tic
+            timings["histogram"] += toc - tac
+            for k, hist in enumerate(hists):
+                tic = time.perf_counter()
+                decoded, states = runner.step(hist[None], states)
+                tac = time.perf_counter()
+                for th in detections:
+                    detections[th].append(postprocess(decoded, th, settings.nms_threshold)[0])
+                timings["postprocess"] += time.perf_counter() - tac
+                timings["inference"] += tac - tic
+                if len(gif) < settings.gif_windows:
+                    half = hist.shape[0] // 2
+                    gif.append(hist[half:].sum(0, dtype=np.int16) - hist[:half].sum(0, dtype=np.int16))
+            if bar is not None:
+                bar.update(len(chunk_ends))
+        if bar is not None:
+            bar.close()
+    finally:
+        reader.close()
+    return SessionScores(path=path, t0_us=t0, window_end_us=ends, detections=detections, labels=labels,
+                         crop_origin_xy=tuple(int(v) for v in origin), num_events=num_events, timings_s=timings,
+                         event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW))
+
+
+def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int) -> np.ndarray:
+    """Window index of every label: the window with ``end − window_us < t ≤ end``; int64 [L] (−1 outside)."""
+    t = labels["t"].astype(np.int64)
+    index = np.searchsorted(window_end_us, t, side="left")
+    inside = (index < len(window_end_us))
+    inside[inside] &= window_end_us[index[inside]] - window_us < t[inside]
+    return np.where(inside, index, -1)
+
+
+def compute_metrics(scores: SessionScores, settings: EvalSettings) -> dict:
+    """AP and SeqASR per threshold from :class:`SessionScores`.
+
+    Returns:
+        ``{threshold: {"AP", "AP_50", …, "seq_asr", "seq_asr_strict", "num_sequences", "num_detected",
+        "num_detected_strict", "num_images", "num_labels", "num_detections"}}``.
+    """
+    from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
+    from davis_rig.metrics.seqasr import label_sequences, seq_asr, windows_detected, windows_with_labels
+
+    ends = scores.window_end_us
+    skip = None if settings.skip_first_us is None else scores.t0_us + int(settings.skip_first_us)
+    labels = filter_boxes(scores.labels[scores.labels["class_id"] == PEDESTRIAN_CLASS_ID], skip_until_us=skip,
+                          min_diag_px=settings.min_diag_px, min_side_px=settings.min_side_px)
+    label_win = label_windows(labels, ends, settings.window_us)
+    labels = labels[label_win >= 0]
+    label_win = label_win[label_win >= 0]
+    label_times = np.unique(labels["t"].astype(np.int64))
+    time_win = label_windows(np.array(label_times, dtype=[("t", "<i8")]), ends, settings.window_us)
+    labelled = windows_with_labels(ends, labels["t"].astype(np.int64), settings.window_us)
+    sequences = label_sequences(labelled, settings.seq_len, settings.seq_stride)
+    xyxy = np.stack([labels["x"], labels["y"], labels["x"] + labels["w"], labels["y"] + labels["h"]], 1)
+    per_window_labels = [xyxy[label_win == i] for i in range(len(ends))]
+    results = {}
+    for th, dets in scores.detections.items():
+        dt_parts = [detections_to_boxes(dets[w], t) for t, w in zip(label_times.tolist(), time_win.tolist())]
+        dt = np.concatenate(dt_parts) if dt_parts else np.zeros(0, BBOX_DTYPE)
+        dt = filter_boxes(dt, skip_until_us=skip, min_diag_px=settings.min_diag_px,
+                          min_side_px=settings.min_side_px)
+        _, gts, dts = match_times(labels, dt, time_tol_us=0)
+        ap = coco_ap(gts, dts, category=PEDESTRIAN_CLASS_ID, backend=settings.coco_backend)
+        paper = seq_asr(windows_detected(dets, mode="paper"), sequences, "paper")
+        strict = seq_asr(windows_detected(dets, mode="strict", labels_xyxy=per_window_labels,
+                                          iou_threshold=settings.strict_iou), sequences, "strict")
+        results[float(th)] = dict(ap) | {
+            "seq_asr": paper.seq_asr, "seq_asr_strict": strict.seq_asr, "num_sequences": paper.num_sequences,
+            "num_detected": paper.num_detected, "num_detected_strict": strict.num_detected,
+            "num_images": len(gts), "num_labels": int(len(labels)), "num_detections": int(sum(len(d) for d in dts)),
+            "windows_with_pedestrian_boxes": int(windows_detected(dets, mode="paper").sum()),
+        }
+    return results
+
+
+def evaluate_sessions(
+    paths: Sequence[str | Path],
+    model: str | Path | None = None,
+    settings: EvalSettings = EvalSettings(),
+    *,
+    names: Sequence[str] | None = None,
+    progress: Callable | None = None,
+) -> tuple[list[RecordingResult], list[SessionScores]]:
+    """Evaluate one or more labelled recordings with one RVT ONNX model.
+
+    Args:
+        paths: session files (each needs ``/labels``).
+        model: RVT step ONNX; ``None`` = :func:`davis_rig.models.default_detector_path`.
+        settings: :class:`EvalSettings`.
+        names: column names (default: file stems).
+        progress: see :func:`score_session`.
+
+    Returns:
+        ``(results, scores)``, one each per recording.
+
+    Raises:
+        SessionError, ModelFormatError, MissingDependencyError: see :func:`score_session` and the runner.
+    """
+    from davis_rig.models import default_detector_path
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("evaluate_sessions: no session given")
+    if names is not None and len(names) != len(paths):
+        raise ValueError(f"names: {len(names)} names for {len(paths)} recordings")
+    for p in paths:  # validate every file before the (slow) scoring starts
+        reader, _ = _open_checked(p)
+        reader.close()
+    model_path = Path(model) if model is not None else default_detector_path()
+    if not model_path.is_file():
+        raise FormatError(f"{model_path}: no such RVT ONNX model")
+    runner = RVTOnnxRunner(model_path, intra_op_threads=settings.intra_op_threads)
+    results, all_scores = [], []
+    for i, p in enumerate(paths):
+        scores = score_session(p, runner, settings, progress=progress)
+        tic = time.perf_counter()
+        metrics = compute_metrics(scores, settings)
+        scores.timings_s["metrics"] = time.perf_counter() - tic
+        info = {"model": str(model_path), "crop_origin_xy": list(scores.crop_origin_xy), "t0_us": scores.t0_us,
+                "num_windows": int(len(scores.window_end_us)), "num_events": scores.num_events,
+                "num_labels_stored": int(len(scores.labels)),
+                "duration_s": float(len(scores.window_end_us) * settings.window_us / 1e6),
+                "timings_s": dict(scores.timings_s)}
+        results.append(RecordingResult(name=names[i] if names else p.stem, path=str(p), metrics=metrics, info=info))
+        all_scores.append(scores)
+    return results, all_scores
+
+
+def settings_dict(settings: EvalSettings) -> dict:
+    """JSON-ready dict of the settings."""
+    return json.loads(json.dumps(asdict(settings)))
