@@ -362,9 +362,11 @@ class BodyModel:
 
     Example:
         >>> model = BodyModel()
-        >>> walk = model.asset.walk_cycle(0)
-        >>> verts = model.pose(0, torch.as_tensor(walk.rotations_wxyz), torch.as_tensor(walk.root_translation_m))
-        >>> verts.shape  # [T, V, 3], metres
+        >>> rotations, root = model.walk_cycle(0)  # [40, 104, 4], [40, 3]
+        >>> model.pose(0, rotations, root).shape  # vertices [T, V, 3], metres
+        torch.Size([40, 13718, 3])
+        >>> model.walk_vertices(0, [0.0, 0.01], advance=True).shape  # walking forward (-Y)
+        torch.Size([2, 13718, 3])
     """
 
     def __init__(self, asset: BodyAsset | None = None, device: "str | torch.device" = "cpu", dtype=None):
