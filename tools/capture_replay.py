@@ -35,6 +35,7 @@ def capture_replay(
     imu: bool = False,
     sleep: Callable[[float], Any] = time.sleep,
     clock: Callable[[], float] = time.monotonic,
+    until: Callable[[], bool] | None = None,
 ) -> dict[str, int]:
     """Record ``duration_s`` seconds of raw transfers into a replay file.
 
@@ -48,6 +49,7 @@ def capture_replay(
         imu: also start the IMU.
         sleep: sleep function for the start waits.
         clock: monotonic clock, s.
+        until: optional early stop, polled between reads (e.g. a virtual camera's ``drained``).
 
     Returns:
         Counters: ``records``, ``bytes``, ``transfers``, ``dropped_transfers``, ``events``, ``frames``.
@@ -87,7 +89,7 @@ def capture_replay(
             cam.start()
             try:
                 deadline = clock() + duration_s
-                while clock() < deadline:
+                while clock() < deadline and not (until is not None and until()):
                     chunk = cam.read(timeout_s=0.2)
                     if chunk is not None:
                         counts["events"] += len(chunk.events)

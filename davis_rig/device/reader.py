@@ -93,6 +93,7 @@ class TransferReader:
         self._lock = threading.Lock()
         self._warned = False
         self._finished = False
+        self._held_end: _End | None = None
         #: the exception that ended the thread, if any
         self.error: BaseException | None = None
 
@@ -182,6 +183,12 @@ class TransferReader:
         """
         if self._finished:
             return None
+        if self._held_end is not None:
+            item, self._held_end = self._held_end, None
+            self._finished = True
+            if item.error is not None:
+                raise item.error
+            return None
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             wait = None if deadline is None else max(0.0, deadline - time.monotonic())
@@ -200,6 +207,22 @@ class TransferReader:
                     raise item.error
                 return None
             return item
+
+    def get_nowait(self) -> bytes | None:
+        """Next transfer if one is already queued, else ``None`` (never blocks, never raises).
+
+        The end of the stream (and its error) is left for the next :meth:`get`.
+        """
+        if self._finished or self._held_end is not None:
+            return None
+        try:
+            item = self._queue.get_nowait()
+        except queue.Empty:
+            return None
+        if isinstance(item, _End):
+            self._held_end = item
+            return None
+        return item
 
     @property
     def finished(self) -> bool:
