@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import re
 from pathlib import Path
 from typing import Sequence
 
@@ -172,5 +173,6 @@ def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True,
         th = float(gif_threshold if gif_threshold is not None else max(settings.thresholds))
         for r, s in zip(results, scores):
             if len(s.event_images):
-                written[f"gif:{r.name}"] = write_gif(s, th, out_dir / f"{r.name}.gif")
+                safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", r.name).strip("._") or "recording"
+                written[f"gif:{r.name}"] = write_gif(s, th, out_dir / f"{safe}.gif")
     return written

