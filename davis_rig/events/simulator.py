@@ -25,10 +25,11 @@ Model (noise-free, the default), per pixel, evaluated for every pair of consecut
 Optional v2e-style non-idealities (all off by default, seeded by ``seed``): per-pixel threshold mismatch
 (``threshold_sigma``, absolute std of θ in log units, θ clipped at ``min_threshold``), a refractory period
 (events of a pixel closer than ``refractory_us`` to its previous event are dropped; the reference still moves, as in
-v2e), shot noise (``shot_noise_rate_hz``: Poisson ON+OFF noise events per pixel, rate lower for bright pixels as
-in v2e, which move the reference), leak (``leak_rate_hz``: the reference sinks by ``leak_rate_hz · θ_on`` per
-second, which fires spontaneous ON events) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz`` scales
-with intensity (v2e's photoreceptor bandwidth model: ``ε = dt · 2π · cutoff_hz · (255 I + 20) / 275``, clipped at 1).
+v2e), shot noise (``shot_noise_rate_hz``: Poisson ON+OFF noise events per pixel, rate lower for bright pixels as in
+v2e; they leave the reference alone, so the rate is exactly the one asked for), leak (``leak_rate_hz``: the
+reference sinks by ``leak_rate_hz · θ_on`` per second from a random per-pixel phase, which fires spontaneous ON
+events) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz`` scales with intensity (v2e's photoreceptor
+bandwidth model: ``ε = dt · 2π · cutoff_hz · (255 I + 20) / 275``, clipped at 1).
 
 All arithmetic is vectorised over pixels; Python loops run over frames (and, only with a refractory period, over
 the crossing rank within one interval). torch is imported lazily; the simulator runs on any torch device.
@@ -111,7 +112,7 @@ class SimulatorConfig:
         shot_noise_rate_hz: shot-noise event rate per pixel (ON + OFF), Hz, at zero intensity (0 = off).
         leak_rate_hz: leak event rate per pixel, Hz (0 = off).
         cutoff_hz: low-pass 3 dB cutoff at full intensity, Hz (0 = no low-pass).
-        seed: seed of the noise generator (mismatch, shot noise, leak phases).
+        seed: seed of the noise generator (threshold mismatch, shot noise, leak phases).
         dtype: torch dtype name of the computation, ``"float64"`` (default, exact comparisons) or ``"float32"``.
     """
 
@@ -227,12 +228,15 @@ class EventSimulator:
             theta_on = torch.clamp(theta_on + cfg.threshold_sigma * noise[0], min=cfg.min_threshold)
             theta_off = torch.clamp(theta_off + cfg.threshold_sigma * noise[1], min=cfg.min_threshold)
         log_frame = lin_log(frame * cfg.intensity_scale, cfg.lin_log_threshold)
+        ref = log_frame.clone()
+        if cfg.leak_rate_hz > 0:  # random leak phase per pixel, so that leak events are not synchronous
+            ref -= torch.rand(shape, generator=generator, dtype=frame.dtype, device=frame.device) * theta_on
         self._state = {
             "generator": generator,
             "theta_on": theta_on,
             "theta_off": theta_off,
             "log": log_frame,  # (filtered) log intensity at the last frame
-            "ref": log_frame.clone(),
+            "ref": ref,
             "t_us": int(t_us),
             "last_event_us": torch.full(shape, np.iinfo(np.int64).min // 2, dtype=torch.int64, device=frame.device),
         }
@@ -366,7 +370,9 @@ class EventSimulator:
         ]
 
     def _shot_noise(self, frame, ref, t0_us: int, dt_us: int):
-        """Poisson shot-noise events (v2e model): probability per pixel and polarity, uniform time in the interval."""
+        """Poisson shot-noise events (v2e's rate model): probability per pixel and polarity, uniform time in the
+        interval. They do not move the reference (moving it would make a static pixel answer every noise event with
+        an opposite "signal" event, doubling the rate)."""
         torch = _torch()
         cfg = self.config
         st = self._state
@@ -384,8 +390,6 @@ class EventSimulator:
                 torch.rand(idx.shape, generator=gen, dtype=prob.dtype, device=prob.device) * dt_us
             ).to(torch.int64)
             t_ev = torch.clamp(t_ev, max=t0_us + dt_us)
-            step = st["theta_on"] if polarity else -st["theta_off"]
-            ref = ref + fired.to(ref.dtype) * step
             out.append((idx, t_ev, polarity, torch.zeros_like(idx)))
         return out, ref
 
