@@ -7,7 +7,7 @@ Typical use (libcaer's client flow, PROTOCOL.md §7.3)::
         cam.set_exposure(8000)
         cam.add_raw_listener(journal.write)      # optional: keep the raw USB bytes
         cam.start()
-        for chunk in cam.chunks(timeout_s=1.0):  # DecodedChunk per USB transfer
+        for chunk in cam.chunks(timeout_s=1.0):  # DecodedChunk per read (one or more USB transfers)
             ...
         cam.stop()
 
@@ -23,7 +23,6 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
-from davis_rig.errors import DeviceDisconnectedError, DeviceError
 from davis_rig.device.debug import DebugMessage, DebugReader
 from davis_rig.device.info import DeviceInfo, read_device_info
 from davis_rig.device.reader import (
@@ -32,6 +31,7 @@ from davis_rig.device.reader import (
     DEFAULT_READ_TIMEOUT_MS,
     TransferReader,
 )
+from davis_rig.errors import DeviceDisconnectedError, DeviceError
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, Bias, BiasEntry, bias_param, check_bias_for, decode_bias
 from davis_rig.protocol.config import DAVIS_FX3_PID, Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
 from davis_rig.protocol.decoder import DecodedChunk, DecoderStats, StreamDecoder
