@@ -49,6 +49,7 @@ from davis_rig.types import EVENT_DTYPE
 __all__ = ["StreamEncoder", "split_transfers"]
 
 _WRAP_SHIFT = 15
+_EVENT_BLOCK = 1 << 18  # events encoded per vectorised block (keeps temporaries in cache)
 _RESET_READ = APS_PIXEL_MAX  # reset value used for every pixel (≥ 384, so the clamp rule never fires on it)
 
 
@@ -239,11 +240,16 @@ class StreamEncoder:
 
     def _encode_events(self, events: np.ndarray) -> np.ndarray:
         n = events.shape[0]
+        if n <= _EVENT_BLOCK:
+            return self._encode_event_block(events)
+        # cache-sized blocks; the carried state makes this identical to encoding all at once
+        return np.concatenate([self._encode_event_block(events[s : s + _EVENT_BLOCK]) for s in range(0, n, _EVENT_BLOCK)])
+
+    def _encode_event_block(self, events: np.ndarray) -> np.ndarray:
+        n = events.shape[0]
         if n == 0:
             return np.empty(0, np.uint16)
-        t = events["t"]
-        if t.dtype != np.int64:
-            t = t.astype(np.int64)
+        t = np.ascontiguousarray(events["t"], dtype=np.int64)  # the field view is strided (13-byte records)
         if self.layout.dvs_invert_xy:
             y_raw = events["x"].astype(np.uint16)
             x_raw = events["y"].astype(np.uint16)
