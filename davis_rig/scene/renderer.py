@@ -245,7 +245,8 @@ def rasterize_mesh(
         normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
         corner_normals = normals[frame[:, None], faces.long()[face]]  # [N, 3, 3]
         shade = lambert((corner_normals * bary[..., None]).sum(dim=1), light)
-        coverage = frags.coverage()
+        counts = torch.bincount(pixel, minlength=t * h * w)  # cheaper than pooling the dense sample map
+        coverage = (counts.to(vertices_m.dtype) / float(s * s)).view(t, h, w)
     return RasterizedMesh(
         hw=(h, w),
         supersample=s,

@@ -1,0 +1,362 @@
+"""Scene composition: a body, its motion, placement, camera, light and background -> a rendered :class:`Clip`.
+
+World layout: the person moves on the ground plane z = 0 around the world origin; the camera stands on
+the -Y side at distance ``d`` (from the test scale, :mod:`.camera`) and looks along +Y at the person's mid
+height, so ``heading_rad = 0`` means the person faces (walks towards) the camera and ``heading_rad = pi/2``
+means the person walks to the image right (+X). With ``advance=True`` the body moves forward at the motion's
+own speed and the path is centred so that the person passes the placement point at the middle of the clip.
+
+Motions: the asset's walk cycle by default (sampled at any rate, cyclic), or any :class:`Motion` (local
+rotations ``[T, J, 4]`` + root translation ``[T, 3]`` at ``fps_hz``, resampled to the render rate by
+quaternion nlerp / linear interpolation, clamped at its ends) as the MOTION module supplies them.
+
+Render rate: >= 200 fps (:data:`MIN_RENDER_RATE_HZ`), so every 50 ms RVT window spans >= 10 frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.scene.background import random_background, uniform
+from davis_rig.scene.camera import (
+    DEFAULT_PERSON_HEIGHT_M,
+    EgoMotion,
+    EoTJitter,
+    PinholeCamera,
+    distance_for_height,
+    look_at,
+)
+from davis_rig.scene.renderer import RasterizedMesh, rasterize_mesh
+from davis_rig.scene.shading import Light
+from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
+
+__all__ = ["MIN_RENDER_RATE_HZ", "Clip", "Motion", "SceneSpec", "render_clip", "resample_motion"]
+
+#: Lowest render rate (frames per second): 10 time bins per 50 ms window.
+MIN_RENDER_RATE_HZ = 200.0
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError as exc:  # pragma: no cover - exercised only without torch
+        raise MissingDependencyError("rendering needs torch: pip install 'davis_rig[torch]'") from exc
+    return torch
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A body motion as forward-kinematics parameters of :class:`~davis_rig.scene.body.BodyModel`.
+
+    Attributes:
+        rotations_wxyz: float [T, J, 4], local bone rotations (unit quaternions w, x, y, z).
+        root_translation_m: float [T, 3], root head translation (m, Z up; forward = -Y in body axes).
+        fps_hz: frame rate (frames per second).
+    """
+
+    rotations_wxyz: np.ndarray
+    root_translation_m: np.ndarray
+    fps_hz: float
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.rotations_wxyz)
+        tr = np.asarray(self.root_translation_m)
+        if r.ndim != 3 or r.shape[-1] != 4:
+            raise ShapeError(f"rotations_wxyz must be [T, J, 4], got {r.shape}")
+        if tr.shape != (r.shape[0], 3):
+            raise ShapeError(f"root_translation_m must be [{r.shape[0]}, 3], got {tr.shape}")
+        if not self.fps_hz > 0:
+            raise ValueError(f"fps_hz must be > 0, got {self.fps_hz}")
+
+
+def resample_motion(motion: Motion, t_s) -> tuple[np.ndarray, np.ndarray]:
+    """A motion at arbitrary times (clamped to its duration): quaternion nlerp and linear root translation.
+
+    Args:
+        motion: the motion.
+        t_s: times from the motion's first frame, [N] (s).
+
+    Returns:
+        ``(rotations_wxyz float32 [N, J, 4], root_translation_m float32 [N, 3])``.
+    """
+    q = np.asarray(motion.rotations_wxyz, dtype=np.float64)
+    tr = np.asarray(motion.root_translation_m, dtype=np.float64)
+    n = q.shape[0]
+    pos = np.clip(np.asarray(t_s, dtype=np.float64) * motion.fps_hz, 0, n - 1)
+    i0 = np.minimum(np.floor(pos).astype(np.int64), n - 1)
+    i1 = np.minimum(i0 + 1, n - 1)
+    a = (pos - i0)[:, None]
+    q0, q1 = q[i0], q[i1]
+    sign = np.where((q0 * q1).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    out = (1 - a[..., None]) * q0 + a[..., None] * sign * q1
+    out /= np.linalg.norm(out, axis=-1, keepdims=True)
+    root = (1 - a) * tr[i0] + a * tr[i1]
+    return out.astype(np.float32), root.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """Everything that defines one rendered clip (all randomness resolved from ``seed``).
+
+    Attributes:
+        shape_index: body shape of the asset.
+        motion: a :class:`Motion`, or ``None`` for the asset's walk cycle of that shape.
+        motion_start_s: time into the motion of the first frame (s).
+        advance: walk cycle only: move forward at the cycle's speed (False = walk in place, as the official
+            code). A :class:`Motion` always uses its own root translation.
+        heading_rad: body rotation about world Z (0 = facing the camera, pi/2 = walking to the image right).
+        scale: test-scale name (``"large"``, ``"middle"``, ``"small"``) or a person height in px of a
+            1.75 m person; sets the camera distance (:func:`~davis_rig.scene.camera.distance_for_height`).
+        distance_m: explicit camera distance (m), overrides ``scale``.
+        offset_m: placement of the person's mid-clip position relative to the optical axis, ``(x right,
+            depth)`` in world metres.
+        camera: intrinsics (default: the RVT 304 x 240 crop of the DAVIS346).
+        camera_height_m: camera centre height (m); ``None`` = half of 1.75 m (horizontal view of a person).
+        jitter: EoT camera jitter (sampled from ``seed``) or ``None``.
+        ego_motion: camera ego-motion or ``None``.
+        light: a :class:`Light`, ``"random"`` (from ``seed``) or ``None`` (default light).
+        background: float [H, W] array, a scalar intensity, or ``"random"`` (procedural, from ``seed``).
+        render_rate_hz: frames per second (>= 200).
+        duration_s: clip length (s); frames at ``t = k / render_rate_hz``, k = 0 .. ceil(duration * rate) - 1.
+        t0_us: timestamp of the first frame (µs).
+        supersample: samples per pixel side (antialiasing).
+        seed: seed of the random choices (jitter, random light, random background).
+    """
+
+    shape_index: int = 0
+    motion: Motion | None = None
+    motion_start_s: float = 0.0
+    advance: bool = True
+    heading_rad: float = math.pi / 2
+    scale: str | float = "middle"
+    distance_m: float | None = None
+    offset_m: tuple[float, float] = (0.0, 0.0)
+    camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
+    camera_height_m: float | None = None
+    jitter: EoTJitter | None = None
+    ego_motion: EgoMotion | None = None
+    light: Light | str | None = None
+    background: object = 0.5
+    render_rate_hz: float = MIN_RENDER_RATE_HZ
+    duration_s: float = 0.25
+    t0_us: int = 0
+    supersample: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.render_rate_hz < MIN_RENDER_RATE_HZ:
+            raise ValueError(f"render_rate_hz must be >= {MIN_RENDER_RATE_HZ}, got {self.render_rate_hz}")
+        if not self.duration_s > 0:
+            raise ValueError(f"duration_s must be > 0, got {self.duration_s}")
+        if int(self.supersample) < 1:
+            raise ValueError(f"supersample must be >= 1, got {self.supersample}")
+
+    @property
+    def num_frames(self) -> int:
+        """Frames in the clip."""
+        return max(1, int(math.ceil(self.duration_s * self.render_rate_hz - 1e-9)))
+
+    def frame_times_us(self) -> np.ndarray:
+        """Frame timestamps, int64 [T] (µs), rounded to the microsecond."""
+        k = np.arange(self.num_frames, dtype=np.float64)
+        return self.t0_us + np.round(k * 1e6 / self.render_rate_hz).astype(np.int64)
+
+
+@dataclass
+class Clip:
+    """A rendered clip.
+
+    Attributes:
+        video: float32 tensor [T, H, W], linear intensity in [0, 1] (what the event simulators consume).
+        t_us: int64 [T], frame timestamps (µs).
+        boxes: float32 [T, 4], visible-person boxes ``(x0, y0, x1, y1)`` from the coverage (NaN: none).
+        vertex_boxes: float32 [T, 4], projected-vertex boxes clipped to the frame (NaN: none).
+        coverage: float32 tensor [T, H, W], person coverage alpha.
+        part_labels: uint8 [T, H, W] part code per pixel (255 = background), or ``None``.
+        background: float32 tensor [H, W] used.
+        raster: the :class:`~davis_rig.scene.renderer.RasterizedMesh` (re-render other textures with
+            ``raster.lookup(...)`` + ``raster.compose(...)``, differentiably).
+        spec: the :class:`SceneSpec`.
+        camera_rotation_w2c: float64 [T, 3, 3]; camera_translation_w2c: float64 [T, 3] (m).
+    """
+
+    video: "object"
+    t_us: np.ndarray
+    boxes: np.ndarray
+    vertex_boxes: np.ndarray
+    coverage: "object"
+    part_labels: np.ndarray | None
+    background: "object"
+    raster: RasterizedMesh
+    spec: SceneSpec
+    camera_rotation_w2c: np.ndarray
+    camera_translation_w2c: np.ndarray
+
+    def labels(self, min_size_px: float = 1.0) -> np.ndarray:
+        """Per-frame pedestrian boxes as a Prophesee/RVT label array (:data:`~davis_rig.types.BBOX_DTYPE`).
+
+        Args:
+            min_size_px: frames whose box is narrower or lower than this get no label.
+
+        Returns:
+            BBOX_DTYPE [M], one row per frame with a visible person (class pedestrian, confidence 1).
+        """
+        ok = np.isfinite(self.boxes).all(axis=1)
+        ok &= (self.boxes[:, 2] - self.boxes[:, 0] >= min_size_px) & (self.boxes[:, 3] - self.boxes[:, 1] >= min_size_px)
+        out = np.zeros(int(ok.sum()), dtype=BBOX_DTYPE)
+        b = self.boxes[ok]
+        out["t"] = self.t_us[ok]
+        out["x"], out["y"] = b[:, 0], b[:, 1]
+        out["w"], out["h"] = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
+        out["class_id"] = PEDESTRIAN_CLASS_ID
+        out["class_confidence"] = 1.0
+        return out
+
+
+def _rotation_z(angle_rad: float) -> np.ndarray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def scene_vertices(spec: SceneSpec, model) -> "object":
+    """World vertices of the person for every frame of the clip.
+
+    Args:
+        spec: the scene.
+        model: :class:`~davis_rig.scene.body.BodyModel`.
+
+    Returns:
+        float tensor [T, V, 3] (m), on the model's device.
+    """
+    torch = _torch()
+    t_s = (spec.frame_times_us() - spec.t0_us) / 1e6 + spec.motion_start_s
+    t_mid = spec.motion_start_s + 0.5 * (spec.num_frames - 1) / spec.render_rate_hz
+    if spec.motion is None:
+        rotations, root = model.sample_walk(spec.shape_index, t_s, advance=spec.advance)
+        if spec.advance:
+            speed = model.asset.walk_cycle(spec.shape_index).speed_m_s
+            root = root.clone()
+            root[:, 1] += speed * t_mid  # centre the path: mid-clip position at the placement point
+    else:
+        rot_np, root_np = resample_motion(spec.motion, t_s)
+        _, mid = resample_motion(spec.motion, np.array([t_mid]))
+        root_np = root_np.copy()
+        root_np[:, :2] -= mid[:, :2]
+        rotations = torch.as_tensor(rot_np, device=model.device)
+        root = torch.as_tensor(root_np, device=model.device)
+    vertices = model.pose(spec.shape_index, rotations, root)
+    rz = torch.as_tensor(_rotation_z(spec.heading_rad), dtype=vertices.dtype, device=vertices.device)
+    offset = torch.tensor([spec.offset_m[0], spec.offset_m[1], 0.0], dtype=vertices.dtype, device=vertices.device)
+    return vertices @ rz.T + offset
+
+
+def scene_camera(spec: SceneSpec, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame world->camera extrinsics of the scene (EoT jitter and ego-motion applied).
+
+    Returns:
+        ``(R float64 [T, 3, 3], t float64 [T, 3])``.
+    """
+    rng = np.random.default_rng(spec.seed) if rng is None else rng
+    distance = spec.distance_m if spec.distance_m is not None else distance_for_height(spec.scale, spec.camera)
+    height = DEFAULT_PERSON_HEIGHT_M / 2 if spec.camera_height_m is None else spec.camera_height_m
+    rotation, translation = look_at([0.0, -distance, height], [0.0, 0.0, height])
+    if spec.jitter is not None:
+        delta, factor = spec.jitter.sample(rng)
+        eye = np.array([0.0, -distance * factor, height])
+        rotation = delta @ rotation
+        translation = -rotation @ eye
+    n = spec.num_frames
+    if spec.ego_motion is not None:
+        t_s = (spec.frame_times_us() - spec.t0_us) / 1e6
+        return spec.ego_motion.apply(rotation, translation, t_s)
+    return np.broadcast_to(rotation, (n, 3, 3)).copy(), np.broadcast_to(translation, (n, 3)).copy()
+
+
+def render_clip(
+    spec: SceneSpec,
+    texture=None,
+    *,
+    model=None,
+    device: str = "cpu",
+    mode: str = "nearest",
+    mask=None,
+    texture_size: int = 1024,
+    fill: float = 1.0,
+    part_labels: bool = False,
+) -> Clip:
+    """Render a clip of a textured person walking in front of the DAVIS346.
+
+    Args:
+        spec: the scene.
+        texture: float tensor [n, n] (grid, nearest-upsampled to ``texture_size``) or
+            [texture_size, texture_size]; ``None`` = white. Gradients flow to it through ``Clip.video``.
+        model: a :class:`~davis_rig.scene.body.BodyModel` (built from the bundled asset if ``None``).
+        device: torch device when ``model`` is ``None``.
+        mode: texture sampling, ``"nearest"`` or ``"bilinear"``.
+        mask: bool [texture_size, texture_size] paintable texels (outside: ``fill``), e.g.
+            :func:`davis_rig.scene.masks.part_mask`.
+        texture_size: texel resolution of the UV map.
+        fill: texture value outside the mask.
+        part_labels: also return the per-pixel part-label image.
+
+    Returns:
+        :class:`Clip`.
+    """
+    torch = _torch()
+    if model is None:
+        from davis_rig.scene.body import BodyModel
+
+        model = BodyModel(device=device)
+    rng = np.random.default_rng(spec.seed)
+    rotation, translation = scene_camera(spec, rng)
+    light = spec.light
+    if isinstance(light, str):
+        if light != "random":
+            raise ValueError(f"light must be a Light, 'random' or None, got {light!r}")
+        light = Light.random(rng)
+    hw = spec.camera.hw
+    background = spec.background
+    if isinstance(background, str):
+        if background != "random":
+            raise ValueError(f"background must be an array, a scalar or 'random', got {background!r}")
+        background = random_background(hw, rng)
+    elif np.isscalar(background):
+        background = uniform(hw, float(background))
+    background = torch.as_tensor(np.asarray(background, dtype=np.float32), device=model.device)
+    if tuple(background.shape) != hw:
+        raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
+    vertices = scene_vertices(spec, model)
+    raster = rasterize_mesh(
+        vertices,
+        model.faces,
+        model.face_uvs,
+        spec.camera,
+        torch.as_tensor(rotation, dtype=vertices.dtype, device=vertices.device),
+        torch.as_tensor(translation, dtype=vertices.dtype, device=vertices.device),
+        supersample=spec.supersample,
+        light=light,
+    )
+    if texture is None and mask is None:
+        video = raster.compose(None, background)
+    else:
+        tex = torch.ones((1, 1), device=model.device) if texture is None else texture
+        n = tex.shape[-1]
+        lookup = raster.lookup(size=texture_size, mode=mode, grid_n=None if n == texture_size else n, mask=mask)
+        video = raster.compose(lookup.sample(tex, fill=fill), background)
+    return Clip(
+        video=video,
+        t_us=spec.frame_times_us(),
+        boxes=raster.boxes(),
+        vertex_boxes=raster.vertex_boxes,
+        coverage=raster.coverage,
+        part_labels=raster.part_labels(model.asset.face_parts) if part_labels else None,
+        background=background,
+        raster=raster,
+        spec=spec,
+        camera_rotation_w2c=rotation,
+        camera_translation_w2c=translation,
+    )
