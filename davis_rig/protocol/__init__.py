@@ -6,6 +6,10 @@ Public API::
 
     decoder = StreamDecoder(SensorLayout.davis346())
     chunk = decoder.feed(transfer_bytes)      # DecodedChunk: events, frames, specials, imu
+    chunk = decoder.feed_many(transfers)      # same result as feeding one by one, less per-call overhead
+
+    data = StreamEncoder(layout).encode(events, frames)   # the exact word stream a DAVIS346 would send
+    transfers = split_transfers(data, 8192)
 """
 
 from davis_rig.protocol.decoder import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, DecoderStats, StreamDecoder
