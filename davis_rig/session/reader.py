@@ -247,6 +247,33 @@ class SessionReader:
         stop = self.event_index(t1_us)
         return self._read_events(start, stop)
 
+    def iter_windows(self, window_us: int, t_start_us: int | None = None, t_end_us: int | None = None):
+        """Yield ``(t0_us, events)`` for consecutive half-open windows ``[t0, t0 + window_us)`` (device µs).
+
+        Windows are read one at a time (memory stays bounded); empty windows are yielded too, so window ``k``
+        always starts at ``t_start_us + k * window_us``.
+
+        Args:
+            window_us: window length, µs (> 0).
+            t_start_us: first window start, device µs (default: ``t_offset_us``, the recording's first ms).
+            t_end_us: stop before this time, device µs (default: just after the last event).
+
+        Raises:
+            ValueError: ``window_us <= 0``.
+        """
+        if window_us <= 0:
+            raise ValueError(f"window_us must be > 0, got {window_us}")
+        group = self._require_open()[schema.EVENTS_GROUP]
+        t0 = self.t_offset_us if t_start_us is None else int(t_start_us)
+        if t_end_us is None:
+            t_end_us = (int(group["t"][self.num_events - 1]) + self.t_offset_us + 1) if self.num_events else t0
+        start = self.event_index(t0)
+        while t0 < t_end_us:
+            t1 = min(t0 + window_us, t_end_us)
+            stop = self.event_index(t1)
+            yield t0, self._read_events(start, stop)
+            start, t0 = stop, t0 + window_us
+
     @property
     def ms_to_idx(self) -> np.ndarray:
         """int64 [M]: index of the first event with ``t >= t_offset_us + 1000 m`` (DSEC convention)."""

@@ -137,6 +137,22 @@ def test_write_read_property(tmp_path_factory, seed, n, t0_us, span_us, windows)
             np.testing.assert_array_equal(reader.events_between(t0, t1), expected)
 
 
+def test_iter_windows_covers_everything_once(tmp_path, rng):
+    events = random_events(rng, 10_000, t0_us=123_456, span_us=1_000_000)
+    path = write_session(tmp_path / "s.h5", [Chunk(events)])
+    with SessionReader(path) as reader:
+        windows = list(reader.iter_windows(50_000))
+        assert windows[0][0] == 123_000 and all(b[0] - a[0] == 50_000 for a, b in zip(windows, windows[1:]))
+        for t0, window in windows:
+            np.testing.assert_array_equal(window, events[(events["t"] >= t0) & (events["t"] < t0 + 50_000)])
+        np.testing.assert_array_equal(np.concatenate([w for _, w in windows]), events)
+        partial = list(reader.iter_windows(100_000, t_start_us=500_000, t_end_us=650_000))
+        assert [t0 for t0, _ in partial] == [500_000, 600_000]
+        np.testing.assert_array_equal(partial[1][1], events[(events["t"] >= 600_000) & (events["t"] < 650_000)])
+        with pytest.raises(ValueError, match="window_us"):
+            next(reader.iter_windows(0))
+
+
 def test_empty_session(tmp_path):
     path = write_session(tmp_path / "s.h5", [])
     with SessionReader(path) as reader:
