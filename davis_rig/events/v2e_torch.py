@@ -13,9 +13,11 @@ Count modes (``mode``):
   Forward counts are **identical** to :class:`~davis_rig.events.simulator.EventSimulator` (noise-free, same
   dtype): same formulas, same operations.
 * ``"floor"`` — the paper's appendix literally: ``Ŝ_k = (L_k − L_0)/θ``, ``S_k = ⌊Ŝ_k⌋ + r_k``, ``D = S_{k+1} − S_k``,
-  ``N⁺ = h(D)``, ``N⁻ = h(−D)``. It counts crossings of a fixed level grid ``L_0 + nθ`` (no hysteresis), which
-  equals the DVS model whenever each pixel's log intensity is monotonic over the clip; at a reversal the grid
-  model fires one extra event (e.g. up 1.5 θ then down 1.0 θ: grid 1 ON + 1 OFF, DVS 1 ON + 0 OFF).
+  ``N⁺ = h(D)``, ``N⁻ = h(−D)``. It counts crossings of a fixed level grid ``L_0 + nθ`` without hysteresis, and
+  ``⌊·⌋`` makes it asymmetric: ON levels are ``L_0 + θ, L_0 + 2θ, ...`` (as the DVS) but OFF levels are
+  ``L_0, L_0 − θ, ...`` — a pixel darkening by less than θ already fires one OFF. So it equals the DVS model for
+  brightening pixels, gives one extra OFF per darkening pixel, and one extra event per direction reversal
+  (e.g. up 1.5 θ then down 1.0 θ: grid 1 ON + 1 OFF, DVS 1 ON + 0 OFF). Tests quantify both.
 * ``"official_relaxed"`` — the paper's official code (for comparison only): no floor (``S = Ŝ``), continuous
   counts ``h(±D)`` scaled by ``10/27`` (``10 / ⌊ln 255 / 0.2⌋``). Its per-bin ±1 "sign-correction residual" is not
   reproduced. Not events: do not use it to score attacks.
