@@ -94,9 +94,9 @@ class RasterizedMesh:
             bg = bg.to(dtype)
         if tuple(bg.shape) not in ((h, w), (t, h, w)):
             raise ShapeError(f"background must be [{h}, {w}] or [{t}, {h}, {w}], got {tuple(bg.shape)}")
-        lit = self.shade if values is None else self.shade.to(values.dtype) * values
         if values is not None and tuple(values.shape) != tuple(self.shade.shape):
             raise ShapeError(f"values must be [{self.shade.shape[0]}], got {tuple(values.shape)}")
+        lit = self.shade if values is None else self.shade.to(values.dtype) * values
         out_dtype = lit.dtype
         person = torch.zeros(t * h * w, dtype=out_dtype, device=lit.device).index_add(0, self.sample_pixel, lit)
         person = person.view(t, h, w) / float(self.supersample**2)

@@ -1,0 +1,93 @@
+"""Scene composition: clip timing, placement, heading, motions, jitter, labels, gradients to the texture."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from davis_rig.scene.camera import EgoMotion, EoTJitter
+from davis_rig.scene.scene import Motion, SceneSpec, render_clip, resample_motion, scene_camera, scene_vertices
+from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
+
+
+def test_clip_timing_and_render_rate():
+    spec = SceneSpec(duration_s=0.05, t0_us=1000)
+    assert spec.num_frames == 10  # one 50 ms window at 200 fps = 10 frames
+    assert spec.frame_times_us().tolist() == [1000 + 5000 * k for k in range(10)]
+    assert SceneSpec(render_rate_hz=240, duration_s=0.05).num_frames == 12
+    with pytest.raises(ValueError, match="render_rate_hz"):
+        SceneSpec(render_rate_hz=120)
+
+
+def test_render_clip_outputs(model):
+    spec = SceneSpec(duration_s=0.02, supersample=1, background="random", light="random", seed=3)
+    clip = render_clip(spec, model=model, part_labels=True)
+    t, h, w = clip.video.shape
+    assert (t, h, w) == (4, 240, 304)
+    assert clip.video.dtype == torch.float32
+    assert float(clip.video.min()) >= 0.0 and float(clip.video.max()) <= 1.0
+    assert clip.t_us.tolist() == [0, 5000, 10000, 15000]
+    assert np.isfinite(clip.boxes).all()
+    heights = clip.boxes[:, 3] - clip.boxes[:, 1]
+    person_m = float(model.asset.metadata["heights_m"][0]) if "heights_m" in model.asset.metadata else 1.75
+    assert np.all(np.abs(heights - 150 * person_m / 1.75) < 15)  # middle scale, walking posture
+    centre = (clip.boxes[:, 0] + clip.boxes[:, 2]) / 2
+    assert np.all(np.abs(centre - 152) < 30)  # mid-clip at the optical axis
+    assert clip.part_labels.shape == (4, 240, 304) and clip.part_labels.dtype == np.uint8
+    labels = clip.labels()
+    assert labels.dtype == BBOX_DTYPE and len(labels) == 4
+    assert np.all(labels["class_id"] == PEDESTRIAN_CLASS_ID)
+    np.testing.assert_allclose(labels["h"], heights)
+    # same seed -> same clip
+    again = render_clip(spec, model=model)
+    assert torch.equal(again.video, clip.video)
+
+
+def test_heading_walks_right_and_towards_camera(model):
+    spec = SceneSpec(duration_s=0.3, supersample=1, heading_rad=math.pi / 2)
+    v = scene_vertices(spec, model)
+    x = v[:, :, 0].mean(1).numpy()
+    assert x[-1] - x[0] == pytest.approx(model.asset.walk_cycle(0).speed_m_s * (spec.num_frames - 1) / 200, rel=0.15)
+    towards = scene_vertices(SceneSpec(duration_s=0.3, heading_rad=0.0), model)
+    y = towards[:, :, 1].mean(1).numpy()
+    assert y[-1] < y[0]  # the camera is on the -Y side
+
+
+def test_motion_equals_the_walk_cycle_in_place(model):
+    walk = model.asset.walk_cycle(2)
+    motion = Motion(np.array(walk.rotations_wxyz), np.array(walk.root_translation_m), walk.fps_hz)
+    spec_walk = SceneSpec(shape_index=2, advance=False, duration_s=0.1)
+    spec_motion = SceneSpec(shape_index=2, motion=motion, duration_s=0.1)
+    a = scene_vertices(spec_walk, model)
+    b = scene_vertices(spec_motion, model)
+    # the Motion path centres the root at mid-clip; compare shapes of the body up to that translation
+    shift = (a - b).mean(dim=1, keepdim=True)
+    np.testing.assert_allclose((a - b - shift).numpy(), 0.0, atol=2e-4)
+    rot, root = resample_motion(motion, np.array([0.0, 1.0 / walk.fps_hz, 100.0]))
+    np.testing.assert_allclose(rot[1], walk.rotations_wxyz[1] * np.sign((rot[1] * walk.rotations_wxyz[1]).sum(-1))[:, None], atol=1e-6)
+    np.testing.assert_allclose(root[2], walk.root_translation_m[-1], atol=1e-6)  # clamped at the end
+
+
+def test_jitter_and_ego_motion_cameras():
+    base_r, base_t = scene_camera(SceneSpec(duration_s=0.05))
+    assert np.allclose(base_r, base_r[0]) and np.allclose(base_t, base_t[0])
+    jitter = EoTJitter(rotation_probability=1.0, distance_probability=1.0)
+    r1, t1 = scene_camera(SceneSpec(duration_s=0.05, jitter=jitter, seed=1))
+    r2, t2 = scene_camera(SceneSpec(duration_s=0.05, jitter=jitter, seed=1))
+    assert np.array_equal(r1, r2) and np.array_equal(t1, t2)
+    assert not np.allclose(r1, base_r)
+    ego = EgoMotion(pan_amplitude_rad=0.05, period_s=0.2)
+    r3, _ = scene_camera(SceneSpec(duration_s=0.05, ego_motion=ego))
+    assert not np.allclose(r3[0], r3[5])
+
+
+def test_texture_gradient_flows_through_the_clip(model):
+    from davis_rig.scene.masks import part_mask
+
+    grid = torch.full((10, 10), 0.5, requires_grad=True)
+    clip = render_clip(SceneSpec(duration_s=0.01, supersample=1), grid, model=model, mask=part_mask(("torso",)))
+    clip.video.sum().backward()
+    assert torch.isfinite(grid.grad).all()
+    assert (grid.grad > 0).sum() >= 3  # the visible torso cells
+    assert (grid.grad == 0).sum() > 50  # cells not on the torso (or not visible) get nothing
