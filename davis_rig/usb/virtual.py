@@ -225,6 +225,7 @@ class VirtualDavis346:
         self._bulk_reads = 0
         self._transfer_count = 0
         self._run_start: float | None = None
+        self._streamed_s = 0.0  # device streaming time accumulated over earlier start/stop cycles
         self._rng = np.random.default_rng(faults.seed)
         self._cond = threading.Condition()
         self._read_only = self._build_read_only(logic_version, logic_patch)
@@ -379,7 +380,15 @@ class VirtualDavis346:
         self.registers[key] = int(value)
         if not was_streaming and self.streaming:
             self._run_start = self._clock()
+        elif was_streaming and not self.streaming and self._run_start is not None:
+            self._streamed_s += self._clock() - self._run_start
+            self._run_start = None
         self._cond.notify_all()
+
+    def _device_time_us(self) -> float:
+        """Streaming time of the device, µs: the pacing clock (it pauses while the device is stopped)."""
+        running_s = self._clock() - self._run_start if self._run_start is not None else 0.0
+        return (self._streamed_s + running_s) * 1e6
 
     def clear_halt(self, endpoint: int) -> None:
         """CLEAR_FEATURE(ENDPOINT_HALT)."""
@@ -422,7 +431,7 @@ class VirtualDavis346:
                     if self.streaming and self.source is not None:
                         release_us = self.source.peek_release_us()
                         if release_us is not None:
-                            elapsed_us = (self._clock() - (self._run_start or 0.0)) * 1e6
+                            elapsed_us = self._device_time_us()
                             if release_us <= elapsed_us:
                                 break
                             wake = time.monotonic() + (release_us - elapsed_us) / 1e6
@@ -444,7 +453,7 @@ class VirtualDavis346:
                 and self.streaming
                 and self.source is not None
                 and (nxt := self.source.peek_release_us()) is not None
-                and nxt <= (self._clock() - (self._run_start or 0.0)) * 1e6
+                and nxt <= self._device_time_us()
             ):
                 more = self._shape_transfer(self.source.pop())
                 if not more:

@@ -159,6 +159,22 @@ def test_pacing_releases_transfers_on_the_device_clock():
         assert t.read_data(8192, 10) == b"\x01\x80"
 
 
+def test_pacing_clock_pauses_while_the_device_is_stopped():
+    clock = _ManualClock()
+    source = DataSource()
+    source._push(3000.0, b"\x00\x80")
+    dev = VirtualDavis346(source=source, clock=clock)
+    with UsbTransport.open(backend=VirtualDavis346Backend(dev)) as t:
+        _start(t)
+        clock.now += 0.002  # 2 ms streamed
+        t.config_write(0, 0, 0)  # MUX RUN off: device stopped
+        clock.now += 10.0  # a long pause does not count
+        t.config_write(0, 0, 1)
+        assert t.read_data(8192, 10) is None  # device time 2 ms < 3 ms
+        clock.now += 0.001
+        assert t.read_data(8192, 10) == b"\x00\x80"
+
+
 def test_read_only_registers_ignore_writes_and_writes_are_recorded():
     dev = VirtualDavis346()
     with UsbTransport.open(backend=VirtualDavis346Backend(dev)) as t:
