@@ -1,0 +1,154 @@
+"""The physical evaluation end to end on a session recorded through the virtual DAVIS346, with oracle RVT graphs
+(known answers) and the mini RVT (consistency)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from davis_rig.errors import FormatError, ModelFormatError, SessionError
+from davis_rig.evaluation.physical import (
+    EvalSettings,
+    compute_metrics,
+    evaluate_sessions,
+    label_windows,
+    score_session,
+)
+from davis_rig.labelers.session_labels import label_session
+from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+from davis_rig.types import BBOX_DTYPE
+
+from eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
+
+SETTINGS = EvalSettings(seq_len=5)
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("physical")
+    session = scene_session(directory, "labelled.h5")
+    label_session(session, person_yolo(directory))
+    return session
+
+
+def evaluate(session, model, settings=SETTINGS):
+    results, scores = evaluate_sessions([session], model, settings)
+    return results[0].metrics, scores[0]
+
+
+def test_perfect_detector_ap_one_seqasr_zero(labelled, tmp_path):
+    metrics, scores = evaluate(labelled, person_rvt(tmp_path))
+    assert len(scores.window_end_us) == SCENE_US // 50_000 + 1  # grid covers events (last ms) and labels
+    for th in (0.001, 0.01, 0.1, 0.25):
+        m = metrics[th]
+        assert m["AP"] == pytest.approx(1.0) and m["AP_50"] == pytest.approx(1.0)
+        assert m["seq_asr"] == 0.0 and m["seq_asr_strict"] == 0.0
+    # 49 labels at 7.1 ms + 40 ms k (exposure middles); after 0.5 s: k = 13..48 -> 36 labels, in windows
+    # 10 (ends 550 ms) .. 38 (ends 1950 ms) = 29 consecutive labelled windows -> 29 // 5 = 5 sequences
+    assert metrics[0.25]["num_labels"] == metrics[0.25]["num_images"] == 36
+    assert metrics[0.25]["num_sequences"] == 5 and metrics[0.25]["num_detected"] == 5
+
+
+def test_no_detections_ap_zero_seqasr_one(labelled, tmp_path):
+    metrics, _ = evaluate(labelled, person_rvt(tmp_path, score=0.0))
+    for m in metrics.values():
+        assert m["AP"] == 0.0 and m["seq_asr"] == 1.0 and m["seq_asr_strict"] == 1.0 and m["num_detections"] == 0
+
+
+def test_shifted_boxes_known_ap_and_strict_seqasr(labelled, tmp_path):
+    # label 80 px wide: a shift of 8 px gives IoU 72/88 = 0.818 (7 of 10 COCO thresholds), 40 px gives 1/3.
+    near, _ = evaluate(labelled, person_rvt(tmp_path, shift_px=8, name="near.onnx"), EvalSettings(seq_len=5,
+                                                                                                    thresholds=(0.1,)))
+    assert near[0.1]["AP"] == pytest.approx(0.7) and near[0.1]["AP_75"] == pytest.approx(1.0)
+    assert near[0.1]["seq_asr"] == 0.0 and near[0.1]["seq_asr_strict"] == 0.0
+    far, _ = evaluate(labelled, person_rvt(tmp_path, shift_px=40, name="far.onnx"), EvalSettings(seq_len=5,
+                                                                                                  thresholds=(0.1,)))
+    assert far[0.1]["AP"] == 0.0
+    assert far[0.1]["seq_asr"] == 0.0 and far[0.1]["seq_asr_strict"] == 1.0  # paper: any box; strict: IoU < 0.5
+
+
+def test_threshold_monotonicity_with_a_low_score_detector(labelled, tmp_path):
+    metrics, _ = evaluate(labelled, person_rvt(tmp_path, score=0.05))
+    assert [metrics[t]["seq_asr"] for t in (0.001, 0.01, 0.1, 0.25)] == [0.0, 0.0, 1.0, 1.0]
+    assert [metrics[t]["AP"] for t in (0.001, 0.01, 0.1, 0.25)] == pytest.approx([1.0, 1.0, 0.0, 0.0])
+
+
+def test_skip_first_and_sliding_sequences_are_options(labelled, tmp_path):
+    model = person_rvt(tmp_path)
+    keep_all, _ = evaluate(labelled, model, EvalSettings(seq_len=5, skip_first_us=None, thresholds=(0.25,)))
+    assert keep_all[0.25]["num_labels"] == 49
+    sliding, _ = evaluate(labelled, model, EvalSettings(seq_len=5, seq_stride=1, thresholds=(0.25,)))
+    assert sliding[0.25]["num_sequences"] == 29 - 5 + 1  # 29 labelled windows after 0.5 s
+
+
+def test_scores_carry_states_and_match_the_runner_on_the_same_windows(labelled, tmp_path):
+    pytest.importorskip("torch", reason="exporting the mini RVT needs torch")
+    from davis_rig.events.crop import crop_events
+    from davis_rig.models.rvt import RVTConfig, RVTDetector, export_step_onnx
+    from davis_rig.session import SessionReader
+
+    import torch
+
+    torch.manual_seed(0)
+    model = export_step_onnx(RVTDetector(RVTConfig.mini()), tmp_path / "mini.onnx")
+    runner = RVTOnnxRunner(model)
+    scores = score_session(labelled, runner, EvalSettings(thresholds=(0.01,), chunk_windows=7))
+    with SessionReader(labelled) as reader:
+        events = crop_events(reader.events())
+    expected = runner.score_stream(events["x"], events["y"], events["t"], events["p"], scores.window_end_us, 0.01)
+    assert len(expected) == len(scores.detections[0.01])
+    for got, want in zip(scores.detections[0.01], expected):
+        assert (got is None and want is None) or np.array_equal(got, want)
+    metrics = compute_metrics(scores, EvalSettings(thresholds=(0.01,)))[0.01]
+    assert 0.0 <= metrics["AP"] <= 1.0 and metrics["seq_asr_strict"] >= metrics["seq_asr"]
+
+
+def test_label_windows_assignment():
+    labels = np.zeros(4, BBOX_DTYPE)
+    labels["t"] = [1, 50_000, 50_001, 400_000]
+    assert label_windows(labels, np.array([50_000, 100_000]), 50_000).tolist() == [0, 0, 1, -1]
+
+
+def test_bad_inputs_raise_before_scoring_and_leave_files_untouched(labelled, tmp_path):
+    unlabelled = scene_session(tmp_path, "unlabelled.h5")
+    before = sha256(unlabelled)
+    with pytest.raises(SessionError, match="no /labels"):
+        evaluate_sessions([labelled, unlabelled], person_rvt(tmp_path), SETTINGS)
+    assert sha256(unlabelled) == before
+    with pytest.raises(FormatError, match="no such RVT ONNX"):
+        evaluate_sessions([labelled], tmp_path / "missing.onnx", SETTINGS)
+    with pytest.raises(ModelFormatError, match="not an RVT step graph"):
+        evaluate_sessions([labelled], person_yolo(tmp_path), SETTINGS)
+    with pytest.raises(SessionError, match="no such session"):
+        evaluate_sessions([tmp_path / "nothing.h5"], person_rvt(tmp_path), SETTINGS)
+    with pytest.raises(ValueError):
+        EvalSettings(thresholds=(1.5,))
+
+
+def test_empty_labels_are_refused(tmp_path):
+    import h5py
+
+    session = scene_session(tmp_path, "empty_labels.h5")
+    from davis_rig.labelers.session_labels import write_labels
+
+    write_labels(session, np.zeros(0, BBOX_DTYPE), {"labeler": "test"})
+    with pytest.raises(SessionError, match="empty"):
+        evaluate_sessions([session], person_rvt(tmp_path), SETTINGS)
+    with h5py.File(session, "r") as f:
+        assert len(f["labels/boxes"]) == 0
+
+
+def test_report_json_round_trip_has_every_number(labelled, tmp_path):
+    from davis_rig.evaluation.report import report_dict
+
+    results, _ = evaluate_sessions([labelled], person_rvt(tmp_path), SETTINGS)
+    data = json.loads(json.dumps(report_dict(results, SETTINGS)))
+    recorded = data["recordings"][0]
+    assert data["settings"]["seq_len"] == 5 and data["settings"]["thresholds"] == [0.001, 0.01, 0.1, 0.25]
+    assert recorded["metrics"]["0.25"]["AP"] == pytest.approx(1.0)
+    assert recorded["metrics"]["0.25"]["AP_S"] is None  # NaN -> null
+    assert set(recorded["info"]["timings_s"]) == {"read", "histogram", "inference", "postprocess", "metrics"}
+    assert not any(isinstance(v, float) and math.isnan(v) for v in recorded["metrics"]["0.25"].values())
