@@ -108,7 +108,7 @@ def _record(args: argparse.Namespace) -> int:
     from davis_rig.session.record import record_session
 
     stop = threading.Event()
-    backend = None
+    backend, exhausted = None, None
     if args.fake is not None:
         backend, exhausted = fake_backend(args.fake, args.fake_fast)
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
@@ -131,10 +131,13 @@ def _record(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(file=sys.stderr)
     rate = summary.events / summary.duration_s / 1e6 if summary.duration_s > 0 else 0.0
+    stopped_by = summary.stopped_by
+    if stopped_by == "stop" and exhausted is not None and exhausted():
+        stopped_by = "end of replay"
     print(
         f"{summary.path}: {summary.events} events ({rate:.3f} Mev/s), {summary.frames} frames, "
         f"{summary.specials} special events, {summary.imu} IMU samples in {summary.duration_s:.1f} s; "
-        f"stopped by {summary.stopped_by}; dropped transfers: {summary.dropped_transfers}"
+        f"stopped by {stopped_by}; dropped transfers: {summary.dropped_transfers}"
     )
     return EXIT_OK
 

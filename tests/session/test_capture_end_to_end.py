@@ -91,7 +91,7 @@ def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
     )
     assert result.returncode == 0, result.stderr
     assert f"{len(events)} events" in result.stdout and "dropped transfers: 0" in result.stdout
-    assert "stopped by stop" in result.stdout  # the replay ended the recording
+    assert "stopped by end of replay" in result.stdout
     assert "Mev/s" in result.stderr  # the live progress line
     assert_same(out, events, frames)
     again = subprocess.run([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
