@@ -1,0 +1,140 @@
+"""``davis-eval``: one table column per recording, report files, messages and exit codes on bad input."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from davis_rig.cli import eval as cli
+from davis_rig.labelers.session_labels import label_session
+
+if "eval_data" not in sys.modules:
+    _spec = importlib.util.spec_from_file_location(
+        "eval_data", Path(__file__).resolve().parents[1] / "evaluation" / "eval_data.py")
+    sys.modules["eval_data"] = importlib.util.module_from_spec(_spec)
+    _spec.loader.exec_module(sys.modules["eval_data"])
+
+from eval_data import person_rvt, person_yolo, scene_session, sha256  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("cli_eval")
+    a, b = scene_session(directory, "a.h5"), scene_session(directory, "b.h5")
+    label_session(a, person_yolo(directory))
+    label_session(b, person_yolo(directory))
+    return directory, a, b
+
+
+def test_two_recordings_one_table_and_a_full_report(sessions, tmp_path, capsys):
+    pytest.importorskip("matplotlib", reason="the plot needs the report extra")
+    pytest.importorskip("PIL", reason="the GIF needs the report extra")
+    directory, a, b = sessions
+    good, blind = person_rvt(tmp_path), person_rvt(tmp_path, score=0.0, name="blind.onnx")
+    before = sha256(a), sha256(b)
+    code = cli.main([str(a), str(b), "--model", str(good), "--names", "Case 1,Ours", "--seq-len", "5",
+                     "--report", str(tmp_path / "rep"), "--gif-seconds", "0.5", "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "| Metric | Confidence threshold | Case 1 | Ours |" in out
+    assert "| AP ↓ | 0.001 | 100.0% | 100.0% |" in out and "| SeqASR ↑ | 0.25 | 0.0% | 0.0% |" in out
+    rep = tmp_path / "rep"
+    for name in ("report.json", "table.md", "ap_seqasr.png", "Case_1.gif", "Ours.gif"):
+        assert (rep / name).stat().st_size > 0, name
+    data = json.loads((rep / "report.json").read_text())
+    assert [r["name"] for r in data["recordings"]] == ["Case 1", "Ours"]
+    assert data["recordings"][1]["metrics"]["0.1"]["seq_asr"] == 0.0
+    assert (rep / "table.md").read_text() in out
+    from PIL import Image
+
+    assert Image.open(rep / "Ours.gif").n_frames == 10
+    assert (sha256(a), sha256(b)) == before  # evaluation never writes to the sessions
+
+    assert cli.main([str(a), "--model", str(blind), "--threshold", "0.25", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "| AP ↓ | 0.25 | 0.0% |" in out and "| SeqASR ↑ | 0.25 | 100.0% |" in out and "0.001" not in out
+
+
+def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
+    calls = []
+
+    def fake(paths, model, settings, names=None, progress=None):
+        calls.append((paths, model, settings, names, progress))
+        from davis_rig.evaluation.physical import RecordingResult
+
+        metrics = {t: {"AP": 0.5, "seq_asr": 0.25, "seq_asr_strict": 0.5} for t in settings.thresholds}
+        return [RecordingResult("x", "x.h5", metrics, {})], [None]
+
+    monkeypatch.setattr("davis_rig.evaluation.physical.evaluate_sessions", fake)
+    assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1", "0.2", "--seq-len", "3", "--seq-stride", "1",
+                     "--skip-first-ms", "0", "--crop-origin", "0", "0", "--coco-backend", "pycocotools",
+                     "--threads", "1", "--quiet"]) == 0
+    paths, model, settings, names, progress = calls[0]
+    assert (paths, model, names, progress) == (["x.h5"], "m.onnx", None, None)
+    assert settings.thresholds == (0.1, 0.2) and settings.seq_len == 3 and settings.seq_stride == 1
+    assert settings.skip_first_us is None and settings.crop_origin_xy == (0, 0)
+    assert settings.coco_backend == "pycocotools" and settings.intra_op_threads == 1 and settings.gif_windows == 0
+    assert "| SeqASR ↑ | 0.2 | 25.0% |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv_tail, message", [
+    (["--names", "a,b"], "--names has 2 names for 1 sessions"),
+    (["--seq-len", "0"], "--seq-len"),
+    (["--threshold", "2"], "thresholds must be in [0, 1]"),
+])
+def test_bad_arguments_exit_2(argv_tail, message, capsys):
+    assert cli.main(["x.h5", *argv_tail]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bad_inputs_exit_nonzero_with_a_message(sessions, tmp_path, capsys):
+    import h5py
+
+    directory, a, _ = sessions
+    model = person_rvt(tmp_path)
+    unlabelled = scene_session(tmp_path, "unlabelled.h5")
+    no_events = tmp_path / "no_events.h5"
+    no_events.write_bytes(unlabelled.read_bytes())
+    with h5py.File(no_events, "r+") as f:
+        for name in ("t", "x", "y", "p", "ms_to_idx"):
+            f["events"][name].resize((0,))
+    other_sensor = tmp_path / "other_sensor.h5"
+    _other_sensor_session(other_sensor)
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(a.read_bytes()[:40_000])
+    cases = [
+        ([str(unlabelled), "--model", str(model)], 4, "no /labels"),
+        ([str(no_events), "--model", str(model)], 4, "no events"),
+        ([str(truncated), "--model", str(model)], 4, "cannot open as HDF5"),
+        ([str(a), "--model", str(person_yolo(tmp_path))], 4, "not an RVT step graph"),
+        ([str(other_sensor), "--model", str(model)], 4, "expected a DAVIS346 recording"),
+        ([str(a)], 5, "bundled default detector"),
+    ]
+    for argv, code, message in cases:
+        before = {p: sha256(p) for p in (unlabelled, no_events, truncated, a, other_sensor)}
+        assert cli.main([*argv, "--quiet"]) == code, argv
+        err = capsys.readouterr().err
+        assert err.startswith("davis-eval: error:") and message in err, err
+        assert {p: sha256(p) for p in before} == before
+
+
+def _other_sensor_session(path):
+    """A labelled session of a 240x180 sensor (wrong resolution for the DAVIS346 evaluation)."""
+    import numpy as np
+
+    from davis_rig.labelers.session_labels import write_labels
+    from davis_rig.protocol.frames import ApsFrame
+    from davis_rig.session import SessionWriter
+    from davis_rig.types import BBOX_DTYPE, make_events
+
+    info = {"layout": {"aps_size_columns": 240, "aps_size_rows": 180, "dvs_size_columns": 240, "dvs_size_rows": 180}}
+    with SessionWriter(path, device_info=info) as writer:
+        writer.append_events(make_events([10, 20], [1, 2], [1, 2], [0, 1]))
+        writer.append_frame(ApsFrame(np.zeros((180, 240), np.uint16), 0, 0, 0, 1, 2, 3))
+    labels = np.zeros(1, BBOX_DTYPE)
+    labels["w"] = labels["h"] = 50
+    write_labels(path, labels, {"labeler": "test"})
