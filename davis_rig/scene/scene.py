@@ -117,7 +117,9 @@ class SceneSpec:
         camera: intrinsics (default: the RVT 304 x 240 crop of the DAVIS346).
         camera_height_m: camera centre height (m); ``None`` = half of 1.75 m (horizontal view of a person).
         jitter: EoT camera jitter (sampled from ``seed``) or ``None``.
-        ego_motion: camera ego-motion or ``None``.
+        ego_motion: camera ego-motion or ``None``. The background then moves too: it is treated as a plane
+            facing the resting camera at ``background_depth_m`` and warped by that plane's homography.
+        background_depth_m: depth of the background plane (m); ``None`` = camera distance + 10 m.
         light: a :class:`Light`, ``"random"`` (from ``seed``) or ``None`` (default light).
         background: float [H, W] array, a scalar intensity, or ``"random"`` (procedural, from ``seed``).
         render_rate_hz: frames per second (>= 200).
@@ -139,6 +141,7 @@ class SceneSpec:
     camera_height_m: float | None = None
     jitter: EoTJitter | None = None
     ego_motion: EgoMotion | None = None
+    background_depth_m: float | None = None
     light: Light | str | None = None
     background: object = 0.5
     render_rate_hz: float = MIN_RENDER_RATE_HZ
@@ -177,7 +180,7 @@ class Clip:
         vertex_boxes: float32 [T, 4], projected-vertex boxes clipped to the frame (NaN: none).
         coverage: float32 tensor [T, H, W], person coverage alpha.
         part_labels: uint8 [T, H, W] part code per pixel (255 = background), or ``None``.
-        background: float32 tensor [H, W] used.
+        background: float32 tensor [H, W] used ([T, H, W] with ego-motion: warped per frame).
         raster: the :class:`~davis_rig.scene.renderer.RasterizedMesh` (re-render other textures with
             ``raster.lookup(...)`` + ``raster.compose(...)``, differentiably).
         spec: the :class:`SceneSpec`.
@@ -276,6 +279,25 @@ def scene_camera(spec: SceneSpec, rng: np.random.Generator | None = None) -> tup
     return np.broadcast_to(rotation, (n, 3, 3)).copy(), np.broadcast_to(translation, (n, 3)).copy()
 
 
+def _warp_background(background: np.ndarray, camera: PinholeCamera, rotation, translation, depth_m: float):
+    """Per-frame views of a background plane ``z = depth_m`` of the first frame's camera, float32 [T, H, W]."""
+    import cv2
+
+    k = camera.matrix.copy()
+    k[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
+    k[1, 2] -= 0.5
+    k_inv = np.linalg.inv(k)
+    normal = np.array([0.0, 0.0, 1.0])
+    h, w = camera.hw
+    frames = []
+    for r_k, t_k in zip(rotation, translation):  # one homography per frame
+        r_rel = r_k @ rotation[0].T
+        t_rel = t_k - r_rel @ translation[0]
+        homography = k @ (r_rel + np.outer(t_rel, normal) / depth_m) @ k_inv
+        frames.append(cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT))
+    return np.stack(frames).astype(np.float32)
+
+
 def render_clip(
     spec: SceneSpec,
     texture=None,
@@ -326,9 +348,15 @@ def render_clip(
         background = random_background(hw, rng)
     elif np.isscalar(background):
         background = uniform(hw, float(background))
-    background = torch.as_tensor(np.asarray(background, dtype=np.float32), device=model.device)
+    background = np.asarray(background, dtype=np.float32)
     if tuple(background.shape) != hw:
         raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
+    if spec.ego_motion is not None:
+        depth = spec.background_depth_m
+        if depth is None:
+            depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
+        background = _warp_background(background, spec.camera, rotation, translation, depth)
+    background = torch.as_tensor(background, device=model.device)
     vertices = scene_vertices(spec, model)
     raster = rasterize_mesh(
         vertices,

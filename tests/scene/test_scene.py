@@ -91,3 +91,16 @@ def test_texture_gradient_flows_through_the_clip(model):
     assert torch.isfinite(grid.grad).all()
     assert (grid.grad > 0).sum() >= 3  # the visible torso cells
     assert (grid.grad == 0).sum() > 50  # cells not on the torso (or not visible) get nothing
+
+
+def test_ego_motion_moves_the_background(model):
+    from davis_rig.scene.background import stripes
+
+    pattern = stripes((240, 304), period_px=16, low=0.0, high=1.0)
+    still = render_clip(SceneSpec(duration_s=0.02, supersample=1, background=pattern), model=model)
+    assert still.background.shape == (240, 304)
+    pan = EgoMotion(pan_amplitude_rad=0.02, period_s=0.2)
+    moving = render_clip(SceneSpec(duration_s=0.02, supersample=1, background=pattern, ego_motion=pan), model=model)
+    assert moving.background.shape == (4, 240, 304)
+    np.testing.assert_allclose(moving.background[0].numpy(), pattern, atol=1e-5)  # first frame: rest pose
+    assert not torch.allclose(moving.background[3], moving.background[0], atol=0.05)
