@@ -72,7 +72,7 @@ def test_stop_event_and_duration(tmp_path, rng):
     summary = record_session(FakeCamera(transfers), tmp_path / "a.h5", stop_event=stop)
     assert summary.stopped_by == "stop" and summary.events < 20_000
     summary = record_session(FakeCamera(transfers, delay_s=0.01), tmp_path / "b.h5", duration_s=0.2)
-    assert summary.stopped_by == "duration" and 0.2 <= summary.duration_s < 2.0
+    assert summary.stopped_by == "duration" and 0.2 <= summary.duration_s < 10.0
     with SessionReader(tmp_path / "b.h5") as reader:
         assert reader.num_events == summary.events
 
