@@ -72,7 +72,8 @@ def nms(boxes, scores, iou_threshold: float) -> np.ndarray:
     order = _stable_argsort_desc(scores)
     # Work in score order: position k is the k-th box the kernel visits.
     x1, y1, x2, y2 = (np.ascontiguousarray(boxes[order, k]) for k in range(4))
-    areas = (x2 - x1) * (y2 - y1)
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN/inf boxes: NaN areas never suppress, as in C++
+        areas = (x2 - x1) * (y2 - y1)
     rows, cols = _suppression_pairs(x1, y1, x2, y2, areas, float(iou_threshold))
     # Greedy pass (sequential by nature): a box not yet suppressed is kept and suppresses its later partners.
     row_starts = np.searchsorted(rows, np.arange(n + 1)).tolist()
@@ -96,49 +97,84 @@ def _float32_above(threshold: float) -> np.float32:
     return np.float32(t32)
 
 
-def _suppression_pairs(x1, y1, x2, y2, areas, threshold: float, block_rows: int = 512):
+#: Above this many sweep candidates the pairs are generated block by block instead (bounded memory).
+_MAX_SWEEP_PAIRS = 4_000_000
+
+
+def _overlap_candidates_sweep(x1, y1, x2, y2, n_pairs_limit: int):
+    """Pairs ``(i, j)``, ``i < j``, whose boxes overlap strictly in x and y (sweep over boxes sorted by x1).
+
+    For the box ``a`` earlier in x1 order, its partners are the boxes after it with ``x1 < x2_a`` (one
+    ``searchsorted``); the 4 strict overlap conditions are then checked on those. Returns ``None`` when there
+    would be more than ``n_pairs_limit`` sweep candidates.
+    """
+    n = x1.shape[0]
+    by_x = np.argsort(x1, kind="stable")
+    sorted_x1 = x1[by_x]
+    ends = np.searchsorted(sorted_x1, x2[by_x], side="left")
+    positions = np.arange(n)
+    counts = np.maximum(ends - positions - 1, 0)
+    total = int(counts.sum())
+    if total > n_pairs_limit:
+        return None
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    first = np.repeat(positions, counts)
+    group_starts = np.repeat(np.cumsum(counts) - counts, counts)
+    second = first + 1 + (np.arange(total) - group_starts)
+    a, b = by_x[first], by_x[second]
+    overlap = (x1[b] < x2[a]) & (x1[a] < x2[b]) & (y1[b] < y2[a]) & (y1[a] < y2[b])
+    a, b = a[overlap], b[overlap]
+    return np.minimum(a, b), np.maximum(a, b)
+
+
+def _overlap_candidates_blocks(x1, y1, x2, y2, block_rows: int = 512):
+    """Same pairs as :func:`_overlap_candidates_sweep`, from dense comparisons in row blocks (any overlap)."""
+    n = x1.shape[0]
+    rows, cols = [], []
+    for start in range(0, n, block_rows):
+        stop = min(start + block_rows, n)
+        ax1, ay1, ax2, ay2 = x1[start:stop, None], y1[start:stop, None], x2[start:stop, None], y2[start:stop, None]
+        candidate = (x1[None, start:] < ax2) & (ax1 < x2[None, start:])
+        candidate &= (y1[None, start:] < ay2) & (ay1 < y2[None, start:])
+        i, j = np.nonzero(candidate)
+        i, j = i + start, j + start
+        later = j > i
+        rows.append(i[later])
+        cols.append(j[later])
+    return np.concatenate(rows), np.concatenate(cols)
+
+
+def _suppression_pairs(x1, y1, x2, y2, areas, threshold: float):
     """All pairs (i < j, score order) whose IoU, computed like torchvision's kernel, is > ``threshold``.
 
     The IoU arithmetic is the kernel's, elementwise in float32 with the kept box as first operand:
     ``xx1 = max(x1_i, x1_j)`` (C++ ``std::max``), ``w = max(0, xx2 - xx1)``, ``inter = w·h``,
-    ``ovr = inter / (area_i + area_j - inter)``. Pairs whose boxes cannot overlap are skipped first (such
-    pairs give ``inter = 0`` or NaN in the kernel, never a suppression), so the exact formula runs only on
-    overlapping candidates. Returns ``(rows, cols)`` int64 arrays sorted by row.
+    ``ovr = inter / (area_i + area_j - inter)``. Only pairs whose extents overlap strictly are evaluated: any
+    other pair gives ``inter = 0`` or NaN in the kernel, never a suppression. Returns ``(rows, cols)`` int64
+    arrays sorted by row.
     """
-    n = x1.shape[0]
     t32 = _float32_above(threshold)
     zero = np.float32(0)
-    all_rows, all_cols = [], []
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        for start in range(0, n, block_rows):
-            stop = min(start + block_rows, n)
-            # candidates j > i with strictly overlapping extents (a superset of the suppressing pairs)
-            ax1, ay1, ax2, ay2 = x1[start:stop, None], y1[start:stop, None], x2[start:stop, None], y2[start:stop, None]
-            candidate = (x1[None, start:] < ax2) & (ax1 < x2[None, start:])
-            candidate &= (y1[None, start:] < ay2) & (ay1 < y2[None, start:])
-            i, j = np.nonzero(candidate)
-            j = j + start
-            i = i + start
-            later = j > i
-            i, j = i[later], j[later]
-            if i.size == 0:
-                continue
-            xx1 = np.where(x1[i] < x1[j], x1[j], x1[i])
-            yy1 = np.where(y1[i] < y1[j], y1[j], y1[i])
-            xx2 = np.where(x2[j] < x2[i], x2[j], x2[i])
-            yy2 = np.where(y2[j] < y2[i], y2[j], y2[i])
-            w = xx2 - xx1
-            h = yy2 - yy1
-            w = np.where(zero < w, w, zero)
-            h = np.where(zero < h, h, zero)
-            inter = w * h
-            ovr = inter / (areas[i] + areas[j] - inter)
-            hit = ovr > t32
-            all_rows.append(i[hit])
-            all_cols.append(j[hit])
-    if not all_rows:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(all_rows).astype(np.int64), np.concatenate(all_cols).astype(np.int64)
+        pairs = _overlap_candidates_sweep(x1, y1, x2, y2, _MAX_SWEEP_PAIRS)
+        i, j = pairs if pairs is not None else _overlap_candidates_blocks(x1, y1, x2, y2)
+        if i.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        xx1 = np.where(x1[i] < x1[j], x1[j], x1[i])
+        yy1 = np.where(y1[i] < y1[j], y1[j], y1[i])
+        xx2 = np.where(x2[j] < x2[i], x2[j], x2[i])
+        yy2 = np.where(y2[j] < y2[i], y2[j], y2[i])
+        w = xx2 - xx1
+        h = yy2 - yy1
+        w = np.where(zero < w, w, zero)
+        h = np.where(zero < h, h, zero)
+        inter = w * h
+        ovr = inter / (areas[i] + areas[j] - inter)
+        hit = ovr > t32
+    i, j = i[hit], j[hit]
+    order = np.argsort(i, kind="stable")
+    return i[order].astype(np.int64), j[order].astype(np.int64)
 
 
 def torch_cpu_unstable_argsort_desc(values) -> np.ndarray:
@@ -338,8 +374,10 @@ def batched_nms(boxes, scores, idxs, iou_threshold: float, *, path: str = "auto"
         keep = np.nonzero(keep_mask)[0]
         return keep[torch_cpu_unstable_argsort_desc(scores[keep])]
     max_coordinate = boxes.max()
-    offsets = idxs.astype(np.float32) * (max_coordinate + np.float32(1))
-    return nms(boxes + offsets[:, None], scores, iou_threshold)
+    with np.errstate(invalid="ignore", over="ignore"):
+        offsets = idxs.astype(np.float32) * (max_coordinate + np.float32(1))
+        shifted = boxes + offsets[:, None]
+    return nms(shifted, scores, iou_threshold)
 
 
 def postprocess(

@@ -224,3 +224,24 @@ def test_unstable_sort_emulation_matches_torch_past_the_depth_limit(n):
     got = torch_cpu_unstable_argsort_desc(values)
     np.testing.assert_array_equal(got, expected)
     assert not np.array_equal(got, np.argsort(-values, kind="stable"))  # ties really are reordered
+
+
+def test_candidate_sweep_and_dense_blocks_give_the_same_nms(monkeypatch):
+    import davis_rig.models.rvt.postprocess as postprocess_module
+
+    rng = np.random.default_rng(5)
+    cases = []
+    for trial in range(60):
+        n = int(rng.integers(1, 400))
+        boxes, scores, idxs = _random_boxes(rng, n)
+        boxes[rng.integers(0, n, 2), 2] -= 60  # some inverted boxes
+        if trial % 3 == 0:
+            boxes = np.round(boxes / 10) * 10  # touching edges, duplicates
+            scores = np.round(scores * 4) / 4
+        if trial % 5 == 0:
+            boxes[rng.integers(0, n, 2), rng.integers(0, 4, 2)] = np.nan
+        cases.append((boxes, scores, idxs))
+    sweep = [batched_nms(b, s, c, 0.45) for b, s, c in cases]
+    monkeypatch.setattr(postprocess_module, "_MAX_SWEEP_PAIRS", 0)  # force the dense block comparisons
+    for (b, s, c), expected in zip(cases, sweep):
+        np.testing.assert_array_equal(batched_nms(b, s, c, 0.45), expected)
