@@ -140,24 +140,32 @@ def rasterize(
         return fragments
     with torch.no_grad():
         scale = torch.tensor([s, s, 1.0], dtype=dtype, device=device)
-        tri = (vertices_px * scale)[:, faces.long()]  # [T, F, 3 corners, 3]
-        x, y, z = tri[..., 0], tri[..., 1], tri[..., 2]
-        area = (x[..., 1] - x[..., 0]) * (y[..., 2] - y[..., 0]) - (x[..., 2] - x[..., 0]) * (y[..., 1] - y[..., 0])
-        keep = (z > near_m).all(dim=-1) & (area != 0)
+        # coordinate-major [3, T, V] so each corner gather is one contiguous index_select
+        comp = (vertices_px * scale).permute(2, 0, 1).contiguous()
+        fl = faces.long()
+        c0, c1, c2 = (comp.index_select(2, fl[:, k]) for k in range(3))  # each [3, T, F]
+        x0_, x1_, x2_ = c0[0], c1[0], c2[0]
+        y0_, y1_, y2_ = c0[1], c1[1], c2[1]
+        z0_, z1_, z2_ = c0[2], c1[2], c2[2]
+        area = (x1_ - x0_) * (y2_ - y0_) - (x2_ - x0_) * (y1_ - y0_)
+        keep = (z0_ > near_m) & (z1_ > near_m) & (z2_ > near_m) & (area != 0)
         if cull_backfaces:
             keep &= area < 0  # counter-clockwise as seen = negative signed area in y-down pixel coordinates
         # sample j has its centre at j + 0.5 (sample units): the bbox holds j in [ceil(min-0.5), floor(max-0.5)]
-        x0 = torch.ceil(x.min(dim=-1).values - 0.5).clamp(0, ws).long()
-        x1 = torch.floor(x.max(dim=-1).values - 0.5).clamp(-1, ws - 1).long()
-        y0 = torch.ceil(y.min(dim=-1).values - 0.5).clamp(0, hs).long()
-        y1 = torch.floor(y.max(dim=-1).values - 0.5).clamp(-1, hs - 1).long()
-        bw = (x1 - x0 + 1).clamp(min=0)
-        bh = (y1 - y0 + 1).clamp(min=0)
-        counts = torch.where(keep, bw * bh, torch.zeros_like(bw)).reshape(-1)  # [T*F]
+        xmin = torch.ceil(torch.minimum(torch.minimum(x0_, x1_), x2_) - 0.5).clamp(0, ws)
+        xmax = torch.floor(torch.maximum(torch.maximum(x0_, x1_), x2_) - 0.5).clamp(-1, ws - 1)
+        ymin = torch.ceil(torch.minimum(torch.minimum(y0_, y1_), y2_) - 0.5).clamp(0, hs)
+        ymax = torch.floor(torch.maximum(torch.maximum(y0_, y1_), y2_) - 0.5).clamp(-1, hs - 1)
+        bw = (xmax - xmin + 1).clamp(min=0)
+        bh = (ymax - ymin + 1).clamp(min=0)
+        counts = torch.where(keep, bw * bh, torch.zeros_like(bw)).reshape(-1).long()  # [T*F]
         live = torch.nonzero(counts > 0).squeeze(1)
         if live.numel() == 0:
             return fragments
-        counts = counts[live]
+        counts = counts.index_select(0, live)
+        # per live face: x0 x1 x2 y0 y1 y2 z0 z1 z2, 1/area, bbox x, y, width (one contiguous row each)
+        columns = (x0_, x1_, x2_, y0_, y1_, y2_, z0_, z1_, z2_, 1.0 / area, xmin, ymin, bw)
+        table = torch.stack([c.reshape(-1).index_select(0, live) for c in columns], dim=1)
         # chunks of faces with <= max_pairs candidate pairs each (a single huge face forms its own chunk)
         cumulative = torch.cumsum(counts, 0)
         bounds = [0]
@@ -169,43 +177,37 @@ def rasterize(
         bounds.append(live.numel())
         bounds = sorted(set(bounds))
         zbuf = torch.full((n_samples,), _NO_KEY, dtype=torch.int64, device=device)
-        flat = lambda a: a.reshape(n_frames * n_faces, *a.shape[2:])  # noqa: E731
-        xf, yf, zf = flat(x), flat(y), flat(z)
-        areaf = area.reshape(-1)
-        x0f, y0f, bwf = x0.reshape(-1), y0.reshape(-1), bw.reshape(-1)
         for lo, hi in zip(bounds[:-1], bounds[1:]):
-            ids = live[lo:hi]
             cnt = counts[lo:hi]
             n = int(cnt.sum())
-            pair_face = torch.repeat_interleave(ids, cnt, output_size=n)
+            rows = torch.repeat_interleave(torch.arange(lo, hi, device=device), cnt, output_size=n)
             starts = torch.cumsum(cnt, 0) - cnt
             local = torch.arange(n, device=device) - torch.repeat_interleave(starts, cnt, output_size=n)
-            width = bwf[pair_face]
-            px = x0f[pair_face] + local % width
-            py = y0f[pair_face] + torch.div(local, width, rounding_mode="floor")
+            tab = table.index_select(0, rows)  # [n, 13]
+            width = tab[:, 12].long()
+            px = tab[:, 10].long() + local % width
+            py = tab[:, 11].long() + torch.div(local, width, rounding_mode="floor")
             cx = px.to(dtype) + 0.5
             cy = py.to(dtype) + 0.5
-            tx, ty = xf[pair_face], yf[pair_face]  # [n, 3]
-            inv_area = 1.0 / areaf[pair_face]
+            tx0, tx1, tx2, ty0, ty1, ty2 = tab[:, 0], tab[:, 1], tab[:, 2], tab[:, 3], tab[:, 4], tab[:, 5]
             # b_i = edge function of the opposite edge / area
-            b0 = ((tx[:, 1] - cx) * (ty[:, 2] - cy) - (tx[:, 2] - cx) * (ty[:, 1] - cy)) * inv_area
-            b1 = ((tx[:, 2] - cx) * (ty[:, 0] - cy) - (tx[:, 0] - cx) * (ty[:, 2] - cy)) * inv_area
+            b0 = ((tx1 - cx) * (ty2 - cy) - (tx2 - cx) * (ty1 - cy)) * tab[:, 9]
+            b1 = ((tx2 - cx) * (ty0 - cy) - (tx0 - cx) * (ty2 - cy)) * tab[:, 9]
             b2 = 1.0 - b0 - b1
             inside = (b0 >= 0) & (b1 >= 0) & (b2 >= 0)
-            if not bool(inside.any()):
-                continue
             sel = torch.nonzero(inside).squeeze(1)
+            if sel.numel() == 0:
+                continue
             b = torch.stack([b0[sel], b1[sel], b2[sel]], dim=1)
-            tz = zf[pair_face[sel]]
-            w_persp = b / tz
-            inv_depth = w_persp.sum(dim=1)
-            depth = 1.0 / inv_depth
-            frame = torch.div(pair_face[sel], n_faces, rounding_mode="floor")
-            face = pair_face[sel] - frame * n_faces
+            w_persp = b / tab.index_select(0, sel)[:, 6:9]
+            depth = 1.0 / w_persp.sum(dim=1)
+            pair_face = live.index_select(0, rows.index_select(0, sel))
+            frame = torch.div(pair_face, n_faces, rounding_mode="floor")
+            face = pair_face - frame * n_faces
             sample = frame * (hs * ws) + py[sel] * ws + px[sel]
             key = (depth.float().view(torch.int32).long() << 32) | face
             zbuf.scatter_reduce_(0, sample, key, reduce="amin")
-            win = torch.nonzero(key == zbuf[sample]).squeeze(1)
+            win = torch.nonzero(key == zbuf.index_select(0, sample)).squeeze(1)
             target = sample[win]
             face_out[target] = face[win]
             bary_out[target] = w_persp[win] * depth[win, None]

@@ -72,12 +72,14 @@ def vertex_normals(vertices, faces):
     if vertices.ndim != 3 or vertices.shape[-1] != 3:
         raise ShapeError(f"vertices must be [T, V, 3], got {tuple(vertices.shape)}")
     f = faces.long()
-    v0, v1, v2 = vertices[:, f[:, 0]], vertices[:, f[:, 1]], vertices[:, f[:, 2]]
-    face_n = torch.cross(v1 - v0, v2 - v0, dim=-1)  # length = 2 * area
-    normals = torch.zeros_like(vertices)
+    t, v = vertices.shape[:2]
+    by_vertex = vertices.transpose(0, 1).reshape(v, t * 3)  # [V, T*3]: whole rows per gather / scatter
+    v0, v1, v2 = (by_vertex.index_select(0, f[:, k]).view(-1, t, 3) for k in range(3))
+    face_n = torch.cross(v1 - v0, v2 - v0, dim=-1).reshape(-1, t * 3)  # length = 2 * area
+    normals = torch.zeros((v, t * 3), dtype=vertices.dtype, device=vertices.device)
     for k in range(3):
-        normals.index_add_(1, f[:, k], face_n)
-    return torch.nn.functional.normalize(normals, dim=-1)
+        normals.index_add_(0, f[:, k], face_n)
+    return torch.nn.functional.normalize(normals.view(v, t, 3).transpose(0, 1), dim=-1)
 
 
 def lambert(normals, light: Light):
