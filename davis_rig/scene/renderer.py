@@ -23,7 +23,7 @@ import numpy as np
 
 from davis_rig.errors import MissingDependencyError, ShapeError
 from davis_rig.scene.camera import PinholeCamera
-from davis_rig.scene.rasterize import Fragments, rasterize
+from davis_rig.scene.rasterize import rasterize
 from davis_rig.scene.shading import Light, lambert, vertex_normals
 from davis_rig.scene.texture import TexelLookup, prepare_lookup
 
@@ -53,7 +53,7 @@ class RasterizedMesh:
         shade: float [N], Lambert shade at each sample.
         coverage: float [T, H, W], covered fraction alpha per pixel.
         vertex_boxes: float32 [T, 4], box of all projected vertices clipped to the frame (NaN: none).
-        fragments: the raw :class:`~davis_rig.scene.rasterize.Fragments` (dense per-sample maps).
+        sample_index: int64 [N], flat index ``t*(H s)*(W s) + row_s*(W s) + col_s`` of each covered sample.
     """
 
     hw: tuple[int, int]
@@ -65,7 +65,7 @@ class RasterizedMesh:
     shade: "object"
     coverage: "object"
     vertex_boxes: np.ndarray
-    fragments: Fragments
+    sample_index: "object"
 
     def lookup(self, size: int = 1024, mode: str = "nearest", grid_n: int | None = None, mask=None) -> TexelLookup:
         """Texel taps of the covered samples (see :func:`davis_rig.scene.texture.prepare_lookup`)."""
@@ -130,10 +130,14 @@ class RasterizedMesh:
         """
         torch = _torch()
         s = self.supersample
-        centre = self.fragments.face_id[:, s // 2 :: s, s // 2 :: s]
-        parts = torch.as_tensor(np.asarray(face_parts, dtype=np.int64), device=centre.device)
-        labels = torch.where(centre >= 0, parts[centre.clamp(min=0)], torch.full_like(centre, EMPTY_PART))
-        return labels.to(torch.uint8).cpu().numpy()
+        h, w = self.hw
+        ws = w * s
+        rest = self.sample_index % (h * s * ws)
+        centre = ((rest // ws) % s == s // 2) & ((rest % ws) % s == s // 2)
+        parts = torch.as_tensor(np.asarray(face_parts, dtype=np.int64), device=self.face.device)
+        labels = torch.full((self.num_frames * h * w,), EMPTY_PART, dtype=torch.int64, device=self.face.device)
+        labels[self.sample_pixel[centre]] = parts[self.face[centre]]
+        return labels.view(self.num_frames, h, w).to(torch.uint8).cpu().numpy()
 
     def boxes(self) -> np.ndarray:
         """Tight boxes of the covered pixels per frame, float32 [T, 4] ``(x0, y0, x1, y1)``; NaN if none."""
@@ -199,6 +203,7 @@ def rasterize_mesh(
     supersample: int = 2,
     light: Light | None = None,
     cull_backfaces: bool = True,
+    max_samples: int = 1 << 23,
 ) -> RasterizedMesh:
     """Rasterize a mesh sequence and prepare per-sample UVs and shades (no autograd).
 
@@ -211,6 +216,8 @@ def rasterize_mesh(
         supersample: samples per pixel side.
         light: Lambert light (default :class:`Light`).
         cull_backfaces: see :func:`davis_rig.scene.rasterize.rasterize`.
+        max_samples: frames are rasterized in groups of at most this many samples (``T_group * H s * W s``),
+            which bounds the memory of the dense per-sample maps; only covered samples are kept.
 
     Returns:
         :class:`RasterizedMesh`.
@@ -227,23 +234,33 @@ def rasterize_mesh(
     with torch.no_grad():
         vertices_m = vertices_m.detach()
         projected = camera.project(vertices_m, rotation_w2c, translation_w2c)
-        frags = rasterize(projected, faces, camera.hw, supersample=supersample, cull_backfaces=cull_backfaces)
         h, w = camera.hw
         s = int(supersample)
         t = vertices_m.shape[0]
-        flat_face = frags.face_id.reshape(-1)
-        sample = torch.nonzero(flat_face >= 0).squeeze(1)
-        face = flat_face[sample]
-        bary = frags.bary.reshape(-1, 3)[sample]
-        frame = torch.div(sample, h * s * w * s, rounding_mode="floor")
-        rest = sample - frame * (h * s * w * s)
+        per_frame = h * s * w * s
+        group = max(1, int(max_samples) // per_frame)
+        normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
+        uvs = torch.as_tensor(face_uvs, device=vertices_m.device).to(vertices_m.dtype)
+        faces_long = faces.long()
+        parts = {"sample": [], "face": [], "bary": []}
+        for first in range(0, t, group):  # a few groups of frames at most: bounded dense maps
+            frags = rasterize(projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces)
+            flat_face = frags.face_id.reshape(-1)
+            sample = torch.nonzero(flat_face >= 0).squeeze(1)
+            parts["sample"].append(sample + first * per_frame)
+            parts["face"].append(flat_face[sample])
+            parts["bary"].append(frags.bary.reshape(-1, 3)[sample])
+            del frags
+        sample = torch.cat(parts["sample"])
+        face = torch.cat(parts["face"])
+        bary = torch.cat(parts["bary"])
+        frame = torch.div(sample, per_frame, rounding_mode="floor")
+        rest = sample - frame * per_frame
         row = torch.div(rest, w * s, rounding_mode="floor")
         col = rest - row * (w * s)
         pixel = frame * (h * w) + torch.div(row, s, rounding_mode="floor") * w + torch.div(col, s, rounding_mode="floor")
-        uvs = torch.as_tensor(face_uvs, device=vertices_m.device).to(vertices_m.dtype)
         uv = (uvs[face] * bary[..., None]).sum(dim=1)
-        normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
-        corner_normals = normals[frame[:, None], faces.long()[face]]  # [N, 3, 3]
+        corner_normals = normals[frame[:, None], faces_long[face]]  # [N, 3, 3]
         shade = lambert((corner_normals * bary[..., None]).sum(dim=1), light)
         counts = torch.bincount(pixel, minlength=t * h * w)  # cheaper than pooling the dense sample map
         coverage = (counts.to(vertices_m.dtype) / float(s * s)).view(t, h, w)
@@ -257,5 +274,5 @@ def rasterize_mesh(
         shade=shade,
         coverage=coverage,
         vertex_boxes=boxes_from_points(projected, (h, w)),
-        fragments=frags,
+        sample_index=sample,
     )

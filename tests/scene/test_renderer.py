@@ -147,3 +147,17 @@ def test_boxes_from_coverage_empty_and_clipped():
     boxes = boxes_from_coverage(cov)
     assert np.isnan(boxes[0]).all()
     assert boxes[1].tolist() == [4.0, 0.0, 5.0, 1.0]
+
+
+def test_frame_groups_give_the_same_raster(model):
+    verts = model.walk_vertices(1, [0.0, 0.1, 0.2])
+    cam = PinholeCamera.rvt_crop()
+    rotation, translation = look_at([0.0, -6.0, 0.875], [0.0, 0.0, 0.875])
+    args = (verts, model.faces, model.face_uvs, cam, torch.as_tensor(rotation, dtype=torch.float32), torch.as_tensor(translation, dtype=torch.float32))
+    whole = rasterize_mesh(*args, supersample=2)
+    grouped = rasterize_mesh(*args, supersample=2, max_samples=240 * 304 * 4)  # one frame per group
+    assert torch.equal(whole.sample_index, grouped.sample_index)
+    assert torch.equal(whole.face, grouped.face) and torch.equal(whole.uv, grouped.uv)
+    assert torch.equal(whole.coverage, grouped.coverage)
+    labels = whole.part_labels(model.asset.face_parts)
+    assert labels.shape == (3, 240, 304) and set(np.unique(labels)) <= set(range(6)) | {EMPTY_PART}
