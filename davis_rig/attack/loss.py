@@ -1,0 +1,146 @@
+"""The paper's adversarial loss on the detector's decoded (pre-NMS) output.
+
+``L_adv = lambda_1 * L_obj + lambda_2 * L_cls`` with ``L_obj`` the mean objectness and ``L_cls`` the mean
+pedestrian-class probability over **all anchors of all windows** of the attacked sequence (official code:
+``predict.view(-1, 7)[:, 4].mean()`` and ``[:, 5 + 1].mean()``; ``lambda_1 = lambda_2 = 10^4``). No boxes are
+needed; optionally the means can be restricted to the anchors whose predicted centre lies near the person's
+box (``boxes=``), which concentrates the gradient on the person instead of on background anchors.
+
+The input is what :class:`davis_rig.models.rvt.detector.RVTDetector` returns per recurrent step:
+``decoded [B, A, 5 + nc] = (cx, cy, w, h, obj, p_car, p_ped)`` (Gen1), objectness and class scores already
+probabilities. Pure function, no state; differentiable w.r.t. ``decoded``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.types import PEDESTRIAN_CLASS_ID
+
+try:
+    import torch
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise MissingDependencyError("the adversarial loss needs torch: pip install 'davis_rig[torch]'") from exc
+
+__all__ = ["DEFAULT_LAMBDA", "AdversarialLoss", "adversarial_loss", "anchors_near_boxes"]
+
+#: The paper's weights lambda_1 = lambda_2.
+DEFAULT_LAMBDA = 1e4
+_OBJ = 4
+_CLS0 = 5
+
+
+class AdversarialLoss(NamedTuple):
+    """Loss and its components (0-dim tensors; call ``.item()`` to log).
+
+    Attributes:
+        total: ``lambda_obj * obj + lambda_cls * cls`` (differentiable; backpropagate this).
+        obj: mean objectness ``L_obj`` over the scored anchors.
+        cls: mean target-class probability ``L_cls`` over the scored anchors.
+        num_anchors: number of scored anchors (all of them unless ``boxes`` restricts it), int64 0-dim tensor.
+    """
+
+    total: "torch.Tensor"
+    obj: "torch.Tensor"
+    cls: "torch.Tensor"
+    num_anchors: "torch.Tensor"
+
+
+def _stack_windows(decoded) -> "torch.Tensor":
+    if isinstance(decoded, torch.Tensor):
+        if decoded.ndim < 2:
+            raise ShapeError(f"decoded must be [..., A, 5 + nc], got {tuple(decoded.shape)}")
+        return decoded
+    windows = list(decoded)
+    if not windows:
+        raise ShapeError("decoded is an empty sequence of windows")
+    shapes = {tuple(w.shape) for w in windows}
+    if len(shapes) != 1:
+        raise ShapeError(f"all windows must have the same [B, A, 5 + nc] shape, got {sorted(shapes)}")
+    return torch.stack(windows, dim=0)
+
+
+def anchors_near_boxes(decoded: "torch.Tensor", boxes, margin_px: float = 0.0) -> "torch.Tensor":
+    """Anchors whose predicted centre lies inside the (grown) person box of their window and batch item.
+
+    Args:
+        decoded: float tensor [..., A, 5 + nc], (cx, cy) in input pixels; leading dims ``[...]`` e.g. [W, B].
+        boxes: float [..., 4] ``(x0, y0, x1, y1)`` in input pixels, broadcastable to ``decoded.shape[:-2]``
+            (e.g. [B, 4] for one box per clip, [W, B, 4] per window); NaN rows = no person (no anchor kept).
+        margin_px: grow each box by this many pixels on every side.
+
+    Returns:
+        bool tensor [..., A] (no gradient).
+
+    Raises:
+        ShapeError: boxes do not broadcast; ValueError: margin_px < 0.
+    """
+    if margin_px < 0:
+        raise ValueError(f"margin_px must be >= 0, got {margin_px}")
+    boxes = torch.as_tensor(boxes, dtype=decoded.dtype, device=decoded.device).detach()
+    if boxes.shape[-1] != 4:
+        raise ShapeError(f"boxes must be [..., 4] (x0, y0, x1, y1), got {tuple(boxes.shape)}")
+    lead = decoded.shape[:-2]
+    try:
+        boxes = torch.broadcast_to(boxes, tuple(lead) + (4,))
+    except RuntimeError:
+        raise ShapeError(f"boxes {tuple(boxes.shape)} do not broadcast to {tuple(lead) + (4,)}") from None
+    cx = decoded[..., 0].detach()
+    cy = decoded[..., 1].detach()
+    x0, y0, x1, y1 = (boxes[..., k, None] for k in range(4))
+    m = float(margin_px)
+    return (cx >= x0 - m) & (cx <= x1 + m) & (cy >= y0 - m) & (cy <= y1 + m)  # NaN compares False
+
+
+def adversarial_loss(
+    decoded: "torch.Tensor | Sequence[torch.Tensor]",
+    lambda_obj: float = DEFAULT_LAMBDA,
+    lambda_cls: float = DEFAULT_LAMBDA,
+    class_id: int = PEDESTRIAN_CLASS_ID,
+    boxes=None,
+    box_margin_px: float = 0.0,
+) -> AdversarialLoss:
+    """``L_adv = lambda_obj * mean(obj) + lambda_cls * mean(p_class)`` over all anchors of all windows.
+
+    Args:
+        decoded: the detector's decoded output of every window of the sequence: a list of float tensors
+            [B, A, 5 + nc] (one per window) or one tensor [..., A, 5 + nc] (e.g. [W, B, A, 5 + nc]).
+            Columns: cx, cy, w, h (input px), objectness probability, class probabilities.
+        lambda_obj: weight lambda_1 of the objectness term (paper 1e4).
+        lambda_cls: weight lambda_2 of the class term (paper 1e4).
+        class_id: attacked class (Gen1: 1 = pedestrian).
+        boxes: optional person boxes ``(x0, y0, x1, y1)`` in input px, broadcastable to the leading dims of
+            the stacked decoded tensor ([W, B] for a list of windows): only anchors whose predicted centre lies
+            inside the box grown by ``box_margin_px`` are scored (see :func:`anchors_near_boxes`). ``None``
+            (paper): every anchor.
+        box_margin_px: margin added around each box (px).
+
+    Returns:
+        :class:`AdversarialLoss`; with ``boxes`` and no anchor inside any box, obj = cls = total = 0 (still a
+        differentiable tensor, zero gradient).
+
+    Raises:
+        ShapeError: decoded has too few columns or windows of different shapes.
+    """
+    x = _stack_windows(decoded)
+    if not torch.is_floating_point(x):
+        raise ShapeError(f"decoded must be a floating-point tensor, got {x.dtype}")
+    if int(class_id) < 0 or x.shape[-1] < _CLS0 + int(class_id) + 1:
+        raise ShapeError(f"decoded must have >= {_CLS0 + int(class_id) + 1} columns for class {class_id}, "
+                         f"got shape {tuple(x.shape)}")
+    obj = x[..., _OBJ]
+    cls = x[..., _CLS0 + int(class_id)]
+    if boxes is None:
+        n = torch.tensor(obj.numel(), device=x.device)
+        obj_mean = obj.mean()
+        cls_mean = cls.mean()
+    else:
+        keep = anchors_near_boxes(x, boxes, box_margin_px).to(x.dtype)
+        count = keep.sum()
+        n = count.to(torch.int64)
+        denominator = count.clamp(min=1.0)
+        obj_mean = (obj * keep).sum() / denominator
+        cls_mean = (cls * keep).sum() / denominator
+    total = float(lambda_obj) * obj_mean + float(lambda_cls) * cls_mean
+    return AdversarialLoss(total=total, obj=obj_mean, cls=cls_mean, num_anchors=n)

@@ -1,0 +1,99 @@
+"""Adversarial loss on hand-made decoded detector outputs."""
+
+import pytest
+import torch
+
+from davis_rig.attack.loss import adversarial_loss, anchors_near_boxes
+from davis_rig.errors import ShapeError
+
+
+def _decoded(rows):
+    """[B=1, A, 7] from rows (cx, cy, w, h, obj, p_car, p_ped)."""
+    return torch.tensor([rows], dtype=torch.float64)
+
+
+W1 = _decoded([[10, 10, 4, 4, 0.5, 0.9, 0.2], [50, 60, 8, 8, 0.1, 0.0, 0.6]])
+W2 = _decoded([[20, 30, 4, 4, 0.3, 0.2, 0.4], [100, 100, 8, 8, 0.9, 0.1, 1.0]])
+
+
+def test_paper_loss_is_mean_over_all_anchors_of_all_windows():
+    out = adversarial_loss([W1, W2])
+    obj = (0.5 + 0.1 + 0.3 + 0.9) / 4
+    ped = (0.2 + 0.6 + 0.4 + 1.0) / 4
+    assert out.obj.item() == pytest.approx(obj)
+    assert out.cls.item() == pytest.approx(ped)
+    assert out.total.item() == pytest.approx(1e4 * obj + 1e4 * ped)
+    assert out.num_anchors.item() == 4
+    stacked = adversarial_loss(torch.stack([W1, W2]))  # [W, B, A, 7] gives the same
+    assert stacked.total.item() == pytest.approx(out.total.item())
+
+
+def test_weights_and_class_choice():
+    out = adversarial_loss([W1], lambda_obj=2.0, lambda_cls=0.0)
+    assert out.total.item() == pytest.approx(2.0 * 0.3)
+    car = adversarial_loss([W1], lambda_obj=0.0, lambda_cls=1.0, class_id=0)
+    assert car.total.item() == pytest.approx((0.9 + 0.0) / 2)
+
+
+def test_gradient_is_lambda_over_count_on_obj_and_ped_only():
+    x = torch.cat([W1, W2]).clone().requires_grad_(True)  # [B=2, A=2, 7]
+    adversarial_loss(x, lambda_obj=3.0, lambda_cls=5.0).total.backward()
+    expected = torch.zeros_like(x)
+    expected[..., 4] = 3.0 / 4
+    expected[..., 6] = 5.0 / 4
+    assert torch.allclose(x.grad, expected)
+
+
+def test_gradient_through_detector_like_head_decreases_loss():
+    torch.manual_seed(0)
+    texture_param = torch.zeros(8, requires_grad=True)
+    head = torch.nn.Linear(8, 3 * 7)
+    opt = torch.optim.Adam([texture_param], lr=0.1)
+    losses = []
+    for _ in range(5):
+        decoded = torch.sigmoid(head(texture_param)).view(1, 3, 7)
+        loss = adversarial_loss([decoded, decoded * 0.5]).total
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0]
+
+
+def test_restrict_to_anchors_near_the_person_box():
+    boxes = torch.tensor([[0.0, 0.0, 30.0, 40.0]])  # [B=1, 4], one box for every window
+    keep = anchors_near_boxes(torch.stack([W1, W2]), boxes)
+    assert keep.tolist() == [[[True, False]], [[True, False]]]
+    out = adversarial_loss([W1, W2], boxes=boxes)
+    assert out.num_anchors.item() == 2
+    assert out.obj.item() == pytest.approx((0.5 + 0.3) / 2)
+    assert out.cls.item() == pytest.approx((0.2 + 0.4) / 2)
+    grown = adversarial_loss([W1, W2], boxes=boxes, box_margin_px=25.0)  # reaches (50, 60)
+    assert grown.num_anchors.item() == 3
+    per_window = torch.tensor([[[0.0, 0.0, 30.0, 40.0]], [[90.0, 90.0, 110.0, 110.0]]])  # [W, B, 4]
+    out = adversarial_loss([W1, W2], boxes=per_window)
+    assert out.obj.item() == pytest.approx((0.5 + 0.9) / 2)
+
+
+def test_no_anchor_in_any_box_gives_zero_with_zero_gradient():
+    x = W1.clone().requires_grad_(True)
+    out = adversarial_loss([x], boxes=torch.tensor([[float("nan")] * 4]))
+    assert out.total.item() == 0.0 and out.num_anchors.item() == 0
+    out.total.backward()
+    assert torch.equal(x.grad, torch.zeros_like(x))
+
+
+def test_inputs_not_modified_and_validation():
+    before = W1.clone()
+    adversarial_loss([W1], boxes=[[0.0, 0.0, 30.0, 40.0]], box_margin_px=1.0)
+    assert torch.equal(W1, before)
+    with pytest.raises(ShapeError):
+        adversarial_loss(torch.zeros(1, 3, 6))  # no pedestrian column
+    with pytest.raises(ShapeError):
+        adversarial_loss([W1, torch.zeros(1, 3, 7, dtype=torch.float64)])
+    with pytest.raises(ShapeError):
+        adversarial_loss([])
+    with pytest.raises(ShapeError):
+        adversarial_loss([W1], boxes=torch.zeros(3, 4))  # 3 boxes for 1 window x 1 batch
+    with pytest.raises(ValueError):
+        adversarial_loss([W1], boxes=torch.zeros(1, 4), box_margin_px=-1)
