@@ -8,7 +8,7 @@ that module is not importable the event column says so.
 
 Usage::
 
-    python tools/contact_sheet.py --out contact_sheet.png [--grid-n 10] [--seed 0] [--supersample 2]
+    python tools/contact_sheet.py --out contact_sheet.png [--grid-n 10] [--seed 0] [--supersample 2] [--duration-ms 200]
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def _event_frame(clip, hw) -> tuple[np.ndarray, str]:
     return image, f"events {len(recent)} / 50 ms"
 
 
-def build_scenes(grid_n: int, seed: int, supersample: int):
+def build_scenes(grid_n: int, seed: int, supersample: int, duration_s: float = 0.2):
     """The scenes of the sheet: (title, SceneSpec, texture or None, mask or None)."""
     import torch
 
@@ -77,7 +77,7 @@ def build_scenes(grid_n: int, seed: int, supersample: int):
     rng = np.random.default_rng(seed)
     grid = torch.as_tensor((rng.random((grid_n, grid_n)) > 0.5).astype(np.float32))
     mask = part_mask(("torso", "arms", "legs"))
-    common = dict(duration_s=0.2, supersample=supersample)
+    common = dict(duration_s=duration_s, supersample=supersample)
     always = EoTJitter(rotation_probability=1.0, distance_probability=1.0)
     return [
         ("large, white, walk right", SceneSpec(scale="large", heading_rad=math.pi / 2, **common), None, None),
@@ -88,7 +88,7 @@ def build_scenes(grid_n: int, seed: int, supersample: int):
     ]  # fmt: skip
 
 
-def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2) -> Path:
+def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2, duration_s: float = 0.2) -> Path:
     """Render the scenes and write the sheet PNG; returns its path."""
     import cv2
 
@@ -97,7 +97,7 @@ def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2)
 
     model = BodyModel()
     rows = []
-    for title, spec, texture, mask in build_scenes(grid_n, seed, supersample):
+    for title, spec, texture, mask in build_scenes(grid_n, seed, supersample, duration_s):
         start = time.perf_counter()
         clip = render_clip(spec, texture, model=model, mask=mask, part_labels=True)
         elapsed_ms = (time.perf_counter() - start) * 1e3 / len(clip.t_us)
@@ -135,8 +135,9 @@ def main(argv=None) -> int:
     parser.add_argument("--grid-n", type=int, default=10, help="n of the random n x n black/white grid texture")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--supersample", type=int, default=2, help="samples per pixel side")
+    parser.add_argument("--duration-ms", type=float, default=200.0, help="clip length per scene (ms)")
     args = parser.parse_args(argv)
-    path = make_sheet(args.out, args.grid_n, args.seed, args.supersample)
+    path = make_sheet(args.out, args.grid_n, args.seed, args.supersample, args.duration_ms / 1000.0)
     print(f"wrote {path}")
     return 0
 

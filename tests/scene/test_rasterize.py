@@ -151,3 +151,18 @@ def test_bad_shapes():
         rasterize(torch.zeros(1, 4, 3), torch.zeros(3, dtype=torch.long), (4, 4))
     with pytest.raises(ValueError):
         rasterize(torch.zeros(1, 4, 3), torch.zeros(1, 3, dtype=torch.long), (4, 4), supersample=0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is False)")
+def test_cuda_matches_cpu():
+    rng = np.random.default_rng(7)
+    n = 300
+    centres = rng.uniform(-2, 66, size=(n, 1, 2))
+    corners = centres + rng.normal(scale=5.0, size=(n, 3, 2))
+    vertices = torch.as_tensor(np.concatenate([corners, rng.uniform(1.0, 5.0, size=(n, 3, 1))], -1).reshape(1, -1, 3))
+    faces = torch.arange(3 * n).reshape(n, 3)
+    cpu = rasterize(vertices, faces, (48, 64), supersample=2)
+    gpu = rasterize(vertices.cuda(), faces.cuda(), (48, 64), supersample=2)
+    assert torch.equal(cpu.face_id, gpu.face_id.cpu())
+    np.testing.assert_allclose(cpu.bary.numpy(), gpu.bary.cpu().numpy(), atol=1e-9)

@@ -104,3 +104,16 @@ def test_ego_motion_moves_the_background(model):
     assert moving.background.shape == (4, 240, 304)
     np.testing.assert_allclose(moving.background[0].numpy(), pattern, atol=1e-5)  # first frame: rest pose
     assert not torch.allclose(moving.background[3], moving.background[0], atol=0.05)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is False)")
+def test_render_clip_on_cuda_matches_cpu(model):
+    from davis_rig.scene.body import BodyModel
+
+    grid = torch.rand(10, 10)
+    spec = SceneSpec(duration_s=0.02, background="random", light="random", seed=4)
+    cpu = render_clip(spec, grid, model=model)
+    gpu = render_clip(spec, grid.cuda(), model=BodyModel(model.asset, device="cuda"))
+    assert (cpu.video - gpu.video.cpu()).abs().mean() < 1e-3
+    np.testing.assert_allclose(cpu.boxes, gpu.boxes, atol=1.0)
