@@ -187,10 +187,11 @@ def v2e_counts(
     log_video = _log_video(video, intensity_scale, lin_log_threshold)
     if mode == "dvs":
         floor = floor_ste
-        ref = log_video[0]
+        frames = log_video.unbind(0)  # one UnbindBackward (a stack), not a full-size zero tensor per frame
+        ref = frames[0]
         ons, offs = [], []
-        for k in range(1, log_video.shape[0]):
-            diff = log_video[k] - ref
+        for frame in frames[1:]:
+            diff = frame - ref
             on = torch.relu(floor(diff / threshold_on))
             off = torch.relu(floor(-diff / threshold_off))
             ref = ref + on * threshold_on - off * threshold_off
