@@ -138,3 +138,23 @@ def _other_sensor_session(path):
     labels = np.zeros(1, BBOX_DTYPE)
     labels["w"] = labels["h"] = 50
     write_labels(path, labels, {"labeler": "test"})
+
+
+def test_label_and_eval_run_with_torch_imports_blocked(sessions, tmp_path):
+    import subprocess
+    import textwrap
+
+    directory, a, _ = sessions
+    session = tmp_path / "no_torch.h5"
+    session.write_bytes(scene_session(tmp_path, "fresh.h5").read_bytes())
+    script = textwrap.dedent(f"""
+        import sys
+        sys.modules["torch"] = None  # any "import torch" now raises ImportError
+        from davis_rig.cli import eval as ev, label as lb
+        assert lb.main([{str(session)!r}, "--yolo", {str(person_yolo(tmp_path))!r}, "--quiet"]) == 0
+        assert ev.main([{str(session)!r}, "--model", {str(person_rvt(tmp_path))!r}, "--threshold", "0.1",
+                        "--quiet"]) == 0
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "| AP ↓ | 0.1 | 100.0% |" in result.stdout
