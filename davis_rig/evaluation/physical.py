@@ -184,7 +184,12 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     reader, labels = _open_checked(path)
     timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
     try:
-        origin = settings.crop_origin_xy or labels_crop_origin(reader.labels_attrs()) or center_crop_origin()
+        stored = labels_crop_origin(reader.labels_attrs())
+        if settings.crop_origin_xy is not None and stored is not None and tuple(settings.crop_origin_xy) != stored:
+            raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
+                               f"{tuple(settings.crop_origin_xy)}; re-label with davis-label --crop-origin or drop "
+                               "the crop origin")
+        origin = settings.crop_origin_xy or stored or center_crop_origin()
         window_us = int(settings.window_us)
         t0 = int(reader.t_offset_us)
         t_events_end = t0 + 1000 * len(reader.ms_to_idx)

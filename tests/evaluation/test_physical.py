@@ -126,6 +126,8 @@ def test_bad_inputs_raise_before_scoring_and_leave_files_untouched(labelled, tmp
         evaluate_sessions([tmp_path / "nothing.h5"], person_rvt(tmp_path), SETTINGS)
     with pytest.raises(ValueError):
         EvalSettings(thresholds=(1.5,))
+    with pytest.raises(SessionError, match=r"crop origin \(21, 10\), not \(0, 0\)"):
+        evaluate_sessions([labelled], person_rvt(tmp_path), EvalSettings(crop_origin_xy=(0, 0)))
 
 
 def test_empty_labels_are_refused(tmp_path):
