@@ -98,6 +98,7 @@ def write_plot(results, path: Path) -> Path:
     for ax, title in zip(axes, ("AP (pedestrian, mAP@[.5:.95]) %", "SeqASR %")):
         ax.set_xscale("log")
         ax.set_xlabel("confidence threshold")
+        ax.set_ylim(-3, 103)
         ax.set_title(title)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
