@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 from davis_rig.errors import MissingDependencyError, ShapeError
 
-__all__ = ["Fragments", "rasterize"]
+__all__ = ["Fragments", "SparseFragments", "rasterize", "rasterize_sparse"]
 
 _NO_KEY = (1 << 63) - 1
 
@@ -81,6 +81,40 @@ class Fragments:
         return mask.mean(dim=(2, 4))
 
 
+@dataclass
+class SparseFragments:
+    """Rasterizer output for the covered samples only (what the renderer consumes).
+
+    Attributes:
+        sample: int64 [N], flat sample index ``t*(H s)*(W s) + row*(W s) + col`` (each at most once).
+        face: int64 [N], visible face.
+        bary: float [N, 3], perspective-correct barycentric weights.
+        depth_m: float [N], camera depth of the visible surface (m).
+        shape: ``(T, H*s, W*s)``; supersample: ``s``.
+    """
+
+    sample: "object"
+    face: "object"
+    bary: "object"
+    depth_m: "object"
+    shape: tuple[int, int, int]
+    supersample: int
+
+    def to_dense(self) -> Fragments:
+        """The same result as dense per-sample maps (:class:`Fragments`)."""
+        torch = _torch()
+        t, hs, ws = self.shape
+        n = t * hs * ws
+        device = self.face.device
+        face = torch.full((n,), -1, dtype=torch.int64, device=device)
+        bary = torch.zeros((n, 3), dtype=self.bary.dtype, device=device)
+        depth = torch.full((n,), float("inf"), dtype=self.depth_m.dtype, device=device)
+        face[self.sample] = self.face
+        bary[self.sample] = self.bary
+        depth[self.sample] = self.depth_m
+        return Fragments(face.view(t, hs, ws), bary.view(t, hs, ws, 3), depth.view(t, hs, ws), self.supersample)
+
+
 def rasterize(
     vertices_px,
     faces,
@@ -88,9 +122,28 @@ def rasterize(
     supersample: int = 1,
     cull_backfaces: bool = True,
     near_m: float = 1e-3,
-    max_pairs: int = 1 << 23,
+    max_pairs: int = 1 << 22,
 ) -> Fragments:
-    """Rasterize triangles of a batch of frames (no autograd).
+    """Rasterize triangles of a batch of frames into dense per-sample maps (no autograd).
+
+    Same arguments as :func:`rasterize_sparse`; returns ``rasterize_sparse(...).to_dense()``.
+
+    Returns:
+        :class:`Fragments` at ``(H*s, W*s)``.
+    """
+    return rasterize_sparse(vertices_px, faces, hw, supersample, cull_backfaces, near_m, max_pairs).to_dense()
+
+
+def rasterize_sparse(
+    vertices_px,
+    faces,
+    hw: tuple[int, int],
+    supersample: int = 1,
+    cull_backfaces: bool = True,
+    near_m: float = 1e-3,
+    max_pairs: int = 1 << 22,
+) -> SparseFragments:
+    """Rasterize triangles of a batch of frames; covered samples only (no autograd).
 
     Args:
         vertices_px: float tensor [T, V, 3]: ``(x_px, y_px, depth_m)`` in continuous pixel coordinates of
@@ -101,10 +154,10 @@ def rasterize(
         cull_backfaces: drop faces seen from behind (clockwise on screen). Closed meshes render the same
             either way; culling halves the work.
         near_m: faces with a vertex at depth <= near_m are dropped (m).
-        max_pairs: candidate (face, sample) pairs processed per chunk (memory bound).
+        max_pairs: candidate (face, sample) pairs processed per chunk (bounds the temporary memory).
 
     Returns:
-        :class:`Fragments` at ``(H*s, W*s)``.
+        :class:`SparseFragments`, samples in increasing frame order.
 
     Raises:
         ShapeError: vertices not [T, V, 3] or faces not [F, 3].
@@ -123,21 +176,20 @@ def rasterize(
         raise ValueError(f"image size must be positive, got {hw}")
     device = vertices_px.device
     dtype = vertices_px.dtype
-    n_frames, n_verts = vertices_px.shape[:2]
+    n_frames = vertices_px.shape[0]
     n_faces = faces.shape[0]
     hs, ws = h * s, w * s
-    n_samples = n_frames * hs * ws
-    face_out = torch.full((n_samples,), -1, dtype=torch.int64, device=device)
-    bary_out = torch.zeros((n_samples, 3), dtype=dtype, device=device)
-    depth_out = torch.full((n_samples,), float("inf"), dtype=dtype, device=device)
-    fragments = Fragments(
-        face_id=face_out.view(n_frames, hs, ws),
-        bary=bary_out.view(n_frames, hs, ws, 3),
-        depth_m=depth_out.view(n_frames, hs, ws),
+    empty_i = torch.zeros(0, dtype=torch.int64, device=device)
+    result = SparseFragments(
+        sample=empty_i,
+        face=empty_i,
+        bary=torch.zeros((0, 3), dtype=dtype, device=device),
+        depth_m=torch.zeros(0, dtype=dtype, device=device),
+        shape=(n_frames, hs, ws),
         supersample=s,
     )
     if n_faces == 0 or n_frames == 0:
-        return fragments
+        return result
     with torch.no_grad():
         scale = torch.tensor([s, s, 1.0], dtype=dtype, device=device)
         # coordinate-major [3, T, V] so each corner gather is one contiguous index_select
@@ -146,9 +198,8 @@ def rasterize(
         c0, c1, c2 = (comp.index_select(2, fl[:, k]) for k in range(3))  # each [3, T, F]
         x0_, x1_, x2_ = c0[0], c1[0], c2[0]
         y0_, y1_, y2_ = c0[1], c1[1], c2[1]
-        z0_, z1_, z2_ = c0[2], c1[2], c2[2]
         area = (x1_ - x0_) * (y2_ - y0_) - (x2_ - x0_) * (y1_ - y0_)
-        keep = (z0_ > near_m) & (z1_ > near_m) & (z2_ > near_m) & (area != 0)
+        keep = (c0[2] > near_m) & (c1[2] > near_m) & (c2[2] > near_m) & (area != 0)
         if cull_backfaces:
             keep &= area < 0  # counter-clockwise as seen = negative signed area in y-down pixel coordinates
         # sample j has its centre at j + 0.5 (sample units): the bbox holds j in [ceil(min-0.5), floor(max-0.5)]
@@ -161,11 +212,24 @@ def rasterize(
         counts = torch.where(keep, bw * bh, torch.zeros_like(bw)).reshape(-1).long()  # [T*F]
         live = torch.nonzero(counts > 0).squeeze(1)
         if live.numel() == 0:
-            return fragments
+            return result
         counts = counts.index_select(0, live)
-        # per live face: x0 x1 x2 y0 y1 y2 z0 z1 z2, 1/area, bbox x, y, width (one contiguous row each)
-        columns = (x0_, x1_, x2_, y0_, y1_, y2_, z0_, z1_, z2_, 1.0 / area, xmin, ymin, bw)
-        table = torch.stack([c.reshape(-1).index_select(0, live) for c in columns], dim=1)
+        pick = lambda a: a.reshape(-1).index_select(0, live)  # noqa: E731
+        # Barycentrics as affine functions of the sample centre in bbox-local coordinates (small numbers,
+        # no cancellation): b_i(cx, cy) = a_i * cx + c_i * cy + k_i with cx = dx + 0.5, cy = dy + 0.5.
+        ox, oy = pick(xmin), pick(ymin)
+        lx = [pick(x0_) - ox, pick(x1_) - ox, pick(x2_) - ox]
+        ly = [pick(y0_) - oy, pick(y1_) - oy, pick(y2_) - oy]
+        inv_area = 1.0 / pick(area)
+        coeffs = []
+        for i, j, k in ((0, 1, 2), (1, 2, 0)):  # b_i is the edge function of the opposite edge (j, k)
+            coeffs += [
+                (ly[j] - ly[k]) * inv_area,  # d b_i / d cx
+                (lx[k] - lx[j]) * inv_area,  # d b_i / d cy
+                (lx[j] * ly[k] - lx[k] * ly[j]) * inv_area,  # b_i at the bbox-local origin
+            ]
+        table = torch.stack(coeffs + [pick(bw)], dim=1)  # [L, 7]
+        z_table = torch.stack([pick(c0[2]), pick(c1[2]), pick(c2[2])], dim=1)  # [L, 3]
         # chunks of faces with <= max_pairs candidate pairs each (a single huge face forms its own chunk)
         cumulative = torch.cumsum(counts, 0)
         bounds = [0]
@@ -176,40 +240,48 @@ def rasterize(
             bounds += [c for c in cuts if 0 < c < live.numel()]
         bounds.append(live.numel())
         bounds = sorted(set(bounds))
-        zbuf = torch.full((n_samples,), _NO_KEY, dtype=torch.int64, device=device)
+        found = {"row": [], "sample": [], "b": []}
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             cnt = counts[lo:hi]
             n = int(cnt.sum())
             rows = torch.repeat_interleave(torch.arange(lo, hi, device=device), cnt, output_size=n)
             starts = torch.cumsum(cnt, 0) - cnt
             local = torch.arange(n, device=device) - torch.repeat_interleave(starts, cnt, output_size=n)
-            tab = table.index_select(0, rows)  # [n, 13]
-            width = tab[:, 12].long()
-            px = tab[:, 10].long() + local % width
-            py = tab[:, 11].long() + torch.div(local, width, rounding_mode="floor")
-            cx = px.to(dtype) + 0.5
-            cy = py.to(dtype) + 0.5
-            tx0, tx1, tx2, ty0, ty1, ty2 = tab[:, 0], tab[:, 1], tab[:, 2], tab[:, 3], tab[:, 4], tab[:, 5]
-            # b_i = edge function of the opposite edge / area
-            b0 = ((tx1 - cx) * (ty2 - cy) - (tx2 - cx) * (ty1 - cy)) * tab[:, 9]
-            b1 = ((tx2 - cx) * (ty0 - cy) - (tx0 - cx) * (ty2 - cy)) * tab[:, 9]
+            tab = table.index_select(0, rows)
+            width = tab[:, 6].long()
+            dy = torch.div(local, width, rounding_mode="floor")
+            dx = local - dy * width
+            cx = dx.to(dtype) + 0.5
+            cy = dy.to(dtype) + 0.5
+            b0 = tab[:, 0] * cx + tab[:, 1] * cy + tab[:, 2]
+            b1 = tab[:, 3] * cx + tab[:, 4] * cy + tab[:, 5]
             b2 = 1.0 - b0 - b1
-            inside = (b0 >= 0) & (b1 >= 0) & (b2 >= 0)
-            sel = torch.nonzero(inside).squeeze(1)
+            sel = torch.nonzero((b0 >= 0) & (b1 >= 0) & (b2 >= 0)).squeeze(1)
             if sel.numel() == 0:
                 continue
-            b = torch.stack([b0[sel], b1[sel], b2[sel]], dim=1)
-            w_persp = b / tab.index_select(0, sel)[:, 6:9]
-            depth = 1.0 / w_persp.sum(dim=1)
-            pair_face = live.index_select(0, rows.index_select(0, sel))
-            frame = torch.div(pair_face, n_faces, rounding_mode="floor")
-            face = pair_face - frame * n_faces
-            sample = frame * (hs * ws) + py[sel] * ws + px[sel]
-            key = (depth.float().view(torch.int32).long() << 32) | face
-            zbuf.scatter_reduce_(0, sample, key, reduce="amin")
-            win = torch.nonzero(key == zbuf.index_select(0, sample)).squeeze(1)
-            target = sample[win]
-            face_out[target] = face[win]
-            bary_out[target] = w_persp[win] * depth[win, None]
-            depth_out[target] = depth[win]
-    return fragments
+            row = rows.index_select(0, sel)
+            face_frame = live.index_select(0, row)
+            frame = torch.div(face_frame, n_faces, rounding_mode="floor")
+            px = ox.index_select(0, row).long() + dx.index_select(0, sel)
+            py = oy.index_select(0, row).long() + dy.index_select(0, sel)
+            found["row"].append(row)
+            found["sample"].append(frame * (hs * ws) + py * ws + px)
+            found["b"].append(torch.stack([b0.index_select(0, sel), b1.index_select(0, sel), b2.index_select(0, sel)], 1))
+        if not found["row"]:
+            return result
+        row = torch.cat(found["row"])
+        sample = torch.cat(found["sample"])
+        w_persp = torch.cat(found["b"]) / z_table.index_select(0, row)
+        depth = 1.0 / w_persp.sum(dim=1)
+        face_frame = live.index_select(0, row)
+        face = face_frame - torch.div(face_frame, n_faces, rounding_mode="floor") * n_faces
+        # z-buffer over the candidate samples only: unique (depth, face) keys, minimum per sample wins
+        key = (depth.float().view(torch.int32).long() << 32) | face
+        zbuf = torch.full((n_frames * hs * ws,), _NO_KEY, dtype=torch.int64, device=device)
+        zbuf.scatter_reduce_(0, sample, key, reduce="amin")
+        win = torch.nonzero(key == zbuf.index_select(0, sample)).squeeze(1)
+        result.sample = sample.index_select(0, win)
+        result.face = face.index_select(0, win)
+        result.bary = w_persp.index_select(0, win) * depth.index_select(0, win)[:, None]
+        result.depth_m = depth.index_select(0, win)
+    return result

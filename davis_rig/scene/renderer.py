@@ -23,7 +23,7 @@ import numpy as np
 
 from davis_rig.errors import MissingDependencyError, ShapeError
 from davis_rig.scene.camera import PinholeCamera
-from davis_rig.scene.rasterize import rasterize
+from davis_rig.scene.rasterize import rasterize_sparse
 from davis_rig.scene.shading import Light, lambert, vertex_normals
 from davis_rig.scene.texture import TexelLookup, prepare_lookup
 
@@ -217,7 +217,7 @@ def rasterize_mesh(
         light: Lambert light (default :class:`Light`).
         cull_backfaces: see :func:`davis_rig.scene.rasterize.rasterize`.
         max_samples: frames are rasterized in groups of at most this many samples (``T_group * H s * W s``),
-            which bounds the memory of the dense per-sample maps; only covered samples are kept.
+            which bounds the memory of the z-buffer (8 bytes per sample); only covered samples are kept.
 
     Returns:
         :class:`RasterizedMesh`.
@@ -244,13 +244,10 @@ def rasterize_mesh(
         faces_long = faces.long()
         parts = {"sample": [], "face": [], "bary": []}
         for first in range(0, t, group):  # a few groups of frames at most: bounded dense maps
-            frags = rasterize(projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces)
-            flat_face = frags.face_id.reshape(-1)
-            sample = torch.nonzero(flat_face >= 0).squeeze(1)
-            parts["sample"].append(sample + first * per_frame)
-            parts["face"].append(flat_face[sample])
-            parts["bary"].append(frags.bary.reshape(-1, 3)[sample])
-            del frags
+            frags = rasterize_sparse(projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces)
+            parts["sample"].append(frags.sample + first * per_frame)
+            parts["face"].append(frags.face)
+            parts["bary"].append(frags.bary)
         sample = torch.cat(parts["sample"])
         face = torch.cat(parts["face"])
         bary = torch.cat(parts["bary"])
