@@ -6,7 +6,7 @@ procedural background, wearing a random black/white grid texture; 200 fps render
 ground-truth boxes as ``/labels/boxes`` (RVT crop coordinates). ``--usb`` sends everything through the DAVIS346
 word-stream encoder and the virtual USB camera (the real capture path) instead of writing the file directly.
 
-Run: ``python tools/make_sample_session.py [--out recordings/sample.h5] [--duration 1.0] [--usb] [--ideal]``.
+Run: ``python tools/make_sample_session.py [--out recordings/sample.h5] [--duration 0.6] [--usb] [--ideal]``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("recordings/sample.h5"))
-    parser.add_argument("--duration", type=float, default=1.0, help="clip length, s")
+    parser.add_argument("--duration", type=float, default=0.6, help="clip length, s")
     parser.add_argument("--rate", type=float, default=200.0, help="render rate, Hz (>= 200)")
     parser.add_argument("--grid", type=int, default=20, help="n of the n x n black/white texture grid")
     parser.add_argument("--seed", type=int, default=0)

@@ -207,11 +207,15 @@ def _record_through_usb(path: Path, events, frames, config: dict, overwrite: boo
     source = EncodedSource(events, frames, layout=SensorLayout.davis346(), paced=False)
     device = VirtualDavis346(serial="SYNTH001", source=source)
     stop = threading.Event()
+    # Unpaced, the virtual camera serves the scene as fast as pyusb reads it: give the reader a queue that holds
+    # every transfer, so a slow decoder/writer never makes it drop one.
+    queue_transfers = 2 * len(source) + 64
 
-    with Davis346.open(backend=VirtualDavis346Backend(device)) as camera:
+    with Davis346.open(backend=VirtualDavis346Backend(device), queue_transfers=queue_transfers) as camera:
         def served_and_read() -> bool:
+            stats = camera.stats
             return (len(source) == 0 and getattr(device, "_pending", None) is None
-                    and camera.stats.bytes >= device.bytes_served)
+                    and stats.bytes + stats.dropped_bytes >= device.bytes_served)
 
         def watch() -> None:
             deadline = time.monotonic() + timeout_s
@@ -231,6 +235,9 @@ def _record_through_usb(path: Path, events, frames, config: dict, overwrite: boo
             watcher.join()
         if not served_and_read():
             raise SessionError(f"{path}: the virtual camera did not deliver the whole scene within {timeout_s} s")
+        dropped = camera.stats.dropped_transfers
+        if dropped:
+            raise SessionError(f"{path}: {dropped} USB transfers were dropped on the way (the file is incomplete)")
     import h5py
 
     with h5py.File(path, "r+", locking=False) as f:  # record_session stores the camera settings; add ours
