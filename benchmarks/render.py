@@ -12,7 +12,11 @@ Cases, per frame, median (and IQR) over repeated runs after warm-up, for a batch
 
 Also printed: candidate (face, sample) pairs per covered sample (the rasterizer's overhead factor) and the
 ratios 2 threads / 1 thread and s = 2, 3 vs s = 1. CPU with 1 and 2 threads; ``--device cuda`` adds a GPU.
-Run: ``python benchmarks/render.py [--repeats N] [--frames 10] [--threads 1 2] [--device cpu]``.
+
+``--warp`` compares the torch rasterizer (:func:`rasterize_sparse`) with the same algorithm as NVIDIA warp
+kernels (one thread per triangle looping over its bounding box, ``atomic_min`` depth pass + face-id pass; face
+ids only, no barycentrics), when ``warp-lang`` is installed (it is not a dependency of davis_rig).
+Run: ``python benchmarks/render.py [--repeats N] [--frames 10] [--threads 1 2] [--device cpu] [--warp]``.
 """
 
 from __future__ import annotations
@@ -26,6 +30,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+try:  # optional: only for the --warp comparison
+    import warp as wp
+except ImportError:  # pragma: no cover - depends on the environment
+    wp = None
 
 
 def _commit() -> str:
@@ -68,6 +77,127 @@ def _pairs_per_sample(projected, faces, hw, s) -> float:
     return pairs / max(covered, 1.0)
 
 
+if wp is not None:
+    wp.config.quiet = True
+
+    @wp.kernel
+    def depth_pass(tri: wp.array2d(dtype=wp.float32), hs: int, ws: int, n_faces: int, near: float, zbuf: wp.array(dtype=wp.float32)):
+        fid = wp.tid()
+        x0 = tri[fid, 0]
+        x1 = tri[fid, 1]
+        x2 = tri[fid, 2]
+        y0 = tri[fid, 3]
+        y1 = tri[fid, 4]
+        y2 = tri[fid, 5]
+        z0 = tri[fid, 6]
+        z1 = tri[fid, 7]
+        z2 = tri[fid, 8]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area >= 0.0 or z0 <= near or z1 <= near or z2 <= near:
+            return
+        xa = wp.max(int(wp.ceil(wp.min(wp.min(x0, x1), x2) - 0.5)), 0)
+        xb = wp.min(int(wp.floor(wp.max(wp.max(x0, x1), x2) - 0.5)), ws - 1)
+        ya = wp.max(int(wp.ceil(wp.min(wp.min(y0, y1), y2) - 0.5)), 0)
+        yb = wp.min(int(wp.floor(wp.max(wp.max(y0, y1), y2) - 0.5)), hs - 1)
+        frame = fid / n_faces
+        inv_area = 1.0 / area
+        for py in range(ya, yb + 1):
+            for px in range(xa, xb + 1):
+                cx = float(px) + 0.5
+                cy = float(py) + 0.5
+                b0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv_area
+                b1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv_area
+                b2 = 1.0 - b0 - b1
+                if b0 >= 0.0 and b1 >= 0.0 and b2 >= 0.0:
+                    depth = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2)
+                    wp.atomic_min(zbuf, frame * hs * ws + py * ws + px, depth)
+
+    @wp.kernel
+    def id_pass(tri: wp.array2d(dtype=wp.float32), hs: int, ws: int, n_faces: int, near: float, zbuf: wp.array(dtype=wp.float32), fbuf: wp.array(dtype=wp.int32)):
+        fid = wp.tid()
+        x0 = tri[fid, 0]
+        x1 = tri[fid, 1]
+        x2 = tri[fid, 2]
+        y0 = tri[fid, 3]
+        y1 = tri[fid, 4]
+        y2 = tri[fid, 5]
+        z0 = tri[fid, 6]
+        z1 = tri[fid, 7]
+        z2 = tri[fid, 8]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area >= 0.0 or z0 <= near or z1 <= near or z2 <= near:
+            return
+        xa = wp.max(int(wp.ceil(wp.min(wp.min(x0, x1), x2) - 0.5)), 0)
+        xb = wp.min(int(wp.floor(wp.max(wp.max(x0, x1), x2) - 0.5)), ws - 1)
+        ya = wp.max(int(wp.ceil(wp.min(wp.min(y0, y1), y2) - 0.5)), 0)
+        yb = wp.min(int(wp.floor(wp.max(wp.max(y0, y1), y2) - 0.5)), hs - 1)
+        frame = fid / n_faces
+        inv_area = 1.0 / area
+        for py in range(ya, yb + 1):
+            for px in range(xa, xb + 1):
+                cx = float(px) + 0.5
+                cy = float(py) + 0.5
+                b0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv_area
+                b1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv_area
+                b2 = 1.0 - b0 - b1
+                if b0 >= 0.0 and b1 >= 0.0 and b2 >= 0.0:
+                    depth = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2)
+                    k = frame * hs * ws + py * ws + px
+                    if depth == zbuf[k]:
+                        fbuf[k] = fid - frame * n_faces
+
+
+def warp_raster(projected, faces, hw, s):
+    """Face id per sample from the warp kernels, int32 tensor [T, H*s, W*s] (-1 = none)."""
+    import torch
+
+    t = projected.shape[0]
+    p = projected * torch.tensor([s, s, 1.0], dtype=projected.dtype, device=projected.device)
+    tri = p[:, faces.long()]  # [T, F, 3, 3]
+    tri = torch.cat([tri[..., 0], tri[..., 1], tri[..., 2]], -1).reshape(-1, 9).float().contiguous()
+    hs, ws = hw[0] * s, hw[1] * s
+    n = t * hs * ws
+    device = "cuda:0" if projected.is_cuda else "cpu"
+    zbuf = wp.full(n, 1e30, dtype=wp.float32, device=device)
+    fbuf = wp.full(n, -1, dtype=wp.int32, device=device)
+    w_tri = wp.from_torch(tri)
+    wp.launch(depth_pass, dim=tri.shape[0], inputs=[w_tri, hs, ws, faces.shape[0], 1e-3, zbuf], device=device)
+    wp.launch(id_pass, dim=tri.shape[0], inputs=[w_tri, hs, ws, faces.shape[0], 1e-3, zbuf, fbuf], device=device)
+    wp.synchronize()
+    return wp.to_torch(fbuf).view(t, hs, ws)
+
+
+def _compare_warp(model, camera, vertices, rotation, translation, supersample_list, repeats, device) -> None:
+    """Torch rasterizer vs the warp kernels on the same projected frames (ms per frame, face-id agreement)."""
+    import torch
+
+    from davis_rig.scene.rasterize import rasterize_sparse
+
+    if wp is None:
+        print("warp comparison skipped: warp-lang is not installed (pip install warp-lang)")
+        return
+    wp.init()
+    projected = camera.project(vertices, rotation, translation)
+    frames = projected.shape[0]
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for s in supersample_list:
+        start = time.perf_counter()
+        warp_raster(projected, model.faces, camera.hw, s)
+        first_s = time.perf_counter() - start
+        w_med, _, _ = _time_ms(lambda: warp_raster(projected, model.faces, camera.hw, s), 1, repeats, sync)
+        t_med, _, _ = _time_ms(lambda: rasterize_sparse(projected, model.faces, camera.hw, s), 1, repeats, sync)
+        ids = warp_raster(projected, model.faces, camera.hw, s).long().reshape(-1)
+        ours = rasterize_sparse(projected, model.faces, camera.hw, s)
+        dense = torch.full_like(ids, -1)
+        dense[ours.sample] = ours.face
+        agree = float((dense == ids).float().mean())
+        print(
+            f"[warp {wp.get_device()}] {camera.width_px}x{camera.height_px} s={s}: warp {w_med / frames:6.2f} ms/frame"
+            f" (first call incl. kernel build/load {first_s:.2f} s) | torch rasterize_sparse {t_med / frames:6.2f} ms/frame"
+            f" | torch/warp {t_med / w_med:.2f} | face-id agreement {agree:.5f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=7)
@@ -76,6 +206,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--supersample", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--warp", action="store_true", help="also time the warp-kernel rasterizer (if installed)")
     args = parser.parse_args()
 
     import torch
@@ -133,6 +264,13 @@ def main() -> None:
                     f" | samples/frame {raster.face.numel() // args.frames}"
                     + (f" | bbox pairs per covered sample {pairs:.2f}" if np.isfinite(pairs) else "")
                 )
+    if args.warp:
+        torch.set_num_threads(thread_list[0])
+        camera = PinholeCamera.rvt_crop()
+        d = distance_for_height("middle", camera)
+        rotation, translation = look_at([0.0, -d, 0.875], [0.0, 0.0, 0.875])
+        _compare_warp(model, camera, vertices, torch.as_tensor(rotation, dtype=torch.float32, device=device),
+                      torch.as_tensor(translation, dtype=torch.float32, device=device), args.supersample, args.repeats, device)
     print("ratios:")
     for name in ("346x260", "304x240"):
         for s in args.supersample:

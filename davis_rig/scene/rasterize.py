@@ -9,28 +9,37 @@ Algorithm (vectorised torch, identical on CPU and CUDA, batched over frames):
 1. project vertices (done by the caller) and gather the triangles of every frame, cull back faces,
    faces behind the near plane and faces whose bounding box holds no sample centre;
 2. enumerate candidate (face, sample) pairs of every face's bounding box with ``repeat_interleave``;
-3. evaluate the three edge functions at the sample centres, keep the samples inside (edges inclusive:
-   no cracks between neighbours; the z-buffer resolves the double hits);
+3. evaluate the barycentrics as affine functions of the sample centre in bbox-local coordinates, keep the
+   samples inside (edges inclusive: no cracks between neighbours; the z-buffer resolves the double hits);
 4. z-buffer: pack ``float32 depth bits << 32 | face`` into one int64 key (positive float32 bits sort like
-   the floats) and ``scatter_reduce(amin)`` the keys per sample; a pair wins iff its key equals the minimum;
-5. write face id, perspective-correct barycentrics (``b_i/z_i`` renormalised) and depth of the winners.
+   the floats, the face id makes keys unique) and ``scatter_reduce(amin)`` the keys per sample; a pair wins
+   iff its key equals the minimum;
+5. keep face id, perspective-correct barycentrics (``b_i/z_i`` renormalised) and depth of the winners
+   (:func:`rasterize_sparse`; :func:`rasterize` expands them into dense maps).
 
 Supersampling ``s`` rasterizes at ``s x`` the resolution (sample centres at ``(j + (a + 0.5)/s)`` in pixels);
 coverage alpha is the fraction of covered samples per pixel.
 
-Why this and not the alternatives the issue lists (measured on this box, 2 loaded CPU cores, body mesh
-of 27,420 faces at the middle test scale, see ``benchmarks/render.py`` for the current figures):
+Why this rasterizer (figures from ``benchmarks/render.py``, 10 walk frames of the 27,420-face body at the
+middle scale, 304 x 240, 1 thread on a shared, loaded 2-core CPU, so +-30 %):
 
-- Human bodies at 130-175 px have mostly sub-pixel triangles; the bounding-box pair list is only ~1-3x the
-  covered samples, so the whole frame costs a few large tensor ops (no per-face or per-pixel Python loop).
-  Frames are batched into the same ops, which is what makes it fast on a GPU too.
-- NVIDIA warp (a dependency of anny, not of this package) would need a CUDA kernel build per machine, a
-  second array runtime and copies between warp and torch; its CPU backend compiles with LLVM at first use
-  (seconds) and is single-threaded per kernel launch. Not worth a dependency for a few ms per frame.
-- Ray casting (BVH per frame, since the body deforms) costs a BVH build of all 27k triangles per frame,
-  more than rasterizing them.
-- OpenGL via moderngl/EGL needs a GPU/driver stack or a software Mesa (llvmpipe) in every environment
-  (CI has neither by default) and a read-back per frame; results would also differ by driver.
+- The body at 130-175 px is mostly sub-pixel triangles: the bounding-box pair list is only 3.6 candidates
+  per covered sample at s = 1, 2 and 3, so a frame is a handful of large tensor ops with no per-face or
+  per-pixel Python loop, batched over frames (which is what a GPU needs). Measured: 4.0 / 7.6 / 16.7 ms
+  per frame for s = 1 / 2 / 3 (rasterization only; with projection, normals, UVs and shades
+  :func:`~davis_rig.scene.renderer.rasterize_mesh` takes about 10 / 15-19 / 28-44 ms). The optimiser
+  reuses the raster of a clip: one texture step (lookup + compositing + backward) costs 0.3-1.4 ms/frame.
+- NVIDIA warp (``benchmarks/render.py --warp``: the same algorithm as warp kernels, one thread per
+  triangle, atomic-min depth pass + face-id pass, face ids only): 3.7 / 5.4 / 7.3 ms per frame on the
+  same CPU, identical face ids, i.e. 1.1x / 1.4x / 2.3x faster than torch here, but it needs the
+  ``warp-lang`` runtime (not a dependency of this package; anny's), a kernel build per machine and warp
+  version (4.5 s on first use) and copies between the two array runtimes. At the default s = 2 the gain
+  is a few ms per frame of a step that runs once per clip, so torch stays the single code path.
+- Ray casting needs a BVH of the deforming mesh for every frame (27k triangles), more work than
+  rasterizing them; not measured.
+- OpenGL via moderngl/EGL needs a GPU driver or a software Mesa (llvmpipe) with EGL in every environment
+  (this box and CI have no EGL) and a read-back per frame; results would also differ by driver. Not
+  measured (no EGL here).
 """
 
 from __future__ import annotations
