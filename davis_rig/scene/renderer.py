@@ -244,7 +244,9 @@ def rasterize_mesh(
         faces_long = faces.long()
         parts = {"sample": [], "face": [], "bary": []}
         for first in range(0, t, group):  # a few groups of frames at most: bounded dense maps
-            frags = rasterize_sparse(projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces)
+            frags = rasterize_sparse(
+                projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces
+            )
             parts["sample"].append(frags.sample + first * per_frame)
             parts["face"].append(frags.face)
             parts["bary"].append(frags.bary)

@@ -294,7 +294,9 @@ def _warp_background(background: np.ndarray, camera: PinholeCamera, rotation, tr
         r_rel = r_k @ rotation[0].T
         t_rel = t_k - r_rel @ translation[0]
         homography = k @ (r_rel + np.outer(t_rel, normal) / depth_m) @ k_inv
-        frames.append(cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT))
+        frames.append(
+            cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        )
     return np.stack(frames).astype(np.float32)
 
 

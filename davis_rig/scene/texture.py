@@ -71,7 +71,8 @@ class TexelLookup:
             ShapeError: the texture size differs from the lookup's.
         """
         if tuple(texture.shape[-2:]) != tuple(self.texture_hw):
-            raise ShapeError(f"texture must be [..., {self.texture_hw[0]}, {self.texture_hw[1]}], got {tuple(texture.shape)}")
+            rows, cols = self.texture_hw
+            raise ShapeError(f"texture must be [..., {rows}, {cols}], got {tuple(texture.shape)}")
         flat = texture.reshape(*texture.shape[:-2], -1)
         taps = flat[..., self.index]  # [..., N, K]
         weight = self.weight.to(taps.dtype)
