@@ -219,6 +219,25 @@ def test_dvs_gradient_follows_the_straight_through_surrogate():
     assert grad[:, 0, 1].abs().sum().item() == 0.0
 
 
+@pytest.mark.parametrize("per_pixel", [False, True])
+def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
+    from davis_rig.events.v2e_torch import _dvs_counts_unrolled, _log_video
+
+    video = torch.tensor(moving_scene(25, 9, 14, seed=3), requires_grad=True)
+    rng = np.random.default_rng(0)
+    theta_on = torch.tensor(rng.uniform(0.15, 0.25, (9, 14))) if per_pixel else 0.2
+    theta_off = torch.tensor(rng.uniform(0.15, 0.25, (9, 14))) if per_pixel else 0.2
+    w_on, w_off = torch.rand(2, 24, 9, 14, dtype=torch.float64)
+    on, off = v2e_counts(video, threshold_on=theta_on, threshold_off=theta_off)
+    ((on * w_on).sum() + (off * w_off).sum()).backward()
+    fused = video.grad.clone()
+    video.grad = None
+    on_ref, off_ref = _dvs_counts_unrolled(_log_video(video, 255.0, 20.0), theta_on, theta_off)
+    ((on_ref * w_on).sum() + (off_ref * w_off).sum()).backward()
+    assert torch.equal(on, on_ref) and torch.equal(off, off_ref) and on.sum() > 100
+    assert torch.allclose(fused, video.grad, rtol=1e-12, atol=1e-12) and fused.abs().sum() > 0
+
+
 def test_gradients_reach_the_video_through_the_histogram():
     video = torch.tensor(moving_scene(11, 6, 8), requires_grad=True)
     hist = v2e_histograms(video, np.arange(11) * 5000, 50_000, count_cutoff=None)
