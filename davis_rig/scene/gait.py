@@ -1,0 +1,575 @@
+"""Parametric gait generator: walking to running on the asset's rig, from normative joint-angle curves.
+
+Sagittal hip / knee / ankle angles versus gait-cycle % are Fourier series (order 6) fitted by
+:func:`fit_fourier` to key values of published normative curves (tables :data:`NORMATIVE_TABLES`):
+
+- **Walking** (self-selected speed, ~1.3 m/s, toe-off at 62 %): the rounded event values of Perry &
+  Burnfield, *Gait Analysis: Normal and Pathological Function*, 2nd ed. (SLACK, 2010), chapters on the hip,
+  knee and ankle (hip 30° flexion at initial contact, ~10° apparent hyperextension at 50 %, 0° at toe-off,
+  ~33° peak flexion in terminal swing; knee 5° at contact, ~18° loading-response flexion at 15 %, ~3° at
+  40 %, 40° at toe-off, 60° peak at 73 %; ankle 0° at contact, 5° plantarflexion at 10 %, 10°
+  dorsiflexion at 48 %, 20° plantarflexion at 62 %, neutral from mid swing), with intermediate points read
+  off the same normative curves (±2°).
+- **Running** (~3.2 m/s, toe-off at 39 %): values read off the mean curves of Novacheck, "The biomechanics
+  of running", *Gait & Posture* 7 (1998) 77-95, Fig. 4 (hip ~38° at contact, ~-8° at toe-off, ~50° peak in
+  late swing; knee ~20° at contact, ~42° stance peak, ~18° at toe-off, ~95° swing peak; ankle ~20° stance
+  dorsiflexion, ~-22° at toe-off), ±3°.
+
+The curves are approximations of population means (values rounded / read from figures), not a
+re-publication of the tables; the fit errors at the tabulated points are ≤ 0.4° (:data:`FIT_MAX_ERROR_DEG`).
+Angles: flexion / dorsiflexion positive, degrees; phase 0 = heel strike of the leg.
+
+Other degrees of freedom are single harmonics with textbook amplitudes: pelvic rotation ±4°, obliquity
+±4°, tilt ±2° (Perry & Burnfield 2010), shoulder swing ±16° about -8° and elbow 20 ± 8° for walking
+(Murray, Sepic & Barnard, "Patterns of sagittal rotation of the upper limbs in walking", *Phys. Ther.*
+47 (1967) 272-284), larger swing and ~85° elbow flexion for running (Novacheck 1998).
+
+How a pose is built (anny rig: Z up, facing -Y, +X = left; see :mod:`davis_rig.scene.body`): every bone
+gets a world rotation relative to rest, ``G_c`` (:func:`~davis_rig.scene.motion.motion_from_world_rotations`
+turns them into local rotations). Thigh and shank are first straightened in the sagittal plane and the
+arms brought down to the sides (rest offsets computed from the shape's rest bones), then
+``G_thigh = G_pelvis Rx(-hip)``, ``G_shank = G_thigh Rx(knee)``, ``G_foot = G_shank Rx(-ankle)``; the spine
+blends from the pelvis to the thorax (trunk lean, counter-rotation), the head stays nearly level.
+
+Foot contact (no sliding): the stance schedule (left stance for phase < stance fraction, right half a
+cycle later; double support shared linearly from the trailing to the leading foot) picks the pivot = the
+lowest sole vertex of the stance foot in each frame; the root moves horizontally by minus the pivot's
+displacement, so a foot in single support does not move in the world. Vertically the lowest sole vertex
+touches z = 0 in every frame with a foot in stance; during a running flight phase the root follows a
+ballistic arc (g = 9.81 m/s²) between take-off and landing heights. The stride (advance per cycle) follows
+from the kinematics: the hip amplitude is scaled (secant search) until stride / period = requested speed;
+the default cadence follows Alexander's dynamic-similarity relation stride = 2.3 h (v² / (g h))^0.3
+(R. McN. Alexander, "Estimates of speeds of dinosaurs", *Nature* 261 (1976) 129-130; h = hip height).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from davis_rig.scene.motion import (
+    Motion,
+    loop,
+    motion_from_world_rotations,
+    rotate_heading,
+    rotation_about_z,
+    turn,
+)
+
+__all__ = [
+    "FIT_MAX_ERROR_DEG",
+    "FOURIER_COEFFICIENTS",
+    "NORMATIVE_TABLES",
+    "NATIVE_STANCE_FRACTION",
+    "GaitParams",
+    "evaluate_fourier",
+    "fit_fourier",
+    "generate_gait",
+    "joint_angles_deg",
+]
+
+GRAVITY_M_S2 = 9.81
+#: Thigh angle from the vertical = hip angle + this offset (deg): the normative hip angles are measured
+#: against the pelvis, which is tilted anteriorly (Perry & Burnfield: ~10° apparent hyperextension).
+THIGH_OFFSET_DEG = {"walk": -10.0, "run": -10.0}
+#: A foot may carry weight from this fraction of the cycle before its heel strike to after its toe-off.
+SCHEDULE_MARGIN = 0.05
+#: Factor on Alexander's stride: 1.08 matches Perry's free walking (1.37 m/s, 1.41 m stride, hip height
+#: ~0.9 m); running is left as Alexander's relation (3.2 m/s -> 2.16 m, ~178 steps/min, cf. Novacheck 1998).
+STRIDE_CALIBRATION = {"walk": 1.08, "run": 1.0}
+#: Range of the hip-amplitude scale used to reach a stride; beyond it the cadence is changed instead.
+HIP_SCALE_RANGE = (0.85, 1.25)
+#: Height band (m) above the lowest foot within which a foot shares the support (hand-over at double support).
+CONTACT_BAND_M = 0.01
+
+#: Key values (gait-cycle %, angle in degrees) of the normative curves; see the module docstring for sources.
+NORMATIVE_TABLES: dict[str, tuple[tuple[float, float], ...]] = {
+    "walk_hip": ((0, 30), (10, 28), (20, 20), (30, 10), (40, 0), (50, -10), (56, -7), (62, 0), (75, 20), (87, 33),
+                 (95, 31)),
+    "walk_knee": ((0, 5), (7, 13), (15, 18), (25, 12), (40, 3), (50, 8), (56, 22), (62, 40), (73, 60), (80, 52),
+                  (87, 30), (94, 8)),
+    "walk_ankle": ((0, 0), (10, -5), (20, 2), (30, 5), (40, 8), (48, 10), (55, 0), (62, -20), (75, -5), (87, 0),
+                   (95, 0)),
+    "run_hip": ((0, 38), (10, 28), (20, 15), (30, 3), (39, -8), (50, 0), (60, 20), (75, 40), (85, 50), (93, 45)),
+    "run_knee": ((0, 20), (8, 35), (15, 42), (25, 32), (39, 18), (50, 50), (60, 80), (70, 95), (80, 80), (90, 40)),
+    "run_ankle": ((0, 5), (8, 15), (15, 20), (25, 12), (39, -22), (50, -12), (60, -5), (70, 3), (80, 8), (90, 7)),
+}  # fmt: skip
+
+#: Fourier order and ridge weight (on harmonic k: lambda * k^4) of the fits.
+FOURIER_ORDER = 6
+FOURIER_RIDGE = 1e-3
+
+#: Coefficients ``(a0, a1, b1, ..., a6, b6)`` of ``a0 + sum_k a_k cos(2 pi k p) + b_k sin(2 pi k p)``
+#: (p = phase in cycles, result in degrees) = ``fit_fourier(NORMATIVE_TABLES[name])``.
+FOURIER_COEFFICIENTS: dict[str, tuple[float, ...]] = {
+    "walk_hip": (14.7588, 19.8274, -2.0375, -3.5960, -2.0639, -0.0869, 0.6359, -1.0005, 0.3692, 0.2042, 0.1317,
+                 -0.1165, 0.1663),
+    "walk_knee": (21.9099, -0.7706, -20.3690, -14.6498, 6.9949, -0.9177, 3.6025, -0.7942, 0.7446, 0.1320, 0.2901,
+                  0.0573, 0.2656),
+    "walk_ankle": (-1.1935, -0.7545, 6.4560, 2.4033, -7.4391, -3.8638, 0.9057, 3.1723, 0.6848, 0.0327, -0.9169,
+                   0.0808, 0.5868),
+    "run_hip": (22.3933, 19.5387, -17.5703, -2.9243, 1.5278, -0.3950, -1.8263, -0.5584, 1.0231, -0.1493, 0.3387,
+                0.1041, -0.0882),
+    "run_knee": (48.5031, -9.3285, -28.7805, -13.2831, 14.8104, -4.7458, 1.4865, 0.0116, 0.9511, -0.7852, 0.2712,
+                 -0.1600, -0.1075),
+    "run_ankle": (1.8251, 13.3022, 0.3755, -6.1699, 7.0011, -3.7720, -2.0901, 0.9509, 0.3527, -0.9097, 0.3809,
+                  -0.1023, -0.0330),
+}  # fmt: skip
+
+#: Largest |fit - table| over the tabulated points (degrees), per curve, as measured when fitting.
+FIT_MAX_ERROR_DEG: dict[str, float] = {
+    "walk_hip": 0.10, "walk_knee": 0.22, "walk_ankle": 0.34, "run_hip": 0.09, "run_knee": 0.21, "run_ankle": 0.16,
+}  # fmt: skip
+
+#: Toe-off (end of stance) as a fraction of the cycle in the source curves.
+NATIVE_STANCE_FRACTION = {"walk": 0.62, "run": 0.39}
+
+
+def _design(phase: np.ndarray, order: int) -> np.ndarray:
+    p = np.asarray(phase, dtype=np.float64)
+    cols = [np.ones_like(p)]
+    for k in range(1, order + 1):
+        cols += [np.cos(2 * np.pi * k * p), np.sin(2 * np.pi * k * p)]
+    return np.stack(cols, axis=-1)
+
+
+def fit_fourier(
+    table: tuple[tuple[float, float], ...], order: int = FOURIER_ORDER, ridge: float = FOURIER_RIDGE
+) -> np.ndarray:
+    """Least-squares Fourier series through periodic samples, with a ridge penalty ``ridge * k^4`` on harmonic k.
+
+    Args:
+        table: ``(percent of cycle, value)`` pairs.
+        order: number of harmonics.
+        ridge: smoothness weight (keeps the curve from oscillating between sparse points).
+
+    Returns:
+        float64 [2 * order + 1] coefficients ``(a0, a1, b1, ..., a_order, b_order)``.
+    """
+    pts = np.asarray(table, dtype=np.float64)
+    a = _design((pts[:, 0] / 100.0) % 1.0, order)
+    penalty = np.concatenate([[0.0], np.repeat(np.arange(1, order + 1, dtype=np.float64) ** 4, 2)])
+    return np.linalg.solve(a.T @ a + ridge * np.diag(penalty), a.T @ pts[:, 1])
+
+
+def evaluate_fourier(coefficients, phase) -> np.ndarray:
+    """Value of a Fourier series at ``phase`` (cycles, any real), float64 with the shape of ``phase``."""
+    c = np.asarray(coefficients, dtype=np.float64)
+    order = (len(c) - 1) // 2
+    return _design(phase, order) @ c
+
+
+def _warp(phase: np.ndarray, stance: float, native: float) -> np.ndarray:
+    """Map a cycle with toe-off at ``stance`` onto a source curve with toe-off at ``native`` (piecewise linear)."""
+    p = np.mod(phase, 1.0)
+    return np.where(p < stance, p * native / stance, native + (p - stance) * (1 - native) / (1 - stance))
+
+
+def joint_angles_deg(phase, run: float = 0.0, stance_fraction: float | None = None) -> dict[str, np.ndarray]:
+    """Sagittal hip / knee / ankle angles of one leg, blended between walking and running.
+
+    Args:
+        phase: gait phase of the leg (cycles; 0 = its heel strike), float [N].
+        run: 0 = walking curves, 1 = running curves, in between = blend (after aligning toe-off).
+        stance_fraction: toe-off of the blended cycle (default: blend of the native 0.62 / 0.39).
+
+    Returns:
+        ``{"hip", "knee", "ankle"}`` -> float64 [N] degrees (flexion / dorsiflexion positive).
+    """
+    run = float(np.clip(run, 0.0, 1.0))
+    s = stance_fraction if stance_fraction is not None else _stance_fraction(run)
+    out = {}
+    for joint in ("hip", "knee", "ankle"):
+        walk = evaluate_fourier(FOURIER_COEFFICIENTS[f"walk_{joint}"], _warp(phase, s, NATIVE_STANCE_FRACTION["walk"]))
+        running = evaluate_fourier(FOURIER_COEFFICIENTS[f"run_{joint}"], _warp(phase, s, NATIVE_STANCE_FRACTION["run"]))
+        out[joint] = (1 - run) * walk + run * running
+    return out
+
+
+def _stance_fraction(run: float) -> float:
+    return (1 - run) * NATIVE_STANCE_FRACTION["walk"] + run * NATIVE_STANCE_FRACTION["run"]
+
+
+@dataclass(frozen=True)
+class GaitParams:
+    """Parameters of :func:`generate_gait`.
+
+    Attributes:
+        speed_m_s: forward speed (m/s), > 0.
+        run: walk (0) to run (1) blend of the joint curves, stance fraction, arm and trunk posture.
+        cadence_steps_min: steps per minute; ``None`` = from speed and hip height (Alexander 1976).
+        stride_m: stride length (two steps, m) instead of the cadence (``cadence = 120 v / stride``).
+        arm_swing_deg: half-amplitude of the shoulder flexion swing (deg); ``None`` = 16 (walk) .. 30 (run).
+        elbow_flexion_deg: mean elbow flexion (deg); ``None`` = 20 (walk) .. 85 (run).
+        trunk_lean_deg: forward trunk lean (deg); ``None`` = 2 (walk) .. 8 (run).
+        pelvis_scale: scale of the pelvic rotation / obliquity / tilt amplitudes.
+        arm_abduction_deg: arms' angle away from the body sides at rest (deg).
+        heading_rad: walking direction, rotation about +Z from -Y (pi/2 = walking towards +X).
+        turn_rate_rad_s: constant turning rate (rad/s, counter-clockwise from above); 0 = straight.
+        variation: size of the seeded random variation (0 = the mean gait; 1 = typical between-person
+            spread: joint amplitudes ±5 %, offsets ±2°, arm swing ±15 %, lean ±2°, cadence ±3 %, all 1 sigma).
+        seed: seed of that variation.
+    """
+
+    speed_m_s: float = 1.3
+    run: float = 0.0
+    cadence_steps_min: float | None = None
+    stride_m: float | None = None
+    arm_swing_deg: float | None = None
+    elbow_flexion_deg: float | None = None
+    trunk_lean_deg: float | None = None
+    pelvis_scale: float = 1.0
+    arm_abduction_deg: float = 8.0
+    heading_rad: float = 0.0
+    turn_rate_rad_s: float = 0.0
+    variation: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.speed_m_s > 0:
+            raise ValueError(f"speed_m_s must be > 0, got {self.speed_m_s}")
+        if not 0.0 <= self.run <= 1.0:
+            raise ValueError(f"run must be in [0, 1], got {self.run}")
+        if self.cadence_steps_min is not None and self.stride_m is not None:
+            raise ValueError("give cadence_steps_min or stride_m, not both")
+        if self.cadence_steps_min is not None and not self.cadence_steps_min > 0:
+            raise ValueError(f"cadence_steps_min must be > 0, got {self.cadence_steps_min}")
+        if self.stride_m is not None and not self.stride_m > 0:
+            raise ValueError(f"stride_m must be > 0, got {self.stride_m}")
+        if self.variation < 0:
+            raise ValueError(f"variation must be >= 0, got {self.variation}")
+
+
+# ---------------------------------------------------------------------------------------------- rotations
+def _rx(angle_rad: np.ndarray) -> np.ndarray:
+    a = np.asarray(angle_rad, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    z, o = np.zeros_like(a), np.ones_like(a)
+    return np.stack([o, z, z, z, c, -s, z, s, c], -1).reshape(a.shape + (3, 3))
+
+
+def _ry(angle_rad: np.ndarray) -> np.ndarray:
+    a = np.asarray(angle_rad, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    z, o = np.zeros_like(a), np.ones_like(a)
+    return np.stack([c, z, s, z, o, z, -s, z, c], -1).reshape(a.shape + (3, 3))
+
+
+def _align(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking direction ``src`` to ``dst`` (3-vectors), [3, 3]."""
+    a = src / np.linalg.norm(src)
+    b = dst / np.linalg.norm(dst)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
+
+
+def _slerp_matrices(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
+    """Rotations part-way from ``a`` to ``b`` ([T, 3, 3] each) by the geodesic."""
+    from davis_rig.scene.motion import quat_from_matrix, quat_slerp, quat_to_matrix
+
+    qa, qb = quat_from_matrix(a), quat_from_matrix(b)
+    return quat_to_matrix(quat_slerp(qa, qb, np.full(len(a), weight)))
+
+
+class _Rig:
+    """Bone lookup and rest geometry of one shape, for the generator."""
+
+    def __init__(self, asset, shape_index: int):
+        self.asset = asset
+        self.names = tuple(asset.bone_names)
+        self.parents = np.asarray(asset.bone_parents, dtype=np.int64)
+        self.rest = np.asarray(asset.rest_bone_poses[shape_index], dtype=np.float64)
+        self.heads = self.rest[:, :3, 3]
+        self.index = {n: i for i, n in enumerate(self.names)}
+        verts = np.asarray(asset.rest_vertices_m[shape_index], dtype=np.float64)
+        self.ground_z = float(verts[:, 2].min())
+        self.hip_height_m = float(self.heads[self.index["upperleg01.L"], 2] - self.ground_z)
+        # sole vertices per foot: lowest 1.5 cm of each foot, attached to their dominant bone
+        dominant = asset.skin_indices[np.arange(len(verts)), np.argmax(asset.skin_weights, axis=1)].astype(np.int64)
+        self.soles = {}
+        for side in ("L", "R"):
+            foot = self.index[f"foot.{side}"]
+            in_foot = np.isin(dominant, self._descendants(foot))
+            low = in_foot & (verts[:, 2] < verts[in_foot, 2].min() + 0.015)
+            self.soles[side] = (verts[low], dominant[low])
+
+    def _descendants(self, bone: int) -> np.ndarray:
+        keep = np.zeros(len(self.names), dtype=bool)
+        keep[bone] = True
+        for c in range(bone + 1, len(self.names)):
+            keep[c] = keep[self.parents[c]]
+        return np.flatnonzero(keep)
+
+    def i(self, name: str) -> int:
+        return self.index[name]
+
+    def direction(self, a: str, b: str) -> np.ndarray:
+        d = self.heads[self.i(b)] - self.heads[self.i(a)]
+        return d / np.linalg.norm(d)
+
+
+def _sagittal_straighten(direction: np.ndarray) -> np.ndarray:
+    """Rx(alpha) that removes the forward/backward (y) component of a mostly vertical direction."""
+    return _rx(np.arctan(direction[1] / direction[2]))
+
+
+def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale: float, rng_values: dict) -> np.ndarray:
+    """Per-bone world rotations relative to rest, [T, J, 3, 3], for phases [T] of the left leg."""
+    run = params.run
+    s = _stance_fraction(run)
+    t = len(phase)
+    v = rng_values
+    swing = params.arm_swing_deg if params.arm_swing_deg is not None else 16.0 + 14.0 * run
+    elbow = params.elbow_flexion_deg if params.elbow_flexion_deg is not None else 20.0 + 65.0 * run
+    lean = params.trunk_lean_deg if params.trunk_lean_deg is not None else 2.0 + 6.0 * run
+    lean += v["lean"]
+    deg = np.pi / 180.0
+    two_pi_p = 2 * np.pi * phase
+    ps = params.pelvis_scale * v["pelvis"]
+    pel_rot = -4.0 * ps * np.cos(two_pi_p)  # left side forward at left heel strike
+    pel_obl = -4.0 * ps * (1 - 0.5 * run) * np.cos(two_pi_p - 2 * np.pi * 0.15)  # swing side drops in single support
+    pel_tilt = 2.0 * ps * np.cos(2 * two_pi_p)
+    g_root = rotation_about_z(pel_rot * deg) @ _ry(pel_obl * deg) @ _rx(pel_tilt * deg)
+    g_thorax = rotation_about_z(-pel_rot * deg) @ _rx(np.full(t, lean * deg))
+    g_head = _rx(np.full(t, 0.3 * lean * deg))
+    key: dict[int, np.ndarray] = {rig.i("root"): g_root}
+    for side, offset, sign in (("L", 0.0, 1.0), ("R", 0.5, -1.0)):
+        angles = joint_angles_deg(phase + offset + v[f"phase_{side}"], run, s)
+        hip_mean = angles["hip"].mean()
+        hip = hip_mean + hip_scale * v[f"amp_{side}"] * (angles["hip"] - hip_mean) + v[f"hip_off_{side}"]
+        hip = hip + (1 - run) * THIGH_OFFSET_DEG["walk"] + run * THIGH_OFFSET_DEG["run"]
+        knee = np.maximum(angles["knee"] * v[f"amp_{side}"] + v[f"knee_off_{side}"], 0.0)
+        ankle = angles["ankle"] * v[f"amp_{side}"] + v[f"ankle_off_{side}"]
+        thigh = g_root @ _rx(-hip * deg)
+        shank = thigh @ _rx(knee * deg)
+        foot = shank @ _rx(-ankle * deg)
+        a_thigh = _sagittal_straighten(rig.direction(f"upperleg01.{side}", f"lowerleg01.{side}"))
+        a_shank = _sagittal_straighten(rig.direction(f"lowerleg01.{side}", f"foot.{side}"))
+        for bone in ("upperleg01", "upperleg02"):
+            key[rig.i(f"{bone}.{side}")] = thigh @ a_thigh
+        for bone in ("lowerleg01", "lowerleg02"):
+            key[rig.i(f"{bone}.{side}")] = shank @ a_shank
+        key[rig.i(f"foot.{side}")] = foot
+        # arms swing opposite to the same-side leg: most forward at the other leg's heel strike
+        shoulder = -8.0 * (1 - run) + swing * v["arm"] * -np.cos(two_pi_p + 2 * np.pi * offset)
+        target = np.array([sign * np.sin(params.arm_abduction_deg * deg), 0.0, -np.cos(params.arm_abduction_deg * deg)])
+        a_upper = _align(rig.direction(f"upperarm01.{side}", f"lowerarm01.{side}"), target)
+        a_fore = _align(rig.direction(f"lowerarm01.{side}", f"wrist.{side}"), target)
+        upper = g_thorax @ _rx(-shoulder * deg)
+        elbow_angle = elbow + 8.0 * (1 - run) * -np.cos(two_pi_p + 2 * np.pi * offset)
+        fore = upper @ _rx(-elbow_angle * deg)
+        for bone in ("upperarm01", "upperarm02"):
+            key[rig.i(f"{bone}.{side}")] = upper @ a_upper
+        for bone in ("lowerarm01", "lowerarm02", "wrist"):
+            key[rig.i(f"{bone}.{side}")] = fore @ a_fore
+        for bone in ("clavicle", "shoulder01"):
+            key[rig.i(f"{bone}.{side}")] = g_thorax
+    for k, bone in enumerate(("spine05", "spine04", "spine03", "spine02", "spine01")):
+        key[rig.i(bone)] = _slerp_matrices(g_root, g_thorax, (k + 1) / 5.0)
+    for k, bone in enumerate(("neck01", "neck02", "neck03")):
+        key[rig.i(bone)] = _slerp_matrices(g_thorax, g_head, (k + 1) / 3.0)
+    key[rig.i("head")] = g_head
+    g = np.empty((t, len(rig.names), 3, 3))
+    for c in range(len(rig.names)):  # bones not driven follow their parent rigidly (toes, fingers, eyes, pelvis.*)
+        g[:, c] = key[c] if c in key else g[:, rig.parents[c]]
+    return g
+
+
+def _forward_points(rig: _Rig, g: np.ndarray, side: str) -> np.ndarray:
+    """World positions of the sole vertices of one foot for root translation 0, [T, P, 3]."""
+    t = g.shape[0]
+    heads = np.empty((t, len(rig.names), 3))
+    heads[:, 0] = rig.heads[0]
+    for c in range(1, len(rig.names)):
+        p = rig.parents[c]
+        heads[:, c] = heads[:, p] + g[:, p] @ (rig.heads[c] - rig.heads[p])
+    pts, bones = rig.soles[side]
+    return heads[:, bones] + np.einsum("tpij,pj->tpi", g[:, bones], pts - rig.heads[bones])
+
+
+def _stance_weights(phase: np.ndarray, s: float) -> np.ndarray:
+    """Support weight of a leg at its own phase: 1 in single stance, linear hand-over in double support."""
+    p = np.mod(phase, 1.0)
+    ds = s - 0.5
+    if ds <= 0:
+        return (p < s).astype(np.float64)
+    return np.where(p < s, np.clip(p / ds, 0, 1) * np.clip((s - p) / ds, 0, 1), 0.0)
+
+
+def _root_path(rig: _Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: float) -> tuple[np.ndarray, dict]:
+    """Root translation [T, 3] over one cycle (horizontal advance from the stance pivots) and diagnostics."""
+    t = len(phase)
+    dt = period_s / t
+    soles = {side: _forward_points(rig, g, side) for side in ("L", "R")}
+    weights = {"L": _stance_weights(phase, s), "R": _stance_weights(phase + 0.5, s)}
+    step = np.zeros((t, 2))
+    lowest, moves = {}, {}
+    for side in ("L", "R"):
+        pts = soles[side]
+        low = np.argmin(pts[..., 2], axis=1)  # pivot vertex per frame
+        lowest[side] = pts[np.arange(t), low, 2]
+        nxt = pts[(np.arange(t) + 1) % t, low]
+        moves[side] = nxt[:, :2] - pts[np.arange(t), low, :2]
+    # support: a foot inside its own stance window (its schedule widened by SCHEDULE_MARGIN) carries weight
+    # when its lowest sole vertex is within CONTACT_BAND_M of the lowest such foot (linear hand-over)
+    scheduled = (weights["L"] > 0) | (weights["R"] > 0)
+    both_low = np.minimum(lowest["L"], lowest["R"])
+    gated = {}
+    for side, offset in (("L", 0.0), ("R", 0.5)):
+        own = _stance_weights(phase + offset + SCHEDULE_MARGIN, s + 2 * SCHEDULE_MARGIN) > 0
+        gated[side] = np.where(scheduled & own, lowest[side], np.inf)
+    support_low = np.minimum(gated["L"], gated["R"])
+    wsum = np.zeros(t)
+    for side in ("L", "R"):
+        w = np.where(np.isfinite(gated[side]), np.clip(1.0 - (gated[side] - support_low) / CONTACT_BAND_M, 0, 1), 0.0)
+        weights[side] = w
+        step += w[:, None] * -moves[side]
+        wsum += w
+    stance = wsum > 0
+    if not stance.all():  # flight: keep the mean stance velocity
+        step[~stance] = (step[stance] / wsum[stance, None]).mean(axis=0)
+    step[stance] /= wsum[stance, None]
+    xy = np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)[:-1]], axis=0)
+    advance = step.sum(axis=0)
+    # vertical: the lowest sole vertex of the supporting feet on z = 0, ballistic arcs in flight
+    z = np.where(stance, -support_low, np.nan)
+    if not stance.all():
+        idx = np.arange(t)
+        for start in np.flatnonzero(~stance & np.roll(stance, 1)):
+            a = (start - 1) % t
+            length = 1
+            while not stance[(start + length) % t]:
+                length += 1
+            b = (start + length) % t
+            k = np.arange(1, length + 1)
+            frac = k / (length + 1)
+            za, zb = z[a], z[b]
+            tau = k * dt
+            total = (length + 1) * dt
+            z[idx[(start + k - 1) % t]] = za + (zb - za) * frac + 0.5 * GRAVITY_M_S2 * tau * (total - tau)
+    z = np.maximum(z, -both_low)  # never push a foot through the ground
+    root = np.concatenate([xy, z[:, None]], axis=1)
+    info = {"advance_xy_m": advance, "weights": weights, "flight_frames": int((~stance).sum())}
+    return root, info
+
+
+def _variation(params: GaitParams) -> dict:
+    rng = np.random.default_rng(params.seed)
+    v = params.variation
+    out = {"lean": rng.normal(0, 2.0) * v, "pelvis": max(0.0, 1 + rng.normal(0, 0.2) * v),
+           "arm": max(0.0, 1 + rng.normal(0, 0.15) * v), "cadence": 1 + rng.normal(0, 0.03) * v}
+    for side in ("L", "R"):
+        out[f"amp_{side}"] = 1 + rng.normal(0, 0.05) * v
+        out[f"phase_{side}"] = rng.normal(0, 0.005) * v
+        for joint in ("hip", "knee", "ankle"):
+            out[f"{joint}_off_{side}"] = rng.normal(0, 2.0) * v
+    return out
+
+
+def generate_gait(
+    params: GaitParams | None = None,
+    asset=None,
+    shape_index: int = 0,
+    *,
+    fps_hz: float = 200.0,
+    num_cycles: int = 1,
+) -> Motion:
+    """A walking/running motion on the asset's rig with foot contact (see the module docstring).
+
+    Args:
+        params: :class:`GaitParams` (default: walking at 1.3 m/s).
+        asset: :class:`~davis_rig.scene.body.BodyAsset` (``None`` = the bundled one).
+        shape_index: body shape whose rest geometry (leg length, soles) is used.
+        fps_hz: frame rate; the number of frames per cycle is ``round(period * fps_hz)`` and the stored
+            rate is adjusted to ``frames / period`` so the cycle closes exactly.
+        num_cycles: cycles to generate (with turning the result is a clip, otherwise a cycle of
+            ``num_cycles`` periods).
+
+    Returns:
+        A :class:`Motion` (metadata: cadence, stride, stance fraction, hip scale, flight frames, params).
+
+    Raises:
+        ValueError: bad parameters.
+    """
+    from davis_rig.scene.body import BodyAsset
+
+    params = GaitParams() if params is None else params
+    asset = BodyAsset.load() if asset is None else asset
+    if num_cycles < 1:
+        raise ValueError(f"num_cycles must be >= 1, got {num_cycles}")
+    rig = _Rig(asset, shape_index)
+    v = _variation(params)
+    speed = params.speed_m_s
+    if params.stride_m is not None:
+        cadence = 120.0 * speed / params.stride_m
+    elif params.cadence_steps_min is not None:
+        cadence = params.cadence_steps_min
+    else:
+        h = rig.hip_height_m
+        stride = 2.3 * h * (speed**2 / (GRAVITY_M_S2 * h)) ** 0.3
+        stride *= (1 - params.run) * STRIDE_CALIBRATION["walk"] + params.run * STRIDE_CALIBRATION["run"]
+        cadence = 120.0 * speed / stride * v["cadence"]
+    s = _stance_fraction(params.run)
+
+    def build(cad: float, hip_scale: float):
+        period = 120.0 / cad
+        frames = max(8, int(round(period * fps_hz)))
+        phase = np.arange(frames) / frames
+        g = _world_rotations(rig, params, phase, hip_scale, v)
+        root, info = _root_path(rig, g, phase, s, period)
+        return period, frames, g, root, info
+
+    def stride_of(hip_scale: float, cad: float) -> float:
+        return float(np.linalg.norm(build(cad, hip_scale)[4]["advance_xy_m"]))
+
+    target = speed * 120.0 / cadence
+    lo_scale, hi_scale = HIP_SCALE_RANGE
+    x0, x1 = 1.0, 1.2
+    f0, f1 = stride_of(x0, cadence) - target, stride_of(x1, cadence) - target
+    for _ in range(12):  # secant on the hip amplitude scale
+        if abs(f1) < 1e-4 or f1 == f0:
+            break
+        x0, x1, f0 = x1, float(np.clip(x1 - f1 * (x1 - x0) / (f1 - f0), lo_scale, hi_scale)), f1
+        f1 = stride_of(x1, cadence) - target
+    hip_scale = x1
+    if abs(f1) > 1e-3:  # amplitude limit reached: keep the speed by changing the cadence
+        achieved = f1 + target
+        new_cadence = 120.0 * speed / achieved
+        if params.cadence_steps_min is not None or params.stride_m is not None:
+            warnings.warn(
+                f"gait: stride {target:.3f} m not reachable (hip scale {hip_scale:.2f} gives {achieved:.3f} m); "
+                f"cadence changed from {cadence:.1f} to {new_cadence:.1f} steps/min to keep {speed} m/s",
+                stacklevel=2,
+            )
+        cadence = new_cadence
+    period, frames, g, root, info = build(cadence, hip_scale)
+    # align the net advance with -Y (random asymmetry can add a small sideways drift)
+    adv = info["advance_xy_m"]
+    drift = math.atan2(adv[0], -adv[1])
+    motion = motion_from_world_rotations(
+        g, root, rig.rest, rig.parents, frames / period,
+        name=f"gait(run={params.run:.2f}, {speed:.2f} m/s)",
+        source=f"davis_rig.scene.gait.generate_gait({params})",
+        cycle_advance_m=np.array([adv[0], adv[1], 0.0]),
+        bone_names=rig.names,
+        metadata={
+            "cadence_steps_min": float(cadence), "stride_m": float(np.linalg.norm(adv)), "period_s": float(period),
+            "stance_fraction": float(s), "hip_scale": float(hip_scale), "flight_frames": info["flight_frames"],
+            "shape_index": int(shape_index), "seed": int(params.seed), "heading_rad": 0.0,
+        },
+    )
+    root_rest = rig.rest[0]
+    if drift != 0.0:
+        motion = rotate_heading(motion, -drift, root_rest_pose=root_rest)
+    if params.heading_rad:
+        motion = rotate_heading(motion, params.heading_rad, root_rest_pose=root_rest)
+    if num_cycles > 1:
+        motion = loop(motion, num_cycles)
+    if params.turn_rate_rad_s:
+        motion = turn(motion, params.turn_rate_rad_s, root_rest_pose=root_rest)
+    return motion
