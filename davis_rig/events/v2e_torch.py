@@ -48,6 +48,7 @@ torch is imported lazily (MissingDependencyError names the extra).
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -100,6 +101,35 @@ def _floor_ste_fn():
 
         _FLOOR_STE = FloorSTE
     return _FLOOR_STE
+
+
+_LIN_LOG_FN = None
+
+
+def _lin_log_fn():
+    """``lin_log(scale · x)`` as one autograd Function: the simulator's exact forward, a 4-kernel backward."""
+    global _LIN_LOG_FN
+    if _LIN_LOG_FN is None:
+        torch = _torch()
+
+        class ScaledLinLog(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx, x, scale, threshold):
+                scaled = x * scale
+                ctx.save_for_backward(x)
+                ctx.scale, ctx.threshold = scale, threshold
+                return lin_log(scaled, threshold)
+
+            @staticmethod
+            def backward(ctx, grad):
+                (x,) = ctx.saved_tensors
+                slope = math.log(ctx.threshold) / ctx.threshold
+                # d/dx: scale · ln(thr)/thr below the knee, d ln(scale x)/dx = 1/x above it
+                dydx = torch.where(x * ctx.scale <= ctx.threshold, ctx.scale * slope, torch.reciprocal(x))
+                return grad * dydx, None, None
+
+        _LIN_LOG_FN = ScaledLinLog
+    return _LIN_LOG_FN
 
 
 _DVS_FN = None
@@ -214,6 +244,8 @@ def _log_video(video, intensity_scale: float, lin_log_threshold: float):
         raise FormatError(f"video: expected a float tensor of linear intensity, got {video.dtype}")
     if video.shape[0] < 2:
         raise ShapeError(f"video: expected at least 2 frames, got {video.shape[0]}")
+    if video.requires_grad:
+        return _lin_log_fn().apply(video, float(intensity_scale), float(lin_log_threshold))
     return lin_log(video * intensity_scale, lin_log_threshold)
 
 

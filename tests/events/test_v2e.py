@@ -238,6 +238,20 @@ def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
     assert torch.allclose(fused, video.grad, rtol=1e-12, atol=1e-12) and fused.abs().sum() > 0
 
 
+def test_fused_lin_log_equals_autograd_of_lin_log():
+    from davis_rig.events.simulator import lin_log
+    from davis_rig.events.v2e_torch import _log_video
+
+    x = torch.tensor([[[0.0, 0.01, 20 / 255, 0.2]], [[0.5, 0.9, 1.0, 1.3]]], dtype=torch.float64, requires_grad=True)
+    y = _log_video(x, 255.0, 20.0)
+    assert torch.equal(y, lin_log(x.detach() * 255.0))
+    y.backward(torch.arange(8.0, dtype=torch.float64).reshape(2, 1, 4))
+    fused = x.grad.clone()
+    x.grad = None
+    lin_log(x * 255.0).backward(torch.arange(8.0, dtype=torch.float64).reshape(2, 1, 4))
+    assert torch.allclose(fused, x.grad, rtol=1e-14, atol=0)
+
+
 def test_gradients_reach_the_video_through_the_histogram():
     video = torch.tensor(moving_scene(11, 6, 8), requires_grad=True)
     hist = v2e_histograms(video, np.arange(11) * 5000, 50_000, count_cutoff=None)
