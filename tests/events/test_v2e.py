@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.events.histogram import stacked_histograms
@@ -301,3 +303,47 @@ def test_validation_errors():
         pair_bins(np.arange(3), 10, binning="bogus")
     with pytest.raises(ValueError):
         DifferentiableV2E(mode="relaxed")
+
+
+# ---------------------------------------------------------------------------------------------- properties
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    period_us=st.sampled_from([1000, 2500, 4167, 5000]),
+    t_frames=st.integers(3, 40),
+    step=st.floats(0.05, 1.5),
+    t0_us=st.integers(0, 100_000),
+)
+def test_property_v2e_equals_exact_simulator_histograms(seed, period_us, t_frames, step, t0_us):
+    """For any video (random-walk log intensities, dark and bright): V2E "rvt_frame_end" == official histogram of
+    the frame-end stamped exact events, and V2E "interval" == half-open 5 ms slices of the interpolated events
+    when the frame times lie on the bin grid."""
+    rng = np.random.default_rng(seed)
+    logs = np.cumsum(rng.normal(0.0, step, (t_frames, 3, 4)), axis=0)
+    video = np.clip(0.3 * np.exp(logs), 0.0, 2.0)
+    t_us = t0_us + np.arange(t_frames, dtype=np.int64) * period_us
+    ends = np.array([t_us[-1], t_us[-1] - 20_000])
+    events = simulate_events(video, t_us, timestamps="frame_end")
+    official = stacked_histograms(events, ends, height=3, width=4)
+    ours = v2e_histograms(torch.from_numpy(video), t_us, ends, binning="rvt_frame_end")
+    assert np.array_equal(ours.numpy(), official.astype(np.float64))
+    if period_us in (1000, 2500, 5000):
+        events = simulate_events(video, t_us)
+        ours = v2e_histograms(torch.from_numpy(video), t_us, ends, count_cutoff=None).numpy()
+        for w, e in enumerate(ends.tolist()):
+            ev = events[(events["t"] > e - 50_000) & (events["t"] <= e)]
+            b = (ev["t"] - (e - 50_000) - 1) // 5000
+            ref = np.zeros((20, 3, 4))
+            np.add.at(ref, (ev["p"].astype(int) * 10 + b, ev["y"], ev["x"]), 1)
+            assert np.array_equal(ours[w], ref)
+
+
+@pytest.mark.gpu
+def test_cuda_v2e_matches_cpu():
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    video = torch.tensor(moving_scene(11, 24, 30), dtype=torch.float32)
+    t_us = np.arange(11) * 5000
+    cpu = v2e_histograms(video, t_us, 50_000)
+    gpu = v2e_histograms(video.cuda(), t_us, 50_000)
+    assert torch.equal(cpu, gpu.cpu())
