@@ -314,7 +314,10 @@ class EventSimulator:
             else:
                 level = ref.reshape(-1)[pix] + rank.to(ref.dtype) * step.reshape(-1)[pix]
                 lp, ln = log_prev.reshape(-1)[pix], log_new.reshape(-1)[pix]
-                frac = (level - lp) / (ln - lp)
+                change = ln - lp
+                # no change of L (a crossing caused by the leak moving the reference): stamp at the interval end
+                safe = torch.where(change != 0, change, torch.ones_like(change))
+                frac = torch.where(change != 0, (level - lp) / safe, torch.ones_like(change))
                 frac = torch.clamp(frac, min=0.0, max=1.0)
                 t_ev = t0_us + torch.clamp(torch.ceil(frac * dt_us).to(torch.int64), min=1, max=dt_us)
             pieces.append((pix, t_ev, polarity, rank))
