@@ -172,13 +172,17 @@ def _dvs_fn():
                     grad_on = torch.zeros_like(on)
                 if grad_off is None:
                     grad_off = torch.zeros_like(off)
+                # gd_k = ∂loss/∂d_k = A_k + g_ref · M_k with A = g_on m_on/θ_on − g_off m_off/θ_off, M = m_on + m_off;
+                # the reference carries g_ref ← g_ref − gd_k = g_ref (1 − M_k) − A_k back to the previous pair.
+                a = grad_on * m_on / theta_on - grad_off * m_off / theta_off
+                m = m_on + m_off
+                keep = 1.0 - m
+                neg_a = -a
                 grad_video = torch.empty((on.shape[0] + 1, *on.shape[1:]), dtype=on.dtype, device=on.device)
                 g_ref = torch.zeros_like(on[0])
                 for k in range(on.shape[0] - 1, -1, -1):
-                    gd = grad_on[k] * m_on[k] / theta_on - grad_off[k] * m_off[k] / theta_off \
-                        + g_ref * (m_on[k] + m_off[k])
-                    grad_video[k + 1] = gd
-                    g_ref = g_ref - gd
+                    torch.addcmul(a[k], g_ref, m[k], out=grad_video[k + 1])
+                    g_ref = torch.addcmul(neg_a[k], g_ref, keep[k])
                 grad_video[0] = g_ref
                 return grad_video, None, None
 
