@@ -422,7 +422,7 @@ def simulate_events(video, t_us, config: SimulatorConfig | None = None, *, devic
     import dataclasses
 
     config = dataclasses.replace(config or SimulatorConfig(), **overrides) if overrides else (config or SimulatorConfig())
-    shape = tuple(np.shape(video))
+    shape = tuple(video.shape) if hasattr(video, "shape") else tuple(np.shape(video))
     if len(shape) not in (3, 4):
         raise ShapeError(f"video: expected [T, H, W] or RGB [T, 3, H, W], got {shape}")
     height, width = shape[-2], shape[-1]
