@@ -10,7 +10,8 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
    frame), timestamps made non-decreasing like RVT's reader, stacked histograms (10 bins, cutoff 10).
 3. **RVT.** One ONNX step per window, the LSTM states carried from the first window of the recording (zero
    states there), the official post-processing (obj · class ≥ threshold, class-wise NMS 0.45) run once per
-   threshold on each window's output (exact per threshold, no re-use of a lower threshold's NMS).
+   threshold on each window's output (exact per threshold; a threshold that keeps exactly the same candidate
+   anchors as the next lower one reuses that output, identical by construction).
 4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
    ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
    the label time, so label-time matching is exact (tolerance 0: APS labels are 40 ms apart, RVT's ±50 ms would
@@ -196,7 +197,8 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         t_last = max(t_events_end, int(labels["t"].max()) if len(labels) else 0)
         n_windows = max(1, -(-(t_last - t0) // window_us))
         ends = t0 + window_us * np.arange(1, n_windows + 1, dtype=np.int64)
-        detections = {float(th): [] for th in settings.thresholds}
+        thresholds = sorted({float(th) for th in settings.thresholds})
+        detections = {th: [] for th in thresholds}
         states = None
         running_max = np.iinfo(np.int64).min
         gif = []
@@ -221,8 +223,17 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
                 tic = time.perf_counter()
                 decoded, states = runner.step(hist[None], states)
                 tac = time.perf_counter()
-                for th in detections:
-                    detections[th].append(postprocess(decoded, th, settings.nms_threshold)[0])
+                # obj · max class prob exactly as postprocess computes it; thresholds ascending -> nested candidate
+                # sets, so an equal count means the same candidates and the same (exact) post-processed output
+                pred = np.asarray(decoded[0], dtype=np.float32)
+                score = pred[:, 4] * pred[:, 5:].max(axis=1)
+                previous_count, previous = -1, None
+                for th in thresholds:
+                    count = int(np.count_nonzero(score >= np.float32(th)))
+                    if count != previous_count:
+                        previous = postprocess(decoded, th, settings.nms_threshold)[0] if count else None
+                        previous_count = count
+                    detections[th].append(previous)
                 timings["postprocess"] += time.perf_counter() - tac
                 timings["inference"] += tac - tic
                 if len(gif) < settings.gif_windows:

@@ -95,15 +95,19 @@ def test_scores_carry_states_and_match_the_runner_on_the_same_windows(labelled, 
     torch.manual_seed(0)
     model = export_step_onnx(RVTDetector(RVTConfig.mini()), tmp_path / "mini.onnx")
     runner = RVTOnnxRunner(model)
-    scores = score_session(labelled, runner, EvalSettings(thresholds=(0.01,), chunk_windows=7))
+    settings = EvalSettings(thresholds=(0.25, 0.001, 0.1, 0.01), chunk_windows=7)
+    scores = score_session(labelled, runner, settings)
     with SessionReader(labelled) as reader:
         events = crop_events(reader.events())
-    expected = runner.score_stream(events["x"], events["y"], events["t"], events["p"], scores.window_end_us, 0.01)
-    assert len(expected) == len(scores.detections[0.01])
-    for got, want in zip(scores.detections[0.01], expected):
-        assert (got is None and want is None) or np.array_equal(got, want)
-    metrics = compute_metrics(scores, EvalSettings(thresholds=(0.01,)))[0.01]
-    assert 0.0 <= metrics["AP"] <= 1.0 and metrics["seq_asr_strict"] >= metrics["seq_asr"]
+    for th in (0.001, 0.25):  # per-threshold post-processing (incl. reused outputs) == the runner's own
+        expected = runner.score_stream(events["x"], events["y"], events["t"], events["p"], scores.window_end_us, th)
+        assert len(expected) == len(scores.detections[th])
+        for got, want in zip(scores.detections[th], expected):
+            assert (got is None and want is None) or np.array_equal(got, want)
+    metrics = compute_metrics(scores, settings)
+    for m in metrics.values():
+        assert 0.0 <= m["AP"] <= 1.0 and m["seq_asr_strict"] >= m["seq_asr"]
+    assert [metrics[t]["seq_asr"] for t in (0.001, 0.01, 0.1, 0.25)] == sorted(m["seq_asr"] for m in metrics.values())
 
 
 def test_label_windows_assignment():
