@@ -426,7 +426,9 @@ def _root_path(rig: _Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: 
     support_low = np.minimum(gated["L"], gated["R"])
     wsum = np.zeros(t)
     for side in ("L", "R"):
-        w = np.where(np.isfinite(gated[side]), np.clip(1.0 - (gated[side] - support_low) / CONTACT_BAND_M, 0, 1), 0.0)
+        ok = np.isfinite(gated[side])
+        gap = np.where(ok, gated[side] - np.where(ok, support_low, 0.0), 0.0)
+        w = np.where(ok, np.clip(1.0 - gap / CONTACT_BAND_M, 0, 1), 0.0)
         weights[side] = w
         step += w[:, None] * -moves[side]
         wsum += w

@@ -1,0 +1,241 @@
+"""davis_rig.scene.motion: quaternions, slerp resampling, loops, heading/turning, concatenation, ground contact."""
+
+import math
+
+import numpy as np
+import pytest
+
+from davis_rig.errors import ShapeError
+from davis_rig.scene.motion import (
+    Motion,
+    concatenate,
+    ground_contact,
+    lowest_vertex_z,
+    loop,
+    motion_from_world_rotations,
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_slerp,
+    quat_to_matrix,
+    resample,
+    rotate_heading,
+    rotation_about_z,
+    sample,
+    turn,
+)
+
+torch = pytest.importorskip("torch")
+
+
+def _random_quats(rng, shape):
+    q = rng.normal(size=shape + (4,))
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def _random_motion(rng, frames=7, bones=5, fps=10.0, **kw):
+    return Motion(_random_quats(rng, (frames, bones)), rng.normal(size=(frames, 3)), fps, **kw)
+
+
+# ------------------------------------------------------------------ quaternions
+def test_quaternion_matrix_round_trip_and_product():
+    rng = np.random.default_rng(0)
+    q = _random_quats(rng, (200,))
+    m = quat_to_matrix(q)
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", m, m), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
+    q2 = quat_from_matrix(m)
+    np.testing.assert_allclose(np.abs(np.sum(q2 * q, -1)), 1.0, atol=1e-12)  # same rotation up to sign
+    assert (q2[:, 0] >= 0).all()
+    a, b = q[:100], q[100:]
+    np.testing.assert_allclose(quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b), atol=1e-12)
+
+
+def test_rotvec_is_rotation_about_axis():
+    q = quat_from_rotvec(np.array([[math.radians(30), 0, 0], [0, 0, 0], [0, 0, math.pi]]))
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    np.testing.assert_allclose(quat_to_matrix(q[0]), [[1, 0, 0], [0, c, -s], [0, s, c]], atol=1e-15)
+    np.testing.assert_allclose(q[1], [1, 0, 0, 0])
+    np.testing.assert_allclose(quat_to_matrix(q[2]), np.diag([-1.0, -1.0, 1.0]), atol=1e-15)
+    np.testing.assert_allclose(rotation_about_z(math.pi / 2) @ [0, -1, 0], [1, 0, 0], atol=1e-15)
+
+
+def test_slerp_unit_norm_endpoints_and_constant_speed():
+    rng = np.random.default_rng(1)
+    q0, q1 = _random_quats(rng, (50,)), _random_quats(rng, (50,))
+    alpha = rng.uniform(0, 1, 50)
+    out = quat_slerp(q0, q1, alpha)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(quat_slerp(q0, q1, np.zeros(50)), q0, atol=1e-12)
+    end = quat_slerp(q0, q1, np.ones(50))
+    np.testing.assert_allclose(np.abs(np.sum(end * q1, -1)), 1.0, atol=1e-12)
+    # angle travelled is alpha times the (shortest) angle between the endpoints
+    total = 2 * np.arccos(np.clip(np.abs(np.sum(q0 * q1, -1)), 0, 1))
+    part = 2 * np.arccos(np.clip(np.abs(np.sum(q0 * out, -1)), 0, 1))
+    np.testing.assert_allclose(part, alpha * total, atol=1e-6)
+    same = quat_slerp(q0, q0, alpha)  # degenerate arc
+    np.testing.assert_allclose(same, q0, atol=1e-12)
+
+
+# ------------------------------------------------------------------ Motion, sampling
+def test_motion_validates_and_is_immutable():
+    rng = np.random.default_rng(2)
+    m = _random_motion(rng)
+    assert m.num_frames == 7 and m.num_bones == 5 and m.duration_s == pytest.approx(0.6)
+    with pytest.raises(ValueError):
+        m.rotations_wxyz[0, 0, 0] = 1.0
+    with pytest.raises(ShapeError):
+        Motion(np.zeros((3, 2, 3)), np.zeros((3, 3)), 10.0)
+    with pytest.raises(ShapeError):
+        Motion(np.ones((3, 2, 4)), np.zeros((4, 3)), 10.0)
+    with pytest.raises(ValueError):
+        Motion(np.ones((3, 2, 4)), np.zeros((3, 3)), 0.0)
+    with pytest.raises(ShapeError):
+        Motion(np.ones((3, 2, 4)), np.zeros((3, 3)), 10.0, cycle_advance_m=np.zeros(2))
+    with pytest.raises(ShapeError):
+        m.check_rig(["a"] * 4)
+
+
+def test_resample_is_exact_at_original_frames():
+    rng = np.random.default_rng(3)
+    m = _random_motion(rng, frames=9, fps=24.0)
+    up = resample(m, 240.0)
+    assert up.num_frames == 81 and up.fps_hz == 240.0 and not up.is_cycle
+    q = up.rotations_wxyz[::10].astype(np.float64)
+    sign = np.sign(np.sum(q * m.rotations_wxyz, -1, keepdims=True))
+    np.testing.assert_allclose(q * sign, m.rotations_wxyz, atol=1e-6)
+    np.testing.assert_allclose(up.root_translation_m[::10], m.root_translation_m, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(up.rotations_wxyz, axis=-1), 1.0, atol=1e-6)
+    # the root is linear between frames
+    np.testing.assert_allclose(up.root_translation_m[5], 0.5 * (m.root_translation_m[0] + m.root_translation_m[1]),
+                               atol=1e-6)
+    # clips clamp outside [0, duration]
+    rot, root = sample(m, [-1.0, 10.0])
+    np.testing.assert_allclose(root, m.root_translation_m[[0, -1]], atol=1e-6)
+
+
+def test_cycle_wraps_and_advances():
+    rng = np.random.default_rng(4)
+    adv = np.array([0.0, -1.2, 0.0])
+    m = _random_motion(rng, frames=8, fps=8.0, cycle_advance_m=adv)
+    assert m.is_cycle and m.duration_s == pytest.approx(1.0) and m.speed_m_s == pytest.approx(1.2)
+    rot, root = sample(m, [0.0, 1.0, 2.25, -1.0])
+    np.testing.assert_allclose(root[1], m.root_translation_m[0] + adv, atol=1e-6)
+    np.testing.assert_allclose(root[2], m.root_translation_m[2] + 2 * adv, atol=1e-6)
+    np.testing.assert_allclose(root[3], m.root_translation_m[0] - adv, atol=1e-6)
+    np.testing.assert_allclose(np.abs(np.sum(rot[1] * m.rotations_wxyz[0], -1)), 1.0, atol=1e-6)
+    # between the last frame and the next period's first frame
+    _, mid = sample(m, [7.5 / 8.0])
+    np.testing.assert_allclose(mid[0], 0.5 * (m.root_translation_m[7] + m.root_translation_m[0] + adv), atol=1e-6)
+    up = resample(m, 200.0)
+    assert up.is_cycle and up.num_frames == 200 and up.speed_m_s == pytest.approx(1.2)
+    np.testing.assert_allclose(up.root_translation_m[::25], m.root_translation_m, atol=1e-6)
+    long = loop(m, 3)
+    assert long.num_frames == 24 and np.allclose(long.cycle_advance_m, 3 * adv)
+    np.testing.assert_allclose(long.root_translation_m[16:], m.root_translation_m + 2 * adv, atol=1e-6)
+    with pytest.raises(ValueError):
+        loop(_random_motion(rng), 2)
+    with pytest.raises(ValueError):
+        sample(_random_motion(rng), [0.0], loop=True)
+
+
+def test_render_rate_gives_ten_frames_per_window(asset):
+    walk = Motion.from_walk_cycle(asset, 0)
+    assert walk.speed_m_s == pytest.approx(float(asset.walk_speed_m_s[0]), rel=1e-6)
+    clip = resample(walk, 200.0, duration_s=0.5)
+    assert clip.num_frames == 101
+    t_us = np.round(clip.frame_times_s[:-1] * 1e6).astype(np.int64)
+    per_window = np.bincount(t_us // 50_000)  # half-open 50 ms windows
+    assert (per_window == 10).all()
+
+
+def test_scene_resampler_accepts_this_motion(asset):
+    from davis_rig.scene.scene import resample_motion
+
+    walk = Motion.from_walk_cycle(asset, 0, advance=False)
+    rot, root = resample_motion(walk, np.array([0.0, 1.0 / walk.fps_hz]))
+    np.testing.assert_allclose(root, walk.root_translation_m[:2], atol=1e-6)
+
+
+# ------------------------------------------------------------------ heading, turning, concatenation
+def test_rotate_heading_rotates_the_posed_body(asset, model64):
+    walk = loop(Motion.from_walk_cycle(asset, 0), 1)
+    frames = resample(walk, walk.fps_hz, duration_s=3 / walk.fps_hz, loop=True)
+    turned = rotate_heading(frames, math.pi / 2, pivot_m=(0.3, -0.2), root_rest_pose=asset.rest_bone_poses[0, 0])
+    v0 = model64.pose(0, torch.as_tensor(frames.rotations_wxyz.copy()), torch.as_tensor(frames.root_translation_m.copy()))
+    v1 = model64.pose(0, torch.as_tensor(turned.rotations_wxyz.copy()), torch.as_tensor(turned.root_translation_m.copy()))
+    centre = np.array([0.3, -0.2, 0.0])
+    expected = (v0.numpy() - centre) @ rotation_about_z(math.pi / 2).T + centre
+    np.testing.assert_allclose(v1.numpy(), expected, atol=2e-6)  # float32 storage of the motion
+    cyc = rotate_heading(walk, math.pi / 2)
+    np.testing.assert_allclose(cyc.cycle_advance_m, [-walk.cycle_advance_m[1], 0, 0], atol=1e-12)
+
+
+def test_turn_bends_the_path_and_keeps_the_speed():
+    frames = 101
+    root = np.zeros((frames, 3))
+    root[:, 1] = -np.linspace(0, 1.0, frames)  # 1 m straight towards -Y in 1 s
+    m = Motion(np.tile([1.0, 0, 0, 0], (frames, 3, 1)), root, 100.0)
+    rate = math.pi / 2
+    t = turn(m, rate)
+    steps = np.diff(t.root_translation_m[:, :2].astype(np.float64), axis=0)
+    np.testing.assert_allclose(np.linalg.norm(steps, axis=1), 0.01, rtol=1e-5)
+    heading = np.arctan2(steps[:, 0], -steps[:, 1])
+    np.testing.assert_allclose(heading, rate * (np.arange(100) + 0.5) / 100, atol=1e-5)
+    # the root's orientation turns with it
+    q_end = t.rotations_wxyz[-1, 0].astype(np.float64)
+    np.testing.assert_allclose(quat_to_matrix(q_end), rotation_about_z(rate), atol=1e-6)
+    np.testing.assert_array_equal(t.rotations_wxyz[:, 1:], m.rotations_wxyz[:, 1:])
+
+
+def test_concatenate_continues_the_path():
+    rng = np.random.default_rng(5)
+    a = _random_motion(rng, frames=6, fps=10.0, name="a")
+    b = _random_motion(rng, frames=5, fps=10.0, name="b")
+    cat = concatenate([a, b])
+    assert cat.num_frames == 11 and cat.name == "a+b"
+    step = a.root_translation_m[-1] - a.root_translation_m[-2]
+    np.testing.assert_allclose(cat.root_translation_m[6, :2], a.root_translation_m[-1, :2] + step[:2], atol=1e-6)
+    np.testing.assert_allclose(cat.root_translation_m[6, 2], b.root_translation_m[0, 2], atol=1e-6)
+    np.testing.assert_allclose(np.diff(cat.root_translation_m[6:], axis=0), np.diff(b.root_translation_m, axis=0),
+                               atol=1e-5)
+    blended = concatenate([a, b], blend_frames=2)
+    assert blended.num_frames == 9
+    np.testing.assert_allclose(np.linalg.norm(blended.rotations_wxyz, axis=-1), 1.0, atol=1e-6)
+    with pytest.raises(ValueError):
+        concatenate([a, _random_motion(rng, fps=12.0)])
+    with pytest.raises(ShapeError):
+        concatenate([a, _random_motion(rng, fps=10.0, bones=4)])
+    with pytest.raises(ValueError):
+        concatenate([])
+
+
+# ------------------------------------------------------------------ ground contact, world rotations
+def test_ground_contact_modes(asset, model):
+    walk = Motion.from_walk_cycle(asset, 0)
+    lifted = Motion(walk.rotations_wxyz[::4], walk.root_translation_m[::4] + [0, 0, 0.3], walk.fps_hz / 4,
+                    cycle_advance_m=walk.cycle_advance_m)  # 10 frames per cycle keeps the test fast
+    per_frame = ground_contact(lifted, model, 0, mode="frame")
+    np.testing.assert_allclose(lowest_vertex_z(per_frame, model, 0), 0.0, atol=1e-5)
+    per_clip = ground_contact(lifted, model, 0, mode="clip")
+    low = lowest_vertex_z(per_clip, model, 0)
+    assert abs(low.min()) < 1e-5 and low.max() > 0.005  # one offset: the bob is kept
+    per_cycle = ground_contact(loop(lifted, 2), model, 0, mode="cycle")
+    low2 = lowest_vertex_z(per_cycle, model, 0)
+    np.testing.assert_allclose([low2[:10].min(), low2[10:].min()], 0.0, atol=1e-5)
+    with pytest.raises(ValueError):
+        ground_contact(walk, model, 0, mode="sideways")
+
+
+def test_world_rotations_give_the_posed_frames(asset, model64):
+    rng = np.random.default_rng(6)
+    j = asset.num_bones
+    g = quat_to_matrix(_random_quats(rng, (2, j)))
+    m = motion_from_world_rotations(g, np.zeros((2, 3)), asset.rest_bone_poses[0], asset.bone_parents, 30.0)
+    poses, _ = model64.forward_kinematics(0, torch.as_tensor(m.rotations_wxyz.copy()))
+    rest = asset.rest_bone_poses[0, :, :3, :3].astype(np.float64)
+    np.testing.assert_allclose(poses[..., :3, :3].numpy(), g @ rest, atol=1e-5)
+    identity = motion_from_world_rotations(np.broadcast_to(np.eye(3), (1, j, 3, 3)), np.zeros((1, 3)),
+                                           asset.rest_bone_poses[0], asset.bone_parents, 30.0)
+    np.testing.assert_allclose(np.abs(identity.rotations_wxyz[..., 0]), 1.0, atol=1e-6)
+    with pytest.raises(ShapeError):
+        motion_from_world_rotations(g[:, :3], np.zeros((2, 3)), asset.rest_bone_poses[0], asset.bone_parents, 30.0)
