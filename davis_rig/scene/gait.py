@@ -82,6 +82,9 @@ SCHEDULE_MARGIN = 0.05
 STRIDE_CALIBRATION = {"walk": 1.08, "run": 1.0}
 #: Range of the hip-amplitude scale used to reach a stride; beyond it the cadence is changed instead.
 HIP_SCALE_RANGE = (0.85, 1.25)
+#: Minimum toe clearance of a swing foot (m): 1.29 cm in Winter, "Foot trajectory in human gait: a
+#: precise and multifactorial motor control task", Phys. Ther. 72 (1992) 45-53; enforced by a sagittal IK lift.
+SWING_CLEARANCE_M = 0.013
 #: Height band (m) above the lowest foot within which a foot shares the support (hand-over at double support).
 CONTACT_BAND_M = 0.01
 
@@ -318,8 +321,35 @@ def _sagittal_straighten(direction: np.ndarray) -> np.ndarray:
     return _rx(np.arctan(direction[1] / direction[2]))
 
 
-def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale: float, rng_values: dict) -> np.ndarray:
-    """Per-bone world rotations relative to rest, [T, J, 3, 3], for phases [T] of the left leg."""
+def _lift_leg(rig: _Rig, side: str, hip, knee, ankle, lift_m):
+    """Sagittal two-link IK: raise the ankle by ``lift_m`` (m) at the same forward position, foot orientation kept.
+
+    Angles in degrees (thigh from vertical, knee flexion, ankle dorsiflexion), arrays [T]; returns new ones.
+    """
+    def sagittal_length(a: str, b: str) -> float:
+        d = rig.heads[rig.i(b)] - rig.heads[rig.i(a)]
+        return float(np.hypot(d[1], d[2]))
+
+    l1 = sagittal_length(f"upperleg01.{side}", f"lowerleg01.{side}")
+    l2 = sagittal_length(f"lowerleg01.{side}", f"foot.{side}")
+    th, kn = np.radians(hip), np.radians(knee)
+    x = l1 * np.sin(th) + l2 * np.sin(th - kn)
+    y = -(l1 * np.cos(th) + l2 * np.cos(th - kn)) + lift_m
+    d = np.clip(np.hypot(x, y), abs(l1 - l2) + 1e-6, l1 + l2 - 1e-6)
+    knee_new = np.pi - np.arccos(np.clip((l1**2 + l2**2 - d**2) / (2 * l1 * l2), -1, 1))
+    hip_new = np.arctan2(x, -y) + np.arccos(np.clip((l1**2 + d**2 - l2**2) / (2 * l1 * d), -1, 1))
+    ankle_new = np.radians(ankle) + (th - kn) - (hip_new - knee_new)
+    changed = lift_m > 0
+    return (np.where(changed, np.degrees(hip_new), hip), np.where(changed, np.degrees(knee_new), knee),
+            np.where(changed, np.degrees(ankle_new), ankle))
+
+
+def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale: float, rng_values: dict,
+                     lift_m: dict | None = None) -> np.ndarray:
+    """Per-bone world rotations relative to rest, [T, J, 3, 3], for phases [T] of the left leg.
+
+    ``lift_m``: optional side -> [T] ankle lift (m) of the swing-clearance correction.
+    """
     run = params.run
     s = _stance_fraction(run)
     t = len(phase)
@@ -345,6 +375,8 @@ def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale
         hip = hip + (1 - run) * THIGH_OFFSET_DEG["walk"] + run * THIGH_OFFSET_DEG["run"]
         knee = np.maximum(angles["knee"] * v[f"amp_{side}"] + v[f"knee_off_{side}"], 0.0)
         ankle = angles["ankle"] * v[f"amp_{side}"] + v[f"ankle_off_{side}"]
+        if lift_m is not None:
+            hip, knee, ankle = _lift_leg(rig, side, hip, knee, ankle, lift_m[side])
         thigh = g_root @ _rx(-hip * deg)
         shank = thigh @ _rx(knee * deg)
         foot = shank @ _rx(-ankle * deg)
@@ -460,6 +492,24 @@ def _root_path(rig: _Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: 
     return root, info
 
 
+def _clearance_lift(rig: _Rig, g, root, phase, s: float, frames: int) -> dict | None:
+    """Ankle lift (m) per swing frame that brings each swing foot to SWING_CLEARANCE_M, smoothed; None if not needed."""
+    out = {}
+    width = max(3, int(round(0.06 * frames)))
+    window = np.hanning(2 * width + 1)
+    window /= window.sum()
+    for side, offset in (("L", 0.0), ("R", 0.5)):
+        height = _forward_points(rig, g, side)[..., 2].min(axis=1) + root[:, 2]
+        swing = _stance_weights(phase + offset + SCHEDULE_MARGIN, s + 2 * SCHEDULE_MARGIN) == 0
+        deficit = np.where(swing, np.maximum(SWING_CLEARANCE_M - height, 0.0), 0.0)
+        idx = (np.arange(frames)[:, None] + np.arange(-width, width + 1)[None]) % frames
+        widened = deficit[idx].max(axis=1)  # moving max, then a smooth (Hann) window: no kinks
+        out[side] = np.where(swing, (widened[idx] * window).sum(axis=1), 0.0) * 1.2
+    if max(v.max() for v in out.values()) <= 0:
+        return None
+    return out
+
+
 def _variation(params: GaitParams) -> dict:
     rng = np.random.default_rng(params.seed)
     v = params.variation
@@ -524,6 +574,10 @@ def generate_gait(
         phase = np.arange(frames) / frames
         g = _world_rotations(rig, params, phase, hip_scale, v)
         root, info = _root_path(rig, g, phase, s, period)
+        lift = _clearance_lift(rig, g, root, phase, s, frames)
+        if lift is not None:  # second pass with the swing feet raised to the minimum toe clearance
+            g = _world_rotations(rig, params, phase, hip_scale, v, lift)
+            root, info = _root_path(rig, g, phase, s, period)
         return period, frames, g, root, info
 
     def stride_of(hip_scale: float, cad: float) -> float:
