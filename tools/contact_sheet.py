@@ -44,8 +44,9 @@ def _draw_box(image: np.ndarray, box: np.ndarray, colour) -> None:
 def _label(image: np.ndarray, text: str) -> None:
     import cv2
 
-    cv2.putText(image, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 2, cv2.LINE_AA)
-    cv2.putText(image, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+    (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
+    cv2.rectangle(image, (0, 0), (width + 6, height + 7), (30, 30, 30), -1)
+    cv2.putText(image, text, (3, height + 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def _event_frame(clip, hw) -> tuple[np.ndarray, str]:
@@ -108,19 +109,21 @@ def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2,
             tile = _to_bgr(video[k])
             _draw_box(tile, clip.vertex_boxes[k], (0, 220, 220))
             _draw_box(tile, clip.boxes[k], (0, 220, 0))
-            _label(tile, f"{title}  t={clip.t_us[k] / 1000:.0f} ms" if k == 0 else f"t={clip.t_us[k] / 1000:.0f} ms")
+            _label(tile, f"t={clip.t_us[k] / 1000:.0f} ms")
             tiles.append(tile)
         labels = clip.part_labels[picks[1]]
         part_tile = np.zeros(labels.shape + (3,), np.uint8)
         person = labels != 255
         part_tile[person] = PART_COLOURS_BGR[labels[person]]
-        _label(part_tile, "parts: torso arms legs head hands feet")
+        _label(part_tile, "part labels")
         tiles.append(part_tile)
         event_tile, note = _event_frame(clip, clip.video.shape[1:])
         _label(event_tile, note)
         tiles.append(event_tile)
         row = np.concatenate([np.pad(t, ((1, 1), (1, 1), (0, 0)), constant_values=40) for t in tiles], axis=1)
-        rows.append(row)
+        header = np.full((18, row.shape[1], 3), 30, np.uint8)
+        cv2.putText(header, title, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(np.concatenate([header, row], axis=0))
         print(f"{title}: {len(clip.t_us)} frames, {elapsed_ms:.1f} ms/frame rendered, box[mid]={clip.boxes[picks[1]].tolist()}")
     sheet = np.concatenate(rows, axis=0)
     out.parent.mkdir(parents=True, exist_ok=True)
