@@ -1,0 +1,608 @@
+"""Train an RVT detector from scratch with truncated BPTT, the YOLOX losses and RVT's Gen1 recipe.
+
+Recipe (RVT ``config/general.yaml`` + ``config/experiment/gen1/default.yaml``, ``modules/detection.py``):
+AdamW (lr 2e-4, weight decay 0), OneCycleLR (pct_start 0.005, div_factor 20, final lr = max lr / 10000,
+linear annealing, no momentum cycling, stepped every batch), gradient-norm clipping 1.0, batch 8 of
+random-access chunks of L = 21 windows (states reset per chunk), loss on every labelled window of the chunk
+(backbone features of all labelled windows go through the FPN + head in one batch), mixed precision on GPU
+(RVT: fp16 AMP; here bf16 where supported, else fp16 with a gradient scaler), YOLOX head biases initialised to
+the 0.01 prior. Differences to RVT: only ``random`` sampling (RVT's default ``mixed`` also streams), optional
+EMA of the weights, validation AP computed with :mod:`davis_rig.metrics.ap` on the streamed validation split.
+
+Everything a run needs to continue bit-identically on CPU is in its checkpoint: model, optimizer, scheduler,
+gradient scaler, EMA, the data position (epoch, batch), the augmentation generator and the torch RNG.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from davis_rig.errors import CheckpointError, FormatError
+from davis_rig.models.rvt._torch import nn, torch
+from davis_rig.models.rvt.config import RVTConfig
+from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
+from davis_rig.training.augment import AugmentConfig, apply_augment, sample_params
+from davis_rig.training.dataset import (
+    ChunkBatch,
+    RandomChunkDataset,
+    ResumableBatchSampler,
+    StreamingBatches,
+    collate_chunks,
+    list_sequences,
+)
+from davis_rig.training.losses import AnchorGrid, init_head_biases, yolox_loss
+from davis_rig.types import BBOX_DTYPE, RVT_HW
+
+__all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT"]
+
+CHECKPOINT_FORMAT = "davis_rig-train-checkpoint/1"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (defaults: RVT Gen1 recipe).
+
+    Attributes:
+        model: ``"tiny"``, ``"small"``, ``"base"`` or ``"mini"`` (RVTConfig preset).
+        steps: total optimizer steps (the one-cycle schedule spans them).
+        batch_size: chunks per batch. seq_len: windows per chunk (TBPTT length L).
+        lr, weight_decay, pct_start, div_factor, final_div_factor: AdamW + OneCycleLR (final lr = lr /
+            final_div_factor, RVT's convention).
+        grad_clip: max gradient L2 norm (0 = off).
+        precision: ``"auto"`` (bf16 on CUDA if supported, else fp16; fp32 on CPU), ``"fp32"``, ``"bf16"``, ``"fp16"``.
+        ema_decay: EMA of the weights (e.g. 0.9998) used for validation and export; ``None`` = off.
+        val_every, ckpt_every, log_every: intervals in steps (0 = never; a checkpoint is always written at the end).
+        val_batch_size, val_seq_len: streaming lanes and chunk length for validation.
+        val_conf_threshold: postprocess threshold for AP (RVT's reported evaluation: 0.001).
+        val_skip_first_us: labels and detections within this time from a sequence's start are ignored (RVT 0.5 s).
+        val_max_sequences: evaluate only the first N validation sequences (``None`` = all).
+        augment: :class:`AugmentConfig`.
+        seed: seeds the model initialisation, the data order and the augmentation.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:1"``...
+        num_workers: DataLoader workers reading histograms (0 = main process).
+        use_l1: add YOLOX's L1 loss (RVT: off).
+        progress: show a tqdm progress bar on stderr.
+    """
+
+    model: str = "tiny"
+    steps: int = 400_000
+    batch_size: int = 8
+    seq_len: int = 21
+    lr: float = 2e-4
+    weight_decay: float = 0.0
+    pct_start: float = 0.005
+    div_factor: float = 20.0
+    final_div_factor: float = 10_000.0
+    grad_clip: float = 1.0
+    precision: str = "auto"
+    ema_decay: float | None = None
+    val_every: int = 5_000
+    ckpt_every: int = 1_000
+    log_every: int = 50
+    val_batch_size: int = 8
+    val_seq_len: int = 21
+    val_conf_threshold: float = 0.001
+    val_skip_first_us: int = 500_000
+    val_max_sequences: int | None = None
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    seed: int = 0
+    device: str = "auto"
+    num_workers: int = 0
+    use_l1: bool = False
+    progress: bool = False
+
+    def __post_init__(self):
+        if self.model not in RVTConfig.presets():
+            raise FormatError(f"model: expected one of {sorted(RVTConfig.presets())}, got {self.model!r}")
+        if self.precision not in ("auto", "fp32", "bf16", "fp16"):
+            raise FormatError(f"precision: expected auto, fp32, bf16 or fp16, got {self.precision!r}")
+        for name in ("steps", "batch_size", "seq_len", "val_batch_size", "val_seq_len"):
+            if int(getattr(self, name)) < 1:
+                raise FormatError(f"{name}: expected ≥ 1, got {getattr(self, name)}")
+        if self.ema_decay is not None and not 0 < self.ema_decay < 1:
+            raise FormatError(f"ema_decay: expected in (0, 1), got {self.ema_decay}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (``from_dict`` reads it back)."""
+        out = asdict(self)
+        out["augment"] = asdict(self.augment)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        kwargs = {k: v for k, v in d.items() if k in names}
+        if isinstance(kwargs.get("augment"), Mapping):
+            aug = dict(kwargs["augment"])
+            for key in ("zoom_in_range", "zoom_out_range"):
+                if key in aug:
+                    aug[key] = tuple(aug[key])
+            kwargs["augment"] = AugmentConfig(**aug)
+        return cls(**kwargs)
+
+
+class ModelEMA:
+    """Exponential moving average of a model's parameters and buffers (YOLOX ramp: d · (1 − exp(−n / 2000)))."""
+
+    def __init__(self, model: nn.Module, decay: float):
+        self.decay = float(decay)
+        self.updates = 0
+        self.model = copy.deepcopy(model).eval()
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / 2000))
+        source = model.state_dict()
+        for key, value in self.model.state_dict().items():
+            if value.dtype.is_floating_point:
+                value.mul_(d).add_(source[key].detach(), alpha=1 - d)
+            else:
+                value.copy_(source[key])
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"decay": self.decay, "updates": self.updates, "model": self.model.state_dict()}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.decay, self.updates = float(state["decay"]), int(state["updates"])
+        self.model.load_state_dict(state["model"])
+
+
+def _resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise FormatError(f"device {name!r}: CUDA is not available")
+    return device
+
+
+def _amp_dtype(precision: str, device: torch.device):
+    if device.type != "cuda" or precision == "fp32":
+        return None
+    if precision == "fp16":
+        return torch.float16
+    if precision == "bf16" or torch.cuda.is_bf16_supported():
+        return torch.bfloat16
+    return torch.float16
+
+
+def _to_cxcywh(boxes: torch.Tensor) -> torch.Tensor:
+    return torch.stack([boxes[:, 0], boxes[:, 1] + boxes[:, 3] / 2, boxes[:, 2] + boxes[:, 4] / 2,
+                        boxes[:, 3], boxes[:, 4]], dim=1)
+
+
+def _boxes_to_bbox(boxes: torch.Tensor, t_us: int) -> np.ndarray:
+    b = boxes.detach().cpu().numpy()
+    out = np.zeros(b.shape[0], BBOX_DTYPE)
+    out["t"] = int(t_us)
+    out["x"], out["y"], out["w"], out["h"] = b[:, 1], b[:, 2], b[:, 3], b[:, 4]
+    out["class_id"] = b[:, 0].astype(np.uint8)
+    out["class_confidence"] = 1.0
+    return out
+
+
+class Trainer:
+    """Train, validate, checkpoint and export an RVT detector.
+
+    Args:
+        data_dir: dataset folder in RVT's layout (``train/`` required, ``val/`` for validation AP).
+        run_dir: output folder: ``log.jsonl``, ``checkpoints/last.pt``, ``checkpoints/best.safetensors``,
+            ``export/`` (created).
+        config: the hyper-parameters.
+        model_config: override the architecture (default: the ``config.model`` preset).
+
+    Raises:
+        FormatError: no training data, or a bad configuration.
+    """
+
+    def __init__(self, data_dir: str | Path, run_dir: str | Path, config: TrainConfig,
+                 model_config: RVTConfig | None = None):
+        self.data_dir = Path(data_dir)
+        self.run_dir = Path(run_dir)
+        self.config = config
+        self.device = _resolve_device(config.device)
+        self.amp_dtype = _amp_dtype(config.precision, self.device)
+        self.model_config = model_config or RVTConfig.presets()[config.model]
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        (self.run_dir / "checkpoints").mkdir(exist_ok=True)
+
+        torch.manual_seed(config.seed)
+        self.model = RVTDetector(self.model_config).to(self.device)
+        init_head_biases(self.model)
+        self.model.train()
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            self.optimizer, max_lr=config.lr, total_steps=config.steps, pct_start=config.pct_start,
+            div_factor=config.div_factor, final_div_factor=config.final_div_factor / config.div_factor,
+            cycle_momentum=False, anneal_strategy="linear")
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
+        self.ema = ModelEMA(self.model, config.ema_decay) if config.ema_decay else None
+        self.anchors = AnchorGrid.build(self.model_config.in_res_hw, self.model_config.head_strides, self.device)
+
+        self.train_set = RandomChunkDataset(self.data_dir, "train", config.seq_len)
+        self.sampler = ResumableBatchSampler(len(self.train_set), config.batch_size, seed=config.seed)
+        self.aug_generator = torch.Generator().manual_seed(config.seed + 1)
+        self.step = 0
+        self.batches_done = 0
+        self.best: dict[str, Any] = {"AP": None, "step": None}
+        self.history_s = 0.0
+        self._states = None
+        self._loader_iter: Iterator[ChunkBatch] | None = None
+
+    # ------------------------------------------------------------------ data
+    def _batches(self) -> Iterator[ChunkBatch]:
+        bpe = self.sampler.batches_per_epoch
+        self.sampler.epoch, self.sampler.position = divmod(self.batches_done, bpe)
+        if self.config.num_workers > 0:
+            loader = torch.utils.data.DataLoader(
+                self.train_set, batch_sampler=self.sampler, collate_fn=collate_chunks,
+                num_workers=self.config.num_workers, persistent_workers=False,
+                pin_memory=self.device.type == "cuda")
+            yield from loader
+        else:
+            for indices in self.sampler:
+                yield collate_chunks([self.train_set[i] for i in indices])
+
+    def _augment(self, batch: ChunkBatch) -> tuple[torch.Tensor, list[list[torch.Tensor | None]]]:
+        """Move a batch to the device as float and augment each chunk; returns hist [L, B, 20, H, W], labels."""
+        hist = batch.histograms.to(self.device, non_blocking=True).float()
+        labels = [[b for b in row] for row in batch.labels]
+        length, size = hist.shape[0], hist.shape[1]
+        out = torch.empty_like(hist)
+        aug = self.config.augment
+        for b in range(size):
+            chunk_labels = [labels[t][b] for t in range(length)]
+            latest = next((lab for lab in reversed(chunk_labels) if lab is not None and lab.shape[0]), None)
+            params = sample_params(aug, self.aug_generator, RVT_HW, latest)
+            chunk, chunk_labels = apply_augment(hist[:, b], chunk_labels, params, aug.min_side_px)
+            out[:, b] = chunk
+            for t in range(length):
+                labels[t][b] = chunk_labels[t]
+        return out, labels
+
+    # ------------------------------------------------------------------ states
+    def _reset_states(self, states, is_first: torch.Tensor):
+        if states is None or bool(is_first.all()):
+            return None
+        keep = (~is_first).to(self.device, dtype=states[0][0].dtype).view(-1, 1, 1, 1)
+        return [(h * keep, c * keep) for h, c in states]
+
+    # ------------------------------------------------------------------ one step
+    def train_step(self, batch: ChunkBatch) -> dict[str, float]:
+        """One optimizer step of truncated BPTT over a batch of chunks.
+
+        Args:
+            batch: a :class:`ChunkBatch` (time-major, L windows × B chunks).
+
+        Returns:
+            Scalar floats: loss, iou_loss, conf_loss, cls_loss, l1_loss, num_fg, lr, grad_norm, labelled.
+        """
+        self.model.train()
+        hist, labels = self._augment(batch)
+        states = self._reset_states(self._states, batch.is_first)
+        autocast = torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
+        lr = self.optimizer.param_groups[0]["lr"]
+        selected: dict[int, list[torch.Tensor]] = {2: [], 3: [], 4: []}
+        targets: list[torch.Tensor] = []
+        with autocast:
+            for t in range(hist.shape[0]):
+                features, states = self.model.forward_backbone(pad_to_input(hist[t], self.model_config.in_res_hw),
+                                                               states)
+                lanes = [b for b, lab in enumerate(labels[t]) if lab is not None and bool(batch.valid[t, b])]
+                if not lanes:
+                    continue
+                index = torch.tensor(lanes, device=self.device)
+                for level in selected:
+                    selected[level].append(features[level].index_select(0, index))
+                targets.extend(_to_cxcywh(labels[t][b]).to(self.device) for b in lanes)
+            if targets:
+                raw = self.model.forward_raw_head({k: torch.cat(v) for k, v in selected.items()})
+        self._states = [(h.detach(), c.detach()) for h, c in states]
+        if not targets:
+            self.step += 1
+            self.batches_done += 1
+            self.scheduler.step()
+            return {"loss": float("nan"), "lr": lr, "labelled": 0}
+        losses = yolox_loss(raw, targets, self.anchors, use_l1=self.config.use_l1)
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(losses["loss"]).backward()
+        grad_norm = float("nan")
+        if self.config.grad_clip > 0:
+            self.scaler.unscale_(self.optimizer)
+            grad_norm = float(nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip))
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.scheduler.step()
+        if self.ema is not None:
+            self.ema.update(self.model)
+        self.step += 1
+        self.batches_done += 1
+        out = {key: float(value.detach()) for key, value in losses.items()}
+        out.update(lr=lr, grad_norm=grad_norm, labelled=len(targets))
+        return out
+
+    # ------------------------------------------------------------------ validation
+    @property
+    def eval_model(self) -> RVTDetector:
+        """The weights used for validation and export (EMA if enabled)."""
+        return self.ema.model if self.ema is not None else self.model
+
+    @torch.no_grad()
+    def validate(self, split: str = "val") -> dict[str, Any]:
+        """Stream the split through the eval model and compute COCO AP with the RVT protocol.
+
+        Returns:
+            ``{"AP", "AP_50", "AP_75", "AP_S", "AP_M", "AP_L", "num_images", "num_labels", "num_detections",
+            "sequences", "time_s"}``; an empty dict when the split does not exist.
+        """
+        from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
+        from davis_rig.models.rvt.postprocess import postprocess
+
+        if not (self.data_dir / split).is_dir() or not list_sequences(self.data_dir, split):
+            return {}
+        start_time = time.perf_counter()
+        cfg = self.config
+        model = self.eval_model
+        was_training = model.training
+        model.eval()
+        stream = StreamingBatches(self.data_dir, split, cfg.val_seq_len, cfg.val_batch_size)
+        if cfg.val_max_sequences is not None:
+            stream.sequences = stream.sequences[: cfg.val_max_sequences]
+        gt: dict[int, list[np.ndarray]] = {}
+        dt: dict[int, list[np.ndarray]] = {}
+        states = None
+        autocast = torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
+        for batch in stream:
+            states = self._reset_states(states, batch.is_first)
+            hist = batch.histograms.to(self.device).float()
+            for t in range(hist.shape[0]):
+                with autocast:
+                    features, states = model.forward_backbone(pad_to_input(hist[t], self.model_config.in_res_hw),
+                                                              states)
+                lanes = [b for b, lab in enumerate(batch.labels[t]) if lab is not None and bool(batch.valid[t, b])]
+                if not lanes:
+                    continue
+                index = torch.tensor(lanes, device=self.device)
+                with autocast:
+                    decoded = model.forward_detect({k: v.index_select(0, index) for k, v in features.items()})
+                detections = postprocess(decoded.float().cpu(), cfg.val_conf_threshold, 0.45)
+                for det, b in zip(detections, lanes):
+                    seq, t_us = batch.sequence[b], int(batch.window_end_us[t, b])
+                    gt.setdefault(seq, []).append(_boxes_to_bbox(batch.labels[t][b], t_us))
+                    dt.setdefault(seq, []).append(detections_to_boxes(det, t_us))
+        gts_all, dts_all = [], []
+        for seq_index in sorted(gt):
+            seq_start = int(stream.sequences[seq_index].window_end_us[0]) - 50_000
+            skip = seq_start + cfg.val_skip_first_us if cfg.val_skip_first_us is not None else None
+            g = filter_boxes(np.concatenate(gt[seq_index]), skip_until_us=skip)
+            d = filter_boxes(np.concatenate(dt[seq_index]), skip_until_us=skip)
+            _, g_list, d_list = match_times(g, d)
+            gts_all.extend(g_list)
+            dts_all.extend(d_list)
+        result: dict[str, Any] = dict(coco_ap(gts_all, dts_all, category=None))
+        result.update(num_images=len(gts_all), num_labels=int(sum(len(g) for g in gts_all)),
+                      num_detections=int(sum(len(d) for d in dts_all)), sequences=len(stream.sequences),
+                      time_s=round(time.perf_counter() - start_time, 3))
+        for seq in stream.sequences:
+            seq.close()
+        model.train(was_training)
+        return result
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the run (tensors and plain Python values only)."""
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "batches_done": self.batches_done,
+            "train_config": self.config.to_dict(),
+            "model_config": self.model_config.to_json(),
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "scaler": self.scaler.state_dict(),
+            "ema": self.ema.state_dict() if self.ema is not None else None,
+            "aug_generator": self.aug_generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+            "states": self._states,
+            "best": dict(self.best),
+            "history_s": self.history_s,
+        }
+
+    def save_checkpoint(self, path: str | Path | None = None) -> Path:
+        """Write the full training state (atomically: temp file + rename); default ``checkpoints/last.pt``."""
+        path = Path(path) if path is not None else self.run_dir / "checkpoints" / "last.pt"
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        tmp.replace(path)
+        return path
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        """Restore a state written by :meth:`save_checkpoint`.
+
+        Raises:
+            CheckpointError: unreadable, another format, or another architecture.
+        """
+        path = Path(path)
+        try:
+            state = torch.load(path, map_location=self.device, weights_only=True)
+        except Exception as exc:  # torch raises several types for corrupt files
+            raise CheckpointError(f"{path}: unreadable training checkpoint ({type(exc).__name__}: {exc})") from exc
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+        saved_model = RVTConfig.from_dict(state["model_config"])
+        if saved_model != self.model_config:
+            raise CheckpointError(f"{path}: checkpoint is {saved_model.name} ({saved_model.to_json()}), this run "
+                                  f"is {self.model_config.name}")
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.scaler.load_state_dict(state["scaler"])
+        if self.ema is not None and state.get("ema") is not None:
+            self.ema.load_state_dict(state["ema"])
+        self.aug_generator.set_state(state["aug_generator"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if state.get("cuda_rng") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda_rng"]])
+        self._states = state.get("states")
+        self.step = int(state["step"])
+        self.batches_done = int(state["batches_done"])
+        self.best = dict(state.get("best") or {"AP": None, "step": None})
+        self.history_s = float(state.get("history_s", 0.0))
+
+    # ------------------------------------------------------------------ loop
+    def _log(self, record: Mapping[str, Any]) -> None:
+        with open(self.run_dir / "log.jsonl", "a", encoding="utf-8") as handle:
+            handle.write(json.dumps(record, default=float) + "\n")
+
+    def _validate_and_select(self) -> dict[str, Any]:
+        from davis_rig.models.rvt.checkpoint import save_safetensors
+
+        result = self.validate()
+        if not result:
+            return result
+        self._log({"kind": "val", "step": self.step, **result})
+        ap = result.get("AP")
+        if ap is not None and not math.isnan(ap) and (self.best["AP"] is None or ap > self.best["AP"]):
+            self.best = {"AP": ap, "AP_50": result.get("AP_50"), "step": self.step}
+            save_safetensors(self.eval_model, self.run_dir / "checkpoints" / "best.safetensors",
+                             metadata={"step": str(self.step), "val_AP": f"{ap:.6f}",
+                                       "val_AP_50": f"{result.get('AP_50', float('nan')):.6f}"})
+        return result
+
+    def fit(self, max_steps: int | None = None, time_budget_s: float | None = None) -> dict[str, Any]:
+        """Train until ``config.steps`` (or for at most ``max_steps`` more steps / ``time_budget_s`` seconds).
+
+        A checkpoint is written every ``ckpt_every`` steps and when the call returns, so a run can proceed in
+        resumable chunks (``Trainer(...).load_checkpoint(last.pt)`` then ``fit`` again).
+
+        Returns:
+            Summary: step, finished, last train losses, last validation result, best, seconds of this call.
+        """
+        cfg = self.config
+        start = time.perf_counter()
+        target = cfg.steps if max_steps is None else min(cfg.steps, self.step + int(max_steps))
+        bar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=cfg.steps, initial=self.step, desc="train", unit="step", file=sys.stderr)
+        last_losses: dict[str, float] = {}
+        last_val: dict[str, Any] = {}
+        batches = self._batches()
+        window: list[dict[str, float]] = []
+        try:
+            while self.step < target:
+                if time_budget_s is not None and time.perf_counter() - start > time_budget_s:
+                    break
+                batch = next(batches)
+                last_losses = self.train_step(batch)
+                window.append(last_losses)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{last_losses.get('loss', float('nan')):.3f}")
+                if cfg.log_every and (self.step % cfg.log_every == 0 or self.step == target):
+                    keys = [k for k in window[-1] if k not in ("lr",)]
+                    mean = {k: float(np.nanmean([w.get(k, np.nan) for w in window])) for k in keys}
+                    self._log({"kind": "train", "step": self.step, "lr": last_losses.get("lr"),
+                               "elapsed_s": round(self.history_s + time.perf_counter() - start, 3), **mean})
+                    window = []
+                if cfg.val_every and self.step % cfg.val_every == 0:
+                    last_val = self._validate_and_select()
+                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                    self.save_checkpoint()
+        finally:
+            if bar is not None:
+                bar.close()
+            batches.close()
+        finished = self.step >= cfg.steps
+        if finished and cfg.val_every and self.step % cfg.val_every != 0:
+            last_val = self._validate_and_select()
+        self.history_s += time.perf_counter() - start
+        self.save_checkpoint()
+        return {"step": self.step, "finished": finished, "train": last_losses, "val": last_val,
+                "best": dict(self.best), "seconds": round(time.perf_counter() - start, 3),
+                "total_seconds": round(self.history_s, 3)}
+
+    # ------------------------------------------------------------------ export
+    def export(self, out_dir: str | Path | None = None, *, use_best: bool = True, onnx: bool = True) -> dict[str, Path]:
+        """Export the detector: fp16 safetensors (+ fp32 ONNX step graph).
+
+        Args:
+            out_dir: default ``run_dir/export``.
+            use_best: export ``checkpoints/best.safetensors`` if it exists, else the current eval weights.
+            onnx: also write ``model.onnx`` (one recurrent step, ``export_step_onnx``).
+
+        Returns:
+            ``{"safetensors": path, "onnx": path}`` (the ONNX entry only if written).
+        """
+        from davis_rig.models.rvt.checkpoint import load_detector, save_safetensors
+        from davis_rig.models.rvt.onnx_export import export_step_onnx
+
+        out_dir = Path(out_dir) if out_dir is not None else self.run_dir / "export"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        best_path = self.run_dir / "checkpoints" / "best.safetensors"
+        if use_best and best_path.is_file():
+            model = load_detector(best_path)
+            source = f"best (step {self.best.get('step')})"
+        else:
+            model = copy.deepcopy(self.eval_model).to("cpu").float().eval()
+            source = f"step {self.step}"
+        meta = {"trained_steps": str(self.step), "source": source, "train_config": json.dumps(self.config.to_dict()),
+                "best_val": json.dumps(self.best), "data": str(self.data_dir.name)}
+        half = copy.deepcopy(model).half()
+        paths = {"safetensors": save_safetensors(half, out_dir / "model_fp16.safetensors", metadata=meta)}
+        if onnx:
+            paths["onnx"] = export_step_onnx(model.float().eval(), out_dir / "model.onnx")
+        return paths
+
+
+def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, resume: bool = False,
+          max_steps: int | None = None, time_budget_s: float | None = None, export: bool = True) -> dict[str, Any]:
+    """Build a :class:`Trainer`, optionally resume from ``run_dir/checkpoints/last.pt``, fit, export when finished.
+
+    Args:
+        data_dir, run_dir, config: see :class:`Trainer`.
+        resume: continue from the last checkpoint (its training config wins over ``config`` except
+            ``device``, ``num_workers`` and ``progress``).
+        max_steps, time_budget_s: stop this call early (resumable chunks).
+        export: export the final model when ``config.steps`` is reached.
+
+    Returns:
+        The :meth:`Trainer.fit` summary plus ``export`` paths (as strings) when exported.
+
+    Raises:
+        CheckpointError: ``resume`` without a checkpoint, or an incompatible one.
+    """
+    run_dir = Path(run_dir)
+    last = run_dir / "checkpoints" / "last.pt"
+    if resume:
+        if not last.is_file():
+            raise CheckpointError(f"{last}: no checkpoint to resume from")
+        saved = torch.load(last, map_location="cpu", weights_only=True)
+        saved_cfg = TrainConfig.from_dict(saved.get("train_config", {}))
+        config = replace(saved_cfg, device=config.device, num_workers=config.num_workers, progress=config.progress)
+        del saved
+    elif last.is_file():
+        warnings.warn(f"{last} exists and will be overwritten (pass resume=True to continue it)", stacklevel=2)
+    trainer = Trainer(data_dir, run_dir, config)
+    if resume:
+        trainer.load_checkpoint(last)
+    summary = trainer.fit(max_steps=max_steps, time_budget_s=time_budget_s)
+    if export and summary["finished"]:
+        summary["export"] = {k: str(v) for k, v in trainer.export().items()}
+    return summary
