@@ -258,8 +258,10 @@ def rasterize_mesh(
         row = torch.div(rest, w * s, rounding_mode="floor")
         col = rest - row * (w * s)
         pixel = frame * (h * w) + torch.div(row, s, rounding_mode="floor") * w + torch.div(col, s, rounding_mode="floor")
-        uv = (uvs[face] * bary[..., None]).sum(dim=1)
-        corner_normals = normals[frame[:, None], faces_long[face]]  # [N, 3, 3]
+        uv = (uvs.index_select(0, face) * bary[..., None]).sum(dim=1)
+        n_verts = normals.shape[1]
+        corner = (faces_long.index_select(0, face) + (frame * n_verts)[:, None]).reshape(-1)
+        corner_normals = normals.reshape(-1, 3).index_select(0, corner).view(-1, 3, 3)  # [N, 3 corners, 3]
         shade = lambert((corner_normals * bary[..., None]).sum(dim=1), light)
         counts = torch.bincount(pixel, minlength=t * h * w)  # cheaper than pooling the dense sample map
         coverage = (counts.to(vertices_m.dtype) / float(s * s)).view(t, h, w)
