@@ -34,7 +34,17 @@ from davis_rig.scene.renderer import RasterizedMesh, rasterize_mesh
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
-__all__ = ["MIN_RENDER_RATE_HZ", "Clip", "Motion", "SceneSpec", "render_clip", "resample_motion"]
+__all__ = [
+    "MIN_RENDER_RATE_HZ",
+    "Clip",
+    "Motion",
+    "SceneSpec",
+    "matrix_to_quaternion",
+    "render_clip",
+    "resample_motion",
+    "scene_camera",
+    "scene_vertices",
+]
 
 #: Lowest render rate (frames per second): 10 time bins per 50 ms window.
 MIN_RENDER_RATE_HZ = 200.0
@@ -53,7 +63,8 @@ class Motion:
     """A body motion as forward-kinematics parameters of :class:`~davis_rig.scene.body.BodyModel`.
 
     Attributes:
-        rotations_wxyz: float [T, J, 4], local bone rotations (unit quaternions w, x, y, z).
+        rotations_wxyz: float [T, J, 4], local bone rotations (unit quaternions w, x, y, z); rotation
+            matrices [T, J, 3, 3] are accepted too and converted to quaternions.
         root_translation_m: float [T, 3], root head translation (m, Z up; forward = -Y in body axes).
         fps_hz: frame rate (frames per second).
     """
@@ -64,6 +75,9 @@ class Motion:
 
     def __post_init__(self) -> None:
         r = np.asarray(self.rotations_wxyz)
+        if r.ndim == 4 and r.shape[-2:] == (3, 3):
+            object.__setattr__(self, "rotations_wxyz", matrix_to_quaternion(r))
+            r = self.rotations_wxyz
         tr = np.asarray(self.root_translation_m)
         if r.ndim != 3 or r.shape[-1] != 4:
             raise ShapeError(f"rotations_wxyz must be [T, J, 4], got {r.shape}")
@@ -71,6 +85,33 @@ class Motion:
             raise ShapeError(f"root_translation_m must be [{r.shape[0]}, 3], got {tr.shape}")
         if not self.fps_hz > 0:
             raise ValueError(f"fps_hz must be > 0, got {self.fps_hz}")
+
+
+def matrix_to_quaternion(matrices) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices, float32 [..., 4] (Shepperd's method, w >= 0).
+
+    Args:
+        matrices: float [..., 3, 3] rotation matrices (column-vector convention).
+    """
+    m = np.asarray(matrices, dtype=np.float64)
+    if m.shape[-2:] != (3, 3):
+        raise ShapeError(f"matrices must be [..., 3, 3], got {m.shape}")
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # four candidate solutions, each well-conditioned when its (squared) component is the largest
+    cands = np.stack(
+        [
+            np.stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
+            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        axis=-2,
+    )  # [..., 4 candidates, 4]  # fmt: skip
+    best = np.argmax(np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1), -1)
+    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q *= np.where(q[..., :1] < 0, -1.0, 1.0)
+    return q.astype(np.float32)
 
 
 def resample_motion(motion: Motion, t_s) -> tuple[np.ndarray, np.ndarray]:
