@@ -31,15 +31,31 @@ arms brought down to the sides (rest offsets computed from the shape's rest bone
 ``G_thigh = G_pelvis Rx(-hip)``, ``G_shank = G_thigh Rx(knee)``, ``G_foot = G_shank Rx(-ankle)``; the spine
 blends from the pelvis to the thorax (trunk lean, counter-rotation), the head stays nearly level.
 
-Foot contact (no sliding): the stance schedule (left stance for phase < stance fraction, right half a
-cycle later; double support shared linearly from the trailing to the leading foot) picks the pivot = the
-lowest sole vertex of the stance foot in each frame; the root moves horizontally by minus the pivot's
-displacement, so a foot in single support does not move in the world. Vertically the lowest sole vertex
-touches z = 0 in every frame with a foot in stance; during a running flight phase the root follows a
-ballistic arc (g = 9.81 m/s²) between take-off and landing heights. The stride (advance per cycle) follows
-from the kinematics: the hip amplitude is scaled (secant search) until stride / period = requested speed;
-the default cadence follows Alexander's dynamic-similarity relation stride = 2.3 h (v² / (g h))^0.3
-(R. McN. Alexander, "Estimates of speeds of dinosaurs", *Nature* 261 (1976) 129-130; h = hip height).
+Foot contact (no sliding): each frame's support is found geometrically inside the stance schedule (a
+leg may carry weight from 5 % before its heel strike to 5 % after its toe-off, stance fraction 0.62 walking
+/ 0.39 running): among those feet, the ones whose lowest sole vertex lies within 1 cm of the lowest carry
+the weight (linear hand-over). The root moves horizontally by minus the weighted displacement of the
+support feet's pivots (the lowest sole vertex, so the foot rolls heel -> ball -> toe), hence a foot in
+single support stays still in the world; vertically the lowest support vertex touches z = 0. When no
+foot is in stance (running flight) the root follows a ballistic arc (g = 9.81 m/s²) between take-off and
+landing heights, at the mean stance velocity. A second pass raises swing feet that come closer than
+Winter's minimum toe clearance (1.3 cm) by a sagittal two-link IK lift (foot orientation kept). The
+thigh angle is the normative hip angle minus 10° (the hip values are relative to an anteriorly tilted
+pelvis; without it the trailing leg is ~8 cm "longer" at double support).
+
+Stride and cadence: the stride follows from the kinematics; the hip amplitude is scaled (secant search,
+range 0.85-1.25) until stride / period = requested speed, beyond that the cadence is changed. The default
+cadence follows Alexander's dynamic-similarity relation stride = 2.3 h (v² / (g h))^0.3 (R. McN.
+Alexander, "Estimates of speeds of dinosaurs", *Nature* 261 (1976) 129-130; h = hip height), times 1.08
+for walking (Perry's free walking: 1.37 m/s, 1.41 m stride).
+
+Measured on shape 0 (skinned mesh, float32): walking 1.3 m/s at 200 fps: lowest vertex |z| < 3e-7 m in every
+frame, foot speed in single support median 3e-5 m/s, 95th percentile < 2e-4 m/s, max 0.04 m/s (vs 1.3 m/s
+walking speed); running 3.2 m/s: 28 of 131 frames in flight, support-foot speed median 3e-5 m/s, 95th
+percentile 0.03 m/s (the lowest vertex of a fast-rolling foot changes between frames). Known limits: the
+heel touches down ~5-10 % of the cycle after the nominal heel strike (the contralateral forefoot still
+carries the body), no toe (MTP) flexion, no frontal-plane hip/knee motion except the pelvic obliquity.
+Cost: ~0.4-1 s per cycle on one CPU core (numpy).
 """
 
 from __future__ import annotations
