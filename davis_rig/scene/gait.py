@@ -38,7 +38,7 @@ the weight (linear hand-over). The root moves horizontally by minus the weighted
 support feet's pivots (the lowest sole vertex, so the foot rolls heel -> ball -> toe), hence a foot in
 single support stays still in the world; vertically the lowest support vertex touches z = 0. When no
 foot is in stance (running flight) the root follows a ballistic arc (g = 9.81 m/s²) between take-off and
-landing heights, at the mean stance velocity. A second pass raises swing feet that come closer than
+landing heights, at the mean stance velocity. Up to three passes raise swing feet that come closer than
 Winter's minimum toe clearance (1.3 cm) by a sagittal two-link IK lift (foot orientation kept). The
 thigh angle is the normative hip angle minus 10° (the hip values are relative to an anteriorly tilted
 pelvis; without it the trailing leg is ~8 cm "longer" at double support).
@@ -53,9 +53,9 @@ Measured on shape 0 (skinned mesh, float32): walking 1.3 m/s at 200 fps: lowest 
 frame, foot speed in single support median 3e-5 m/s, 95th percentile < 2e-4 m/s, max 0.04 m/s (vs 1.3 m/s
 walking speed); running 3.2 m/s: 28 of 131 frames in flight, support-foot speed median 3e-5 m/s, 95th
 percentile 0.03 m/s (the lowest vertex of a fast-rolling foot changes between frames). Known limits: the
-heel touches down ~5-10 % of the cycle after the nominal heel strike (the contralateral forefoot still
+heel touches down ~10-15 % of the cycle after the nominal heel strike (the contralateral forefoot still
 carries the body), no toe (MTP) flexion, no frontal-plane hip/knee motion except the pelvic obliquity.
-Cost: ~0.4-1 s per cycle on one CPU core (numpy).
+Cost: ~0.3-1 s per cycle on one CPU core (numpy).
 """
 
 from __future__ import annotations
@@ -101,6 +101,8 @@ HIP_SCALE_RANGE = (0.85, 1.25)
 #: Minimum toe clearance of a swing foot (m): 1.29 cm in Winter, "Foot trajectory in human gait: a
 #: precise and multifactorial motor control task", Phys. Ther. 72 (1992) 45-53; enforced by a sagittal IK lift.
 SWING_CLEARANCE_M = 0.013
+#: Passes of the clearance correction (each one re-measures after the root path has settled).
+CLEARANCE_PASSES = 3
 #: Height band (m) above the lowest foot within which a foot shares the support (hand-over at double support).
 CONTACT_BAND_M = 0.01
 
@@ -521,7 +523,7 @@ def _clearance_lift(rig: _Rig, g, root, phase, s: float, frames: int) -> dict | 
         idx = (np.arange(frames)[:, None] + np.arange(-width, width + 1)[None]) % frames
         widened = deficit[idx].max(axis=1)  # moving max, then a smooth (Hann) window: no kinks
         out[side] = np.where(swing, (widened[idx] * window).sum(axis=1), 0.0) * 1.2
-    if max(v.max() for v in out.values()) <= 0:
+    if max(v.max() for v in out.values()) <= 1e-4:
         return None
     return out
 
@@ -590,9 +592,13 @@ def generate_gait(
         phase = np.arange(frames) / frames
         g = _world_rotations(rig, params, phase, hip_scale, v)
         root, info = _root_path(rig, g, phase, s, period)
-        lift = _clearance_lift(rig, g, root, phase, s, frames)
-        if lift is not None:  # second pass with the swing feet raised to the minimum toe clearance
-            g = _world_rotations(rig, params, phase, hip_scale, v, lift)
+        total = None
+        for _ in range(CLEARANCE_PASSES):  # raise the swing feet to the minimum toe clearance
+            lift = _clearance_lift(rig, g, root, phase, s, frames)
+            if lift is None:
+                break
+            total = lift if total is None else {k: total[k] + lift[k] for k in lift}
+            g = _world_rotations(rig, params, phase, hip_scale, v, total)
             root, info = _root_path(rig, g, phase, s, period)
         return period, frames, g, root, info
 
