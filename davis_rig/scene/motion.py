@@ -680,6 +680,6 @@ def motion_from_world_rotations(
         raise ShapeError(f"rest_bone_poses must be [{j}, 4, 4], got {rest.shape}")
     r = rest[:, :3, :3]
     g_parent = np.where((parents >= 0)[None, :, None, None], g[:, np.maximum(parents, 0)], np.eye(3))
-    local = np.einsum("jba,tjcb,tjcd,jde->tjae", r, g_parent, g, r)  # R^T Gp^T G R
+    local = np.swapaxes(r, -1, -2) @ (np.swapaxes(g_parent, -1, -2) @ g) @ r  # R^T Gp^T G R
     return Motion(rotations_wxyz=quat_from_matrix(local), root_translation_m=root_translation_m, fps_hz=fps_hz,
                   **motion_fields)

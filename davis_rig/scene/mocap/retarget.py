@@ -176,7 +176,7 @@ def retarget(
     # per segment: C_world G_j C_body^-1 A_s, then gathered per bone
     joints = np.array([segment_joint[s] for s in SEGMENTS])
     a = np.stack([offsets[s] for s in SEGMENTS])  # [S, 3, 3]
-    per_segment = np.einsum("ab,tsbc,dc,sde->tsae", world_to_anny, g[:, joints], body_to_anny, a)
+    per_segment = world_to_anny @ g[:, joints] @ (np.asarray(body_to_anny).T @ a)  # [T, S, 3, 3]
     world_delta = per_segment[:, [seg_index[s] for s in segs]]
     rest = np.asarray(asset.rest_bone_poses[shape_index], dtype=np.float64)
     return motion_from_world_rotations(world_delta, root_translation_m, rest, asset.bone_parents, fps_hz,

