@@ -25,16 +25,17 @@ middle scale, 304 x 240, 1 thread on a shared, loaded 2-core CPU, so +-30 %):
 
 - The body at 130-175 px is mostly sub-pixel triangles: the bounding-box pair list is only 3.6 candidates
   per covered sample at s = 1, 2 and 3, so a frame is a handful of large tensor ops with no per-face or
-  per-pixel Python loop, batched over frames (which is what a GPU needs). Measured: 4.0 / 7.6 / 16.7 ms
+  per-pixel Python loop, batched over frames (which is what a GPU needs). Measured: 4.0 / 7.1-7.6 / 17 ms
   per frame for s = 1 / 2 / 3 (rasterization only; with projection, normals, UVs and shades
-  :func:`~davis_rig.scene.renderer.rasterize_mesh` takes about 10 / 15-19 / 28-44 ms). The optimiser
-  reuses the raster of a clip: one texture step (lookup + compositing + backward) costs 0.3-1.4 ms/frame.
+  :func:`~davis_rig.scene.renderer.rasterize_mesh` takes 5.9 / 9.3 / 19-27 ms). The optimiser reuses
+  the raster of a clip: one texture step (lookup + compositing + backward) costs 0.25-1.1 ms/frame.
+  With 2 threads nothing could be measured reliably on this shared box (other jobs took the cores).
 - NVIDIA warp (``benchmarks/render.py --warp``: the same algorithm as warp kernels, one thread per
-  triangle, atomic-min depth pass + face-id pass, face ids only): 3.7 / 5.4 / 7.3 ms per frame on the
-  same CPU, identical face ids, i.e. 1.1x / 1.4x / 2.3x faster than torch here, but it needs the
-  ``warp-lang`` runtime (not a dependency of this package; anny's), a kernel build per machine and warp
-  version (4.5 s on first use) and copies between the two array runtimes. At the default s = 2 the gain
-  is a few ms per frame of a step that runs once per clip, so torch stays the single code path.
+  triangle, atomic-min depth pass + face-id pass, face ids only): 3.7 / 5.2-5.4 / 7.3-12 ms per frame on
+  the same CPU (two runs), identical face ids, i.e. 1.1x / 1.4x / 1.4-2.3x faster than torch here, but it
+  needs the ``warp-lang`` runtime (not a dependency of this package; anny's), a kernel build per machine
+  and warp version (4.5 s on first use) and copies between the two array runtimes. At the default s = 2
+  the gain is about 2 ms per frame of a step that runs once per clip, so torch stays the single code path.
 - Ray casting needs a BVH of the deforming mesh for every frame (27k triangles), more work than
   rasterizing them; not measured.
 - OpenGL via moderngl/EGL needs a GPU driver or a software Mesa (llvmpipe) with EGL in every environment
