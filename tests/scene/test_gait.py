@@ -143,3 +143,17 @@ def test_parameters_are_validated(asset):
     with pytest.warns(UserWarning, match="cadence changed"):
         slow = generate_gait(GaitParams(speed_m_s=1.3, cadence_steps_min=40), asset, 0, fps_hz=60)
     assert slow.speed_m_s == pytest.approx(1.3, rel=1e-3)
+
+
+def test_scene_renders_a_generated_gait(asset, model, walk):
+    """The renderer's contract: any Motion ([T, J, 4] wxyz + [T, 3] root at fps) drives render_clip."""
+    from davis_rig.scene.motion import loop
+    from davis_rig.scene.scene import SceneSpec, render_clip
+
+    spec = SceneSpec(motion=loop(walk, 2), duration_s=0.015, heading_rad=math.pi / 2, supersample=1)
+    clip = render_clip(spec, model=model)
+    assert tuple(clip.video.shape) == (spec.num_frames, 240, 304) and spec.num_frames >= 3
+    assert np.isfinite(clip.boxes).all()
+    widths = clip.boxes[:, 2] - clip.boxes[:, 0]
+    heights = clip.boxes[:, 3] - clip.boxes[:, 1]
+    assert (heights > 2 * widths).all() or (heights > 100).all()  # an upright person, not a lying one
