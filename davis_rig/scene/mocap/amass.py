@@ -13,7 +13,9 @@ are not used (the hands move rigidly with the wrist). The root orientation alrea
 into AMASS's Z-up world, so the person's heading comes from the mocap (as in the paper's official code).
 
 Translation: ``"mocap"`` uses ``trans`` (scaled by ``translation_scale``), ``"in_place"`` keeps only its
-height (the official code's behaviour: the person walks in place). Heights are then put on the ground
+height (the official code's behaviour: the person walks in place), ``"foot_locked"`` re-derives the
+horizontal path from the supporting foot (the subject's and anny's leg lengths differ, so ``trans`` makes
+the feet slide). Heights are then put on the ground
 (``ground="clip"``: lowest sole vertex over the trial at z = 0; ``"frame"``: per frame; ``None``: as is).
 """
 
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.scene.mocap.retarget import Y_UP_TO_Z_UP, ground_offsets, retarget
+from davis_rig.scene.mocap.retarget import Y_UP_TO_Z_UP, foot_locked_root, ground_offsets, retarget
 from davis_rig.scene.motion import Motion, quat_from_rotvec, quat_to_matrix
 
 __all__ = [
@@ -201,7 +203,9 @@ def load_amass(
         path: the user's ``*_poses.npz`` (never downloaded).
         asset: :class:`~davis_rig.scene.body.BodyAsset` (``None`` = bundled).
         shape_index: body shape.
-        translation: ``"mocap"`` (root follows ``trans``) or ``"in_place"`` (horizontal motion removed).
+        translation: ``"mocap"`` (root follows ``trans``), ``"in_place"`` (horizontal motion removed) or
+            ``"foot_locked"`` (horizontal path re-derived from the supporting foot: no foot skating on anny's
+            leg lengths, :func:`~davis_rig.scene.mocap.retarget.foot_locked_root`).
         translation_scale: factor on ``trans`` (e.g. anny's / the subject's leg length).
         ground: ``"clip"``, ``"frame"`` or ``None`` (see the module docstring).
         start_frame, stop_frame: frame range (Python slice semantics).
@@ -215,8 +219,8 @@ def load_amass(
     """
     from davis_rig.scene.body import BodyAsset
 
-    if translation not in ("mocap", "in_place"):
-        raise ValueError(f"translation must be 'mocap' or 'in_place', got {translation!r}")
+    if translation not in ("mocap", "in_place", "foot_locked"):
+        raise ValueError(f"translation must be 'mocap', 'in_place' or 'foot_locked', got {translation!r}")
     if ground not in ("clip", "frame", None):
         raise ValueError(f"ground must be 'clip', 'frame' or None, got {ground!r}")
     asset = BodyAsset.load() if asset is None else asset
@@ -235,6 +239,8 @@ def load_amass(
         metadata={"gender": trial.gender, "betas": trial.betas.tolist(), "frames": [start_frame, stop_frame],
                   "translation": translation, "translation_scale": translation_scale, "format": "AMASS SMPL-H"},
     )
+    if translation == "foot_locked":
+        motion = foot_locked_root(motion, asset, shape_index)
     return _put_on_ground(motion, asset, shape_index, ground)
 
 

@@ -24,7 +24,14 @@ from typing import Mapping
 import numpy as np
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.scene.mocap.retarget import LIMB_SEGMENTS, SEGMENTS, Y_UP_TO_Z_UP, ground_offsets, retarget
+from davis_rig.scene.mocap.retarget import (
+    LIMB_SEGMENTS,
+    SEGMENTS,
+    Y_UP_TO_Z_UP,
+    foot_locked_root,
+    ground_offsets,
+    retarget,
+)
 from davis_rig.scene.motion import Motion
 
 __all__ = ["CMU_JOINT_MAP", "CMU_UNITS_TO_M", "BvhSkeleton", "bvh_global_rotations", "load_bvh", "read_bvh"]
@@ -229,7 +236,8 @@ def load_bvh(
         joint_map: segment -> BVH joint name for every name in
             :data:`~davis_rig.scene.mocap.retarget.SEGMENTS` (default: CMU names).
         units_to_m: metres per file unit (``None`` = guess, see the module docstring).
-        translation: ``"mocap"`` or ``"in_place"`` (horizontal root motion removed).
+        translation: ``"mocap"``, ``"in_place"`` (horizontal root motion removed) or ``"foot_locked"``
+            (path re-derived from the supporting foot, see :func:`~davis_rig.scene.mocap.retarget.foot_locked_root`).
         ground: ``"clip"``, ``"frame"`` or ``None`` (lowest sole vertex on z = 0 over the clip / per frame).
 
     Returns:
@@ -240,8 +248,8 @@ def load_bvh(
     """
     from davis_rig.scene.body import BodyAsset
 
-    if translation not in ("mocap", "in_place"):
-        raise ValueError(f"translation must be 'mocap' or 'in_place', got {translation!r}")
+    if translation not in ("mocap", "in_place", "foot_locked"):
+        raise ValueError(f"translation must be 'mocap', 'in_place' or 'foot_locked', got {translation!r}")
     if ground not in ("clip", "frame", None):
         raise ValueError(f"ground must be 'clip', 'frame' or None, got {ground!r}")
     missing = [s for s in SEGMENTS if s not in joint_map]
@@ -264,6 +272,8 @@ def load_bvh(
                       target_directions=targets, body_to_anny=Y_UP_TO_Z_UP, world_to_anny=Y_UP_TO_Z_UP,
                       name=Path(path).stem, source=str(path),
                       metadata={"format": "BVH", "units_to_m": scale, "translation": translation})
+    if translation == "foot_locked":
+        motion = foot_locked_root(motion, asset, shape_index)
     if ground is None:
         return motion
     low = ground_offsets(motion, asset, shape_index)

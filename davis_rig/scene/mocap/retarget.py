@@ -39,6 +39,7 @@ __all__ = [
     "SEGMENTS",
     "Y_UP_TO_Z_UP",
     "anny_segments",
+    "foot_locked_root",
     "ground_offsets",
     "rest_offsets",
     "retarget",
@@ -183,6 +184,76 @@ def retarget(
                                        bone_names=tuple(asset.bone_names), **motion_fields)
 
 
+def _world_deltas(motion: Motion, rig) -> np.ndarray:
+    """Per-bone world rotations relative to rest ``G_c = W_c R_c^T`` of a motion, float64 [T, J, 3, 3]."""
+    from davis_rig.scene.motion import quat_to_matrix
+
+    local = quat_to_matrix(motion.rotations_wxyz.astype(np.float64))  # [T, J, 3, 3]
+    r = rig.rest[:, :3, :3]
+    world = np.empty_like(local)  # W_c = W_p R_p^T R_c L_c  =>  G_c = G_p R_c L_c R_c^T
+    world[:, 0] = r[0] @ local[:, 0] @ r[0].T
+    for c in range(1, local.shape[1]):
+        world[:, c] = world[:, rig.parents[c]] @ r[c] @ local[:, c] @ r[c].T
+    return world
+
+
+def foot_locked_root(
+    motion: Motion,
+    asset,
+    shape_index: int = 0,
+    *,
+    contact_band_m: float = 0.01,
+    airborne_m: float = 0.03,
+) -> Motion:
+    """Recompute the horizontal root path so that the supporting foot does not slide (no foot skating).
+
+    Retargeted mocap keeps the source's root translation, which does not match anny's leg lengths, so feet
+    slide. Here, in every frame the feet whose lowest sole vertex is within ``contact_band_m`` of the lowest
+    one carry the weight, and the root moves horizontally by minus their pivots' displacement to the next
+    frame (as :mod:`davis_rig.scene.gait` does). Frames whose lowest sole vertex is more than ``airborne_m``
+    above the clip's lowest (jumps, running flight) keep the source's horizontal root velocity. Heights are
+    unchanged.
+
+    Args:
+        motion: a motion on the asset's rig (e.g. from :func:`~davis_rig.scene.mocap.amass.load_amass`).
+        asset, shape_index: the rig.
+        contact_band_m: height band of the support hand-over (m).
+        airborne_m: height above the clip's ground beyond which a frame counts as airborne (m).
+
+    Returns:
+        The motion with a new horizontal root path (starting at the original first position).
+    """
+    from dataclasses import replace
+
+    from davis_rig.scene.gait import _forward_points, _Rig
+
+    rig = _Rig(asset, shape_index)
+    world = _world_deltas(motion, rig)
+    root = motion.root_translation_m.astype(np.float64)
+    t = motion.num_frames
+    if t < 2:
+        return motion
+    low, moves = {}, {}
+    for side in ("L", "R"):
+        pts = _forward_points(rig, world, side)  # root-relative
+        pivot = np.argmin(pts[..., 2], axis=1)
+        low[side] = pts[np.arange(t), pivot, 2] + root[:, 2]
+        moves[side] = pts[np.arange(1, t), pivot[:-1], :2] - pts[np.arange(t - 1), pivot[:-1], :2]
+    lowest = np.minimum(low["L"], low["R"])
+    step = np.zeros((t - 1, 2))
+    wsum = np.zeros(t - 1)
+    for side in ("L", "R"):
+        w = np.clip(1.0 - (low[side][:-1] - lowest[:-1]) / contact_band_m, 0.0, 1.0)
+        step -= w[:, None] * moves[side]
+        wsum += w
+    step /= wsum[:, None]
+    airborne = lowest[:-1] - lowest.min() > airborne_m
+    step[airborne] = np.diff(root[:, :2], axis=0)[airborne]
+    new = root.copy()
+    new[1:, :2] = root[0, :2] + np.cumsum(step, axis=0)
+    return replace(motion, root_translation_m=new, metadata={**motion.metadata, "translation": "foot_locked"})
+
+
 def ground_offsets(motion: Motion, asset, shape_index: int = 0) -> np.ndarray:
     """Height of the lowest sole vertex per frame, float64 [T] (m), without torch.
 
@@ -192,17 +263,9 @@ def ground_offsets(motion: Motion, asset, shape_index: int = 0) -> np.ndarray:
     lowest foot vertex to the LBS blend error of the sole (a few mm).
     """
     from davis_rig.scene.gait import _forward_points, _Rig
-    from davis_rig.scene.motion import quat_to_matrix
 
     rig = _Rig(asset, shape_index)
-    local = quat_to_matrix(motion.rotations_wxyz.astype(np.float64))  # [T, J, 3, 3]
-    r = rig.rest[:, :3, :3]
-    t, j = local.shape[:2]
-    world = np.empty_like(local)  # G_c = W_c R_c^T, W_c = W_p R_p^T R_c L_c
-    world[:, 0] = r[0] @ local[:, 0] @ r[0].T
-    for c in range(1, j):
-        p = rig.parents[c]
-        world[:, c] = world[:, p] @ r[c] @ local[:, c] @ r[c].T
+    world = _world_deltas(motion, rig)
     low = np.minimum(_forward_points(rig, world, "L")[..., 2].min(axis=1),
                      _forward_points(rig, world, "R")[..., 2].min(axis=1))
     return low + motion.root_translation_m[:, 2].astype(np.float64)

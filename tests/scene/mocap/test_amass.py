@@ -122,6 +122,8 @@ def test_heading_from_root_orientation_and_translation_modes(tmp_path, amass_wri
     assert in_place.num_frames == 2
     np.testing.assert_allclose(in_place.root_translation_m[:, :2], 0.0)
     np.testing.assert_allclose(ground_offsets(in_place, asset, 0), 0.0, atol=1e-6)
+    locked = load_amass(path, asset, translation="foot_locked")
+    assert locked.metadata["translation"] == "foot_locked" and locked.num_frames == 3
     with pytest.raises(ValueError):
         load_amass(path, asset, translation="teleport")
     with pytest.raises(ValueError):
@@ -156,3 +158,24 @@ def _rest_offset(asset, seg):
     from davis_rig.scene.mocap.retarget import rest_offsets
 
     return rest_offsets(asset, 0, _leg_targets(asset, 0))[seg]
+
+
+def test_foot_locked_root_recovers_a_walk(asset):
+    """An in-place generated walk gets its forward path back from the supporting foot (no skating)."""
+    from dataclasses import replace
+
+    from davis_rig.scene.gait import GaitParams, generate_gait
+    from davis_rig.scene.mocap.retarget import foot_locked_root
+    from davis_rig.scene.motion import loop
+
+    walk = loop(generate_gait(GaitParams(speed_m_s=1.2), asset, 0, fps_hz=60), 2)
+    root = walk.root_translation_m.astype(np.float64).copy()
+    root[:, :2] = 0.0
+    locked = foot_locked_root(replace(walk, root_translation_m=root, cycle_advance_m=None), asset, 0)
+    np.testing.assert_allclose(locked.root_translation_m[:, 2], root[:, 2], atol=1e-6)
+    distance = np.linalg.norm(locked.root_translation_m[-1, :2] - locked.root_translation_m[0, :2])
+    expected = np.linalg.norm(walk.root_translation_m[-1, :2] - walk.root_translation_m[0, :2])
+    assert distance == pytest.approx(expected, rel=0.02)
+    step = np.diff(locked.root_translation_m[:, :2], axis=0)
+    original = np.diff(walk.root_translation_m[:, :2].astype(np.float64), axis=0)
+    assert np.median(np.linalg.norm(step - original, axis=1)) < 1e-4
