@@ -14,13 +14,12 @@ Run: ``python benchmarks/motion.py [--repeats N] [--threads 2]``.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import subprocess
 import time
 from pathlib import Path
-
-import numpy as np
 
 
 def _commit() -> str:
@@ -48,13 +47,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--warmup", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=None, help="BLAS/torch threads (default: library default)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="BLAS threads via OMP/OPENBLAS/MKL_NUM_THREADS, set before numpy is imported")
     args = parser.parse_args()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        threadpool_limits = None
-    limiter = threadpool_limits(args.threads) if (threadpool_limits and args.threads) else None
+    if args.threads:
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+    import numpy as np
 
     from davis_rig.scene.body import BodyAsset
     from davis_rig.scene.gait import GaitParams, generate_gait
@@ -87,8 +86,6 @@ def main() -> None:
     print(f"resample per 200 fps output frame: {per_frame * 1e3:.1f} µs = {per_frame / 5.0:.2%} of a 5 ms frame period")
     print(f"amass retarget per frame: {results['amass_retarget'] / 1000 * 1e3:.1f} µs; "
           f"ground offsets per frame: {results['ground_offsets'] / 1000 * 1e3:.1f} µs")
-    if limiter is not None:
-        limiter.unregister()
 
 
 if __name__ == "__main__":
