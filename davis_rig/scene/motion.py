@@ -18,6 +18,7 @@ Kernels (all return new motions, none mutates its input):
 - :func:`concatenate`: join motions end to start (the root path continues), optionally cross-faded.
 - :func:`ground_contact`: shift the root vertically so that the lowest mesh vertex touches z = 0, per
   frame (walking: a foot is always on the ground), per cycle or per clip (running: keeps flight phases).
+- :meth:`Motion.save` / :meth:`Motion.load`: a pickle-free ``.npz`` (cache retargeted mocap or generated gaits).
 - :func:`motion_from_world_rotations`: the converter every generator/importer uses — per-bone *world*
   rotations relative to the rest pose (``W_c = G_c R_c``) to the rig's local rotations
   (``L_c = R_c^T G_p^T G_c R_c``).
@@ -39,6 +40,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from davis_rig.scene.body import BodyModel
 
 __all__ = [
+    "MOTION_FORMAT_VERSION",
     "Motion",
     "concatenate",
     "ground_contact",
@@ -175,6 +177,10 @@ def rotation_about_z(angle_rad: np.ndarray | float) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- Motion
+#: Version of the ``.npz`` layout of :meth:`Motion.save`.
+MOTION_FORMAT_VERSION = 1
+
+
 @dataclass(frozen=True)
 class Motion:
     """A body motion as forward-kinematics parameters of :class:`~davis_rig.scene.body.BodyModel`.
@@ -275,6 +281,54 @@ class Motion:
             raise ShapeError(f"motion has {self.num_bones} bones, the rig has {len(bone_names)}")
         if self.bone_names is not None and tuple(self.bone_names) != tuple(bone_names):
             raise ShapeError("motion bone names differ from the rig's bone names")
+
+    def save(self, path) -> None:
+        """Write the motion to an ``.npz`` (arrays + JSON metadata, no pickle); read it with :meth:`load`."""
+        import json
+
+        np.savez_compressed(
+            path,
+            format_version=np.int64(MOTION_FORMAT_VERSION),
+            rotations_wxyz=self.rotations_wxyz,
+            root_translation_m=self.root_translation_m,
+            fps_hz=np.float64(self.fps_hz),
+            cycle_advance_m=np.full(3, np.nan) if self.cycle_advance_m is None else self.cycle_advance_m,
+            bone_names=np.array(self.bone_names if self.bone_names is not None else [], dtype=str),
+            info_json=np.array(json.dumps({"name": self.name, "source": self.source, "metadata": self.metadata})),
+        )
+
+    @classmethod
+    def load(cls, path) -> "Motion":
+        """Read a motion written by :meth:`save`.
+
+        Raises:
+            FileNotFoundError: no file. FormatError: not a motion file or an unknown format version.
+        """
+        import json
+        from pathlib import Path
+
+        from davis_rig.errors import FormatError
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"motion file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError) as exc:
+            raise FormatError(f"{path}: not a readable motion .npz ({exc})") from exc
+        keys = {"format_version", "rotations_wxyz", "root_translation_m", "fps_hz", "cycle_advance_m", "bone_names",
+                "info_json"}
+        if not keys <= set(data):
+            raise FormatError(f"{path}: motion file lacks {sorted(keys - set(data))}")
+        if int(data["format_version"]) != MOTION_FORMAT_VERSION:
+            raise FormatError(f"{path}: motion format {int(data['format_version'])}, expected {MOTION_FORMAT_VERSION}")
+        info = json.loads(str(data["info_json"]))
+        adv = data["cycle_advance_m"]
+        names = tuple(str(n) for n in data["bone_names"])
+        return cls(data["rotations_wxyz"], data["root_translation_m"], float(data["fps_hz"]), name=info["name"],
+                   source=info["source"], cycle_advance_m=None if np.isnan(adv).all() else adv,
+                   bone_names=names or None, metadata=info["metadata"])
 
     @classmethod
     def from_walk_cycle(cls, asset, shape_index: int = 0, advance: bool = True) -> "Motion":

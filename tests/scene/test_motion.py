@@ -239,3 +239,27 @@ def test_world_rotations_give_the_posed_frames(asset, model64):
     np.testing.assert_allclose(np.abs(identity.rotations_wxyz[..., 0]), 1.0, atol=1e-6)
     with pytest.raises(ShapeError):
         motion_from_world_rotations(g[:, :3], np.zeros((2, 3)), asset.rest_bone_poses[0], asset.bone_parents, 30.0)
+
+
+def test_save_load_round_trip(tmp_path, asset):
+    from davis_rig.errors import FormatError
+
+    walk = Motion.from_walk_cycle(asset, 0)
+    walk = Motion(walk.rotations_wxyz, walk.root_translation_m, walk.fps_hz, name=walk.name, source=walk.source,
+                  cycle_advance_m=walk.cycle_advance_m, bone_names=walk.bone_names, metadata={"a": [1, 2]})
+    walk.save(tmp_path / "walk.npz")
+    back = Motion.load(tmp_path / "walk.npz")
+    np.testing.assert_array_equal(back.rotations_wxyz, walk.rotations_wxyz)
+    np.testing.assert_array_equal(back.root_translation_m, walk.root_translation_m)
+    np.testing.assert_array_equal(back.cycle_advance_m, walk.cycle_advance_m)
+    assert (back.fps_hz, back.name, back.bone_names, back.metadata) == (walk.fps_hz, walk.name, walk.bone_names,
+                                                                         {"a": [1, 2]})
+    clip = Motion(np.tile([1.0, 0, 0, 0], (2, 3, 1)), np.zeros((2, 3)), 10.0)
+    clip.save(tmp_path / "clip.npz")
+    again = Motion.load(tmp_path / "clip.npz")
+    assert again.cycle_advance_m is None and again.bone_names is None
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(FormatError, match="lacks"):
+        Motion.load(tmp_path / "other.npz")
+    with pytest.raises(FileNotFoundError):
+        Motion.load(tmp_path / "missing.npz")
