@@ -1,0 +1,104 @@
+"""``davis-train``: train an RVT detector on a dataset in RVT's preprocessed layout (resumable).
+
+Thin front end over :func:`davis_rig.training.trainer.train`; errors become one message and an exit code in
+:mod:`davis_rig.cli._common`. torch is imported after argument parsing so ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from davis_rig.cli._common import EXIT_OK, run_command
+
+NAME = "davis-train"
+
+EPILOG = """\
+examples:
+  davis-train data/synth --out runs/rvt_t                       # RVT-T, Gen1 recipe, 400k steps, batch 8, L 21
+  davis-train data/synth --out runs/rvt_t --resume              # continue from runs/rvt_t/checkpoints/last.pt
+  davis-train data/synth --out runs/t --steps 20000 --chunk-steps 500   # CPU: 500 steps per call, then --resume
+  davis-train data/synth --out runs/mini --model mini --steps 50 --batch 2 --seq-len 3 --device cpu
+
+DATA_DIR holds train/ (and val/ for validation AP) sequences in RVT's layout (event_representations_v2/
+stacked_histogram_dt=50_nbins=10 + labels_v2), e.g. a preprocessed Gen1 folder or davis_rig's synthetic data.
+RUN_DIR gets log.jsonl (train losses, validation AP/AP50), checkpoints/last.pt (full state), checkpoints/
+best.safetensors (best validation AP) and, when the run reaches --steps, export/model_fp16.safetensors and
+export/model.onnx. With --resume the saved training settings are used (only --device, --workers and the
+progress bar may change). Prints a JSON summary. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or
+checkpoint problem, 5 missing dependency.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``davis-train``."""
+    parser = argparse.ArgumentParser(
+        prog=NAME, description="Train an RVT event-camera detector (YOLOX losses, truncated BPTT, RVT Gen1 recipe).",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (train/, val/)")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder of the run")
+    parser.add_argument("--model", choices=["tiny", "small", "base", "mini"], default="tiny",
+                        help="architecture preset (default: tiny = RVT-T)")
+    parser.add_argument("--steps", type=int, default=400_000, help="total optimizer steps (default: 400000, RVT)")
+    parser.add_argument("--batch", type=int, default=8, help="sequence chunks per batch (default: 8)")
+    parser.add_argument("--seq-len", type=int, default=21, help="windows per chunk, the TBPTT length (default: 21)")
+    parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
+    parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
+    parser.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (default: 2e-4)")
+    parser.add_argument("--precision", choices=["auto", "fp32", "bf16", "fp16"], default="auto",
+                        help="mixed precision on CUDA (auto: bf16 if supported, else fp16; CPU: fp32)")
+    parser.add_argument("--ema", type=float, default=None, metavar="DECAY", help="EMA of the weights, e.g. 0.9998")
+    parser.add_argument("--val-every", type=int, default=5_000, help="validation interval in steps (0 = only at the end)")
+    parser.add_argument("--val-batch", type=int, default=8, help="streaming lanes for validation (default: 8)")
+    parser.add_argument("--val-max-sequences", type=int, default=None, help="validate on the first N val sequences")
+    parser.add_argument("--ckpt-every", type=int, default=1_000, help="checkpoint interval in steps (default: 1000)")
+    parser.add_argument("--log-every", type=int, default=50, help="log interval in steps (default: 50)")
+    parser.add_argument("--workers", type=int, default=0, help="DataLoader workers reading histograms (default: 0)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of init, data order and augmentation")
+    parser.add_argument("--no-augment", action="store_true", help="disable flip/zoom augmentation")
+    parser.add_argument("--chunk-steps", type=int, default=None,
+                        help="stop after this many steps in this call (checkpointed; continue with --resume)")
+    parser.add_argument("--time-budget-min", type=float, default=None,
+                        help="stop this call after this many minutes (checkpointed; continue with --resume)")
+    parser.add_argument("--no-export", action="store_true", help="do not export the final model")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    return parser
+
+
+def _train(args: argparse.Namespace) -> int:
+    from davis_rig.training.augment import AugmentConfig
+    from davis_rig.training.trainer import TrainConfig, train
+
+    config = TrainConfig(
+        model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
+        precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
+        val_max_sequences=args.val_max_sequences, ckpt_every=args.ckpt_every, log_every=args.log_every,
+        augment=AugmentConfig.off() if args.no_augment else AugmentConfig(), seed=args.seed, device=args.device,
+        num_workers=args.workers, progress=not args.no_progress)
+    summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
+                    time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
+                    export=not args.no_export)
+    print(json.dumps(summary, indent=1, default=str))
+    if not summary["finished"]:
+        print(f"{NAME}: stopped at step {summary['step']}; continue with: {NAME} {args.data_dir} --out {args.out} "
+              "--resume", file=sys.stderr)
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``davis-train``; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for name in ("steps", "batch", "seq_len", "val_batch"):
+        if getattr(args, name) < 1:
+            print(f"{NAME}: error: --{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}", file=sys.stderr)
+            return 2
+    if args.chunk_steps is not None and args.chunk_steps < 1:
+        print(f"{NAME}: error: --chunk-steps must be >= 1", file=sys.stderr)
+        return 2
+    return run_command(NAME, lambda: _train(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

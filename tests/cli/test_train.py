@@ -1,0 +1,69 @@
+"""davis-train: argument mapping onto training.trainer.train (patched), exit codes, one real tiny run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from davis_rig.cli import train as cli
+from davis_rig.errors import CheckpointError
+
+
+def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
+    calls = []
+
+    def fake_train(data_dir, run_dir, config, **kwargs):
+        calls.append((data_dir, run_dir, config, kwargs))
+        return {"step": 7, "finished": False}
+
+    monkeypatch.setattr("davis_rig.training.trainer.train", fake_train)
+    code = cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--model", "small", "--steps", "100",
+                     "--batch", "4", "--seq-len", "5", "--device", "cpu", "--resume", "--ema", "0.999",
+                     "--chunk-steps", "7", "--no-augment", "--no-export", "--no-progress", "--workers", "2"])
+    assert code == 0
+    (data_dir, run_dir, config, kwargs), = calls
+    assert data_dir == str(tmp_path / "data") and run_dir == str(tmp_path / "run")
+    assert (config.model, config.steps, config.batch_size, config.seq_len, config.device) == ("small", 100, 4, 5, "cpu")
+    assert config.ema_decay == 0.999 and config.num_workers == 2 and not config.progress
+    assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0
+    assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False}
+    out = capsys.readouterr()
+    assert json.loads(out.out)["step"] == 7 and "--resume" in out.err
+
+
+def test_defaults_are_the_rvt_recipe(monkeypatch, tmp_path):
+    seen = {}
+    monkeypatch.setattr("davis_rig.training.trainer.train",
+                        lambda d, r, c, **k: seen.update(config=c, kwargs=k) or {"step": 1, "finished": True})
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r")]) == 0
+    config = seen["config"]
+    assert (config.model, config.steps, config.batch_size, config.seq_len, config.lr) == ("tiny", 400_000, 8, 21, 2e-4)
+    assert (config.weight_decay, config.grad_clip, config.div_factor, config.final_div_factor) == (0.0, 1.0, 20, 10_000)
+    assert seen["kwargs"]["export"] is True
+
+
+@pytest.mark.parametrize("argv", [["--steps", "0"], ["--batch", "0"], ["--seq-len", "0"], ["--chunk-steps", "0"],
+                                  ["--model", "huge"]])
+def test_bad_arguments_exit_2(tmp_path, argv, capsys):
+    try:
+        code = cli.main([str(tmp_path), "--out", str(tmp_path / "r"), *argv])
+    except SystemExit as exc:  # argparse choices
+        code = exc.code
+    assert code == 2
+
+
+def test_errors_become_messages(monkeypatch, tmp_path, capsys):
+    def failing(*args, **kwargs):
+        raise CheckpointError("no checkpoint to resume from")
+
+    monkeypatch.setattr("davis_rig.training.trainer.train", failing)
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), "--resume"]) == 4
+    assert "davis-train: error: no checkpoint" in capsys.readouterr().err
+
+
+def test_missing_dataset_is_a_data_error(tmp_path, capsys):
+    code = cli.main([str(tmp_path / "absent"), "--out", str(tmp_path / "r"), "--model", "mini", "--device", "cpu",
+                     "--no-progress"])
+    assert code == 4
+    assert "no such split folder" in capsys.readouterr().err
