@@ -548,7 +548,8 @@ class Trainer:
             onnx: also write ``model.onnx`` (one recurrent step, ``export_step_onnx``).
 
         Returns:
-            ``{"safetensors": path, "onnx": path}`` (the ONNX entry only if written).
+            ``{"safetensors": path, "onnx": path, "model_card": path}`` (ONNX only if written); the model card
+            (``MODEL_CARD.md``) is filled from the run and the dataset card.
         """
         from davis_rig.models.rvt.checkpoint import load_detector, save_safetensors
         from davis_rig.models.rvt.onnx_export import export_step_onnx
@@ -568,6 +569,19 @@ class Trainer:
         paths = {"safetensors": save_safetensors(half, out_dir / "model_fp16.safetensors", metadata=meta)}
         if onnx:
             paths["onnx"] = export_step_onnx(model.float().eval(), out_dir / "model.onnx")
+        from davis_rig.training.cards import write_model_card
+
+        card_path = self.data_dir / "dataset_card.json"
+        dataset_card = json.loads(card_path.read_text(encoding="utf-8")) if card_path.is_file() else None
+        files = {p.name: ("fp16 weights + config (safetensors)" if k == "safetensors" else
+                          "one recurrent step, fp32 (ONNX)") for k, p in paths.items()}
+        paths["model_card"] = write_model_card(
+            out_dir / "MODEL_CARD.md", model_name=f"davis_rig {self.model_config.name} ({self.data_dir.name})",
+            model_config=self.model_config.to_dict(), train_config=self.config.to_dict(), dataset_card=dataset_card,
+            validation=self.best if self.best.get("AP") is not None else None,
+            compute={"device": str(self.device), "precision": str(self.amp_dtype or torch.float32),
+                     "steps": self.step, "train_hours": round(self.history_s / 3600, 3)},
+            files=files)
         return paths
 
 

@@ -63,7 +63,9 @@ def test_checkpoint_round_trip_export_and_errors(moving_boxes_dataset, tmp_path)
     torch.set_num_threads(2)
     config = _config(steps=2, log_every=0, ema_decay=0.99, val_every=2, val_seq_len=8)
     summary = train(moving_boxes_dataset, tmp_path / "run", config)
-    assert summary["finished"] and set(summary["export"]) == {"safetensors", "onnx"}
+    assert summary["finished"] and set(summary["export"]) == {"safetensors", "onnx", "model_card"}
+    card = (tmp_path / "run" / "export" / "MODEL_CARD.md").read_text()
+    assert "synthetic" in card and "| train | 4 | 32 | 32 |" in card and "validation (synthetic, step 2)" in card
     assert (tmp_path / "run" / "checkpoints" / "best.safetensors").is_file()
     trainer = Trainer(moving_boxes_dataset, tmp_path / "run", config)
     trainer.load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
