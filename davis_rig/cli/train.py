@@ -56,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log-every", type=int, default=50, help="log interval in steps (default: 50)")
     parser.add_argument("--workers", type=int, default=0, help="DataLoader workers reading histograms (default: 0)")
     parser.add_argument("--seed", type=int, default=0, help="seed of init, data order and augmentation")
+    parser.add_argument("--sampling", choices=["mixed", "random"], default="mixed",
+                        help="mixed (RVT: half streaming lanes with carried states, half random chunks) or random")
     parser.add_argument("--no-augment", action="store_true", help="disable flip/zoom augmentation")
     parser.add_argument("--chunk-steps", type=int, default=None,
                         help="stop after this many steps in this call (checkpointed; continue with --resume)")
@@ -74,7 +76,9 @@ def _train(args: argparse.Namespace) -> int:
         model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
         precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
         val_max_sequences=args.val_max_sequences, ckpt_every=args.ckpt_every, log_every=args.log_every,
-        augment=AugmentConfig.off() if args.no_augment else AugmentConfig(), seed=args.seed, device=args.device,
+        sampling=args.sampling, augment=AugmentConfig.off() if args.no_augment else AugmentConfig(),
+        stream_augment=AugmentConfig.off() if args.no_augment else AugmentConfig.rvt_stream(), seed=args.seed,
+        device=args.device,
         num_workers=args.workers, progress=not args.no_progress)
     summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
                     time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,

@@ -35,6 +35,11 @@ class AugmentConfig:
     min_side_px: float = 1.0
 
     @classmethod
+    def rvt_stream(cls) -> "AugmentConfig":
+        """RVT ``data_augmentation.stream``: flip p 0.5, zoom-out only (p 0.5, factor U[1, 1.2])."""
+        return cls(prob_hflip=0.5, zoom_prob=0.5, zoom_in_weight=0.0, zoom_out_weight=1.0)
+
+    @classmethod
     def off(cls) -> "AugmentConfig":
         """No augmentation."""
         return cls(prob_hflip=0.0, zoom_prob=0.0)

@@ -43,6 +43,8 @@ __all__ = [
     "list_sequences",
     "RandomChunkDataset",
     "StreamingBatches",
+    "StreamingTrainLanes",
+    "ResumableBatchSampler",
     "ChunkBatch",
     "collate_chunks",
     "labels_to_tensor",
@@ -707,3 +709,81 @@ def dataset_summary(root: str | Path) -> dict[str, Any]:
         for s in seqs:
             s.close()
     return summary
+
+
+class StreamingTrainLanes:
+    """Endless streaming lanes for training (the ``stream`` half of RVT's ``mixed`` sampling), resumable.
+
+    Each lane plays the sequences in its own shuffled order (a new permutation per lane and pass), each
+    sequence from ``max(first_labelled − (L − 1), 0)`` to its end in chunks of L windows; the recurrent state
+    is carried between a lane's consecutive chunks and reset when the lane starts a sequence (``is_first``).
+    The last chunk of a sequence is zero-padded (``valid`` False).
+
+    Args:
+        sequences: the training sequences.
+        seq_len: chunk length L.
+        num_lanes: lanes (the stream part of the batch).
+        seed: base seed of the lane permutations.
+        min_side_px: as :func:`labels_to_tensor`.
+    """
+
+    def __init__(self, sequences: Sequence[SequenceData], seq_len: int, num_lanes: int, seed: int = 0,
+                 min_side_px: float = 0.0):
+        if not sequences or num_lanes < 1 or seq_len < 1:
+            raise ValueError("StreamingTrainLanes: needs sequences, num_lanes ≥ 1 and seq_len ≥ 1")
+        self.sequences = list(sequences)
+        self.seq_len = int(seq_len)
+        self.num_lanes = int(num_lanes)
+        self.seed = int(seed)
+        self.min_side_px = float(min_side_px)
+        # per lane: [pass, position in the pass's permutation, next window start (−1 = start a new sequence)]
+        self.lanes = [[0, 0, -1] for _ in range(self.num_lanes)]
+
+    def _order(self, lane: int, epoch: int) -> np.ndarray:
+        return np.random.default_rng((self.seed, lane, epoch)).permutation(len(self.sequences))
+
+    def _first_window(self, seq: SequenceData) -> int:
+        labelled = seq.labelled_windows()
+        return max(int(labelled[0]) - (self.seq_len - 1), 0) if labelled.size else 0
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"seed": self.seed, "lanes": [list(lane) for lane in self.lanes]}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        lanes = [list(map(int, lane)) for lane in state["lanes"]]
+        if len(lanes) != self.num_lanes:
+            raise FormatError(f"stream state has {len(lanes)} lanes, this sampler {self.num_lanes}")
+        self.seed, self.lanes = int(state["seed"]), lanes
+
+    def next_items(self) -> list[dict[str, Any]]:
+        """One chunk per lane, as items of :func:`collate_chunks` (plus ``"lane"``)."""
+        torch = _torch()
+        items = []
+        for lane_index, lane in enumerate(self.lanes):
+            epoch, position, start = lane
+            seq_index = int(self._order(lane_index, epoch)[position])
+            seq = self.sequences[seq_index]
+            is_first = start < 0
+            if is_first:
+                start = self._first_window(seq)
+            stop = min(start + self.seq_len, seq.num_windows)
+            n = stop - start
+            hist = np.zeros((self.seq_len, NUM_CHANNELS, *RVT_HW), dtype=np.uint8)
+            hist[:n] = seq.histograms(start, stop)
+            windows = np.full(self.seq_len, -1, dtype=np.int64)
+            windows[:n] = np.arange(start, stop)
+            ends = np.full(self.seq_len, -1, dtype=np.int64)
+            ends[:n] = seq.window_end_us[start:stop]
+            labels = [labels_to_tensor(seq.labels_at(w), min_side_px=self.min_side_px) if w >= 0 else None
+                      for w in windows.tolist()]
+            items.append({"histograms": torch.from_numpy(hist), "labels": labels, "is_first": is_first,
+                          "valid": torch.from_numpy(windows >= 0), "window_end_us": torch.from_numpy(ends),
+                          "sequence": seq_index, "window": torch.from_numpy(windows), "lane": lane_index})
+            if stop >= seq.num_windows:  # sequence done: next one (next pass after the last)
+                position += 1
+                if position >= len(self.sequences):
+                    epoch, position = epoch + 1, 0
+                lane[:] = [epoch, position, -1]
+            else:
+                lane[:] = [epoch, position, stop]
+        return items

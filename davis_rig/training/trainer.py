@@ -2,12 +2,14 @@
 
 Recipe (RVT ``config/general.yaml`` + ``config/experiment/gen1/default.yaml``, ``modules/detection.py``):
 AdamW (lr 2e-4, weight decay 0), OneCycleLR (pct_start 0.005, div_factor 20, final lr = max lr / 10000,
-linear annealing, no momentum cycling, stepped every batch), gradient-norm clipping 1.0, batch 8 of
-random-access chunks of L = 21 windows (states reset per chunk), loss on every labelled window of the chunk
+linear annealing, no momentum cycling, stepped every batch), gradient-norm clipping 1.0, batch 8 of chunks of
+L = 21 windows with ``mixed`` sampling (half the batch: streaming lanes whose states are carried from batch to
+batch and reset at sequence starts, augmented with one flip/zoom-out draw per sequence; half: random-access
+chunks ending at a labelled window, states reset per chunk), loss on every labelled window of the chunk
 (backbone features of all labelled windows go through the FPN + head in one batch), mixed precision on GPU
 (RVT: fp16 AMP; here bf16 where supported, else fp16 with a gradient scaler), YOLOX head biases initialised to
-the 0.01 prior. Differences to RVT: only ``random`` sampling (RVT's default ``mixed`` also streams), optional
-EMA of the weights, validation AP computed with :mod:`davis_rig.metrics.ap` on the streamed validation split.
+the 0.01 prior. Differences to RVT: optional EMA of the weights; validation AP computed with
+:mod:`davis_rig.metrics.ap` on the streamed validation split.
 
 Everything a run needs to continue bit-identically on CPU is in its checkpoint: model, optimizer, scheduler,
 gradient scaler, EMA, the data position (epoch, batch), the augmentation generator and the torch RNG.
@@ -31,12 +33,13 @@ from davis_rig.errors import CheckpointError, FormatError
 from davis_rig.models.rvt._torch import nn, torch
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
-from davis_rig.training.augment import AugmentConfig, apply_augment, sample_params
+from davis_rig.training.augment import AugmentConfig, AugmentParams, apply_augment, sample_params
 from davis_rig.training.dataset import (
     ChunkBatch,
     RandomChunkDataset,
     ResumableBatchSampler,
     StreamingBatches,
+    StreamingTrainLanes,
     collate_chunks,
     list_sequences,
 )
@@ -66,7 +69,9 @@ class TrainConfig:
         val_conf_threshold: postprocess threshold for AP (RVT's reported evaluation: 0.001).
         val_skip_first_us: labels and detections within this time from a sequence's start are ignored (RVT 0.5 s).
         val_max_sequences: evaluate only the first N validation sequences (``None`` = all).
-        augment: :class:`AugmentConfig`.
+        sampling: ``"mixed"`` (RVT: half streaming lanes, half random chunks; needs batch ≥ 2) or ``"random"``.
+        augment: :class:`AugmentConfig` of the random-access chunks (RVT ``data_augmentation.random``).
+        stream_augment: :class:`AugmentConfig` of the streaming lanes, drawn once per sequence (RVT ``stream``).
         seed: seeds the model initialisation, the data order and the augmentation.
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:1"``...
         num_workers: DataLoader workers reading histograms (0 = main process).
@@ -94,7 +99,9 @@ class TrainConfig:
     val_conf_threshold: float = 0.001
     val_skip_first_us: int = 500_000
     val_max_sequences: int | None = None
+    sampling: str = "mixed"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    stream_augment: AugmentConfig = field(default_factory=AugmentConfig.rvt_stream)
     seed: int = 0
     device: str = "auto"
     num_workers: int = 0
@@ -109,6 +116,10 @@ class TrainConfig:
         for name in ("steps", "batch_size", "seq_len", "val_batch_size", "val_seq_len"):
             if int(getattr(self, name)) < 1:
                 raise FormatError(f"{name}: expected ≥ 1, got {getattr(self, name)}")
+        if self.sampling not in ("mixed", "random"):
+            raise FormatError(f"sampling: expected 'mixed' or 'random', got {self.sampling!r}")
+        if self.sampling == "mixed" and self.batch_size < 2:
+            raise FormatError("sampling 'mixed' needs batch_size ≥ 2 (half streaming, half random); use 'random'")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
             raise FormatError(f"ema_decay: expected in (0, 1), got {self.ema_decay}")
 
@@ -116,18 +127,20 @@ class TrainConfig:
         """JSON-able dict (``from_dict`` reads it back)."""
         out = asdict(self)
         out["augment"] = asdict(self.augment)
+        out["stream_augment"] = asdict(self.stream_augment)
         return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "TrainConfig":
         names = {f.name for f in fields(cls)}
         kwargs = {k: v for k, v in d.items() if k in names}
-        if isinstance(kwargs.get("augment"), Mapping):
-            aug = dict(kwargs["augment"])
-            for key in ("zoom_in_range", "zoom_out_range"):
-                if key in aug:
-                    aug[key] = tuple(aug[key])
-            kwargs["augment"] = AugmentConfig(**aug)
+        for name in ("augment", "stream_augment"):
+            if isinstance(kwargs.get(name), Mapping):
+                aug = dict(kwargs[name])
+                for key in ("zoom_in_range", "zoom_out_range"):
+                    if key in aug:
+                        aug[key] = tuple(aug[key])
+                kwargs[name] = AugmentConfig(**aug)
         return cls(**kwargs)
 
 
@@ -233,7 +246,11 @@ class Trainer:
         self.anchors = AnchorGrid.build(self.model_config.in_res_hw, self.model_config.head_strides, self.device)
 
         self.train_set = RandomChunkDataset(self.data_dir, "train", config.seq_len)
-        self.sampler = ResumableBatchSampler(len(self.train_set), config.batch_size, seed=config.seed)
+        num_stream = config.batch_size // 2 if config.sampling == "mixed" else 0
+        self.sampler = ResumableBatchSampler(len(self.train_set), config.batch_size - num_stream, seed=config.seed)
+        self.stream = (StreamingTrainLanes(self.train_set.sequences, config.seq_len, num_stream, seed=config.seed)
+                       if num_stream else None)
+        self.stream_params: list[AugmentParams | None] = [None] * num_stream
         self.aug_generator = torch.Generator().manual_seed(config.seed + 1)
         self.step = 0
         self.batches_done = 0
@@ -243,30 +260,45 @@ class Trainer:
         self._loader_iter: Iterator[ChunkBatch] | None = None
 
     # ------------------------------------------------------------------ data
-    def _batches(self) -> Iterator[ChunkBatch]:
+    def _random_items(self) -> Iterator[list[dict[str, Any]]]:
         bpe = self.sampler.batches_per_epoch
         self.sampler.epoch, self.sampler.position = divmod(self.batches_done, bpe)
         if self.config.num_workers > 0:
             loader = torch.utils.data.DataLoader(
-                self.train_set, batch_sampler=self.sampler, collate_fn=collate_chunks,
-                num_workers=self.config.num_workers, persistent_workers=False,
-                pin_memory=self.device.type == "cuda")
+                self.train_set, batch_sampler=self.sampler, collate_fn=list,
+                num_workers=self.config.num_workers, persistent_workers=False)
             yield from loader
         else:
             for indices in self.sampler:
-                yield collate_chunks([self.train_set[i] for i in indices])
+                yield [self.train_set[i] for i in indices]
+
+    def _batches(self) -> Iterator[ChunkBatch]:
+        """Training batches: streaming lanes first (``mixed``), then the random-access chunks."""
+        for items in self._random_items():
+            stream_items = self.stream.next_items() if self.stream is not None else []
+            yield collate_chunks(stream_items + items)
 
     def _augment(self, batch: ChunkBatch) -> tuple[torch.Tensor, list[list[torch.Tensor | None]]]:
-        """Move a batch to the device as float and augment each chunk; returns hist [L, B, 20, H, W], labels."""
+        """Move a batch to the device as float and augment each chunk; returns hist [L, B, 20, H, W], labels.
+
+        Random-access chunks get a fresh draw each; streaming lanes keep the draw of their current sequence.
+        """
         hist = batch.histograms.to(self.device, non_blocking=True).float()
         labels = [[b for b in row] for row in batch.labels]
         length, size = hist.shape[0], hist.shape[1]
         out = torch.empty_like(hist)
-        aug = self.config.augment
+        num_stream = len(self.stream_params)
         for b in range(size):
             chunk_labels = [labels[t][b] for t in range(length)]
-            latest = next((lab for lab in reversed(chunk_labels) if lab is not None and lab.shape[0]), None)
-            params = sample_params(aug, self.aug_generator, RVT_HW, latest)
+            if b < num_stream:
+                aug = self.config.stream_augment
+                if bool(batch.is_first[b]) or self.stream_params[b] is None:
+                    self.stream_params[b] = sample_params(aug, self.aug_generator, RVT_HW, None)
+                params = self.stream_params[b]
+            else:
+                aug = self.config.augment
+                latest = next((lab for lab in reversed(chunk_labels) if lab is not None and lab.shape[0]), None)
+                params = sample_params(aug, self.aug_generator, RVT_HW, latest)
             chunk, chunk_labels = apply_augment(hist[:, b], chunk_labels, params, aug.min_side_px)
             out[:, b] = chunk
             for t in range(length):
@@ -419,6 +451,8 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "states": self._states,
+            "stream": self.stream.state_dict() if self.stream is not None else None,
+            "stream_params": [asdict(p) if p is not None else None for p in self.stream_params],
             "best": dict(self.best),
             "history_s": self.history_s,
         }
@@ -459,6 +493,9 @@ class Trainer:
         if state.get("cuda_rng") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda_rng"]])
         self._states = state.get("states")
+        if self.stream is not None and state.get("stream") is not None:
+            self.stream.load_state_dict(state["stream"])
+            self.stream_params = [AugmentParams(**p) if p is not None else None for p in state["stream_params"]]
         self.step = int(state["step"])
         self.batches_done = int(state["batches_done"])
         self.best = dict(state.get("best") or {"AP": None, "step": None})

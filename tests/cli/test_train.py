@@ -26,7 +26,7 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
     assert data_dir == str(tmp_path / "data") and run_dir == str(tmp_path / "run")
     assert (config.model, config.steps, config.batch_size, config.seq_len, config.device) == ("small", 100, 4, 5, "cpu")
     assert config.ema_decay == 0.999 and config.num_workers == 2 and not config.progress
-    assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0
+    assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0 and config.stream_augment.zoom_prob == 0
     assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False}
     out = capsys.readouterr()
     assert json.loads(out.out)["step"] == 7 and "--resume" in out.err
@@ -40,7 +40,8 @@ def test_defaults_are_the_rvt_recipe(monkeypatch, tmp_path):
     config = seen["config"]
     assert (config.model, config.steps, config.batch_size, config.seq_len, config.lr) == ("tiny", 400_000, 8, 21, 2e-4)
     assert (config.weight_decay, config.grad_clip, config.div_factor, config.final_div_factor) == (0.0, 1.0, 20, 10_000)
-    assert seen["kwargs"]["export"] is True
+    assert seen["kwargs"]["export"] is True and config.sampling == "mixed"
+    assert config.stream_augment.zoom_in_weight == 0 and config.stream_augment.zoom_prob == 0.5
 
 
 @pytest.mark.parametrize("argv", [["--steps", "0"], ["--batch", "0"], ["--seq-len", "0"], ["--chunk-steps", "0"],

@@ -15,6 +15,7 @@ from davis_rig.training.dataset import (
     ResumableBatchSampler,
     SequenceData,
     StreamingBatches,
+    StreamingTrainLanes,
     collate_chunks,
     list_sequences,
 )
@@ -147,3 +148,26 @@ def test_resumable_sampler_continues_exactly():
     assert sorted(sum(head[:3], [])) == sorted(set(sum(head[:3], [])))  # no repeats within an epoch
     small = iter(ResumableBatchSampler(2, 4))
     assert len(next(small)) == 4
+
+
+def test_streaming_train_lanes_play_whole_sequences_and_resume(moving_boxes_dataset):
+    sequences = [SequenceData(p) for p in list_sequences(moving_boxes_dataset, "train")]
+    lanes = StreamingTrainLanes(sequences, seq_len=3, num_lanes=2, seed=1)
+    played = {0: [], 1: []}
+    states = []
+    for _ in range(12):  # 3 chunks per 8-window sequence -> 4 sequences per lane = one full pass
+        states.append(lanes.state_dict())
+        for item in lanes.next_items():
+            windows = item["window"][item["valid"]].tolist()
+            if item["is_first"]:
+                played[item["lane"]].append((item["sequence"], []))
+            played[item["lane"]][-1][1].extend(windows)
+    for lane in (0, 1):
+        assert sorted(seq for seq, _ in played[lane]) == [0, 1, 2, 3]  # every sequence once per pass
+        assert all(windows == list(range(8)) for _, windows in played[lane])
+    other = StreamingTrainLanes(sequences, seq_len=3, num_lanes=2, seed=1)
+    other.load_state_dict(states[5])
+    lanes.load_state_dict(states[5])
+    a, b = lanes.next_items(), other.next_items()
+    assert [(i["sequence"], i["window"].tolist(), i["is_first"]) for i in a] == [
+        (i["sequence"], i["window"].tolist(), i["is_first"]) for i in b]
