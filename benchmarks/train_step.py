@@ -78,7 +78,7 @@ def _time_s(fn, warmup: int, repeats: int) -> tuple[float, float, list[float]]:
 
 def _bench_model(data: Path, run: Path, model: str, args) -> dict[str, float]:
     config = TrainConfig(model=model, steps=10_000, batch_size=args.batch, seq_len=args.seq_len, val_every=0,
-                         ckpt_every=0, log_every=0, device=args.device, precision=args.precision,
+                         ckpt_every=0, log_every=0, device=args.device, precision=args.precision, sampling="random",
                          augment=AugmentConfig())
     trainer = Trainer(data, run / model, config)
     start = time.perf_counter()

@@ -257,7 +257,6 @@ class Trainer:
         self.best: dict[str, Any] = {"AP": None, "step": None}
         self.history_s = 0.0
         self._states = None
-        self._loader_iter: Iterator[ChunkBatch] | None = None
 
     # ------------------------------------------------------------------ data
     def _random_items(self) -> Iterator[list[dict[str, Any]]]:

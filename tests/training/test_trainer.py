@@ -28,7 +28,8 @@ def test_loss_falls_and_validation_runs(moving_boxes_dataset, tmp_path):
     from davis_rig.training.dataset import collate_chunks
 
     torch.set_num_threads(2)
-    trainer = Trainer(moving_boxes_dataset, tmp_path / "run", _config(lr=2e-2, augment=AugmentConfig.off()))
+    trainer = Trainer(moving_boxes_dataset, tmp_path / "run", _config(lr=2e-2, augment=AugmentConfig.off(),
+                                                                     stream_augment=AugmentConfig.off()))
     batch = collate_chunks([trainer.train_set[3], trainer.train_set[20]])  # one box, two boxes
     losses = [trainer.train_step(batch)["loss"] for _ in range(10)]
     assert all(np.isfinite(losses))
