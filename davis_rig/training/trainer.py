@@ -502,8 +502,10 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def _log(self, record: Mapping[str, Any]) -> None:
+        """Append one record to ``log.jsonl`` (strict JSON: NaN/inf become null)."""
+        clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
         with open(self.run_dir / "log.jsonl", "a", encoding="utf-8") as handle:
-            handle.write(json.dumps(record, default=float) + "\n")
+            handle.write(json.dumps(clean, default=float, allow_nan=False) + "\n")
 
     def _validate_and_select(self) -> dict[str, Any]:
         from davis_rig.models.rvt.checkpoint import save_safetensors
