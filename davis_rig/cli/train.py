@@ -52,6 +52,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--val-every", type=int, default=5_000, help="validation interval in steps (0 = only at the end)")
     parser.add_argument("--val-batch", type=int, default=8, help="streaming lanes for validation (default: 8)")
     parser.add_argument("--val-max-sequences", type=int, default=None, help="validate on the first N val sequences")
+    parser.add_argument("--val-skip-first-ms", type=float, default=500.0,
+                        help="ignore labels/detections in the first ms of each val sequence (RVT: 500)")
+    parser.add_argument("--min-box-side", type=float, default=0.0, metavar="PX",
+                        help="drop training boxes with a side <= PX after clipping to the frame (default: 0)")
     parser.add_argument("--ckpt-every", type=int, default=1_000, help="checkpoint interval in steps (default: 1000)")
     parser.add_argument("--log-every", type=int, default=50, help="log interval in steps (default: 50)")
     parser.add_argument("--workers", type=int, default=0, help="DataLoader workers reading histograms (default: 0)")
@@ -75,7 +79,8 @@ def _train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
         precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
-        val_max_sequences=args.val_max_sequences, ckpt_every=args.ckpt_every, log_every=args.log_every,
+        val_max_sequences=args.val_max_sequences, val_skip_first_us=int(round(args.val_skip_first_ms * 1000)),
+        min_box_side_px=args.min_box_side, ckpt_every=args.ckpt_every, log_every=args.log_every,
         sampling=args.sampling, augment=AugmentConfig.off() if args.no_augment else AugmentConfig(),
         stream_augment=AugmentConfig.off() if args.no_augment else AugmentConfig.rvt_stream(), seed=args.seed,
         device=args.device,

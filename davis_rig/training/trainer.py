@@ -69,6 +69,7 @@ class TrainConfig:
         val_conf_threshold: postprocess threshold for AP (RVT's reported evaluation: 0.001).
         val_skip_first_us: labels and detections within this time from a sequence's start are ignored (RVT 0.5 s).
         val_max_sequences: evaluate only the first N validation sequences (``None`` = all).
+        min_box_side_px: training labels with a side ≤ this (after clipping to the frame) are dropped.
         sampling: ``"mixed"`` (RVT: half streaming lanes, half random chunks; needs batch ≥ 2) or ``"random"``.
         augment: :class:`AugmentConfig` of the random-access chunks (RVT ``data_augmentation.random``).
         stream_augment: :class:`AugmentConfig` of the streaming lanes, drawn once per sequence (RVT ``stream``).
@@ -99,6 +100,7 @@ class TrainConfig:
     val_conf_threshold: float = 0.001
     val_skip_first_us: int = 500_000
     val_max_sequences: int | None = None
+    min_box_side_px: float = 0.0
     sampling: str = "mixed"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     stream_augment: AugmentConfig = field(default_factory=AugmentConfig.rvt_stream)
@@ -245,11 +247,11 @@ class Trainer:
         self.ema = ModelEMA(self.model, config.ema_decay) if config.ema_decay else None
         self.anchors = AnchorGrid.build(self.model_config.in_res_hw, self.model_config.head_strides, self.device)
 
-        self.train_set = RandomChunkDataset(self.data_dir, "train", config.seq_len)
+        self.train_set = RandomChunkDataset(self.data_dir, "train", config.seq_len, min_side_px=config.min_box_side_px)
         num_stream = config.batch_size // 2 if config.sampling == "mixed" else 0
         self.sampler = ResumableBatchSampler(len(self.train_set), config.batch_size - num_stream, seed=config.seed)
-        self.stream = (StreamingTrainLanes(self.train_set.sequences, config.seq_len, num_stream, seed=config.seed)
-                       if num_stream else None)
+        self.stream = (StreamingTrainLanes(self.train_set.sequences, config.seq_len, num_stream, seed=config.seed,
+                                           min_side_px=config.min_box_side_px) if num_stream else None)
         self.stream_params: list[AugmentParams | None] = [None] * num_stream
         self.aug_generator = torch.Generator().manual_seed(config.seed + 1)
         self.step = 0

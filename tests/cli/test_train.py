@@ -20,12 +20,14 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr("davis_rig.training.trainer.train", fake_train)
     code = cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--model", "small", "--steps", "100",
                      "--batch", "4", "--seq-len", "5", "--device", "cpu", "--resume", "--ema", "0.999",
-                     "--chunk-steps", "7", "--no-augment", "--no-export", "--no-progress", "--workers", "2"])
+                     "--chunk-steps", "7", "--no-augment", "--no-export", "--no-progress", "--workers", "2",
+                     "--val-skip-first-ms", "0", "--min-box-side", "4", "--sampling", "random"])
     assert code == 0
     (data_dir, run_dir, config, kwargs), = calls
     assert data_dir == str(tmp_path / "data") and run_dir == str(tmp_path / "run")
     assert (config.model, config.steps, config.batch_size, config.seq_len, config.device) == ("small", 100, 4, 5, "cpu")
     assert config.ema_decay == 0.999 and config.num_workers == 2 and not config.progress
+    assert config.val_skip_first_us == 0 and config.min_box_side_px == 4.0 and config.sampling == "random"
     assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0 and config.stream_augment.zoom_prob == 0
     assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False}
     out = capsys.readouterr()
