@@ -176,8 +176,8 @@ def test_streaming_train_lanes_play_whole_sequences_and_resume(moving_boxes_data
 def test_labels_to_tensor_clips_to_frame_and_drops_small():
     from davis_rig.training.dataset import labels_to_tensor
 
-    boxes = _boxes(0, [(-10, 5, 30, 40), (300, 230, 20, 20), (100, 100, 3, 50)])
-    out = labels_to_tensor(boxes, min_side_px=3)
-    # clipped to [0, 303] x [0, 239] (RVT clamp_to_frame_); the 3 px wide box is dropped
+    boxes = _boxes(0, [(-10, 5, 30, 40), (300, 230, 20, 20), (100, 100, 2, 50)])
+    out = labels_to_tensor(boxes, min_side_px=2.5)
+    # clipped to [0, 303] x [0, 239] (RVT clamp_to_frame_); the 2 px wide box is dropped
     assert out.tolist() == [[1.0, 0.0, 5.0, 20.0, 40.0], [1.0, 300.0, 230.0, 3.0, 9.0]]
     assert labels_to_tensor(None) is None
