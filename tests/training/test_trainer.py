@@ -92,3 +92,18 @@ def test_checkpoint_round_trip_export_and_errors(moving_boxes_dataset, tmp_path)
         trainer.load_checkpoint(tmp_path / "bad.pt")
     with pytest.raises(CheckpointError):
         train(moving_boxes_dataset, tmp_path / "nothing", config, resume=True)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (mixed-precision training path)")
+@pytest.mark.parametrize("precision", ["bf16", "fp16"])
+def test_cuda_mixed_precision_steps(moving_boxes_dataset, tmp_path, precision):
+    config = _config(steps=3, device="cuda", precision=precision, log_every=1, val_every=3, val_seq_len=8)
+    trainer = Trainer(moving_boxes_dataset, tmp_path / "run", config)
+    summary = trainer.fit()
+    assert summary["finished"] and np.isfinite(summary["train"]["loss"])
+    assert trainer.amp_dtype == (torch.bfloat16 if precision == "bf16" else torch.float16)
+    assert all(p.dtype == torch.float32 for p in trainer.model.parameters())  # fp32 master weights
+    resumed = Trainer(moving_boxes_dataset, tmp_path / "run", config)
+    resumed.load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    assert resumed.step == 3
