@@ -1,0 +1,407 @@
+"""Expectation over transformation (EoT) for the digital attack: seeded scene distributions and a clip pool.
+
+Only the texture changes between optimisation steps, so the expensive, texture-independent part of a training
+sample is prepared once: body shape, motion, heading, placement, camera distance/angle jitter, light,
+background and sensor parameters are drawn from one integer seed (:func:`draw_scene`), the clip is posed and
+rasterized once without autograd (:func:`prepare_clip`), and a step only does the differentiable part
+(texture lookup -> compose -> V2E -> RVT, see :mod:`davis_rig.attack.optimize`).
+
+:class:`ClipPool` holds ``size`` such clips. Slot ``i`` in generation ``g`` is built from the seed
+``slot_seed(base_seed, i, g)``; every ``refresh_every`` steps a seeded random ``refresh_fraction`` of the slots
+moves to its next generation and is rebuilt. The pool is therefore a pure function of ``(base_seed,
+generations)``: a checkpoint stores the generation array and a resumed run rebuilds exactly the same clips.
+Under torchrun each rank builds only the slots it owns (``i % world_size == rank``).
+
+Beyond the paper (whose official code renders a walking-in-place SMPL body on a blank background with camera
+jitter only), every clip draws:
+
+- body shape from the **training** shapes (:func:`split_shapes`; the test shapes are never used for training),
+  motion: the shape's walk cycle (walking forward or in place) or one of the given training motions
+  (e.g. the AMASS train split of :mod:`davis_rig.scene.mocap.splits`), start time, heading;
+- camera: the training scale (middle) with the official jitter (:class:`~davis_rig.scene.camera.EoTJitter`,
+  p = 0.4 rotation +-0.1 rad, p = 0.4 distance +-0.25/1.75), a lateral/depth placement offset;
+- light (:meth:`~davis_rig.scene.shading.Light.random`) and background (procedural, or a uniform grey);
+- sensor non-idealities for the differentiable V2E: the clip's contrast threshold (uniform range), per-pixel
+  threshold mismatch (Gaussian, v2e's ``sigma_thres``) and shot-noise events (Poisson, added to the histogram as
+  constants: they carry no gradient, like real noise).
+
+All randomness comes from ``numpy.random.default_rng`` seeded with integers; no global RNG is touched.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.events.histogram import NUM_BINS, WINDOW_US
+from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
+from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+
+try:
+    import torch
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
+
+__all__ = [
+    "ClipPool",
+    "EoTConfig",
+    "PoolClip",
+    "draw_scene",
+    "prepare_clip",
+    "slot_seed",
+    "split_shapes",
+]
+
+_SEED_SALT = 0x5EED_A77C
+
+
+def split_shapes(num_shapes: int, test_every: int = 4) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Deterministic train/test split of the body shapes: every ``test_every``-th shape (1, 5, 9, ...) is a test shape.
+
+    The bundled asset has 24 adult shapes: 18 for training, 6 (1, 5, 9, 13, 17, 21) unseen in training and used
+    by the digital evaluation (:mod:`davis_rig.attack.evaluate`).
+
+    Args:
+        num_shapes: shapes in the asset (>= 2).
+        test_every: one test shape per this many shapes (>= 2).
+
+    Returns:
+        ``(train_indices, test_indices)``, disjoint, sorted.
+
+    Raises:
+        ValueError: num_shapes < 2 or test_every < 2.
+    """
+    if int(num_shapes) < 2 or int(test_every) < 2:
+        raise ValueError(f"need num_shapes >= 2 and test_every >= 2, got {num_shapes}, {test_every}")
+    test = tuple(i for i in range(int(num_shapes)) if i % int(test_every) == 1)
+    train = tuple(i for i in range(int(num_shapes)) if i % int(test_every) != 1)
+    return train, test
+
+
+def slot_seed(base_seed: int, slot: int, generation: int) -> int:
+    """The seed of pool slot ``slot`` in generation ``generation`` (a 63-bit integer, stable across platforms)."""
+    ss = np.random.SeedSequence([_SEED_SALT, int(base_seed), int(slot), int(generation)])
+    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+@dataclass(frozen=True)
+class EoTConfig:
+    """Distributions of the training clips (every field has a paper-compatible or documented default).
+
+    Attributes:
+        shapes: body shapes to draw from; ``None`` = the training split of :func:`split_shapes`.
+        heading_range_rad: heading uniform in this range (0 = towards the camera, pi/2 = walking right).
+        advance_probability: chance that the walk cycle moves forward (else walks in place, as the official code).
+        scale: camera scale name or person height in px (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`).
+        jitter: camera EoT jitter (official p = 0.4 / p = 0.4); ``None`` = none.
+        offset_x_m: lateral placement uniform in +-offset_x_m (m).
+        offset_depth_m: depth placement uniform in +-offset_depth_m (m).
+        random_light_probability: chance of a random light (else the default light).
+        random_background_probability: chance of a procedural background (else uniform grey).
+        background_level_range: grey level of a uniform background, uniform in this range.
+        threshold_range: clip contrast threshold theta (log units), uniform in this range (paper: 0.2).
+        threshold_sigma: per-pixel threshold mismatch std (log units), 0 = off.
+        min_threshold: lower clip of the per-pixel thresholds.
+        shot_noise_rate_hz: per-pixel noise event rate (ON + OFF), uniform in this range (Hz).
+        seq_len: windows per sequence (paper: 3).
+        window_us: window duration (RVT: 50 ms).
+        render_rate_hz: frames per second (>= 200).
+        supersample: samples per pixel side of the rasterizer.
+        camera: intrinsics (default: RVT 304 x 240 crop of the DAVIS346).
+    """
+
+    shapes: tuple[int, ...] | None = None
+    heading_range_rad: tuple[float, float] = (0.0, 2.0 * math.pi)
+    advance_probability: float = 0.5
+    scale: str | float = TRAIN_SCALE
+    jitter: EoTJitter | None = field(default_factory=EoTJitter)
+    offset_x_m: float = 0.4
+    offset_depth_m: float = 0.5
+    random_light_probability: float = 0.8
+    random_background_probability: float = 0.7
+    background_level_range: tuple[float, float] = (0.2, 0.8)
+    threshold_range: tuple[float, float] = (0.17, 0.23)
+    threshold_sigma: float = 0.02
+    min_threshold: float = 0.05
+    shot_noise_rate_hz: tuple[float, float] = (0.0, 1.0)
+    seq_len: int = 3
+    window_us: int = WINDOW_US
+    render_rate_hz: float = MIN_RENDER_RATE_HZ
+    supersample: int = 2
+    camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
+
+    def __post_init__(self) -> None:
+        if int(self.seq_len) < 1:
+            raise ValueError(f"seq_len must be >= 1, got {self.seq_len}")
+        for name in ("advance_probability", "random_light_probability", "random_background_probability"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        lo, hi = self.threshold_range
+        if not 0 < lo <= hi:
+            raise ValueError(f"threshold_range must satisfy 0 < low <= high, got {self.threshold_range}")
+        if self.threshold_sigma < 0 or self.shot_noise_rate_hz[0] < 0 or self.shot_noise_rate_hz[1] < self.shot_noise_rate_hz[0]:
+            raise ValueError("threshold_sigma must be >= 0 and shot_noise_rate_hz a range of rates >= 0")
+        if int(self.window_us) <= 0:
+            raise ValueError(f"window_us must be > 0, got {self.window_us}")
+
+    @property
+    def duration_s(self) -> float:
+        """Clip duration: ``seq_len`` windows plus one frame (the first frame only sets the reference), s."""
+        return self.seq_len * self.window_us / 1e6 + 0.5 / self.render_rate_hz
+
+    def window_end_us(self, t0_us: int = 0) -> np.ndarray:
+        """Window ends of a clip starting at ``t0_us``: int64 [seq_len] (µs)."""
+        return t0_us + int(self.window_us) * np.arange(1, int(self.seq_len) + 1, dtype=np.int64)
+
+
+@dataclass
+class PoolClip:
+    """One pre-rasterized EoT clip (everything except the texture).
+
+    Attributes:
+        seed: the seed it was drawn from.
+        spec: the :class:`~davis_rig.scene.scene.SceneSpec`.
+        raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad).
+        lookup: :class:`~davis_rig.scene.texture.TexelLookup` of the grid (mask applied: white outside).
+        background: float32 tensor [H, W].
+        t_us: int64 [T] frame times (µs).
+        window_end_us: int64 [W] window ends (µs).
+        boxes: float32 [W, 4] person box ``(x0, y0, x1, y1)`` at each window end (px; NaN: not visible).
+        threshold: float32 tensor [H, W], per-pixel contrast threshold (log units), ON = OFF.
+        noise_index: int64 tensor [K], flat indices into the [W, 2 * B, H, W] histogram of the noise events.
+    """
+
+    seed: int
+    spec: SceneSpec
+    raster: object
+    lookup: object
+    background: "torch.Tensor"
+    t_us: np.ndarray
+    window_end_us: np.ndarray
+    boxes: np.ndarray
+    threshold: "torch.Tensor"
+    noise_index: "torch.Tensor"
+
+    def video(self, grid: "torch.Tensor") -> "torch.Tensor":
+        """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W]."""
+        return self.raster.compose(self.lookup.sample(grid, fill=1.0), self.background)
+
+    def noise_histogram(self, dtype=None) -> "torch.Tensor":
+        """The clip's noise events as a [W, 2 * B, H, W] count tensor (no grad)."""
+        h, w = self.raster.hw
+        n_windows = len(self.window_end_us)
+        dtype = dtype or self.threshold.dtype
+        out = torch.zeros(n_windows * 2 * NUM_BINS * h * w, dtype=dtype, device=self.threshold.device)
+        if self.noise_index.numel():
+            out.index_add_(0, self.noise_index, torch.ones_like(self.noise_index, dtype=dtype))
+        return out.view(n_windows, 2 * NUM_BINS, h, w)
+
+
+def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[Motion] = ()) -> tuple[SceneSpec, dict]:
+    """Draw one training scene and its sensor parameters from a seed.
+
+    Args:
+        config: the distributions.
+        seed: integer seed (the same seed gives the same scene).
+        num_shapes: shapes in the body asset (for the default training split).
+        motions: optional training motions; when given, a clip uses one of them with probability 1/2.
+
+    Returns:
+        ``(spec, sensor)``: the scene (``seed`` resolves jitter, light and background inside
+        :func:`~davis_rig.scene.scene.render_clip`) and ``{"threshold", "threshold_sigma", "noise_rate_hz",
+        "sensor_seed"}``.
+    """
+    rng = np.random.default_rng([_SEED_SALT, int(seed)])
+    shapes = config.shapes if config.shapes is not None else split_shapes(num_shapes)[0]
+    shape = int(shapes[int(rng.integers(len(shapes)))])
+    motion = None
+    start_s = float(rng.uniform(0.0, 2.0))
+    if motions and rng.random() < 0.5:
+        motion = motions[int(rng.integers(len(motions)))]
+        length_s = motion.rotations_wxyz.shape[0] / motion.fps_hz
+        start_s = float(rng.uniform(0.0, max(0.0, length_s - config.duration_s)))
+    advance = bool(rng.random() < config.advance_probability)
+    heading = float(rng.uniform(*config.heading_range_rad))
+    offset = (float(rng.uniform(-config.offset_x_m, config.offset_x_m)),
+              float(rng.uniform(-config.offset_depth_m, config.offset_depth_m)))
+    light = "random" if rng.random() < config.random_light_probability else None
+    if rng.random() < config.random_background_probability:
+        background: object = "random"
+    else:
+        background = float(rng.uniform(*config.background_level_range))
+    spec = SceneSpec(
+        shape_index=shape, motion=motion, motion_start_s=start_s, advance=advance, heading_rad=heading,
+        scale=config.scale, offset_m=offset, camera=config.camera, jitter=config.jitter, light=light,
+        background=background, render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
+        supersample=config.supersample, seed=int(rng.integers(2**62)),
+    )
+    sensor = {
+        "threshold": float(rng.uniform(*config.threshold_range)),
+        "threshold_sigma": float(config.threshold_sigma),
+        "noise_rate_hz": float(rng.uniform(*config.shot_noise_rate_hz)),
+        "sensor_seed": int(rng.integers(2**62)),
+    }
+    return spec, sensor
+
+
+def prepare_clip(
+    spec: SceneSpec,
+    sensor: dict,
+    model,
+    grid_n: int,
+    mask=None,
+    *,
+    config: EoTConfig | None = None,
+    seed: int = 0,
+    texture_size: int = 1024,
+) -> PoolClip:
+    """Pose and rasterize a scene once (no autograd) and prepare its texel lookup and sensor parameters.
+
+    Args:
+        spec: the scene (:func:`draw_scene`).
+        sensor: the sensor parameters of :func:`draw_scene`.
+        model: :class:`~davis_rig.scene.body.BodyModel` (its device is the clip's device).
+        grid_n: texture grid cells per side.
+        mask: bool [texture_size, texture_size] paintable texels (``None``: whole body).
+        config: the EoT config (window length, sequence length); default :class:`EoTConfig`.
+        seed: recorded in the clip.
+        texture_size: UV map resolution (paper 1024).
+
+    Returns:
+        :class:`PoolClip` on the model's device.
+    """
+    from davis_rig.scene.scene import render_clip
+
+    config = config or EoTConfig()
+    with torch.no_grad():
+        clip = render_clip(spec, None, model=model)
+    lookup = clip.raster.lookup(size=texture_size, mode="nearest", grid_n=int(grid_n), mask=mask)
+    t_us = np.asarray(clip.t_us, dtype=np.int64)
+    ends = config.window_end_us(int(t_us[0]))
+    if ends[-1] > t_us[-1]:
+        raise ShapeError(f"clip ends at {t_us[-1]} µs before the last window end {ends[-1]} µs")
+    frame = np.searchsorted(t_us, ends)
+    boxes = np.asarray(clip.boxes, dtype=np.float32)[frame]
+    h, w = clip.raster.hw
+    rng = np.random.default_rng(sensor["sensor_seed"])
+    theta = np.full((h, w), sensor["threshold"], dtype=np.float32)
+    if sensor["threshold_sigma"] > 0:
+        theta = theta + rng.normal(0.0, sensor["threshold_sigma"], size=(h, w)).astype(np.float32)
+        theta = np.maximum(theta, np.float32(config.min_threshold))
+    n_windows = len(ends)
+    mean_events = sensor["noise_rate_hz"] * h * w * n_windows * config.window_us / 1e6
+    k = int(rng.poisson(mean_events)) if mean_events > 0 else 0
+    # each noise event: window, polarity, bin, pixel uniformly (a pixel fires ON and OFF noise alike)
+    noise_index = rng.integers(0, n_windows * 2 * NUM_BINS * h * w, size=k, dtype=np.int64)
+    device = clip.raster.coverage.device
+    background = clip.background
+    return PoolClip(
+        seed=int(seed), spec=spec, raster=clip.raster, lookup=lookup,
+        background=torch.as_tensor(background, device=device), t_us=t_us, window_end_us=ends, boxes=boxes,
+        threshold=torch.as_tensor(theta, device=device), noise_index=torch.as_tensor(noise_index, device=device),
+    )
+
+
+class ClipPool:
+    """A pool of pre-rasterized EoT clips, refreshed piecewise, reproducible from ``(base_seed, generations)``.
+
+    Args:
+        config: the EoT distributions.
+        model: :class:`~davis_rig.scene.body.BodyModel` (device of the clips).
+        grid_n: texture grid cells per side.
+        mask: bool [1024, 1024] paintable texels or ``None``.
+        size: number of slots.
+        base_seed: seed of the whole pool.
+        motions: optional training motions (see :func:`draw_scene`).
+        rank, world_size: this process owns the slots ``i`` with ``i % world_size == rank`` (DDP).
+        generations: int [size] generation of each slot (a checkpoint's ``state_dict()["generations"]``);
+            default zeros.
+
+    Raises:
+        ValueError: size < world_size or bad rank.
+    """
+
+    def __init__(self, config: EoTConfig, model, grid_n: int, mask=None, *, size: int = 32, base_seed: int = 0,
+                 motions: Sequence[Motion] = (), rank: int = 0, world_size: int = 1, generations=None):
+        if int(world_size) < 1 or not 0 <= int(rank) < int(world_size):
+            raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
+        if int(size) < int(world_size):
+            raise ValueError(f"pool size {size} must be >= world_size {world_size} (every rank needs a slot)")
+        self.config = config
+        self.model = model
+        self.grid_n = int(grid_n)
+        self.mask = mask
+        self.size = int(size)
+        self.base_seed = int(base_seed)
+        self.motions = tuple(motions)
+        self.rank = int(rank)
+        self.world_size = int(world_size)
+        gens = np.zeros(self.size, dtype=np.int64) if generations is None else np.asarray(generations, dtype=np.int64)
+        if gens.shape != (self.size,):
+            raise ShapeError(f"generations must be [{self.size}], got {gens.shape}")
+        self.generations = gens.copy()
+        self.owned = np.arange(self.rank, self.size, self.world_size, dtype=np.int64)
+        self.clips: dict[int, PoolClip] = {}
+        for slot in self.owned.tolist():
+            self._build(slot)
+
+    def _build(self, slot: int) -> None:
+        seed = slot_seed(self.base_seed, slot, int(self.generations[slot]))
+        spec, sensor = draw_scene(self.config, seed, self.model.num_shapes, self.motions)
+        self.clips[slot] = prepare_clip(spec, sensor, self.model, self.grid_n, self.mask, config=self.config,
+                                        seed=seed)
+
+    def refresh(self, step: int, fraction: float) -> list[int]:
+        """Move a seeded random ``fraction`` of all slots to their next generation and rebuild the owned ones.
+
+        Args:
+            step: the optimisation step (seeds the choice, so every rank picks the same slots).
+            fraction: share of the slots to replace, in [0, 1].
+
+        Returns:
+            The refreshed slot indices (all ranks), sorted.
+        """
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"fraction must be in [0, 1], got {fraction}")
+        count = int(round(fraction * self.size))
+        if count == 0:
+            return []
+        rng = np.random.default_rng([_SEED_SALT, self.base_seed, int(step), 1])
+        slots = np.sort(rng.choice(self.size, size=count, replace=False))
+        self.generations[slots] += 1
+        for slot in slots.tolist():
+            if slot % self.world_size == self.rank:
+                self._build(slot)
+        return slots.tolist()
+
+    def sample(self, step: int, per_rank: int) -> list[PoolClip]:
+        """The clips this rank uses at ``step``: ``per_rank`` owned slots drawn without replacement (seeded).
+
+        Args:
+            step: optimisation step.
+            per_rank: clips per rank and step (<= owned slots).
+
+        Returns:
+            list of :class:`PoolClip`.
+        """
+        if not 1 <= int(per_rank) <= len(self.owned):
+            raise ValueError(f"per_rank must be in [1, {len(self.owned)}] (owned slots), got {per_rank}")
+        rng = np.random.default_rng([_SEED_SALT, self.base_seed, int(step), 2, self.rank])
+        picks = rng.choice(len(self.owned), size=int(per_rank), replace=False)
+        return [self.clips[int(self.owned[i])] for i in picks]
+
+    def state_dict(self) -> dict:
+        """What rebuilds the pool: ``{"base_seed", "size", "generations"}``."""
+        return {"base_seed": self.base_seed, "size": self.size, "generations": self.generations.tolist()}
+
+    def __len__(self) -> int:
+        return len(self.owned)
+
+    def __repr__(self) -> str:
+        return (f"ClipPool(size={self.size}, owned={len(self.owned)}, grid_n={self.grid_n}, "
+                f"base_seed={self.base_seed}, rank={self.rank}/{self.world_size})")
+

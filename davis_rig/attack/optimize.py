@@ -1,0 +1,473 @@
+"""The attack loop: optimise the texture generator against a frozen RVT over sequences of EoT clips.
+
+One step (:func:`attack_loss` + Adam)::
+
+    u = generator()                       (dropout seeded by (seed, step): identical on all ranks, exact resume)
+    grid = binarize_ste(u, alpha(step))   (soft-to-hard schedule, straight-through gradient)
+    for each clip drawn from the pool:    (pre-rasterized, no grad; see davis_rig.attack.eot)
+        video = compose(lookup(grid))     [T, H, W]   grad -> grid
+        hist  = V2E(video) + noise        [W, 20, H, W] ("dvs" counts with the clip's per-pixel thresholds)
+    RVT over the W windows with recurrent states, batched over the clips (frozen, eval mode)
+    L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss)
+    backward; (DDP: gradients all-reduced and averaged over ranks); Adam step
+
+Run state lives in ``out_dir``: ``checkpoints/last.pt`` (generator, optimizer, next step, pool generations, best
+so far, config; written atomically every ``checkpoint_every`` steps and at the end), ``log.jsonl`` (one JSON
+object per step: loss, obj, cls, alpha, lr; validation records with SeqASR), ``snapshots/step_XXXXXX.png``
+(the hard n x n texture), ``best_texture.npy/png`` + ``best.json`` (best validation SeqASR, ties broken by the
+lower mean top pedestrian score), ``texture.npy/png`` (final). Resume (``resume=True``) continues bit-identically:
+every random choice of a step is derived from ``(seed, step)`` and the pool from its generations.
+
+Validation: clips drawn from the EoT distribution with their own seeds (training shapes), scored as in the
+evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events, SeqASR at ``validation_threshold``.
+
+DDP: launch with ``torchrun --nproc_per_node N``; call :func:`optimize_texture` after
+``torch.distributed.init_process_group`` (gloo on CPU, nccl on GPU; the CLI does it from the torchrun
+environment). Each rank owns a share of the pool and draws ``clips_per_step / world_size`` clips per step; the
+gradients are averaged, so the step equals a single process on the union of the clips. Rank 0 validates and
+writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
+from davis_rig.attack.loss import DEFAULT_LAMBDA, AdversarialLoss, adversarial_loss
+from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
+from davis_rig.errors import CheckpointError, MissingDependencyError
+from davis_rig.events.histogram import COUNT_CUTOFF
+
+try:
+    import torch
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
+
+__all__ = [
+    "AttackConfig",
+    "AttackResult",
+    "attack_loss",
+    "clip_histograms",
+    "load_attack_detector",
+    "optimize_texture",
+]
+
+_VAL_SEED_OFFSET = 1_000_003
+
+
+@dataclass(frozen=True)
+class AttackConfig:
+    """Settings of one texture optimisation (defaults: the paper).
+
+    Attributes:
+        grid_n: texture cells per side (paper 10 ... 60).
+        parts: painted body parts (``None`` = whole body, no mask); white elsewhere.
+        lambda_obj, lambda_cls: loss weights (paper 1e4 each).
+        lr, betas, weight_decay: Adam (paper 1e-4, (0.9, 0.99), 1e-5).
+        iterations: optimisation steps (paper 11,500).
+        clips_per_step: EoT clips per step over all ranks (divisible by the world size).
+        alpha_schedule: soft-to-hard schedule name (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+        hidden, dropout: generator (default ``2 n^2``, 0.5).
+        pool_size: pre-rasterized clips in the pool; refresh_every / refresh_fraction: pool refresh.
+        validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
+        validation_threshold: confidence threshold of the validation SeqASR.
+        checkpoint_every, snapshot_every: periods (steps).
+        v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms`.
+        box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
+        seed: seeds the generator init, dropout, pool and sampling.
+        eot: the EoT distributions.
+    """
+
+    grid_n: int = 10
+    parts: tuple[str, ...] | None = ("torso", "arms", "legs")
+    lambda_obj: float = DEFAULT_LAMBDA
+    lambda_cls: float = DEFAULT_LAMBDA
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.99)
+    weight_decay: float = 1e-5
+    iterations: int = 11_500
+    clips_per_step: int = 1
+    alpha_schedule: str = "linear"
+    hidden: int | None = None
+    dropout: float = 0.5
+    pool_size: int = 32
+    refresh_every: int = 50
+    refresh_fraction: float = 0.25
+    validate_every: int = 1000
+    num_validation_clips: int = 16
+    validation_threshold: float = 0.25
+    checkpoint_every: int = 500
+    snapshot_every: int = 500
+    v2e_mode: str = "dvs"
+    v2e_binning: str = "interval"
+    box_margin_px: float | None = None
+    seed: int = 0
+    eot: EoTConfig = field(default_factory=EoTConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "clips_per_step", "pool_size", "refresh_every", "validate_every",
+                     "checkpoint_every", "snapshot_every", "num_validation_clips"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.clips_per_step > self.pool_size:
+            raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (nested dataclasses as dicts)."""
+        return json.loads(json.dumps(asdict(self), default=str))
+
+
+@dataclass
+class AttackResult:
+    """What :func:`optimize_texture` returns.
+
+    Attributes:
+        texture: float32 [n, n] final hard texture (1 = white).
+        best_texture: float32 [n, n] best-on-validation texture (or the final one without validation).
+        best_seq_asr: its validation SeqASR; best_step: its step (1-based count of completed steps).
+        steps: completed steps; seconds_per_step: mean wall time of the steps of this call.
+        out_dir: the run folder.
+    """
+
+    texture: np.ndarray
+    best_texture: np.ndarray
+    best_seq_asr: float
+    best_step: int
+    steps: int
+    seconds_per_step: float
+    out_dir: Path
+
+
+def load_attack_detector(path=None, device=None):
+    """The frozen detector of the attack: a torch checkpoint, eval mode, no parameter gradients.
+
+    Args:
+        path: ``.ckpt``/``.pt``/``.pth``/``.safetensors`` (official RVT checkpoints included); ``None`` = the
+            bundled default detector. An ``.onnx`` path is resolved to the ``.safetensors`` beside it
+            (same stem, or ``model_fp16.safetensors`` of a training export).
+        device: torch device.
+
+    Returns:
+        :class:`~davis_rig.models.rvt.detector.RVTDetector`.
+
+    Raises:
+        MissingDependencyError: no path and the bundled detector is not shipped yet.
+        CheckpointError: unreadable checkpoint, or an ONNX file without torch weights beside it.
+    """
+    from davis_rig.models.rvt.checkpoint import load_detector
+
+    if path is None:
+        from davis_rig.models import default_detector_path
+
+        path = default_detector_path()
+    path = Path(path)
+    if path.suffix.lower() == ".onnx":
+        candidates = [path.with_suffix(".safetensors"), path.parent / "model_fp16.safetensors"]
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            raise CheckpointError(f"{path} is an ONNX graph; the attack needs torch weights (expected one of "
+                                  f"{[str(c) for c in candidates]}); pass --detector CHECKPOINT")
+        path = found
+    detector = load_detector(path).float()
+    if device is not None:
+        detector = detector.to(device)
+    detector.eval()
+    for p in detector.parameters():
+        p.requires_grad_(False)
+    return detector
+
+
+def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", binning: str = "interval") -> "torch.Tensor":
+    """Differentiable RVT input of one pool clip: float tensor [W, 20, H, W] (V2E counts + noise, clipped at 10).
+
+    Args:
+        grid: float tensor [n, n] texture grid (1 = white), gradients flow to it.
+        clip: a :class:`~davis_rig.attack.eot.PoolClip`.
+        mode, binning: V2E settings.
+    """
+    from davis_rig.events.v2e_torch import v2e_histograms
+
+    video = clip.video(grid)
+    hist = v2e_histograms(video, clip.t_us, clip.window_end_us, mode=mode, binning=binning, count_cutoff=None,
+                          threshold_on=clip.threshold, threshold_off=clip.threshold)
+    if clip.noise_index.numel():
+        hist = hist + clip.noise_histogram(hist.dtype)
+    return torch.clamp(hist, max=float(COUNT_CUTOFF))
+
+
+def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, config: AttackConfig) -> AdversarialLoss:
+    """``L_adv`` of a texture grid over a batch of clips (mean over all anchors of all windows and clips).
+
+    Args:
+        grid: float tensor [n, n] (after :func:`binarize_ste`).
+        clips: pool clips of this rank (same number of windows).
+        detector: frozen RVT detector in eval mode.
+        config: the attack settings.
+
+    Returns:
+        :class:`~davis_rig.attack.loss.AdversarialLoss` (``total`` differentiable w.r.t. ``grid``).
+    """
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    device = next(detector.parameters()).device
+    x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning) for c in clips], dim=1)
+    x = x.to(device)
+    decoded, states = [], None
+    for w in range(x.shape[0]):
+        out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
+        decoded.append(out)
+    boxes = None
+    if config.box_margin_px is not None:
+        boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=device)  # [W, B, 4]
+    return adversarial_loss(decoded, config.lambda_obj, config.lambda_cls, boxes=boxes,
+                            box_margin_px=config.box_margin_px or 0.0)
+
+
+def _step_seed(seed: int, step: int) -> int:
+    return int(np.random.SeedSequence([0xA77AC, int(seed), int(step)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+def _soft_grid(generator: TextureGenerator, seed: int, step: int) -> "torch.Tensor":
+    """The generator's output with dropout seeded by (seed, step) (global RNG state left untouched)."""
+    device = next(generator.parameters()).device
+    devices = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(_step_seed(seed, step))
+        return generator()
+
+
+def _dist():
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def _average_gradients(parameters, world_size: int) -> None:
+    if world_size == 1:
+        return
+    for p in parameters:
+        if p.grad is not None:
+            torch.distributed.all_reduce(p.grad, op=torch.distributed.ReduceOp.SUM)
+            p.grad /= world_size
+
+
+def _write_png(path: Path, grid: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), (np.asarray(grid) > 0.5).astype(np.uint8) * 255)
+
+
+def _validation_clips(config: AttackConfig, model, mask, num: int) -> list[PoolClip]:
+    clips = []
+    for i in range(num):
+        seed = slot_seed(config.seed + _VAL_SEED_OFFSET, i, 0)
+        spec, sensor = draw_scene(config.eot, seed, model.num_shapes)
+        clips.append(prepare_clip(spec, sensor, model, config.grid_n, mask, config=config.eot, seed=seed))
+    return clips
+
+
+def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: float) -> dict:
+    """Validation SeqASR of a hard texture on pre-rasterized clips, events from the exact simulator.
+
+    Args:
+        grid: float32 [n, n] hard texture.
+        clips: validation clips (their lookups carry the part mask).
+        detector: RVT detector.
+        threshold: confidence threshold.
+
+    Returns:
+        ``{"SeqASR", "num_sequences", "num_detected", "mean_top_score"}`` (top score: mean over windows of the
+        highest obj * p_ped).
+    """
+    from davis_rig.attack.evaluate import detect_windows, score_detections
+
+    g = torch.as_tensor(np.asarray(grid, dtype=np.float32), device=clips[0].threshold.device)
+    decoded, boxes, ends, tops = [], [], [], []
+    for clip in clips:
+        with torch.no_grad():
+            video = clip.video(g)
+        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us)
+        decoded.append(dec)
+        boxes.append(clip.boxes)
+        ends.append(clip.window_end_us)
+        tops += [float((d[:, 4] * d[:, 6]).max()) for d in dec]
+    res = score_detections(decoded, boxes, ends, (threshold,), seq_len=len(clips[0].window_end_us))[float(threshold)]
+    return {"SeqASR": res["SeqASR"], "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
+            "mean_top_score": float(np.mean(tops))}
+
+
+def _atomic_save(obj, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _better(candidate: dict, best: dict | None) -> bool:
+    if best is None:
+        return True
+    a, b = candidate["SeqASR"], best["SeqASR"]
+    a = -1.0 if not np.isfinite(a) else a
+    b = -1.0 if not np.isfinite(b) else b
+    return a > b or (a == b and candidate["mean_top_score"] < best["mean_top_score"])
+
+
+def optimize_texture(
+    config: AttackConfig,
+    detector,
+    out_dir: str | Path,
+    *,
+    resume: bool = False,
+    body_model=None,
+    motions: Sequence = (),
+    device=None,
+    progress: bool = True,
+    max_steps: int | None = None,
+) -> AttackResult:
+    """Optimise an adversarial texture (see the module docstring).
+
+    Args:
+        config: the attack settings.
+        detector: frozen RVT detector (:func:`load_attack_detector`); put in eval mode, parameters frozen here.
+        out_dir: run folder (created).
+        resume: continue from ``out_dir/checkpoints/last.pt`` if it exists (a new run otherwise).
+        body_model: :class:`~davis_rig.scene.body.BodyModel` (default: bundled asset on ``device``).
+        motions: training motions for the EoT (default: the shapes' walk cycles).
+        device: torch device of the generator and clips (default: the detector's).
+        progress: tqdm bar on rank 0.
+        max_steps: stop after this many steps in this call (the run can be resumed); ``None`` = to the end.
+
+    Returns:
+        :class:`AttackResult`.
+
+    Raises:
+        CheckpointError: the checkpoint belongs to a different configuration or is unreadable.
+    """
+    from tqdm import tqdm
+
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    rank, world = _dist()
+    if config.clips_per_step % world:
+        raise ValueError(f"clips_per_step {config.clips_per_step} must be divisible by the world size {world}")
+    out = Path(out_dir)
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(device) if device is not None else next(detector.parameters()).device
+    detector.eval()
+    for p in detector.parameters():
+        p.requires_grad_(False)
+    body_model = body_model or BodyModel(device=device)
+    mask = part_mask(config.parts) if config.parts is not None else None
+
+    torch.manual_seed(config.seed)
+    generator = TextureGenerator(config.grid_n, hidden=config.hidden, dropout=config.dropout).to(device)
+    optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
+                                 weight_decay=config.weight_decay)
+    start, best, generations = 0, None, None
+    ckpt_path = out / "checkpoints" / "last.pt"
+    if resume and ckpt_path.is_file():
+        try:
+            state = torch.load(ckpt_path, map_location=device, weights_only=True)
+        except (OSError, RuntimeError, ValueError) as exc:
+            raise CheckpointError(f"{ckpt_path}: unreadable attack checkpoint ({exc})") from exc
+        saved = dict(state["config"])
+        current = config.to_dict()
+        saved.pop("iterations", None)
+        current.pop("iterations", None)
+        if saved != current:
+            diff = sorted(k for k in current if saved.get(k) != current.get(k))
+            raise CheckpointError(f"{ckpt_path} was written with a different configuration (fields {diff})")
+        generator.load_state_dict(state["generator"])
+        optimizer.load_state_dict(state["optimizer"])
+        start = int(state["step"])
+        generations = state["pool"]["generations"]
+        best = json.loads(state["best"]) if state["best"] else None
+
+    pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size, base_seed=config.seed,
+                    motions=motions, rank=rank, world_size=world, generations=generations)
+    val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips) if rank == 0 else []
+    per_rank = config.clips_per_step // world
+    end = config.iterations if max_steps is None else min(config.iterations, start + int(max_steps))
+    log = open(out / "log.jsonl", "a") if rank == 0 else None
+    bar = tqdm(total=end - start, disable=not progress or rank != 0, desc=f"attack {config.grid_n}x{config.grid_n}")
+    t_start = time.perf_counter()
+
+    def checkpoint(next_step: int) -> None:
+        _atomic_save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": next_step,
+                      "pool": pool.state_dict(), "best": json.dumps(best) if best else "",
+                      "config": config.to_dict()}, ckpt_path)
+
+    def hard_texture() -> np.ndarray:
+        generator.eval()
+        with torch.no_grad():
+            grid = hard_binarize(generator())
+        generator.train()
+        return grid
+
+    try:
+        generator.train()
+        for step in range(start, end):
+            if step > 0 and step % config.refresh_every == 0:
+                pool.refresh(step, config.refresh_fraction)
+            alpha = alpha_at(config.alpha_schedule, step, config.iterations)
+            grid = binarize_ste(_soft_grid(generator, config.seed, step), alpha)
+            loss = attack_loss(grid, pool.sample(step, per_rank), detector, config)
+            optimizer.zero_grad(set_to_none=True)
+            loss.total.backward()
+            _average_gradients(generator.parameters(), world)
+            optimizer.step()
+            values = torch.stack([loss.total.detach(), loss.obj.detach(), loss.cls.detach()]).float()
+            if world > 1:
+                torch.distributed.all_reduce(values)
+                values /= world
+            done = step + 1
+            if rank == 0:
+                record = {"step": done, "loss": float(values[0]), "obj": float(values[1]), "cls": float(values[2]),
+                          "alpha": alpha, "lr": optimizer.param_groups[0]["lr"]}
+                log.write(json.dumps(record) + "\n")
+                bar.set_postfix(loss=f"{record['loss']:.2f}", alpha=f"{alpha:.2f}")
+                bar.update(1)
+                if done % config.snapshot_every == 0 or done == config.iterations:
+                    _write_png(out / "snapshots" / f"step_{done:06d}.png", hard_texture())
+                if done % config.validate_every == 0 or done == config.iterations:
+                    tex = hard_texture()
+                    res = validate(tex, val_clips, detector, config.validation_threshold)
+                    res.update(step=done)
+                    log.write(json.dumps({"validation": res}) + "\n")
+                    if _better(res, best):
+                        best = res
+                        np.save(out / "best_texture.npy", tex)
+                        _write_png(out / "best_texture.png", tex)
+                        torch.save(generator.state_dict(), out / "best_generator.pt")
+                        (out / "best.json").write_text(json.dumps(best, indent=1))
+                log.flush()
+                if done % config.checkpoint_every == 0 or done == end:
+                    checkpoint(done)
+            if world > 1:
+                torch.distributed.barrier()
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    steps = end - start
+    elapsed = time.perf_counter() - t_start
+    texture = hard_texture()
+    if rank == 0:
+        np.save(out / "texture.npy", texture)
+        _write_png(out / "texture.png", texture)
+    best_tex = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
+    return AttackResult(texture=texture, best_texture=best_tex,
+                        best_seq_asr=float(best["SeqASR"]) if best else math.nan,
+                        best_step=int(best["step"]) if best else end, steps=steps,
+                        seconds_per_step=elapsed / steps if steps else math.nan, out_dir=out)
