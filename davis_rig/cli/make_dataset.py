@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (default: 0)")
     parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:1 ...")
     parser.add_argument("--workers", type=int, default=1, help="worker processes (default: 1)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads per process (default: torch's choice; 1 on a busy machine)")
     parser.add_argument("--compression", choices=["blosc-zstd", "gzip", "lzf", "none"], default="blosc-zstd",
                         help="histogram compression (default: blosc-zstd, as RVT)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -75,7 +77,8 @@ def _make(args: argparse.Namespace, sizes: dict[str, int]) -> int:
     from davis_rig.training.synthetic import generate_dataset
 
     summary = generate_dataset(args.out_dir, sizes, duration_s=args.seconds, seed=args.seed, device=args.device,
-                               workers=args.workers, compression=args.compression, progress=not args.no_progress)
+                               workers=args.workers, compression=args.compression, progress=not args.no_progress,
+                               threads=args.threads)
     print(json.dumps(summary, indent=1, default=str))
     return EXIT_OK
 
@@ -84,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-make-dataset``; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.sequences < 1 or args.workers < 1 or not args.seconds >= 0.05:
+    if args.sequences < 1 or args.workers < 1 or not args.seconds >= 0.05 or (args.threads or 1) < 1:
         print(f"{NAME}: error: need --sequences >= 1, --workers >= 1 and --seconds >= 0.05", file=sys.stderr)
         return EXIT_USAGE
     try:

@@ -970,7 +970,8 @@ def _records_from_disk(root: Path, jobs: list[SequenceJob]) -> list[dict[str, An
 
 def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2.0, seed: int = 0,
                      device: str = "cpu", workers: int = 1, compression: str = "blosc-zstd",
-                     config: SyntheticSceneConfig | None = None, progress: bool = False) -> dict[str, Any]:
+                     config: SyntheticSceneConfig | None = None, progress: bool = False,
+                     threads: int | None = None) -> dict[str, Any]:
     """Generate (or resume) a synthetic dataset in RVT's layout with a dataset card.
 
     Finished sequences (folder with ``meta.json``) are skipped, so an interrupted run continues where it
@@ -986,6 +987,8 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
         compression: histogram compression (see :class:`~davis_rig.training.dataset.DatasetWriter`).
         config: scene ranges (``duration_s`` replaces its duration).
         progress: show a progress bar on stderr.
+        threads: torch CPU threads per process (default: torch's own choice with one process, the cores split
+            among the workers otherwise). On a busy machine 1 is much faster than oversubscribed threads.
 
     Returns:
         Summary dict: ``generated``, ``skipped``, ``card`` (path), ``seconds``, ``stage_seconds`` (this call).
@@ -1031,14 +1034,14 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
     results = []
     if int(workers) == 1:
         for job in todo:
-            results.append(_generate_one(str(root), job, seed, config, device, compression, None))
+            results.append(_generate_one(str(root), job, seed, config, device, compression, threads))
             if bar is not None:
                 bar.update(1)
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        threads = max(1, (os.cpu_count() or 1) // int(workers))
+        threads = max(1, (os.cpu_count() or 1) // int(workers)) if threads is None else threads
         context = multiprocessing.get_context("spawn")  # no fork of a process that may hold torch threads
         with ProcessPoolExecutor(max_workers=int(workers), mp_context=context) as pool:
             futures = [pool.submit(_generate_one, str(root), job, seed, config, device, compression, threads)

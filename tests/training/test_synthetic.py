@@ -1,0 +1,209 @@
+"""Synthetic dataset generator: written data read back, labels on the rendered people, splits, determinism."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from davis_rig.cli import make_dataset as cli  # noqa: E402
+from davis_rig.errors import FormatError  # noqa: E402
+from davis_rig.events.simulator import SimulatorConfig  # noqa: E402
+from davis_rig.scene.body import PART_NAMES  # noqa: E402
+from davis_rig.scene.camera import TEST_SCALES_PX  # noqa: E402
+from davis_rig.scene.masks import part_label_map  # noqa: E402
+from davis_rig.training import synthetic as syn  # noqa: E402
+from davis_rig.training.dataset import SequenceData, list_sequences  # noqa: E402
+from davis_rig.types import PEDESTRIAN_CLASS_ID, RVT_HW  # noqa: E402
+
+SHORT = syn.SyntheticSceneConfig(duration_s=0.15)
+SIZES = {"train": 1, "val": 0, "test": 1}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """One intra-op thread: on a shared 2-core machine oversubscribed threads make rendering ~20x slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def model():
+    from davis_rig.scene.body import BodyModel
+
+    return BodyModel(device="cpu")
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth") / "ds"
+    summary = syn.generate_dataset(root, SIZES, duration_s=0.15, seed=5, compression="gzip", threads=1)
+    return root, summary
+
+
+def _one_person_scene(model_free_seed: int = 0, **person_changes) -> syn.SyntheticScene:
+    """A test-split scene with one person, no distractors, ideal sensor (events only where something moves)."""
+    scene = syn.held_out_scene(np.random.default_rng(model_free_seed), "white", "middle", SHORT)
+    person = dataclasses.replace(scene.people[0], **person_changes)
+    return dataclasses.replace(scene, people=(person,), distractors=(), simulator=SimulatorConfig())
+
+
+def test_tiny_dataset_reads_back_in_rvt_layout(tiny_dataset):
+    root, summary = tiny_dataset
+    assert summary["generated"] == 2 and summary["skipped"] == 0
+    (train,) = list_sequences(root, "train")
+    (test,) = list_sequences(root, "test")
+    assert test.name == "test_white_large_00000"  # test index 0 = first held-out subset
+    for path in (train, test):
+        seq = SequenceData(path)
+        assert len(seq) == 3 and seq.window_end_us.tolist() == [50_000, 100_000, 150_000]
+        hist = seq.histograms(0, 3)
+        assert hist.dtype == np.uint8 and hist.shape == (3, 20, *RVT_HW) and hist.max() <= 10 and hist.sum() > 0
+        assert seq.labelled_windows().tolist() == [0, 1, 2]  # every window is supervised
+        for w in range(3):
+            boxes = seq.labels_at(w)
+            assert np.all(boxes["class_id"] == PEDESTRIAN_CLASS_ID) and np.all(boxes["t"] == seq.window_end_us[w])
+        seq.close()
+    meta = json.loads((test / "meta.json").read_text())
+    assert meta["subset"] == "white/large" and meta["scene"]["people"][0]["clothing"] == "white"
+    card = json.loads((root / "dataset_card.json").read_text())
+    assert card["splits"]["train"]["sequences"] == 1 and card["splits"]["test"]["sequences"] == 1
+    assert card["settings"]["seed"] == 5 and card["split_shapes"]["test"] == [21, 22, 23]
+
+
+def test_generation_resumes_and_refuses_other_settings(tiny_dataset):
+    root, _ = tiny_dataset
+    again = syn.generate_dataset(root, SIZES, duration_s=0.15, seed=5, compression="gzip")
+    assert again["generated"] == 0 and again["skipped"] == 2
+    with pytest.raises(FormatError, match="other settings"):
+        syn.generate_dataset(root, SIZES, duration_s=0.15, seed=6, compression="gzip")
+
+
+def test_generation_is_deterministic_per_seed(tiny_dataset, model):
+    root, _ = tiny_dataset
+    (job,) = [j for j in syn.dataset_plan(SIZES) if j.split == "train"]
+    config = dataclasses.replace(syn.SyntheticSceneConfig(), duration_s=0.15)
+    scene = syn.scene_for_job(job, 5, config)
+    assert scene.to_dict() == syn.scene_for_job(job, 5, config).to_dict()
+    assert scene.to_dict() != syn.scene_for_job(job, 6, config).to_dict()
+    seq = syn.render_sequence(scene, model=model)
+    stored = SequenceData(root / "train" / job.name)
+    np.testing.assert_array_equal(seq.histograms, stored.histograms(0, 3))
+    for w, boxes in enumerate(seq.labels):
+        np.testing.assert_array_equal(boxes, stored.labels_at(w))
+    stored.close()
+
+
+def test_labels_lie_on_the_rendered_person(model):
+    scene = _one_person_scene(3)
+    seq = syn.render_sequence(scene, model=model, keep_events=True)
+    ev = seq.events
+    assert ev.shape[0] > 1000
+    for i, (end, boxes) in enumerate(zip(seq.window_end_us, seq.labels)):
+        (box,) = boxes
+        assert 100 <= box["h"] <= 170  # middle scale: a 1.75 m person spans 150 px, shapes differ in height
+        # events of the last 5 ms before the label time lie on the person (static camera, ideal sensor)
+        last = ev[(ev["t"] > end - 5_000) & (ev["t"] <= end)]
+        assert last.shape[0] > 100
+        inside = ((last["x"] >= box["x"] - 3) & (last["x"] < box["x"] + box["w"] + 3)
+                  & (last["y"] >= box["y"] - 3) & (last["y"] < box["y"] + box["h"] + 3))
+        assert inside.all()
+        # and the box is tight: events near its top and bottom rows
+        assert last["y"].min() <= box["y"] + 6 and last["y"].max() >= box["y"] + box["h"] - 8
+
+
+def test_occluded_person_gets_no_label(model):
+    front = _one_person_scene(4, heading_rad=0.0, x_mid_m=0.0, depth_mid_m=5.0)
+    hidden = dataclasses.replace(front.people[0], depth_mid_m=20.0, shape_index=22, clothing="black")
+    scene = dataclasses.replace(front, people=(front.people[0], hidden))
+    seq = syn.render_sequence(scene, model=model, min_visible_px=100.0)
+    alone = syn.render_sequence(dataclasses.replace(scene, people=(hidden,)), model=model, min_visible_px=100.0)
+    # the z-merged coverage: only what shows between the near person's legs remains of the far one
+    assert np.all(alone.visible_px[:, 0] > 400) and np.all(seq.visible_px[:, 1] < 0.15 * alone.visible_px[:, 0])
+    assert np.all(seq.visible_px[:, 0] > 3000)
+    assert [len(b) for b in seq.labels] == [1, 1, 1] and all(b["track_id"][0] == 0 for b in seq.labels)
+    assert all(len(b) == 1 for b in alone.labels)
+
+
+def test_empty_scene_with_distractors_fires_events_but_has_no_labels(model):
+    rng = np.random.default_rng(1)
+    base = syn.sample_scene(rng, "train", SHORT)
+    distractors = tuple(syn._distractor(rng, "train", RVT_HW, SHORT.duration_s, 0.5) for _ in range(3))
+    distractors = tuple(dataclasses.replace(d, start_xy_px=(150.0, 120.0), velocity_px_s=(200.0, 0.0), level=0.9)
+                        for d in distractors)
+    scene = dataclasses.replace(base, people=(), distractors=distractors, ego_motion=None,
+                                simulator=SimulatorConfig())
+    seq = syn.render_sequence(scene, model=model, keep_events=True)
+    assert seq.events.shape[0] > 500 and seq.histograms.sum() > 0
+    assert [len(b) for b in seq.labels] == [0, 0, 0] and seq.person_boxes.shape == (3, 0, 4)
+
+
+def test_splits_are_disjoint_in_shapes_seeds_and_speeds():
+    plan = syn.dataset_plan({"train": 40, "val": 20, "test": 18})
+    scenes = [syn.scene_for_job(job, 0) for job in plan]
+    shapes, seeds, speeds = {}, {}, {}
+    for job, scene in zip(plan, scenes):
+        assert scene.split == job.split
+        seeds.setdefault(job.split, set()).update(
+            [scene.seed, scene.background_seed, scene.simulator.seed]
+            + [s for p in scene.people for s in (p.gait_seed, p.clothing_seed)])
+        shapes.setdefault(job.split, set()).update(p.shape_index for p in scene.people)
+        speeds.setdefault(job.split, set()).update(p.speed_m_s for p in scene.people if p.motion == "gait")
+    assert shapes["train"] <= set(range(18)) and shapes["val"] <= {18, 19, 20} and shapes["test"] <= {21, 22, 23}
+    assert not (seeds["train"] & seeds["val"]) and not (seeds["train"] & seeds["test"]) and not (seeds["val"] & seeds["test"])
+    for split in ("val", "test"):
+        for v in speeds[split]:
+            assert not any(lo <= v < hi for kind in ("walk", "run") for lo, hi in syn.SPLIT_SPEEDS_M_S["train"][kind])
+    # the held-out set cycles through white / black / pattern60 x large / middle / small
+    test = [s for s in scenes if s.split == "test"]
+    assert sorted({s.subset for s in test}) == sorted(f"{c}/{k}" for c, k in syn.TEST_SUBSETS)
+    for s in test:
+        clothing, scale = s.subset.split("/")
+        (p,) = s.people
+        assert p.clothing == clothing and s.ego_motion is None
+        assert math.isclose(p.depth_mid_m, 648.6486 * 1.75 / TEST_SCALES_PX[scale], rel_tol=1e-4)
+    counts = [len(s.people) for s in scenes if s.split == "train"]
+    assert set(counts) <= {0, 1, 2, 3} and len(set(counts)) >= 3
+
+
+def test_clothing_textures():
+    labels = part_label_map(256)
+    cloth = np.isin(labels, [PART_NAMES.index(p) for p in ("torso", "arms", "legs")])
+    white = syn.clothing_texture("white", 1)
+    black = syn.clothing_texture("black", 1)
+    assert np.all(white[cloth] == 1.0) and np.all(black[cloth] == 0.0)
+    pattern = syn.clothing_texture("pattern60", 2)
+    assert set(np.unique(pattern[cloth])) == {0.0, 1.0}
+    cells = (np.arange(256) * 60) // 256  # nearest upsampling of the 60 x 60 grid: constant inside a cell
+    block = pattern[cells == 7][:, cells == 9]
+    assert (block == block.flat[0]).all() or not cloth[cells == 7][:, cells == 9].all()
+    for kind in syn.CLOTHING_KINDS:
+        tex = syn.clothing_texture(kind, 3)
+        assert tex.shape == (256, 256) and tex.dtype == np.float32 and 0 <= tex.min() and tex.max() <= 1
+        np.testing.assert_array_equal(tex, syn.clothing_texture(kind, 3))
+    with pytest.raises(ValueError, match="kind"):
+        syn.clothing_texture("tartan", 0)
+
+
+def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys):
+    calls = []
+    monkeypatch.setattr(syn, "generate_dataset", lambda root, sizes, **kw: calls.append((root, sizes, kw)) or {"ok": 1})
+    assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7,test=3", "--seconds", "1.5",
+                     "--seed", "9", "--device", "cuda", "--workers", "3", "--no-progress"]) == 0
+    ((root, sizes, kw),) = calls
+    assert root == str(tmp_path) and sizes == {"train": 7, "val": 0, "test": 3}
+    assert kw == {"duration_s": 1.5, "seed": 9, "device": "cuda", "workers": 3, "compression": "blosc-zstd",
+                  "progress": False, "threads": None}
+    assert json.loads(capsys.readouterr().out) == {"ok": 1}
+    assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
+    assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
+    assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
