@@ -16,7 +16,9 @@ so far, config; written atomically every ``checkpoint_every`` steps and at the e
 object per step: loss, obj, cls, alpha, lr; validation records with SeqASR), ``snapshots/step_XXXXXX.png``
 (the hard n x n texture), ``best_texture.npy/png`` + ``best.json`` (best validation SeqASR, ties broken by the
 lower mean top pedestrian score), ``texture.npy/png`` (final). Resume (``resume=True``) continues bit-identically:
-every random choice of a step is derived from ``(seed, step)`` and the pool from its generations.
+every random choice of a step is derived from ``(seed, step)`` and the pool from its generations (bit-identical
+as far as the kernels are: on CPU with one thread, or with ``torch.use_deterministic_algorithms(True)``;
+multi-threaded CPU reductions already differ by ~1e-7 between two fresh runs).
 
 Validation: clips drawn from the EoT distribution with their own seeds (training shapes), scored as in the
 evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events, SeqASR at ``validation_threshold``.
