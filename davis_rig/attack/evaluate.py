@@ -56,7 +56,7 @@ __all__ = [
     "score_detections",
     "table1",
     "table2",
-    "test_scenes",
+    "evaluation_scenes",
     "write_visualisations",
 ]
 
@@ -151,7 +151,7 @@ class EvalScene:
     boxes: np.ndarray
 
 
-def test_scenes(config: EvalConfig, num_shapes: int, motions: Sequence[Motion] = ()) -> list[tuple[object, SceneSpec]]:
+def evaluation_scenes(config: EvalConfig, num_shapes: int, motions: Sequence[Motion] = ()) -> list[tuple[object, SceneSpec]]:
     """The test scenes: shapes x (walk cycle or test motions) x headings x phases x scales.
 
     Args:
@@ -184,7 +184,7 @@ def prepare_scenes(specs: Sequence[tuple[object, SceneSpec]], model, config: Eva
     """Pose and rasterize the test scenes once (no autograd).
 
     Args:
-        specs: ``(scale, SceneSpec)`` pairs (:func:`test_scenes`).
+        specs: ``(scale, SceneSpec)`` pairs (:func:`evaluation_scenes`).
         model: :class:`~davis_rig.scene.body.BodyModel`.
         config: the evaluation settings.
 
@@ -458,7 +458,7 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
     textures = baseline_textures(tuple(parts) if parts else None, seed=config.seed)
     for n in sorted(optimized, reverse=True):
         textures[f"ours {n}x{n}"] = TextureSpec(np.asarray(optimized[n], dtype=np.float32), tuple(parts) if parts else None)
-    scenes = prepare_scenes(test_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return _write_table(rows, config.thresholds, Path(out_dir), "table1",
                         "Table 1: baselines vs optimized textures (digital, exact simulator)", command, "Texture")
@@ -483,7 +483,7 @@ def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *
     model = model or BodyModel()
     textures = {key: TextureSpec(np.asarray(grid, dtype=np.float32), tuple(key.split("+")))
                 for key, grid in optimized.items()}
-    scenes = prepare_scenes(test_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return _write_table(rows, config.thresholds, Path(out_dir), "table2",
                         "Table 2: body-part combinations (10x10)", command, "Parts")
@@ -529,7 +529,7 @@ def write_visualisations(textures: Mapping[str, TextureSpec], detector, out_dir:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if scene_spec is None:
-        scene_spec = test_scenes(EvalConfig(**{**_config_kwargs(config), "scales": ("middle",),
+        scene_spec = evaluation_scenes(EvalConfig(**{**_config_kwargs(config), "scales": ("middle",),
                                                "headings_rad": (math.pi / 2,), "phases": (0.0,)}),
                                  model.num_shapes)[0][1]
     scene = prepare_scenes([("middle", scene_spec)], model, config)[0]

@@ -1,0 +1,126 @@
+"""Digital evaluation protocol on a tiny configuration: hand-made scoring cases, table shapes, baselines, thresholds."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from davis_rig.attack.evaluate import (
+    PAPER_THRESHOLDS,
+    EvalConfig,
+    TextureSpec,
+    baseline_textures,
+    results_markdown,
+    score_detections,
+    table1,
+    table2,
+    evaluation_scenes,
+    write_visualisations,
+)
+from davis_rig.models.rvt.checkpoint import load_detector
+from davis_rig.scene.body import BodyModel
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+TINY = EvalConfig(scales=("large", "small"), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _decoded(score: float, box=(50.0, 40.0, 110.0, 200.0), anchors: int = 3) -> np.ndarray:
+    """Decoded head output [A, 7]: anchor 0 = a pedestrian at ``box`` with obj * p_ped = score, others empty."""
+    out = np.zeros((anchors, 7), dtype=np.float32)
+    x0, y0, x1, y1 = box
+    out[0] = ((x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0, 1.0, 0.0, score)
+    out[1:, :4] = (10, 10, 4, 4)
+    return out
+
+
+def test_score_detections_hand_made():
+    box = np.array([50.0, 40.0, 110.0, 200.0], dtype=np.float32)
+    boxes = np.stack([box] * 3)
+    ends = np.array([50_000, 100_000, 150_000])
+    # sequence A: a perfect detection with score 0.5 in every window; sequence B: nothing (attack succeeded)
+    decoded = [[_decoded(0.5)] * 3, [_decoded(0.0)] * 3]
+    res = score_detections(decoded, [boxes, boxes], [ends, ends], (0.01, 0.6), seq_len=3)
+    low, high = res[0.01], res[0.6]
+    assert low["num_sequences"] == high["num_sequences"] == 2 and low["num_windows"] == 6
+    assert low["num_detected"] == 1 and low["SeqASR"] == 0.5
+    assert high["num_detected"] == 0 and high["SeqASR"] == 1.0
+    assert low["AP"] == pytest.approx(0.5, abs=0.01)  # recall 1/2 at precision 1 -> AP 0.5 (101-point COCO)
+    assert high["AP"] == 0.0
+    # a window without a person (NaN box) is not a label and breaks the sequence
+    gap = boxes.copy()
+    gap[1] = np.nan
+    assert score_detections([[_decoded(0.5)] * 3], [gap], [ends], (0.01,), seq_len=3)[0.01]["num_sequences"] == 0
+
+
+def test_test_scenes_grid_uses_test_shapes():
+    specs = evaluation_scenes(EvalConfig(), 24)
+    assert len(specs) == 3 * 6 * 4 * 2
+    assert {s.shape_index for _, s in specs} == {1, 5, 9, 13, 17, 21}
+    assert {scale for scale, _ in specs} == {"large", "middle", "small"}
+    assert all(s.num_frames == 31 for _, s in specs)
+
+
+def test_table1_and_table2_on_tiny_config(tmp_path):
+    detector = load_detector(FIXTURE)
+    model = BodyModel()
+    rng = np.random.default_rng(0)
+    optimized = {10: (rng.random((10, 10)) > 0.5).astype(np.float32)}
+    t1 = table1(optimized, detector, tmp_path, config=TINY, model=model, command="davis-attack evaluate --table 1")
+    rows = t1["rows"]
+    names = list(dict.fromkeys(r["texture"] for r in rows))
+    assert names == ["white", "black", "random 60x60", "ours 10x10"]
+    assert len(rows) == 4 * 3 * len(PAPER_THRESHOLDS)  # textures x (2 scales + all) x thresholds
+    for name in names:
+        for scale in ("all", "large", "small"):
+            sel = sorted((r for r in rows if r["texture"] == name and r["scale"] == scale), key=lambda r: r["threshold"])
+            asr = [r["SeqASR"] for r in sel]
+            assert asr == sorted(asr)  # a higher threshold never detects more sequences
+            assert all(r["num_sequences"] == (2 if scale == "all" else 1) for r in sel)
+            assert all(0.0 <= r["AP"] <= 1.0 for r in sel)
+    md = t1["markdown"].read_text()
+    assert "davis-attack evaluate --table 1" in md and "| white |" in md and "| ours 10x10 |" in md
+    white = next(line for line in md.splitlines() if line.startswith("| white |"))
+    assert white.count("|") == 2 + 2 * len(PAPER_THRESHOLDS)
+    assert t1["plot"].stat().st_size > 0 and t1["json"].is_file()
+
+    combos = {"torso": optimized[10], "torso+arms+legs": optimized[10]}
+    t2 = table2(combos, detector, tmp_path, config=EvalConfig(**{**TINY.__dict__, "thresholds": (0.25,)}), model=model)
+    assert [r["texture"] for r in t2["rows"] if r["scale"] == "all"] == ["torso", "torso+arms+legs"]
+    assert all(r["threshold"] == 0.25 for r in t2["rows"])
+
+
+def test_results_markdown_and_baselines():
+    base = baseline_textures()
+    assert list(base) == ["white", "black", "random 60x60"]
+    assert base["random 60x60"].grid.shape == (60, 60) and base["white"].grid.min() == 1.0
+    rows = [{"texture": "white", "scale": "all", "threshold": 0.25, "AP": 0.5, "SeqASR": float("nan")}]
+    md = results_markdown(rows, (0.25,))
+    assert md.splitlines()[2] == "| white | 50.0 | n/a |"
+
+
+def test_visualisations_written(tmp_path):
+    detector = load_detector(FIXTURE)
+    textures = {"white": TextureSpec(np.ones((1, 1), np.float32)),
+                "checker": TextureSpec(np.indices((4, 4)).sum(0).astype(np.float32) % 2)}
+    out = write_visualisations(textures, detector, tmp_path, config=TINY, model=BodyModel())
+    assert [p.name for p in out["frames"]] == ["events_white.png", "events_checker.png"]
+    from PIL import Image
+
+    with Image.open(out["gif"]) as gif:
+        assert gif.n_frames == 31 and gif.size == (304, 240)
+    import cv2
+
+    strip = cv2.imread(str(out["frames"][0]))
+    assert strip.shape == (240, 3 * 304, 3)
