@@ -207,3 +207,17 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
+
+
+def test_held_out_evaluation_scores_each_subset(tiny_dataset, tmp_path):
+    from davis_rig.training.trainer import TrainConfig, train
+
+    root, _ = tiny_dataset
+    config = TrainConfig(model="mini", steps=1, batch_size=1, seq_len=2, val_every=0, ckpt_every=0, log_every=1,
+                         val_batch_size=1, val_seq_len=3, val_skip_first_us=0, device="cpu", progress=False,
+                         sampling="random")
+    train(root, tmp_path / "run", config, export=False)
+    results = syn.evaluate_held_out(root, tmp_path / "run")
+    assert sorted(results) == ["all", "white/large"]
+    for r in results.values():
+        assert r["sequences"] == 1 and r["num_labels"] == 3 and 0.0 <= r["AP"] <= 1.0
