@@ -1,0 +1,157 @@
+"""Benchmark: seconds per attack iteration (RVT-B, sequence length 3): texture compose + V2E + forward + backward + Adam.
+
+One iteration is exactly what :func:`davis_rig.attack.optimize.optimize_texture` does per step (batch of
+``--clips`` pool clips): generator -> binarize_ste -> texel lookup + compose of the pre-rasterized clip (grad) ->
+differentiable V2E ("dvs") with the clip's per-pixel thresholds and noise -> RVT-B (random weights, eval mode,
+frozen) over 3 windows with recurrent states -> L_adv -> backward -> Adam step. The one-off rasterization of a
+pool clip (no grad; amortised over ``refresh_every`` steps) is timed separately. Stage shares come from one
+extra instrumented iteration per setting.
+
+Reported: median, IQR and min of ``--repeats`` iterations after ``--warmup`` untimed ones, per device and CPU
+thread count; the official code's ~2.3 s/iteration (GPU) and the goal of <= 0.1 s on one H100/H200 as ratios.
+
+Run: ``python benchmarks/attack_step.py [--threads 1 2] [--repeats 3] [--clips 1] [--model base] [--no-cuda]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from davis_rig.attack.eot import EoTConfig, draw_scene, prepare_clip
+from davis_rig.attack.optimize import AttackConfig, attack_loss, clip_histograms
+from davis_rig.attack.texture import TextureGenerator, binarize_ste
+from davis_rig.models.rvt import RVTConfig
+from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
+from davis_rig.scene.body import BodyModel
+from davis_rig.scene.masks import part_mask
+
+OFFICIAL_S = 2.3
+GOAL_S = 0.1
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
+                             capture_output=True, text=True, check=True)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _stats(samples: list[float]) -> str:
+    q = np.percentile(samples, [25, 75])
+    return f"median {statistics.median(samples):.3f} s  IQR {q[1] - q[0]:.3f} s  min {min(samples):.3f} s"
+
+
+def run(device: torch.device, model_name: str, clips_per_step: int, warmup: int, repeats: int) -> float:
+    cfg = AttackConfig(grid_n=10, clips_per_step=clips_per_step, pool_size=max(clips_per_step, 1))
+    torch.manual_seed(0)
+    detector = RVTDetector(getattr(RVTConfig, model_name)()).to(device).eval()
+    for p in detector.parameters():
+        p.requires_grad_(False)
+    body = BodyModel(device=device)
+    mask = part_mask(cfg.parts)
+    eot = EoTConfig()
+    t0 = time.perf_counter()
+    clips = []
+    for i in range(clips_per_step):
+        spec, sensor = draw_scene(eot, 100 + i, body.num_shapes)
+        clips.append(prepare_clip(spec, sensor, body, cfg.grid_n, mask, config=eot, seed=100 + i))
+    _sync(device)
+    raster_s = (time.perf_counter() - t0) / clips_per_step
+    generator = TextureGenerator(cfg.grid_n).to(device).train()
+    optimizer = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+
+    def step() -> None:
+        grid = binarize_ste(generator(), 0.5)
+        loss = attack_loss(grid, clips, detector, cfg)
+        optimizer.zero_grad(set_to_none=True)
+        loss.total.backward()
+        optimizer.step()
+
+    for _ in range(warmup):
+        step()
+    samples = []
+    for _ in range(repeats):
+        _sync(device)
+        t = time.perf_counter()
+        step()
+        _sync(device)
+        samples.append(time.perf_counter() - t)
+
+    # instrumented iteration: stage shares
+    stages = {}
+    _sync(device)
+    t = time.perf_counter()
+    grid = binarize_ste(generator(), 0.5)
+    videos = [c.video(grid) for c in clips]
+    _sync(device)
+    stages["generator + compose"] = time.perf_counter() - t
+    t = time.perf_counter()
+    x = torch.stack([clip_histograms(grid, c) for c in clips], dim=1)
+    _sync(device)
+    stages["V2E (incl. compose again)"] = time.perf_counter() - t
+    t = time.perf_counter()
+    states, outs = None, []
+    for w in range(x.shape[0]):
+        out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
+        outs.append(out)
+    loss = sum(o[..., 4].mean() + o[..., 6].mean() for o in outs)
+    _sync(device)
+    stages["RVT forward (3 windows)"] = time.perf_counter() - t
+    t = time.perf_counter()
+    loss.backward()
+    _sync(device)
+    stages["backward (RVT + V2E + compose)"] = time.perf_counter() - t
+    del videos
+    med = statistics.median(samples)
+    print(f"  iteration: {_stats(samples)}  ({repeats} runs, {warmup} warm-up)")
+    print(f"  per-clip rasterization (one-off, no grad): {raster_s:.3f} s")
+    total = sum(stages.values())
+    for name, value in stages.items():
+        print(f"    {name:34s} {value:.3f} s  ({100 * value / total:.0f} %)")
+    print(f"  ratio official 2.3 s / this: {OFFICIAL_S / med:.2f}x;  this / goal 0.1 s: {med / GOAL_S:.1f}x")
+    return med
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--clips", type=int, default=1, help="EoT clips per iteration (batch)")
+    parser.add_argument("--model", default="base", choices=["tiny", "small", "base", "mini"])
+    parser.add_argument("--no-cuda", action="store_true")
+    args = parser.parse_args()
+    print(f"attack step benchmark: RVT-{args.model}, seq len 3, 304x240, grid 10x10, clips/iter {args.clips}")
+    print(f"commit {_commit()}  torch {torch.__version__}  numpy {np.__version__}  python {platform.python_version()}  "
+          f"cpu {platform.processor() or platform.machine()}")
+    results = {}
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        print(f"CPU, {threads} thread(s):")
+        results[f"cpu{threads}"] = run(torch.device("cpu"), args.model, args.clips, args.warmup, args.repeats)
+    if torch.cuda.is_available() and not args.no_cuda:
+        print(f"CUDA: {torch.cuda.get_device_name(0)}")
+        results["cuda"] = run(torch.device("cuda"), args.model, args.clips, max(args.warmup, 3), max(args.repeats, 10))
+    if "cpu1" in results and "cpu2" in results:
+        print(f"speed-up 2 threads vs 1: {results['cpu1'] / results['cpu2']:.2f}x")
+    if "cuda" in results and "cpu1" in results:
+        print(f"speed-up CUDA vs CPU 1 thread: {results['cpu1'] / results['cuda']:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
