@@ -57,6 +57,7 @@ __all__ = [
     "table1",
     "table2",
     "evaluation_scenes",
+    "write_table",
     "write_visualisations",
 ]
 
@@ -413,7 +414,14 @@ def _plot(rows: Sequence[dict], thresholds: Sequence[float], path: Path, title: 
     return path
 
 
-def _write_table(rows, thresholds, out_dir: Path, stem: str, title: str, command: str | None, label: str) -> dict:
+def write_table(rows: Sequence[dict], thresholds: Sequence[float], out_dir: str | Path, stem: str, title: str, *,
+                command: str | None = None, label: str = "Texture") -> dict:
+    """Write ``<stem>.md`` (all scales + per scale), ``<stem>.json`` (rows + command) and ``<stem>.png`` (plots).
+
+    Returns:
+        ``{"markdown", "json", "plot": paths, "rows": rows}``.
+    """
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     text = [f"# {title}\n"]
     if command:
@@ -460,8 +468,8 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
         textures[f"ours {n}x{n}"] = TextureSpec(np.asarray(optimized[n], dtype=np.float32), tuple(parts) if parts else None)
     scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
-    return _write_table(rows, config.thresholds, Path(out_dir), "table1",
-                        "Table 1: baselines vs optimized textures (digital, exact simulator)", command, "Texture")
+    return write_table(rows, config.thresholds, out_dir, "table1",
+                       "Table 1: baselines vs optimized textures (digital, exact simulator)", command=command)
 
 
 def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *, config: EvalConfig | None = None,
@@ -485,8 +493,8 @@ def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *
                 for key, grid in optimized.items()}
     scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
-    return _write_table(rows, config.thresholds, Path(out_dir), "table2",
-                        "Table 2: body-part combinations (10x10)", command, "Parts")
+    return write_table(rows, config.thresholds, out_dir, "table2", "Table 2: body-part combinations (10x10)",
+                       command=command, label="Parts")
 
 
 def _event_image(hist: np.ndarray) -> np.ndarray:

@@ -1,0 +1,217 @@
+"""``davis-attack optimize`` and ``davis-attack evaluate``: argument parsers and actions (one API call each).
+
+:mod:`davis_rig.cli.attack` owns the ``davis-attack`` entry point and its subparsers; it registers these two
+subcommands with :func:`add_optimize_parser` and :func:`add_evaluate_parser`. Heavy imports (torch, the scene)
+happen inside the actions so ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+OPTIMIZE_EPILOG = """\
+examples:
+  davis-attack optimize --out runs/n10 --cells 10                         # paper: 11,500 steps, full body, bundled detector
+  davis-attack optimize --out runs/n10 --cells 10 --resume                # continue runs/n10/checkpoints/last.pt
+  davis-attack optimize --out runs/torso --cells 10 --parts torso --detector rvt-b.ckpt
+  torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10 --clips-per-step 8   # DDP
+
+RUN_DIR gets log.jsonl (loss, obj, cls, alpha per step; validation SeqASR), snapshots/step_*.png, checkpoints/
+last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Under torchrun
+(WORLD_SIZE > 1) the process group is initialised from the environment: nccl on CUDA, gloo on CPU.
+"""
+
+EVALUATE_EPILOG = """\
+examples:
+  davis-attack evaluate --table 1 --out docs/table1 --texture 60=runs/n60/best_texture.npy ... --texture 10=runs/n10/best_texture.npy
+  davis-attack evaluate --table 2 --out docs/table2 --texture torso=runs/torso/best_texture.npy ... \\
+      --texture torso+arms+legs=runs/n10/best_texture.npy
+  davis-attack evaluate --out eval/ --texture mine=texture.png --visualise
+
+Table 1: white, black, random 60x60 baselines and the given textures (KEY = grid size), thresholds 0.001 0.01 0.1
+0.25. Table 2: textures per body-part combination (KEY = parts joined by '+'), threshold 0.25. Without --table:
+any named textures (KEY = a name) on --parts. Writes <stem>.md, <stem>.json, <stem>.png (+ event frames and a GIF
+with --visualise). Events come from the exact simulator.
+"""
+
+
+def _detector_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--detector", default=None, metavar="CKPT",
+                        help="RVT checkpoint (.ckpt/.pt/.safetensors, official RVT included); default: the bundled one")
+    parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch (default: torch's)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``optimize`` on a subparsers object; the action is stored as ``func``."""
+    p = subparsers.add_parser("optimize", help="optimise an adversarial texture (EoT, resumable, DDP)",
+                              description="Optimise a black/white adversarial texture against a frozen RVT.",
+                              epilog=OPTIMIZE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
+    p.add_argument("--cells", type=int, default=10, help="grid cells per side n (paper: 10 ... 60; default 10)")
+    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
+                   help="painted body parts (default: torso arms legs); 'all' = whole body without mask")
+    p.add_argument("--iterations", type=int, default=11_500, help="optimisation steps (default: 11500)")
+    p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
+    p.add_argument("--clips-per-step", type=int, default=1, help="EoT clips per step over all ranks (default: 1)")
+    p.add_argument("--pool-size", type=int, default=32, help="pre-rasterized clips in the pool (default: 32)")
+    p.add_argument("--refresh-every", type=int, default=50, help="pool refresh period in steps (default: 50)")
+    p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: 1e-4)")
+    p.add_argument("--alpha-schedule", default="linear", help="binarization schedule: linear (paper), cosine, step, hard, soft")
+    p.add_argument("--validate-every", type=int, default=1000, help="validation period in steps (default: 1000)")
+    p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
+    p.add_argument("--box-margin", type=float, default=None, metavar="PX",
+                   help="score only anchors within PX of the person's box (default: all anchors, paper)")
+    p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
+    p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
+    _detector_args(p)
+    p.set_defaults(func=optimize_command)
+    return p
+
+
+def add_evaluate_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``evaluate`` on a subparsers object; the action is stored as ``func``."""
+    p = subparsers.add_parser("evaluate", help="digital evaluation: AP and SeqASR, Tables 1 and 2",
+                              description="Score textures with the paper's digital protocol (exact simulator).",
+                              epilog=EVALUATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--table", type=int, choices=[1, 2], default=None, help="reproduce Table 1 or Table 2")
+    p.add_argument("--texture", action="append", default=[], metavar="KEY=PATH",
+                   help="texture file (.npy/.png, n x n or upsampled map); repeatable")
+    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts (Table 1 / named)")
+    p.add_argument("--thresholds", type=float, nargs="+", default=None, help="confidence thresholds")
+    p.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
+    p.add_argument("--headings", type=int, default=4, help="person headings per shape: 1, 2 or 4 (default 4)")
+    p.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+    p.add_argument("--visualise", action="store_true", help="also write event frames with boxes and a GIF")
+    _detector_args(p)
+    p.set_defaults(func=evaluate_command)
+    return p
+
+
+def _device(name: str):
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _init_distributed(device):
+    """Process group from torchrun's environment (WORLD_SIZE > 1); returns the rank's device."""
+    import torch
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return device
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if device.type == "cuda":
+        device = torch.device("cuda", local)
+        torch.cuda.set_device(device)
+    torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return device
+
+
+def optimize_command(args) -> int:
+    """Action of ``davis-attack optimize``: one :func:`davis_rig.attack.optimize.optimize_texture` call."""
+    import torch
+
+    from davis_rig.attack.optimize import AttackConfig, load_attack_detector, optimize_texture
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = _init_distributed(_device(args.device))
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    config = AttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
+                          pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
+                          alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
+                          num_validation_clips=args.val_clips, box_margin_px=args.box_margin, seed=args.seed)
+    detector = load_attack_detector(args.detector, device=device)
+    try:
+        result = optimize_texture(config, detector, args.out, resume=args.resume, device=device,
+                                  progress=not args.no_progress, max_steps=args.max_steps)
+    finally:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(json.dumps({"out_dir": str(result.out_dir), "steps": result.steps,
+                          "seconds_per_step": result.seconds_per_step, "best_step": result.best_step,
+                          "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr}))
+    return 0
+
+
+def _usage(message: str) -> int:
+    print(f"davis-attack evaluate: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _parse_textures(items: list[str]) -> dict[str, str] | None:
+    out = {}
+    for item in items:
+        key, sep, path = item.partition("=")
+        if not sep or not key or not path:
+            return None
+        out[key] = path
+    return out
+
+
+def evaluate_command(args) -> int:
+    """Action of ``davis-attack evaluate``: Table 1, Table 2 or named textures (one API call each)."""
+    import torch
+
+    from davis_rig.attack import evaluate as ev
+    from davis_rig.attack.export import load_texture_grid
+    from davis_rig.attack.optimize import load_attack_detector
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = _device(args.device)
+    textures = _parse_textures(args.texture)
+    if textures is None:
+        return _usage(f"--texture expects KEY=PATH, got {args.texture}")
+    if args.table == 1 and not all(k.isdigit() for k in textures):
+        return _usage(f"Table 1 keys are grid sizes (e.g. 10=path), got {sorted(textures)}")
+    if args.table is None and not textures:
+        return _usage("give at least one --texture NAME=PATH (or --table 1 / 2)")
+    headings = {1: (math.pi / 2,), 2: (math.pi / 2, -math.pi / 2),
+                4: (math.pi / 2, -math.pi / 2, 0.0, math.pi)}.get(args.headings)
+    if headings is None:
+        return _usage(f"--headings must be 1, 2 or 4, got {args.headings}")
+    default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
+    scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
+    config = ev.EvalConfig(scales=scales, thresholds=tuple(args.thresholds or default_thr), headings_rad=headings,
+                           phases=tuple(args.phases))
+    detector = load_attack_detector(args.detector, device=device)
+    command = "davis-attack " + " ".join(sys.argv[1:])
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    from davis_rig.scene.body import BodyModel
+
+    model = BodyModel()
+    if args.table == 1:
+        grids = {int(k): load_texture_grid(p) for k, p in textures.items()}
+        res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
+                        progress=not args.no_progress)
+        specs = {**ev.baseline_textures(parts), **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
+    elif args.table == 2:
+        grids = {k: load_texture_grid(p) for k, p in textures.items()}
+        res = ev.table2(grids, detector, args.out, config=config, model=model, command=command,
+                        progress=not args.no_progress)
+        specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
+    else:
+        specs = {k: ev.TextureSpec(load_texture_grid(p), parts) for k, p in textures.items()}
+        scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes), model, config)
+        rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.no_progress)
+        res = ev.write_table(rows, config.thresholds, args.out, "evaluation", "Digital evaluation (exact simulator)",
+                             command=command)
+    summary = {"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"])}
+    if args.visualise:
+        vis = ev.write_visualisations(specs, detector, args.out, config=config, model=model)
+        summary.update(frames=[str(p) for p in vis["frames"]], gif=str(vis["gif"]))
+    print(res["markdown"].read_text())
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,75 @@
+"""``davis-attack optimize`` / ``evaluate`` argument mapping (API patched: the exact call is asserted)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from davis_rig.cli import _attack_commands as cmd
+
+
+def _parser():
+    parser = argparse.ArgumentParser(prog="davis-attack")
+    sub = parser.add_subparsers(dest="command", required=True)
+    cmd.add_optimize_parser(sub)
+    cmd.add_evaluate_parser(sub)
+    return parser
+
+
+def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
+    import davis_rig.attack.optimize as opt
+
+    calls = {}
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: calls.setdefault("det", (path, str(device))))
+
+    def fake(config, detector, out, **kw):
+        calls["run"] = (config, detector, out, kw)
+        return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan)
+
+    monkeypatch.setattr(opt, "optimize_texture", fake)
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--cells", "20", "--parts", "torso", "--iterations",
+                                 "30", "--max-steps", "3", "--detector", "d.ckpt", "--device", "cpu", "--resume",
+                                 "--clips-per-step", "2", "--seed", "4", "--no-progress"])
+    assert args.func(args) == 0
+    config, detector, out, kw = calls["run"]
+    assert calls["det"] == ("d.ckpt", "cpu") and detector == calls["det"] and out == str(tmp_path)
+    assert (config.grid_n, config.parts, config.iterations, config.clips_per_step, config.seed) == (20, ("torso",), 30, 2, 4)
+    assert (config.lr, config.lambda_obj, config.betas) == (1e-4, 1e4, (0.9, 0.99))
+    assert kw == {"resume": True, "device": __import__("torch").device("cpu"), "progress": False, "max_steps": 3}
+
+
+def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
+    import davis_rig.attack.evaluate as ev
+    import davis_rig.attack.optimize as opt
+
+    np.save(tmp_path / "t10.npy", np.eye(10, dtype=np.float32))
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake_table1(grids, detector, out, **kw):
+        seen.update(grids=grids, detector=detector, out=out, kw=kw)
+        md = Path(out) / "table1.md"
+        Path(out).mkdir(parents=True, exist_ok=True)
+        md.write_text("| Texture |\n")
+        return {"markdown": md, "json": md, "plot": md, "rows": []}
+
+    monkeypatch.setattr(ev, "table1", fake_table1)
+    args = _parser().parse_args(["evaluate", "--table", "1", "--out", str(tmp_path / "o"), "--texture",
+                                 f"10={tmp_path / 't10.npy'}", "--scales", "middle", "--headings", "1", "--no-progress"])
+    assert args.func(args) == 0
+    assert list(seen["grids"]) == [10] and np.array_equal(seen["grids"][10], np.eye(10, dtype=np.float32))
+    config = seen["kw"]["config"]
+    assert config.thresholds == ev.PAPER_THRESHOLDS and config.scales == ("middle",)
+    assert config.headings_rad == (math.pi / 2,) and seen["kw"]["parts"] == ("torso", "arms", "legs")
+
+
+@pytest.mark.parametrize("argv", [["--texture", "nokey"], ["--table", "1", "--texture", "ten=x.npy"], []])
+def test_evaluate_usage_errors(argv, tmp_path, capsys):
+    args = _parser().parse_args(["evaluate", "--out", str(tmp_path), *argv])
+    assert args.func(args) == 2
+    assert "error" in capsys.readouterr().err
