@@ -48,6 +48,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 
 __all__ = [
     "ClipPool",
+    "amass_motions",
     "EoTConfig",
     "PoolClip",
     "draw_scene",
@@ -405,3 +406,39 @@ class ClipPool:
         return (f"ClipPool(size={self.size}, owned={len(self.owned)}, grid_n={self.grid_n}, "
                 f"base_seed={self.base_seed}, rank={self.rank}/{self.world_size})")
 
+
+
+def amass_motions(root, split: str = "train", *, asset=None, shape_index: int = 0, max_trials: int | None = None,
+                  translation: str = "foot_locked") -> list:
+    """Motions of one side of the paper's AMASS/CMU trial split (47 train / 13 test of 60), retargeted onto the rig.
+
+    Training uses ``split="train"``, the evaluation ``split="test"`` (motions unseen in training), from the
+    deterministic rule of :func:`davis_rig.scene.mocap.splits.split_trials`.
+
+    Args:
+        root: the user's AMASS CMU folder (``<root>/<subject>/*_poses.npz``; never downloaded).
+        split: ``"train"`` or ``"test"``.
+        asset: body asset (``None`` = bundled).
+        shape_index: shape whose rig the motions are retargeted to.
+        max_trials: keep the first N trials of the side (sorted by id).
+        translation: root translation mode of :func:`davis_rig.scene.mocap.amass.load_amass`.
+
+    Returns:
+        list of :class:`davis_rig.scene.motion.Motion`.
+
+    Raises:
+        FileNotFoundError: root is not a folder. ValueError: bad split or no trial found.
+    """
+    from davis_rig.scene.mocap.amass import load_amass
+    from davis_rig.scene.mocap.splits import find_trials, split_trials
+
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    trials = find_trials(root)
+    if not trials:
+        raise ValueError(f"no AMASS trials (*_poses.npz) under {root}")
+    parts = split_trials(trials)
+    paths = parts.train_paths() if split == "train" else parts.test_paths()
+    if max_trials is not None:
+        paths = paths[: int(max_trials)]
+    return [load_amass(p, asset, shape_index, translation=translation) for p in paths]

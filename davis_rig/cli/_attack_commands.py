@@ -45,6 +45,10 @@ def _detector_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch (default: torch's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--amass", default=None, metavar="DIR",
+                        help="AMASS CMU folder: optimize draws train-split motions, evaluate uses test-split motions "
+                             "(default: the body shapes' walk cycles)")
+    parser.add_argument("--max-trials", type=int, default=None, help="with --amass: use the first N trials of the split")
 
 
 def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
@@ -132,8 +136,9 @@ def optimize_command(args) -> int:
                           alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                           num_validation_clips=args.val_clips, box_margin_px=args.box_margin, seed=args.seed)
     detector = load_attack_detector(args.detector, device=device)
+    motions = _motions(args, "train")
     try:
-        result = optimize_texture(config, detector, args.out, resume=args.resume, device=device,
+        result = optimize_texture(config, detector, args.out, resume=args.resume, device=device, motions=motions,
                                   progress=not args.no_progress, max_steps=args.max_steps)
     finally:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
@@ -143,6 +148,14 @@ def optimize_command(args) -> int:
                           "seconds_per_step": result.seconds_per_step, "best_step": result.best_step,
                           "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr}))
     return 0
+
+
+def _motions(args, split: str) -> tuple:
+    if not args.amass:
+        return ()
+    from davis_rig.attack.eot import amass_motions
+
+    return tuple(amass_motions(args.amass, split, max_trials=args.max_trials))
 
 
 def _usage(message: str) -> int:
@@ -192,19 +205,20 @@ def evaluate_command(args) -> int:
     from davis_rig.scene.body import BodyModel
 
     model = BodyModel()
+    motions = _motions(args, "test")
     if args.table == 1:
         grids = {int(k): load_texture_grid(p) for k, p in textures.items()}
         res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
-                        progress=not args.no_progress)
+                        motions=motions, progress=not args.no_progress)
         specs = {**ev.baseline_textures(parts), **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
     elif args.table == 2:
         grids = {k: load_texture_grid(p) for k, p in textures.items()}
-        res = ev.table2(grids, detector, args.out, config=config, model=model, command=command,
+        res = ev.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
                         progress=not args.no_progress)
         specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
     else:
         specs = {k: ev.TextureSpec(load_texture_grid(p), parts) for k, p in textures.items()}
-        scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes), model, config)
+        scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config)
         rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.no_progress)
         res = ev.write_table(rows, config.thresholds, args.out, "evaluation", "Digital evaluation (exact simulator)",
                              command=command)

@@ -73,6 +73,23 @@ def test_draw_scene_seeded_and_train_shapes_only():
     assert slot_seed(0, 1, 2) == slot_seed(0, 1, 2) != slot_seed(0, 1, 3)
 
 
+def test_training_motions_drawn_and_rendered(body, tmp_path):
+    from davis_rig.attack.eot import amass_motions, prepare_clip
+    from davis_rig.scene.gait import generate_gait
+
+    motion = generate_gait()
+    drawn = [draw_scene(TINY_EOT, s, 24, (motion,)) for s in range(20)]
+    with_motion = [(spec, sensor) for spec, sensor in drawn if spec.motion is not None]
+    assert 0 < len(with_motion) < 20  # half of the clips use a training motion
+    spec, sensor = with_motion[0]
+    clip = prepare_clip(spec, sensor, body, 4, config=TINY_EOT)
+    assert np.isfinite(clip.boxes).all() and clip.t_us.shape == (31,)
+    with pytest.raises(ValueError, match="no AMASS"):
+        amass_motions(tmp_path)
+    with pytest.raises(ValueError, match="split"):
+        amass_motions(tmp_path, "val")
+
+
 def test_pool_rebuilds_from_generations_and_splits_slots(body):
     pool = ClipPool(TINY_EOT, body, 4, size=3, base_seed=5)
     refreshed = pool.refresh(step=10, fraction=0.34)

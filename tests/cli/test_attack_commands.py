@@ -40,7 +40,8 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
     assert calls["det"] == ("d.ckpt", "cpu") and detector == calls["det"] and out == str(tmp_path)
     assert (config.grid_n, config.parts, config.iterations, config.clips_per_step, config.seed) == (20, ("torso",), 30, 2, 4)
     assert (config.lr, config.lambda_obj, config.betas) == (1e-4, 1e4, (0.9, 0.99))
-    assert kw == {"resume": True, "device": __import__("torch").device("cpu"), "progress": False, "max_steps": 3}
+    assert kw == {"resume": True, "device": __import__("torch").device("cpu"), "progress": False, "max_steps": 3,
+                  "motions": ()}
 
 
 def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
