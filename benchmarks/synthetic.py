@@ -67,7 +67,8 @@ def main() -> None:
     train = [syn.sample_scene(rng, "train", config) for _ in range(args.scenes)]
     test = [syn.held_out_scene(rng, *syn.TEST_SUBSETS[i % 9], config) for i in range(args.scenes)]
     print(f"commit {_commit()}  python {platform.python_version()}  torch {torch.__version__}  numpy {np.__version__}"
-          f"  threads {torch.get_num_threads()}  device {args.device}  cpu {platform.processor() or platform.machine()}")
+          f"  threads {torch.get_num_threads()}  device {args.device}"
+          f"  cpu {platform.processor() or platform.machine()}")
     print(f"{args.scenes} scenes per kind x {args.seconds:g} s; train people per scene: "
           f"{[len(s.people) for s in train]}; median seconds per generated second")
     results = {}

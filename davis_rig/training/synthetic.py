@@ -1,4 +1,4 @@
-"""Synthetic pedestrian event sequences: a scene sampler and an exact render → simulate → histogram → label pipeline.
+"""Synthetic pedestrian event sequences: scene sampler, exact render → simulate → histogram → label pipeline.
 
 A sequence is a :class:`SyntheticScene` (everything resolved from seeds, JSON-able with :meth:`SyntheticScene.to_dict`)
 turned into RVT training data by :func:`render_sequence`:
@@ -42,7 +42,7 @@ every scene a pure function of ``(seed, split, index)``, :func:`scene_for_job`),
 processes, skips finished ones (resumable) and writes RVT's layout plus a dataset card;
 :func:`evaluate_held_out` scores a ``davis-train`` run per held-out subset.
 
-Cost (measured while generating 27 sequences x 2 s of ``/work/data/synth_small`` on a shared 2-core CPU, one torch thread, other jobs
+Cost (measured while generating 27 sequences x 2 s on a shared 2-core CPU, one torch thread, other jobs
 running): 6.4 s of wall time per generated second (rasterize 3.4, simulate 1.5, compose 0.7, pose 0.6,
 histogram 0.05, label 0.01 s per generated second); see ``benchmarks/synthetic.py``. Use one torch thread per
 process (``threads=1``) on a busy machine: oversubscribed intra-op threads made the same scene ~20x slower.
@@ -293,10 +293,12 @@ class SyntheticSceneConfig:
         if not self.duration_s >= 0.05:
             raise ValueError(f"duration_s must be >= 0.05 s (one window), got {self.duration_s}")
         if self.render_rate_hz < 200.0 or (1e6 / self.render_rate_hz) % 1:
-            raise ValueError(f"render_rate_hz must be >= 200 and give whole µs frame periods, got {self.render_rate_hz}")
+            raise ValueError(
+                f"render_rate_hz must be >= 200 and give whole µs frame periods, got {self.render_rate_hz}")
         p = np.asarray(self.people_probabilities, dtype=np.float64)
         if p.shape != (4,) or np.any(p < 0) or not math.isclose(p.sum(), 1.0, abs_tol=1e-6):
-            raise ValueError(f"people_probabilities: expected 4 probabilities summing to 1, got {self.people_probabilities}")
+            raise ValueError(
+                f"people_probabilities: expected 4 probabilities summing to 1, got {self.people_probabilities}")
         if not 0 < self.person_height_px[0] <= self.person_height_px[1]:
             raise ValueError(f"person_height_px: expected 0 < low <= high, got {self.person_height_px}")
 
@@ -434,11 +436,12 @@ def sample_scene(rng: np.random.Generator, split: str = "train",
 
 
 def held_out_scene(rng: np.random.Generator, clothing: str, scale: str,
-               config: SyntheticSceneConfig | None = None) -> SyntheticScene:
+                   config: SyntheticSceneConfig | None = None) -> SyntheticScene:
     """Draw one held-out test scene: one test-shape person in ``clothing`` at a paper scale, static camera.
 
     The person walks or runs across the view (heading pi/2 or -pi/2, +-0.35 rad), so the projected height stays
-    near the scale; the camera looks horizontally from half the 1.75 m reference height (as the paper's rig); background, gait, distractors (behind the person only) and noise come from the test seeds.
+    near the scale; the camera looks horizontally from half the 1.75 m reference height (as the paper's rig);
+    background, gait, distractors (behind the person only) and noise come from the test seeds.
 
     Args:
         rng: the random generator.
@@ -1085,7 +1088,7 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
 
 def evaluate_held_out(data_dir, run_dir, *, device: str = "cpu", split: str = "test",
                       checkpoint: str | None = None) -> dict[str, dict[str, Any]]:
-    """COCO AP (RVT protocol, :meth:`~davis_rig.training.trainer.Trainer.validate`) of a training run per held-out subset.
+    """COCO AP of a training run per held-out subset (RVT protocol, :meth:`Trainer.validate`).
 
     The sequences of ``split`` are grouped by their ``meta.json`` ``subset`` (``"white/large"``, ...), each group
     is streamed through the run's eval model (EMA if the run used one) and scored on its own; ``"all"`` scores the
