@@ -314,6 +314,18 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _truncate_log(path: Path, last_step: int) -> None:
+    """Drop log records after ``last_step`` (written after the checkpoint a resume starts from)."""
+    if not path.is_file():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        rec = json.loads(line)
+        if int(rec.get("validation", rec).get("step", 0)) <= last_step:
+            kept.append(line)
+    path.write_text("".join(k + "\n" for k in kept))
+
+
 def _better(candidate: dict, best: dict | None) -> bool:
     if best is None:
         return True
@@ -401,6 +413,8 @@ def optimize_texture(
     val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips) if rank == 0 else []
     per_rank = config.clips_per_step // world
     end = config.iterations if max_steps is None else min(config.iterations, start + int(max_steps))
+    if rank == 0 and start > 0:
+        _truncate_log(out / "log.jsonl", start)
     log = open(out / "log.jsonl", "a") if rank == 0 else None
     bar = tqdm(total=end - start, disable=not progress or rank != 0, desc=f"attack {config.grid_n}x{config.grid_n}")
     t_start = time.perf_counter()

@@ -120,6 +120,8 @@ def test_resume_is_bit_identical(detector, body, tmp_path):
     full = optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
     part = optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, max_steps=2)
     assert part.steps == 2
+    with open(tmp_path / "part" / "log.jsonl", "a") as f:  # a step logged after the last checkpoint (crash)
+        f.write(json.dumps({"step": 3, "loss": -1.0}) + "\n")
     rest = optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
     assert rest.steps == 2
     a = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=True)
