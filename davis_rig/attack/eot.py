@@ -30,6 +30,7 @@ All randomness comes from ``numpy.random.default_rng`` seeded with integers; no 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -166,7 +167,8 @@ class PoolClip:
     Attributes:
         seed: the seed it was drawn from.
         spec: the :class:`~davis_rig.scene.scene.SceneSpec`.
-        raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad).
+        raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad) without its ``uv``, ``face`` and
+            ``sample_index`` (not needed to compose; use ``lookup`` for the texels).
         lookup: :class:`~davis_rig.scene.texture.TexelLookup` of the grid (mask applied: white outside).
         background: float32 tensor [H, W].
         t_us: int64 [T] frame times (µs).
@@ -300,8 +302,11 @@ def prepare_clip(
     noise_index = rng.integers(0, n_windows * 2 * NUM_BINS * h * w, size=k, dtype=np.int64)
     device = clip.raster.coverage.device
     background = clip.background
+    # compose needs only sample_pixel, shade and coverage: drop the per-sample UVs, faces and sample indices
+    # (a third of a clip's memory) once the texel lookup is built
+    raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None)
     return PoolClip(
-        seed=int(seed), spec=spec, raster=clip.raster, lookup=lookup,
+        seed=int(seed), spec=spec, raster=raster, lookup=lookup,
         background=torch.as_tensor(background, device=device), t_us=t_us, window_end_us=ends, boxes=boxes,
         threshold=torch.as_tensor(theta, device=device), noise_index=torch.as_tensor(noise_index, device=device),
     )
