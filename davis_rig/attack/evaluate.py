@@ -246,11 +246,11 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
     """
     from davis_rig.models.rvt.detector import pad_to_input
 
-    video = video.detach().cpu() if isinstance(video, torch.Tensor) else torch.as_tensor(np.asarray(video))
-    events = simulate_events(video, t_us, simulator)
+    device = next(detector.parameters()).device if device is None else torch.device(device)
+    video = video.detach() if isinstance(video, torch.Tensor) else torch.as_tensor(np.asarray(video))
+    events = simulate_events(video, t_us, simulator, device=device)  # the simulator runs where the detector is
     h, w = video.shape[-2:]
     hist = stacked_histograms(events, window_end_us, height=int(h), width=int(w))
-    device = next(detector.parameters()).device if device is None else device
     decoded, states = [], None
     with torch.no_grad():
         for k in range(hist.shape[0]):
