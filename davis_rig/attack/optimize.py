@@ -84,6 +84,8 @@ class AttackConfig:
         checkpoint_every, snapshot_every: periods (steps).
         v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms`.
         box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
+        precision: ``"fp32"`` or ``"bf16"`` (autocast of the detector's forward and backward; texture, V2E and
+            loss stay fp32).
         seed: seeds the generator init, dropout, pool and sampling.
         eot: the EoT distributions.
     """
@@ -111,6 +113,7 @@ class AttackConfig:
     v2e_mode: str = "dvs"
     v2e_binning: str = "interval"
     box_margin_px: float | None = None
+    precision: str = "fp32"
     seed: int = 0
     eot: EoTConfig = field(default_factory=EoTConfig)
 
@@ -119,6 +122,8 @@ class AttackConfig:
                      "checkpoint_every", "snapshot_every", "num_validation_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
         if self.clips_per_step > self.pool_size:
             raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
 
@@ -223,9 +228,11 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
     x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning) for c in clips], dim=1)
     x = x.to(device)
     decoded, states = [], None
-    for w in range(x.shape[0]):
-        out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
-        decoded.append(out)
+    amp = config.precision == "bf16"
+    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
+        for w in range(x.shape[0]):
+            out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
+            decoded.append(out.float())
     boxes = None
     if config.box_margin_px is not None:
         boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=device)  # [W, B, 4]

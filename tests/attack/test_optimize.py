@@ -176,9 +176,27 @@ def test_load_attack_detector_frozen_and_onnx_hint(tmp_path):
         load_attack_detector(onnx)
 
 
+def test_bf16_autocast_step_close_to_fp32(detector, body):
+    from davis_rig.attack.optimize import attack_loss
+
+    pool = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3)
+    grid = torch.full((4, 4), 0.5, requires_grad=True)
+    losses, grads = [], []
+    for precision in ("fp32", "bf16"):
+        grid.grad = None
+        loss = attack_loss(grid, pool.sample(0, 1), detector, _tiny(precision=precision))
+        loss.total.backward()
+        losses.append(loss.total.item())
+        grads.append(grid.grad.clone())
+    assert loss.total.dtype == torch.float32 and torch.isfinite(grads[1]).all()
+    assert losses[1] == pytest.approx(losses[0], rel=0.05)
+
+
 def test_config_validation():
     with pytest.raises(ValueError):
         AttackConfig(iterations=0)
     with pytest.raises(ValueError):
         AttackConfig(clips_per_step=4, pool_size=2)
+    with pytest.raises(ValueError):
+        AttackConfig(precision="fp16")
     assert replace(AttackConfig(), grid_n=20).to_dict()["grid_n"] == 20
