@@ -10,7 +10,8 @@ extra instrumented iteration per setting.
 Reported: median, IQR and min of ``--repeats`` iterations after ``--warmup`` untimed ones, per device and CPU
 thread count; the official code's ~2.3 s/iteration (GPU) and the goal of <= 0.1 s on one H100/H200 as ratios.
 
-Run: ``python benchmarks/attack_step.py [--threads 1 2] [--repeats 3] [--clips 1] [--model base] [--no-cuda]``.
+Run: ``python benchmarks/attack_step.py [--threads 1 2] [--repeats 3] [--clips 1] [--model base] [--no-cuda]
+[--precision bf16]`` (bf16 applies to the CUDA run).
 """
 
 from __future__ import annotations
@@ -56,8 +57,9 @@ def _stats(samples: list[float]) -> str:
     return f"median {statistics.median(samples):.3f} s  IQR {q[1] - q[0]:.3f} s  min {min(samples):.3f} s"
 
 
-def run(device: torch.device, model_name: str, clips_per_step: int, warmup: int, repeats: int) -> float:
-    cfg = AttackConfig(grid_n=10, clips_per_step=clips_per_step, pool_size=max(clips_per_step, 1))
+def run(device: torch.device, model_name: str, clips_per_step: int, warmup: int, repeats: int,
+        precision: str = "fp32") -> float:
+    cfg = AttackConfig(grid_n=10, clips_per_step=clips_per_step, pool_size=max(clips_per_step, 1), precision=precision)
     torch.manual_seed(0)
     detector = RVTDetector(getattr(RVTConfig, model_name)()).to(device).eval()
     for p in detector.parameters():
@@ -135,6 +137,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=1, help="EoT clips per iteration (batch)")
     parser.add_argument("--model", default="base", choices=["tiny", "small", "base", "mini"])
     parser.add_argument("--no-cuda", action="store_true")
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="detector autocast on CUDA")
     args = parser.parse_args()
     print(f"attack step benchmark: RVT-{args.model}, seq len 3, 304x240, grid 10x10, clips/iter {args.clips}")
     print(f"commit {_commit()}  torch {torch.__version__}  numpy {np.__version__}  python {platform.python_version()}  "
@@ -146,7 +149,9 @@ def main() -> None:
         results[f"cpu{threads}"] = run(torch.device("cpu"), args.model, args.clips, args.warmup, args.repeats)
     if torch.cuda.is_available() and not args.no_cuda:
         print(f"CUDA: {torch.cuda.get_device_name(0)}")
-        results["cuda"] = run(torch.device("cuda"), args.model, args.clips, max(args.warmup, 3), max(args.repeats, 10))
+        torch.backends.cudnn.benchmark = True
+        results["cuda"] = run(torch.device("cuda"), args.model, args.clips, max(args.warmup, 3), max(args.repeats, 10),
+                              args.precision)
     if "cpu1" in results and "cpu2" in results:
         print(f"speed-up 2 threads vs 1: {results['cpu1'] / results['cpu2']:.2f}x")
     if "cuda" in results and "cpu1" in results:
