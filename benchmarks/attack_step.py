@@ -1,4 +1,4 @@
-"""Benchmark: seconds per attack iteration (RVT-B, sequence length 3): texture compose + V2E + forward + backward + Adam.
+"""Benchmark: seconds per attack iteration (RVT-B, seq len 3): texture compose + V2E + forward + backward + Adam.
 
 One iteration is exactly what :func:`davis_rig.attack.optimize.optimize_texture` does per step (batch of
 ``--clips`` pool clips): generator -> binarize_ste -> texel lookup + compose of the pre-rasterized clip (grad) ->

@@ -145,7 +145,8 @@ class EoTConfig:
         lo, hi = self.threshold_range
         if not 0 < lo <= hi:
             raise ValueError(f"threshold_range must satisfy 0 < low <= high, got {self.threshold_range}")
-        if self.threshold_sigma < 0 or self.shot_noise_rate_hz[0] < 0 or self.shot_noise_rate_hz[1] < self.shot_noise_rate_hz[0]:
+        low_rate, high_rate = self.shot_noise_rate_hz
+        if self.threshold_sigma < 0 or low_rate < 0 or high_rate < low_rate:
             raise ValueError("threshold_sigma must be >= 0 and shot_noise_rate_hz a range of rates >= 0")
         if int(self.window_us) <= 0:
             raise ValueError(f"window_us must be > 0, got {self.window_us}")

@@ -35,7 +35,7 @@ import numpy as np
 from davis_rig.errors import MissingDependencyError, ShapeError
 from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
-from davis_rig.scene.camera import TEST_SCALES_PX, PinholeCamera
+from davis_rig.scene.camera import PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
@@ -152,7 +152,8 @@ class EvalScene:
     boxes: np.ndarray
 
 
-def evaluation_scenes(config: EvalConfig, num_shapes: int, motions: Sequence[Motion] = ()) -> list[tuple[object, SceneSpec]]:
+def evaluation_scenes(config: EvalConfig, num_shapes: int,
+                      motions: Sequence[Motion] = ()) -> list[tuple[object, SceneSpec]]:
     """The test scenes: shapes x (walk cycle or test motions) x headings x phases x scales.
 
     Args:
@@ -359,7 +360,8 @@ def evaluate_textures(textures: Mapping[str, TextureSpec], detector, scenes: Seq
     return rows
 
 
-def baseline_textures(parts: tuple[str, ...] | None = ("torso", "arms", "legs"), seed: int = 0) -> dict[str, TextureSpec]:
+def baseline_textures(parts: tuple[str, ...] | None = ("torso", "arms", "legs"),
+                      seed: int = 0) -> dict[str, TextureSpec]:
     """The paper's baselines: white, black and a seeded random 60 x 60 pattern (on the given parts)."""
     from davis_rig.attack.texture import black_texture, random_texture, white_texture
 
@@ -465,7 +467,8 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
     model = model or BodyModel()
     textures = baseline_textures(tuple(parts) if parts else None, seed=config.seed)
     for n in sorted(optimized, reverse=True):
-        textures[f"ours {n}x{n}"] = TextureSpec(np.asarray(optimized[n], dtype=np.float32), tuple(parts) if parts else None)
+        grid = np.asarray(optimized[n], dtype=np.float32)
+        textures[f"ours {n}x{n}"] = TextureSpec(grid, tuple(parts) if parts else None)
     scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table1",

@@ -60,6 +60,7 @@ __all__ = [
     "clip_histograms",
     "load_attack_detector",
     "optimize_texture",
+    "validate",
 ]
 
 _VAL_SEED_OFFSET = 1_000_003
@@ -192,7 +193,8 @@ def load_attack_detector(path=None, device=None):
     return detector
 
 
-def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", binning: str = "interval") -> "torch.Tensor":
+def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs",
+                    binning: str = "interval") -> "torch.Tensor":
     """Differentiable RVT input of one pool clip: float tensor [W, 20, H, W] (V2E counts + noise, clipped at 10).
 
     Args:
@@ -241,7 +243,8 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
 
 
 def _step_seed(seed: int, step: int) -> int:
-    return int(np.random.SeedSequence([0xA77AC, int(seed), int(step)]).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+    state = np.random.SeedSequence([0xA77AC, int(seed), int(step)]).generate_state(1, dtype=np.uint64)
+    return int(state[0] >> np.uint64(1))
 
 
 def _soft_grid(generator: TextureGenerator, seed: int, step: int) -> "torch.Tensor":

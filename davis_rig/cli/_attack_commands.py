@@ -15,7 +15,7 @@ import sys
 
 OPTIMIZE_EPILOG = """\
 examples:
-  davis-attack optimize --out runs/n10 --cells 10                         # paper: 11,500 steps, full body, bundled detector
+  davis-attack optimize --out runs/n10 --cells 10               # paper: 11,500 steps, full body, bundled detector
   davis-attack optimize --out runs/n10 --cells 10 --resume                # continue runs/n10/checkpoints/last.pt
   davis-attack optimize --out runs/torso --cells 10 --parts torso --detector rvt-b.ckpt
   torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10 --clips-per-step 8   # DDP
@@ -27,7 +27,8 @@ last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.n
 
 EVALUATE_EPILOG = """\
 examples:
-  davis-attack evaluate --table 1 --out docs/table1 --texture 60=runs/n60/best_texture.npy ... --texture 10=runs/n10/best_texture.npy
+  davis-attack evaluate --table 1 --out docs/table1 --texture 60=runs/n60/best_texture.npy ... \\
+      --texture 10=runs/n10/best_texture.npy
   davis-attack evaluate --table 2 --out docs/table2 --texture torso=runs/torso/best_texture.npy ... \\
       --texture torso+arms+legs=runs/n10/best_texture.npy
   davis-attack evaluate --out eval/ --texture mine=texture.png --visualise
@@ -48,7 +49,8 @@ def _detector_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--amass", default=None, metavar="DIR",
                         help="AMASS CMU folder: optimize draws train-split motions, evaluate uses test-split motions "
                              "(default: the body shapes' walk cycles)")
-    parser.add_argument("--max-trials", type=int, default=None, help="with --amass: use the first N trials of the split")
+    parser.add_argument("--max-trials", type=int, default=None,
+                        help="with --amass: use the first N trials of the split")
 
 
 def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
@@ -66,7 +68,8 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--pool-size", type=int, default=32, help="pre-rasterized clips in the pool (default: 32)")
     p.add_argument("--refresh-every", type=int, default=50, help="pool refresh period in steps (default: 50)")
     p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: 1e-4)")
-    p.add_argument("--alpha-schedule", default="linear", help="binarization schedule: linear (paper), cosine, step, hard, soft")
+    p.add_argument("--alpha-schedule", default="linear",
+                   help="binarization schedule: linear (paper), cosine, step, hard, soft")
     p.add_argument("--validate-every", type=int, default=1000, help="validation period in steps (default: 1000)")
     p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
     p.add_argument("--box-margin", type=float, default=None, metavar="PX",
@@ -133,7 +136,8 @@ def optimize_command(args) -> int:
         torch.set_num_threads(args.threads)
     device = _init_distributed(_device(args.device))
     parts = None if args.parts == ["all"] else tuple(args.parts)
-    config = AttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
+    config = AttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations,
+                          clips_per_step=args.clips_per_step,
                           pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
                           alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                           num_validation_clips=args.val_clips, box_margin_px=args.box_margin,

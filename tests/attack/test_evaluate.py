@@ -84,7 +84,8 @@ def test_table1_and_table2_on_tiny_config(tmp_path):
     assert len(rows) == 4 * 3 * len(PAPER_THRESHOLDS)  # textures x (2 scales + all) x thresholds
     for name in names:
         for scale in ("all", "large", "small"):
-            sel = sorted((r for r in rows if r["texture"] == name and r["scale"] == scale), key=lambda r: r["threshold"])
+            sel = sorted((r for r in rows if r["texture"] == name and r["scale"] == scale),
+                         key=lambda r: r["threshold"])
             asr = [r["SeqASR"] for r in sel]
             assert asr == sorted(asr)  # a higher threshold never detects more sequences
             assert all(r["num_sequences"] == (2 if scale == "all" else 1) for r in sel)

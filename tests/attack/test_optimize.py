@@ -101,7 +101,8 @@ def test_pool_rebuilds_from_generations_and_splits_slots(body):
         assert torch.equal(again.clips[slot].raster.shade, pool.clips[slot].raster.shade)
         assert torch.equal(again.clips[slot].noise_index, pool.clips[slot].noise_index)
     half = ClipPool(TINY_EOT, body, 4, size=3, base_seed=5, rank=1, world_size=2)
-    assert sorted(half.clips) == [1] and half.clips[1].seed == ClipPool(TINY_EOT, body, 4, size=3, base_seed=5).clips[1].seed
+    assert sorted(half.clips) == [1]
+    assert half.clips[1].seed == ClipPool(TINY_EOT, body, 4, size=3, base_seed=5).clips[1].seed
     with pytest.raises(ValueError):
         ClipPool(TINY_EOT, body, 4, size=1, rank=0, world_size=2)
 

@@ -25,20 +25,22 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
     import davis_rig.attack.optimize as opt
 
     calls = {}
-    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: calls.setdefault("det", (path, str(device))))
+    monkeypatch.setattr(opt, "load_attack_detector",
+                        lambda path, device=None: calls.setdefault("det", (path, str(device))))
 
     def fake(config, detector, out, **kw):
         calls["run"] = (config, detector, out, kw)
         return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan)
 
     monkeypatch.setattr(opt, "optimize_texture", fake)
-    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--cells", "20", "--parts", "torso", "--iterations",
-                                 "30", "--max-steps", "3", "--detector", "d.ckpt", "--device", "cpu", "--resume",
-                                 "--clips-per-step", "2", "--seed", "4", "--no-progress"])
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--cells", "20", "--parts", "torso",
+                                 "--iterations", "30", "--max-steps", "3", "--detector", "d.ckpt", "--device", "cpu",
+                                 "--resume", "--clips-per-step", "2", "--seed", "4", "--no-progress"])
     assert args.func(args) == 0
     config, detector, out, kw = calls["run"]
     assert calls["det"] == ("d.ckpt", "cpu") and detector == calls["det"] and out == str(tmp_path)
-    assert (config.grid_n, config.parts, config.iterations, config.clips_per_step, config.seed) == (20, ("torso",), 30, 2, 4)
+    got = (config.grid_n, config.parts, config.iterations, config.clips_per_step, config.seed)
+    assert got == (20, ("torso",), 30, 2, 4)
     assert (config.lr, config.lambda_obj, config.betas) == (1e-4, 1e4, (0.9, 0.99))
     assert kw == {"resume": True, "device": __import__("torch").device("cpu"), "progress": False, "max_steps": 3,
                   "motions": ()}
@@ -61,7 +63,8 @@ def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
 
     monkeypatch.setattr(ev, "table1", fake_table1)
     args = _parser().parse_args(["evaluate", "--table", "1", "--out", str(tmp_path / "o"), "--texture",
-                                 f"10={tmp_path / 't10.npy'}", "--scales", "middle", "--headings", "1", "--no-progress"])
+                                 f"10={tmp_path / 't10.npy'}", "--scales", "middle", "--headings", "1",
+                                 "--no-progress"])
     assert args.func(args) == 0
     assert list(seen["grids"]) == [10] and np.array_equal(seen["grids"][10], np.eye(10, dtype=np.float32))
     config = seen["kw"]["config"]
