@@ -77,3 +77,13 @@ def test_evaluate_usage_errors(argv, tmp_path, capsys):
     args = _parser().parse_args(["evaluate", "--out", str(tmp_path), *argv])
     assert args.func(args) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_main_entry_point_exit_codes(tmp_path, capsys):
+    from davis_rig.cli.attack import main
+
+    assert main(["evaluate", "--out", str(tmp_path), "--texture", "nokey"]) == 2
+    assert main(["optimize", "--out", str(tmp_path), "--detector", str(tmp_path / "missing.ckpt"),
+                 "--device", "cpu"]) == 4  # CheckpointError -> data exit code, one message
+    err = capsys.readouterr().err
+    assert "davis-attack optimize: error:" in err and "missing.ckpt" in err
