@@ -13,6 +13,7 @@ import sys
 
 from davis_rig.cli._attack_commands import add_evaluate_parser, add_optimize_parser
 from davis_rig.cli._common import run_command
+from davis_rig.cli._export_command import add_export_parser
 
 NAME = "davis-attack"
 
@@ -24,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_optimize_parser(sub)
     add_evaluate_parser(sub)
+    add_export_parser(sub)
     return parser
 
 
