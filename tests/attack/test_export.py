@@ -1,0 +1,101 @@
+"""Print export: pattern pieces, PDF page geometry (page sizes, cell size in points), texture io, CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+from davis_rig.attack.export import (
+    PAPER_SIZES_MM,
+    PT_PER_MM,
+    black_rectangles,
+    export_texture,
+    load_texture_grid,
+    pattern_pieces,
+    upsample,
+)
+
+pypdf = pytest.importorskip("pypdf", reason="pypdf (test extra) parses the written PDF")
+pytest.importorskip("reportlab", reason="reportlab (extra 'export') writes the PDF")
+
+
+def _filled_rects(page):
+    """(w, h) of every `x y w h re` followed by a fill operator in a page's content stream."""
+    from pypdf.generic import ContentStream
+
+    ops = ContentStream(page.get_contents(), page.pdf).operations
+    out, pending = [], []
+    for operands, op in ops:
+        if op == b"re":
+            pending.append((float(operands[2]), float(operands[3])))
+        elif op in (b"f", b"f*", b"F"):
+            out += pending
+            pending = []
+        elif op in (b"n", b"S", b"W", b"W*", b"B"):
+            pending = []
+    return out
+
+
+def test_black_rectangles_cover_black_cells_exactly():
+    g = (np.random.default_rng(0).random((17, 13)) > 0.4).astype(float)
+    count = np.zeros_like(g)
+    for r0, c0, r1, c1 in black_rectangles(g):
+        count[r0:r1, c0:c1] += 1
+    assert count.max() == 1 and np.array_equal(count == 1, g <= 0.5)
+
+
+def test_pieces_are_uv_islands_scaled_by_the_body():
+    pieces = pattern_pieces()
+    assert [p.name for p in pieces] == ["torso", "arms-1", "arms-2", "legs"]
+    for p in pieces:
+        assert len(p.loops_uv) >= 1 and not p.mirrored
+        assert p.stretch_quartiles[0] <= p.mm_per_uv <= p.stretch_quartiles[2]
+    user = pattern_pieces(["arms"], cell_mm=25.0, n_cells=10)
+    assert all(p.cell_mm(10) == pytest.approx(25.0) for p in user)
+    with pytest.raises(ValueError):
+        pattern_pieces(["wings"])
+
+
+@pytest.mark.parametrize("paper", ["A4", "A3"])
+def test_pdf_pages_and_cell_size(tmp_path, paper):
+    grid = np.ones((10, 10), dtype=np.float32)
+    grid[::2, ::2] = 0  # isolated black cells: every filled rect is exactly one cell
+    written = export_texture(grid, tmp_path, parts=("arms",), paper=paper, cell_mm=30.0, preview=False)
+    reader = pypdf.PdfReader(str(written["pdf"]))
+    info = json.loads(written["json"].read_text())
+    assert len(reader.pages) == info["pages"] >= 2
+    w_pt, h_pt = (v * PT_PER_MM for v in PAPER_SIZES_MM[paper])
+    cell_pt = 30.0 * PT_PER_MM
+    seen_cells = 0
+    for page in reader.pages:
+        box = sorted((float(page.mediabox.width), float(page.mediabox.height)))
+        assert box == pytest.approx(sorted((w_pt, h_pt)), abs=1e-3)
+    for page in reader.pages[1:]:  # tile pages (page 1 is the scaled-down overview)
+        for w, h in _filled_rects(page):
+            assert abs(w) == pytest.approx(cell_pt, abs=1e-3) and abs(h) == pytest.approx(cell_pt, abs=1e-3)
+            seen_cells += 1
+    assert seen_cells > 0
+    pieces = {p["name"] for p in info["pieces"]}
+    assert pieces == {"arms-1", "arms-2"}
+    assert all(len(p["tiles"]) >= 1 for p in info["pieces"])  # every piece lands on some page
+
+
+def test_texture_io_roundtrip(tmp_path):
+    grid = (np.random.default_rng(3).random((12, 12)) > 0.5).astype(np.float32)
+    np.save(tmp_path / "g.npy", grid)
+    assert np.array_equal(load_texture_grid(tmp_path / "g.npy"), grid)
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "m.png"), (upsample(grid, 1024) * 255).astype(np.uint8))
+    assert np.array_equal(load_texture_grid(tmp_path / "m.png"), grid)  # grid size detected
+    assert np.array_equal(load_texture_grid(tmp_path / "m.png", n_cells=12), grid)
+
+
+def test_cli_export(tmp_path):
+    from davis_rig.cli.attack import main
+
+    np.save(tmp_path / "g.npy", np.zeros((4, 4), dtype=np.float32))
+    code = main(["export", str(tmp_path / "g.npy"), "--out", str(tmp_path / "o"), "--parts", "arms",
+                 "--size-mm", "400", "--no-preview"])
+    assert code == 0 and (tmp_path / "o" / "pattern_A4.pdf").is_file()
+    assert main(["export", str(tmp_path / "g.npy"), "--out", str(tmp_path / "o"), "--cell-mm", "-1"]) == 2
