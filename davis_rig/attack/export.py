@@ -699,22 +699,33 @@ def _draw_overview(c, layout: _Layout, num_pages: int, title: str):
         lines.append(f"{piece.name}: {piece.width_mm:.0f} x {piece.height_mm:.0f} mm, cell {piece.cell_mm(n):.2f} mm, "
                      f"scale {piece.mm_per_uv:.1f} mm/UV (body stretch quartiles {stretch[0]:.0f}/{stretch[1]:.0f}/"
                      f"{stretch[2]:.0f}), tiles {', '.join(t.label for t in pages)}")
+    import textwrap
+
     for line in lines:
-        c.drawString(m, y, line[:150])
-        y -= 11
+        for part in textwrap.wrap(line, 135, subsequent_indent="    "):
+            c.drawString(m, y, part)
+            y -= 11
     # miniature of every piece with its tile grid
     top = y - 10
     area_w = page_w - 2 * m
     area_h = top - m - 30
-    total_w = sum(p.width_mm for p in layout.pieces) + 20 * (len(layout.pieces) - 1)
-    max_h = max(p.height_mm for p in layout.pieces)
+    extents = []  # per piece: (x_min, x_max, y_min, y_max) of the piece and its tiles, mm
+    for index, piece in enumerate(layout.pieces):
+        own = [t for t in layout.tiles if t.piece == index]
+        extents.append((min([0.0] + [t.x0_mm for t in own]), max([piece.width_mm] + [t.x0_mm + t.width_mm for t in own]),
+                        min([0.0] + [t.y0_mm for t in own]), max([piece.height_mm] + [t.y0_mm + t.height_mm for t in own])))
+    total_w = sum(e[1] - e[0] for e in extents) + 20 * (len(layout.pieces) - 1)
+    max_h = max(e[3] - e[2] for e in extents)
     k = min(area_w / _mm(total_w), area_h / _mm(max_h))  # page pt per piece pt
     x = m
     rects = black_rectangles(layout.grid)
     for index, piece in enumerate(layout.pieces):
-        def to_page(xy_mm, x=x):
+        ext = extents[index]
+
+        def to_page(xy_mm, x=x, ext=ext):
             xy_mm = np.asarray(xy_mm, dtype=np.float64)
-            return np.stack([x + k * _mm(xy_mm[..., 0]), top - k * _mm(max_h) + k * _mm(xy_mm[..., 1])], axis=-1)
+            return np.stack([x + k * _mm(xy_mm[..., 0] - ext[0]),
+                             top - k * _mm(max_h) + k * _mm(xy_mm[..., 1] - ext[2])], axis=-1)
 
         c.saveState()
         c.clipPath(_outline_path(c, piece, to_page), stroke=0, fill=0, fillMode=1)
@@ -737,7 +748,7 @@ def _draw_overview(c, layout: _Layout, num_pages: int, title: str):
             c.drawCentredString((a + d) / 2, (b + e) / 2, tile.label)
         c.setFont("Helvetica-Bold", 7)
         c.drawString(x, top - k * _mm(max_h) - 22, piece.name)
-        x += k * _mm(piece.width_mm + 20)
+        x += k * _mm(ext[1] - ext[0] + 20)
     _draw_check_bar(c, m, _mm(6))
 
 
