@@ -16,41 +16,8 @@ Run: ``python benchmarks/body.py [--repeats N] [--frames 1 40 256] [--threads 2]
 from __future__ import annotations
 
 import argparse
-import platform
-import statistics
-import subprocess
-import time
-from pathlib import Path
 
-import numpy as np
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int, sync=lambda: None) -> tuple[float, float]:
-    for _ in range(warmup):
-        fn()
-    sync()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        sync()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0]
+from _common import cuda_sync, metadata_line, set_torch_threads, time_ms
 
 
 def main() -> None:
@@ -62,22 +29,19 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
 
+    import numpy as np
     import torch
 
     from davis_rig.scene import masks
     from davis_rig.scene.body import BodyAsset, BodyModel
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     device = torch.device(args.device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    print(
-        f"commit {_commit()} | python {platform.python_version()} | torch {torch.__version__} | numpy {np.__version__}"
-        f" | threads {torch.get_num_threads()} | device {device}"
-        + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else f" ({platform.processor() or platform.machine()})")
-    )
+    sync = cuda_sync(device)
+    gpu = f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
+    print(metadata_line(device=f"{device}{gpu}", repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
 
-    med, iqr = _time_ms(lambda: BodyModel(BodyAsset.load(), device=device), 1, max(3, args.repeats // 3), sync)
+    med, iqr, _ = time_ms(lambda: BodyModel(BodyAsset.load(), device=device), 1, max(3, args.repeats // 3), sync)
     print(f"load asset + build model: {med:8.1f} ms (IQR {iqr:.1f})")
     model = BodyModel(device=device)
     walk = model.asset.walk_cycle(0)
@@ -87,17 +51,17 @@ def main() -> None:
         quats = torch.as_tensor(np.array(walk.rotations_wxyz[idx]), device=device)
         root = torch.as_tensor(np.array(walk.root_translation_m[idx]), device=device)
         with torch.no_grad():
-            fk, fk_iqr = _time_ms(lambda: model.forward_kinematics(0, quats, root), args.warmup, args.repeats, sync)
-            pose, pose_iqr = _time_ms(lambda: model.pose(0, quats, root), args.warmup, args.repeats, sync)
+            fk, fk_iqr, _ = time_ms(lambda: model.forward_kinematics(0, quats, root), args.warmup, args.repeats, sync)
+            pose, pose_iqr, _ = time_ms(lambda: model.pose(0, quats, root), args.warmup, args.repeats, sync)
             t_s = np.arange(frames) / 240.0
-            walk_ms, walk_iqr = _time_ms(lambda: model.walk_vertices(0, t_s), args.warmup, args.repeats, sync)
+            walk_ms, walk_iqr, _ = time_ms(lambda: model.walk_vertices(0, t_s), args.warmup, args.repeats, sync)
         q = quats.clone().requires_grad_(True)
         r = root.clone().requires_grad_(True)
 
         def forward_backward():
             model.pose(0, q, r).square().mean().backward()
 
-        bwd, bwd_iqr = _time_ms(forward_backward, args.warmup, args.repeats, sync)
+        bwd, bwd_iqr, _ = time_ms(forward_backward, args.warmup, args.repeats, sync)
         per_frame[frames] = pose / frames
         print(
             f"T={frames:4d}: fk {fk:8.2f} ms (IQR {fk_iqr:.2f}) | pose {pose:8.2f} ms (IQR {pose_iqr:.2f}, "
@@ -107,7 +71,7 @@ def main() -> None:
     if 1 in per_frame and max(per_frame) > 1:
         big = max(per_frame)
         print(f"ratio per-frame pose cost T=1 / T={big}: {per_frame[1] / per_frame[big]:.1f}x (batching gain)")
-    med, iqr = _time_ms(lambda: masks._rasterize(model.asset, 1024, 4), 1, max(3, args.repeats // 3))
+    med, iqr, _ = time_ms(lambda: masks._rasterize(model.asset, 1024, 4), 1, max(3, args.repeats // 3))
     print(f"part label map 1024x1024 (rasterise + pad 4): {med:8.1f} ms (IQR {iqr:.1f})")
 
 

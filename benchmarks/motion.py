@@ -14,33 +14,8 @@ Run: ``python benchmarks/motion.py [--repeats N] [--threads 2]``.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import subprocess
-import time
-from pathlib import Path
 
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
-                             capture_output=True, text=True, check=True)
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0]
+from _common import limit_blas_threads, metadata_line, time_ms
 
 
 def main() -> None:
@@ -50,9 +25,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="BLAS threads via OMP/OPENBLAS/MKL_NUM_THREADS, set before numpy is imported")
     args = parser.parse_args()
-    if args.threads:
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ[var] = str(args.threads)
+    limit_blas_threads(args.threads)
     import numpy as np
 
     from davis_rig.scene.body import BodyAsset
@@ -75,13 +48,14 @@ def main() -> None:
         "amass_retarget": lambda: retarget_smplh(poses, np.zeros((1000, 3)), 120.0, asset, 0),
         "ground_offsets": lambda: ground_offsets(retargeted, asset, 0),
     }
-    print(f"# motion benchmark  commit={_commit()}  python={platform.python_version()}  numpy={np.__version__}  "
-          f"threads={args.threads or 'default'}  cpu={platform.processor() or platform.machine()}")
+    print("# motion benchmark (numpy, CPU)")
+    print(metadata_line(packages=("numpy",), blas_threads=args.threads or "default",
+                        repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     results = {}
     for name, fn in cases.items():
-        median, iqr = _time_ms(fn, args.warmup, args.repeats)
-        results[name] = median
-        print(f"{name:16s} median {median:9.2f} ms   IQR {iqr:7.2f} ms")
+        timing = time_ms(fn, args.warmup, args.repeats)
+        results[name] = timing.median_ms
+        print(f"{name:16s} {timing}")
     per_frame = results["resample_200"] / 2001
     print(f"resample per 200 fps output frame: {per_frame * 1e3:.1f} µs = {per_frame / 5.0:.2%} of a 5 ms frame period")
     print(f"amass retarget per frame: {results['amass_retarget'] / 1000 * 1e3:.1f} µs; "

@@ -22,43 +22,15 @@ Run: ``python benchmarks/render.py [--repeats N] [--frames 10] [--threads 1 2] [
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
+from _common import cuda_sync, metadata_line, set_torch_threads, time_ms
 
 try:  # optional: only for the --warp comparison
     import warp as wp
 except ImportError:  # pragma: no cover - depends on the environment
     wp = None
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True, text=True, check=True
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int, sync=lambda: None) -> tuple[float, float, float]:
-    for _ in range(warmup):
-        fn()
-    sync()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        sync()
-        samples.append((time.perf_counter() - start) * 1e3)
-    q = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), q[2] - q[0], min(samples)
 
 
 def _pairs_per_sample(projected, faces, hw, s) -> float:
@@ -80,40 +52,19 @@ def _pairs_per_sample(projected, faces, hw, s) -> float:
 if wp is not None:
     wp.config.quiet = True
 
+    # One thread per (frame, face). Pass 0 (write_ids=0) keeps the nearest depth per sample in zbuf (atomic_min);
+    # pass 1 writes the id of the face at that depth into fbuf.
     @wp.kernel
-    def depth_pass(tri: wp.array2d(dtype=wp.float32), hs: int, ws: int, n_faces: int, near: float, zbuf: wp.array(dtype=wp.float32)):
-        fid = wp.tid()
-        x0 = tri[fid, 0]
-        x1 = tri[fid, 1]
-        x2 = tri[fid, 2]
-        y0 = tri[fid, 3]
-        y1 = tri[fid, 4]
-        y2 = tri[fid, 5]
-        z0 = tri[fid, 6]
-        z1 = tri[fid, 7]
-        z2 = tri[fid, 8]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        if area >= 0.0 or z0 <= near or z1 <= near or z2 <= near:
-            return
-        xa = wp.max(int(wp.ceil(wp.min(wp.min(x0, x1), x2) - 0.5)), 0)
-        xb = wp.min(int(wp.floor(wp.max(wp.max(x0, x1), x2) - 0.5)), ws - 1)
-        ya = wp.max(int(wp.ceil(wp.min(wp.min(y0, y1), y2) - 0.5)), 0)
-        yb = wp.min(int(wp.floor(wp.max(wp.max(y0, y1), y2) - 0.5)), hs - 1)
-        frame = fid / n_faces
-        inv_area = 1.0 / area
-        for py in range(ya, yb + 1):
-            for px in range(xa, xb + 1):
-                cx = float(px) + 0.5
-                cy = float(py) + 0.5
-                b0 = ((x1 - cx) * (y2 - cy) - (x2 - cx) * (y1 - cy)) * inv_area
-                b1 = ((x2 - cx) * (y0 - cy) - (x0 - cx) * (y2 - cy)) * inv_area
-                b2 = 1.0 - b0 - b1
-                if b0 >= 0.0 and b1 >= 0.0 and b2 >= 0.0:
-                    depth = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2)
-                    wp.atomic_min(zbuf, frame * hs * ws + py * ws + px, depth)
-
-    @wp.kernel
-    def id_pass(tri: wp.array2d(dtype=wp.float32), hs: int, ws: int, n_faces: int, near: float, zbuf: wp.array(dtype=wp.float32), fbuf: wp.array(dtype=wp.int32)):
+    def raster_pass(
+        tri: wp.array2d(dtype=wp.float32),
+        hs: int,
+        ws: int,
+        n_faces: int,
+        near: float,
+        write_ids: int,
+        zbuf: wp.array(dtype=wp.float32),
+        fbuf: wp.array(dtype=wp.int32),
+    ):
         fid = wp.tid()
         x0 = tri[fid, 0]
         x1 = tri[fid, 1]
@@ -143,7 +94,9 @@ if wp is not None:
                 if b0 >= 0.0 and b1 >= 0.0 and b2 >= 0.0:
                     depth = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2)
                     k = frame * hs * ws + py * ws + px
-                    if depth == zbuf[k]:
+                    if write_ids == 0:
+                        wp.atomic_min(zbuf, k, depth)
+                    elif depth == zbuf[k]:
                         fbuf[k] = fid - frame * n_faces
 
 
@@ -161,8 +114,9 @@ def warp_raster(projected, faces, hw, s):
     zbuf = wp.full(n, 1e30, dtype=wp.float32, device=device)
     fbuf = wp.full(n, -1, dtype=wp.int32, device=device)
     w_tri = wp.from_torch(tri)
-    wp.launch(depth_pass, dim=tri.shape[0], inputs=[w_tri, hs, ws, faces.shape[0], 1e-3, zbuf], device=device)
-    wp.launch(id_pass, dim=tri.shape[0], inputs=[w_tri, hs, ws, faces.shape[0], 1e-3, zbuf, fbuf], device=device)
+    for write_ids in (0, 1):
+        wp.launch(raster_pass, dim=tri.shape[0], inputs=[w_tri, hs, ws, faces.shape[0], 1e-3, write_ids, zbuf, fbuf],
+                  device=device)
     wp.synchronize()
     return wp.to_torch(fbuf).view(t, hs, ws)
 
@@ -179,13 +133,13 @@ def _compare_warp(model, camera, vertices, rotation, translation, supersample_li
     wp.init()
     projected = camera.project(vertices, rotation, translation)
     frames = projected.shape[0]
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync = cuda_sync(device)
     for s in supersample_list:
         start = time.perf_counter()
         warp_raster(projected, model.faces, camera.hw, s)
         first_s = time.perf_counter() - start
-        w_med, _, _ = _time_ms(lambda: warp_raster(projected, model.faces, camera.hw, s), 1, repeats, sync)
-        t_med, _, _ = _time_ms(lambda: rasterize_sparse(projected, model.faces, camera.hw, s), 1, repeats, sync)
+        w_med, _, _ = time_ms(lambda: warp_raster(projected, model.faces, camera.hw, s), 1, repeats, sync)
+        t_med, _, _ = time_ms(lambda: rasterize_sparse(projected, model.faces, camera.hw, s), 1, repeats, sync)
         ids = warp_raster(projected, model.faces, camera.hw, s).long().reshape(-1)
         ours = rasterize_sparse(projected, model.faces, camera.hw, s)
         dense = torch.full_like(ids, -1)
@@ -217,13 +171,10 @@ def main() -> None:
     from davis_rig.scene.renderer import rasterize_mesh
 
     device = torch.device(args.device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    load = os.getloadavg() if hasattr(os, "getloadavg") else ("n/a",)
-    print(
-        f"commit {_commit()} | python {platform.python_version()} | torch {torch.__version__} | numpy {np.__version__}"
-        f" | device {device}" + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else f" ({platform.machine()}, {os.cpu_count()} cores)")
-        + f" | load average {tuple(round(v, 2) for v in load)} | frames/batch {args.frames}"
-    )
+    sync = cuda_sync(device)
+    gpu = f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
+    print(metadata_line(device=f"{device}{gpu}", frames_per_batch=args.frames,
+                        repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     model = BodyModel(device=device)
     times = np.arange(args.frames) / 200.0
     mask = part_mask(("torso", "arms", "legs"))
@@ -231,8 +182,8 @@ def main() -> None:
     thread_list = args.threads if device.type == "cpu" else [torch.get_num_threads()]
     results = {}
     for threads in thread_list:
-        torch.set_num_threads(threads)
-        med, iqr, low = _time_ms(lambda: model.walk_vertices(0, times), args.warmup, args.repeats, sync)
+        set_torch_threads(threads)
+        med, iqr, low = time_ms(lambda: model.walk_vertices(0, times), args.warmup, args.repeats, sync)
         print(f"[threads {threads}] pose (FK+LBS)            {med / args.frames:8.2f} ms/frame (IQR {iqr / args.frames:.2f}, min {low / args.frames:.2f})")
         vertices = model.walk_vertices(0, times)
         c, s_ = np.cos(np.pi / 2), np.sin(np.pi / 2)
@@ -244,10 +195,10 @@ def main() -> None:
             t = torch.as_tensor(translation, dtype=torch.float32, device=device)
             for s in args.supersample:
                 raster_fn = lambda: rasterize_mesh(vertices, model.faces, model.face_uvs, camera, r, t, supersample=s)  # noqa: E731
-                med, iqr, low = _time_ms(raster_fn, args.warmup, args.repeats, sync)
+                med, iqr, low = time_ms(raster_fn, args.warmup, args.repeats, sync)
                 raster = raster_fn()
                 results[(threads, name, s, "raster")] = med / args.frames
-                lk_med, _, _ = _time_ms(lambda: raster.lookup(1024, "nearest", grid_n=10, mask=mask), 1, args.repeats, sync)
+                lk_med, _, _ = time_ms(lambda: raster.lookup(1024, "nearest", grid_n=10, mask=mask), 1, args.repeats, sync)
                 lookup = raster.lookup(1024, "nearest", grid_n=10, mask=mask)
                 background = torch.full(camera.hw, 0.5, device=device)
 
@@ -255,7 +206,7 @@ def main() -> None:
                     g = grid.clone().requires_grad_()
                     raster.compose(lookup.sample(g), background).sum().backward()
 
-                st_med, st_iqr, st_low = _time_ms(step, args.warmup, args.repeats, sync)
+                st_med, st_iqr, st_low = time_ms(step, args.warmup, args.repeats, sync)
                 results[(threads, name, s, "step")] = st_med / args.frames
                 pairs = _pairs_per_sample(camera.project(vertices[:1], r, t), model.faces, camera.hw, s) if threads == thread_list[0] else float("nan")
                 print(
@@ -265,7 +216,7 @@ def main() -> None:
                     + (f" | bbox pairs per covered sample {pairs:.2f}" if np.isfinite(pairs) else "")
                 )
     if args.warp:
-        torch.set_num_threads(thread_list[0])
+        set_torch_threads(thread_list[0])
         camera = PinholeCamera.rvt_crop()
         d = distance_for_height("middle", camera)
         rotation, translation = look_at([0.0, -d, 0.875], [0.0, 0.0, 0.875])

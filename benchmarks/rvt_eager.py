@@ -12,13 +12,9 @@ Run: ``python benchmarks/rvt_eager.py [--repeats N] [--variants tiny base] [--th
 from __future__ import annotations
 
 import argparse
-import platform
-import statistics
-import subprocess
-import time
-from pathlib import Path
 
 import torch
+from _common import metadata_line, set_torch_threads, time_ms
 
 from davis_rig.models.rvt import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector
@@ -34,32 +30,6 @@ OFFICIAL_1T_MS = {
     ("base", "fwd_bwd_1step"): 364.0,
     ("base", "bptt_3steps"): 1135.0,
 }
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float]:
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0]
 
 
 def _cases(model: RVTDetector, generator: torch.Generator):
@@ -104,11 +74,8 @@ def main() -> None:
     args = parser.parse_args()
 
     print("# RVT eager benchmark (random weights, batch 1, input 20x256x320, fp32, CPU)")
-    print(
-        f"# commit {_commit()}  torch {torch.__version__}  python {platform.python_version()}  "
-        f"cpu {platform.processor() or platform.machine()}  capability {torch.backends.cpu.get_cpu_capability()}  "
-        f"repeats {args.repeats} (+{args.warmup} warm-up)"
-    )
+    print(metadata_line(packages=("torch",), capability=torch.backends.cpu.get_cpu_capability(),
+                        repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     results: dict[tuple[str, int, str], float] = {}
     generator = torch.Generator().manual_seed(0)
     for variant in args.variants:
@@ -118,10 +85,10 @@ def main() -> None:
             parameter.requires_grad_(False)
         cases = _cases(model, generator)
         for threads in args.threads:
-            torch.set_num_threads(threads)
+            set_torch_threads(threads)
             for name, fn in cases.items():
                 repeats = args.repeats if variant != "base" or name != "bptt_3steps" else max(3, args.repeats // 2)
-                median_ms, iqr_ms = _time_ms(fn, args.warmup, repeats)
+                median_ms, iqr_ms, _ = time_ms(fn, args.warmup, repeats)
                 results[(variant, threads, name)] = median_ms
                 official = OFFICIAL_1T_MS.get((variant, name)) if threads == 1 else None
                 ratio = f"  ours/official(1 thread) {median_ms / official:.2f}" if official else ""

@@ -17,14 +17,10 @@ over transfers made of whole 1024-byte packets and stops after a short packet.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import subprocess
 import time
 
 import numpy as np
-import usb
+from _common import metadata_line, summarize_ms
 
 from davis_rig.device.camera import Davis346
 from davis_rig.protocol.layout import SensorLayout
@@ -94,16 +90,9 @@ def main() -> None:
     parser.add_argument("--events", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        commit = "?"
     transfers = make_transfers(args.events)
     total_bytes = sum(len(t) for t in transfers)
-    print(f"commit {commit} | python {platform.python_version()} | numpy {np.__version__} | pyusb {usb.__version__}")
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"cpus {os.cpu_count()} | threads: main + 1 reader (+ FX3 debug poller) | machine {platform.machine()} | "
-          f"load avg (1 min) {load:.2f}")
+    print(metadata_line(packages=("numpy", "pyusb"), threads="main + 1 reader (+ FX3 debug poller)"))
     print(f"scene: {args.events} events, {len(transfers)} transfers, {total_bytes / 1e6:.2f} MB; repeats {args.repeats} + 1 warm-up")
 
     run_transport(transfers)  # warm-up
@@ -115,8 +104,9 @@ def main() -> None:
     t_camera = [c[0] for c in cam]
     n_events = cam[0][1]
 
-    med_t = statistics.median(t_transport)
-    med_c = statistics.median(t_camera)
+    transport = summarize_ms([t * 1e3 for t in t_transport])
+    camera = summarize_ms([t * 1e3 for t in t_camera])
+    med_t, med_c = transport.median_ms / 1e3, camera.median_ms / 1e3
     mbps = total_bytes / med_t / 1e6
     reads = n_reads / med_t
     mev_transport = n_events / med_t / 1e6
@@ -126,12 +116,8 @@ def main() -> None:
     print(f"camera     median {med_c * 1e3:8.1f} ms  {total_bytes / med_c / 1e6:8.1f} MB/s  "
           f"{mev_camera:6.2f} Mev/s  = {mev_camera * 1e6 / PEAK_EVENTS_PER_S:5.2f} x peak")
     print(f"ratio camera/transport time: {med_c / med_t:.2f}")
-
-    def spread(xs: list[float]) -> str:
-        q = statistics.quantiles(xs, n=4) if len(xs) >= 2 else [xs[0]] * 3
-        return f"min {min(xs) * 1e3:.1f} ms, IQR {(q[2] - q[0]) * 1e3:.1f} ms"
-
-    print(f"transport {spread(t_transport)} | camera {spread(t_camera)}")
+    print(f"transport min {transport.min_ms:.1f} ms, IQR {transport.iqr_ms:.1f} ms | "
+          f"camera min {camera.min_ms:.1f} ms, IQR {camera.iqr_ms:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -22,15 +22,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
-import statistics
-import subprocess
-import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from _common import cuda_sync, metadata_line, set_torch_threads, time_ms
 
 from davis_rig.events.histogram import stacked_histogram
 from davis_rig.events.simulator import simulate_events
@@ -40,32 +35,6 @@ from davis_rig.types import RVT_HW
 HEIGHT, WIDTH = RVT_HW
 FRAMES = 11  # 200 fps: 10 frame pairs per 50 ms window
 PERIOD_US = 5000
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parent,
-                             capture_output=True, text=True, check=True)
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int, sync=None) -> tuple[float, float, float]:
-    """Median, IQR and minimum (ms) of ``repeats`` timed calls after ``warmup`` untimed ones."""
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        if sync:
-            sync()
-        start = time.perf_counter()
-        fn()
-        if sync:
-            sync()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
 
 
 def synthetic_video(seed: int = 0) -> np.ndarray:
@@ -96,9 +65,7 @@ def main() -> None:
     from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 
     print("# V2E benchmark: differentiable V2E per 50 ms window (304x240, 11 frames at 200 fps, fp32) vs RVT-B")
-    print(f"# commit {_commit()}  python {platform.python_version()}  torch {torch.__version__}  "
-          f"numpy {np.__version__}  cpu {platform.processor() or platform.machine()}  cores {os.cpu_count()}  "
-          f"load avg {os.getloadavg()[0]:.2f}")
+    print(metadata_line())
     print(f"# repeats {args.repeats} after {args.warmup} warm-up; median / IQR / min in ms")
     video_np = synthetic_video()
     t_us = np.arange(FRAMES, dtype=np.int64) * PERIOD_US
@@ -109,8 +76,8 @@ def main() -> None:
     weights = torch.rand(1, 20, HEIGHT, WIDTH)
     for device, threads in devices:
         if threads is not None:
-            torch.set_num_threads(threads)
-        sync = torch.cuda.synchronize if device == "cuda" else None
+            set_torch_threads(threads)
+        sync = cuda_sync(device)
         label = f"{device}" + (f", {threads} thread(s)" if threads else f" ({torch.cuda.get_device_name()})")
         print(f"\n## {label}")
         video = torch.tensor(video_np, device=device)
@@ -128,7 +95,7 @@ def main() -> None:
                 return v.grad
 
             for name, fn in ((f"v2e[{mode}] fwd", fwd), (f"v2e[{mode}] fwd+bwd", fwd_bwd)):
-                results[name] = _time_ms(fn, args.warmup, args.repeats, sync)
+                results[name] = time_ms(fn, args.warmup, args.repeats, sync)
         events = simulate_events(video_np, t_us, dtype="float32")
         print(f"# events in the window (exact simulator): {len(events)}; "
               f"nonzero V2E cells: {int((v2e_histograms(video, t_us, end_us) > 0).sum())}")
@@ -137,7 +104,7 @@ def main() -> None:
                 ev = simulate_events(video_np, t_us, dtype="float32")
                 return stacked_histogram(ev["x"], ev["y"], ev["t"], ev["p"], height=HEIGHT, width=WIDTH)
 
-            results["exact simulator + histogram"] = _time_ms(exact, 1, max(3, args.repeats // 3), sync)
+            results["exact simulator + histogram"] = time_ms(exact, 1, max(3, args.repeats // 3), sync)
         torch.manual_seed(0)
         model = RVTDetector(RVTConfig.base()).to(device).eval()
         for p in model.parameters():
@@ -155,8 +122,8 @@ def main() -> None:
                 return model(x0)
 
         rvt_repeats = max(3, args.repeats // 3)
-        results["RVT-B fwd"] = _time_ms(rvt_fwd, 1, rvt_repeats, sync)
-        results["RVT-B fwd+bwd"] = _time_ms(rvt_fwd_bwd, 1, rvt_repeats, sync)
+        results["RVT-B fwd"] = time_ms(rvt_fwd, 1, rvt_repeats, sync)
+        results["RVT-B fwd+bwd"] = time_ms(rvt_fwd_bwd, 1, rvt_repeats, sync)
         for name, (median, iqr, low) in results.items():
             print(f"{name:32s} {median:9.2f} {iqr:8.2f} {low:9.2f}")
         rvt = results["RVT-B fwd+bwd"][0]
