@@ -25,7 +25,7 @@ import numpy as np
 
 from davis_rig.errors import ShapeError
 
-__all__ = ["batched_nms", "nms", "postprocess", "torch_cpu_unstable_argsort_desc"]
+__all__ = ["batched_nms", "nms", "postprocess", "postprocess_thresholds", "torch_cpu_unstable_argsort_desc"]
 
 #: torchvision ``batched_nms``: above this many box coordinates, CPU uses the per-class loop.
 _CPU_VANILLA_COORDINATES = 4000
@@ -205,15 +205,137 @@ def torch_cpu_unstable_argsort_desc(values) -> np.ndarray:
 
 
 def _introsort_desc(values: np.ndarray) -> np.ndarray:
-    """Step-by-step emulation of libstdc++ ``std::sort`` with torch's descending comparator."""
-    keys = values.tolist()
+    """Step-by-step emulation of libstdc++ ``std::sort`` with torch's descending comparator.
 
-    def comp(a: int, b: int) -> bool:  # torch KeyValueCompDesc: NaN first, then larger first
-        ka, kb = keys[a], keys[b]
-        a_nan, b_nan = ka != ka, kb != kb
-        return (a_nan and not b_nan) or (not a_nan and not b_nan and ka > kb)
+    torch's comparator (NaN first, then larger first) is replaced by integer ranks that compare the same way
+    (equal floats and all NaNs share a rank, NaN ranks highest), so the sort runs :func:`_libstdcxx_sort_keys`,
+    the same algorithm as :func:`libstdcxx_sort` with the comparison inlined (about 10x faster in CPython).
+    """
+    nan = np.isnan(values)
+    ranks = np.empty(values.shape[0], dtype=np.int64)
+    finite_unique, inverse = np.unique(values[~nan], return_inverse=True)
+    ranks[~nan] = inverse
+    ranks[nan] = finite_unique.shape[0]
+    return np.asarray(_libstdcxx_sort_keys(ranks.tolist()), dtype=np.int64)
 
-    return np.asarray(libstdcxx_sort(list(range(len(keys))), comp), dtype=np.int64)
+
+def _libstdcxx_sort_keys(keys: list) -> list:
+    """:func:`libstdcxx_sort` of ``range(len(keys))`` with ``comp(a, b) = keys[a] > keys[b]``, inlined.
+
+    Operation for operation the algorithm of :func:`libstdcxx_sort` (same pivots, partitions, heap and insertion
+    steps); the keys move along with the items in a parallel list so every comparison is one list lookup.
+
+    Args:
+        keys: comparable keys (ints) of the items ``0 .. n-1``.
+
+    Returns:
+        The items (indices) in sorted order: larger keys first, ties in libstdc++'s order.
+    """
+    k = list(keys)
+    it = list(range(len(k)))
+
+    def move_median_to_first(result: int, a: int, b: int, c: int) -> None:
+        ka, kb, kc = k[a], k[b], k[c]
+        if ka > kb:
+            pick = b if kb > kc else (c if ka > kc else a)
+        elif ka > kc:
+            pick = a
+        elif kb > kc:
+            pick = c
+        else:
+            pick = b
+        k[result], k[pick] = k[pick], k[result]
+        it[result], it[pick] = it[pick], it[result]
+
+    def unguarded_partition(first: int, last: int, pivot_key) -> int:
+        while True:
+            while k[first] > pivot_key:
+                first += 1
+            last -= 1
+            while pivot_key > k[last]:
+                last -= 1
+            if not first < last:
+                return first
+            k[first], k[last] = k[last], k[first]
+            it[first], it[last] = it[last], it[first]
+            first += 1
+
+    def adjust_heap(first: int, hole: int, length: int, value_key, value_item) -> None:
+        top = hole
+        child = hole
+        while child < (length - 1) // 2:
+            child = 2 * (child + 1)
+            if k[first + child] > k[first + child - 1]:
+                child -= 1
+            k[first + hole], it[first + hole] = k[first + child], it[first + child]
+            hole = child
+        if (length & 1) == 0 and child == (length - 2) // 2:
+            child = 2 * (child + 1)
+            k[first + hole], it[first + hole] = k[first + child - 1], it[first + child - 1]
+            hole = child - 1
+        parent = (hole - 1) // 2
+        while hole > top and k[first + parent] > value_key:
+            k[first + hole], it[first + hole] = k[first + parent], it[first + parent]
+            hole = parent
+            parent = (hole - 1) // 2
+        k[first + hole], it[first + hole] = value_key, value_item
+
+    def heap_sort(first: int, last: int) -> None:
+        length = last - first
+        if length >= 2:
+            parent = (length - 2) // 2
+            while True:
+                adjust_heap(first, parent, length, k[first + parent], it[first + parent])
+                if parent == 0:
+                    break
+                parent -= 1
+        while last - first > 1:
+            last -= 1
+            value_key, value_item = k[last], it[last]
+            k[last], it[last] = k[first], it[first]
+            adjust_heap(first, 0, last - first, value_key, value_item)
+
+    def introsort_loop(first: int, last: int, depth_limit: int) -> None:
+        while last - first > 16:
+            if depth_limit == 0:
+                heap_sort(first, last)
+                return
+            depth_limit -= 1
+            move_median_to_first(first, first + 1, first + (last - first) // 2, last - 1)
+            cut = unguarded_partition(first + 1, last, k[first])
+            introsort_loop(cut, last, depth_limit)
+            last = cut
+
+    def unguarded_linear_insert(last: int) -> None:
+        value_key, value_item = k[last], it[last]
+        nxt = last - 1
+        while value_key > k[nxt]:
+            k[last], it[last] = k[nxt], it[nxt]
+            last = nxt
+            nxt -= 1
+        k[last], it[last] = value_key, value_item
+
+    def insertion_sort(first: int, last: int) -> None:
+        for i in range(first + 1, last):
+            if k[i] > k[first]:
+                value_key, value_item = k[i], it[i]
+                k[first + 1 : i + 1] = k[first:i]
+                it[first + 1 : i + 1] = it[first:i]
+                k[first], it[first] = value_key, value_item
+            else:
+                unguarded_linear_insert(i)
+
+    n = len(k)
+    if n < 2:
+        return it
+    introsort_loop(0, n, 2 * (n.bit_length() - 1))
+    if n > 16:
+        insertion_sort(0, 16)
+        for i in range(16, n):
+            unguarded_linear_insert(i)
+    else:
+        insertion_sort(0, n)
+    return it
 
 
 def libstdcxx_sort(items: list, comp) -> list:
@@ -337,6 +459,15 @@ def libstdcxx_sort(items: list, comp) -> list:
     return items
 
 
+def _per_class_keep(boxes: np.ndarray, scores: np.ndarray, idxs: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Indices (ascending) kept by greedy NMS run separately on each class; torchvision's per-class CPU path."""
+    keep_mask = np.zeros(scores.shape[0], dtype=bool)
+    for class_id in np.unique(idxs):
+        members = np.flatnonzero(idxs == class_id)
+        keep_mask[members[nms(boxes[members], scores[members], iou_threshold)]] = True
+    return np.flatnonzero(keep_mask)
+
+
 def batched_nms(boxes, scores, idxs, iou_threshold: float, *, path: str = "auto") -> np.ndarray:
     """Class-wise NMS with ``torchvision.ops.batched_nms`` semantics on CPU.
 
@@ -367,17 +498,120 @@ def batched_nms(boxes, scores, idxs, iou_threshold: float, *, path: str = "auto"
     if boxes.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
     if path == "per_class" or (path == "auto" and boxes.size > _CPU_VANILLA_COORDINATES):
-        keep_mask = np.zeros(scores.shape[0], dtype=bool)
-        for class_id in np.unique(idxs):
-            members = np.nonzero(idxs == class_id)[0]
-            keep_mask[members[nms(boxes[members], scores[members], iou_threshold)]] = True
-        keep = np.nonzero(keep_mask)[0]
+        keep = _per_class_keep(boxes, scores, idxs, iou_threshold)
         return keep[torch_cpu_unstable_argsort_desc(scores[keep])]
     max_coordinate = boxes.max()
     with np.errstate(invalid="ignore", over="ignore"):
         offsets = idxs.astype(np.float32) * (max_coordinate + np.float32(1))
         shifted = boxes + offsets[:, None]
     return nms(shifted, scores, iou_threshold)
+
+
+def _candidates(pred: np.ndarray, num_classes: int, threshold: np.float32):
+    """Rows of one image passing ``obj · class_conf ≥ threshold``: (float32 [K, 7] detections, float32 [K] scores).
+
+    ``pred`` is float32 [A, 5 + classes]; rows keep the anchor order, columns ``(x1, y1, x2, y2, obj,
+    class_conf, class_pred)`` with the official corner conversion (``cx ∓ w / 2`` in float32).
+    """
+    class_probs = pred[:, 5 : 5 + num_classes]
+    class_pred = np.argmax(class_probs, axis=1)
+    class_conf = np.take_along_axis(class_probs, class_pred[:, None], axis=1)[:, 0]
+    obj = pred[:, 4]
+    keep = np.flatnonzero(obj * class_conf >= threshold)
+    rows = pred[keep]
+    half_w = rows[:, 2] / np.float32(2)
+    half_h = rows[:, 3] / np.float32(2)
+    detections = np.stack(
+        [rows[:, 0] - half_w, rows[:, 1] - half_h, rows[:, 0] + half_w, rows[:, 1] + half_h,
+         rows[:, 4], class_conf[keep], class_pred[keep].astype(np.float32)],
+        axis=1,
+    )
+    return detections, detections[:, 4] * detections[:, 5]
+
+
+def _image_thresholds(detections: np.ndarray, scores: np.ndarray, thresholds: list, nms_threshold: float) -> list:
+    """Post-processed output of one image at every threshold (ascending), sharing the NMS work exactly.
+
+    Greedy NMS visits boxes by decreasing score and a box's fate depends only on the boxes before it, so the
+    result at a higher threshold is the result at a lower one restricted to ``score ≥ threshold`` — provided
+    both run the same IoU arithmetic: torchvision's per-class path (raw boxes) always, its offset path only
+    when the class offsets (``max coordinate + 1``) are equal. The per-class result is then re-ordered with
+    torch's unstable sort of the kept scores, as :func:`batched_nms` does. Anything else is recomputed.
+    """
+    outputs, previous_count, previous = [], -1, None
+    per_class_keep = None  # sorted candidate rows kept by per-class NMS at a lower threshold
+    offset_key, offset_order = None, None  # (max coordinate, kept rows in output order) of the offset path
+    for threshold in thresholds:
+        members = np.flatnonzero(scores >= np.float32(threshold))
+        count = members.shape[0]
+        if count != previous_count:
+            previous_count = count
+            if count == 0:
+                previous = None
+            elif 4 * count > _CPU_VANILLA_COORDINATES:  # torchvision's per-class path
+                if per_class_keep is None:
+                    per_class_keep = members[_per_class_keep(detections[members, :4], scores[members],
+                                                             detections[members, 6], nms_threshold)]
+                    keep = per_class_keep
+                else:
+                    keep = per_class_keep[scores[per_class_keep] >= np.float32(threshold)]
+                previous = detections[keep[torch_cpu_unstable_argsort_desc(scores[keep])]]
+            else:  # offset path: exact reuse only with the same class offsets
+                key = detections[members, :4].max()
+                if offset_order is not None and key == offset_key:
+                    order = offset_order[scores[offset_order] >= np.float32(threshold)]
+                else:
+                    order = members[batched_nms(detections[members, :4], scores[members], detections[members, 6],
+                                                nms_threshold, path="offset")]
+                    offset_key, offset_order = key, order
+                previous = detections[order]
+        outputs.append(previous)
+    return outputs
+
+
+def postprocess_thresholds(
+    decoded,
+    conf_thresholds,
+    nms_threshold: float = 0.45,
+    *,
+    num_classes: int | None = None,
+) -> dict[float, list[np.ndarray | None]]:
+    """:func:`postprocess` at several confidence thresholds at once, identical to one call per threshold.
+
+    The confidence filter runs once at the lowest threshold; NMS results are shared between thresholds
+    wherever that is exact (see :func:`_image_thresholds`): with a random-weight RVT (all 1680 anchors above
+    every paper threshold) one NMS serves all four thresholds. Equal outputs of two thresholds are the same
+    array object (treat them as read-only).
+
+    Args:
+        decoded: float [B, A, 5 + num_classes], as for :func:`postprocess`.
+        conf_thresholds: iterable of thresholds (obj · max class prob), any order, duplicates ignored.
+        nms_threshold: class-wise IoU threshold.
+        num_classes: number of class columns; default ``decoded.shape[-1] - 5``.
+
+    Returns:
+        ``{threshold (float): [B entries: float32 [K, 7] or None]}``, each list equal to
+        ``postprocess(decoded, threshold, nms_threshold)``.
+
+    Raises:
+        ShapeError: ``decoded`` is not [B, A, 5 + num_classes]. ValueError: no threshold given.
+    """
+    pred = _to_numpy(decoded)
+    if pred.ndim != 3 or pred.shape[-1] < 6:
+        raise ShapeError(f"decoded: expected [B, A, 5 + num_classes], got {pred.shape}")
+    if num_classes is None:
+        num_classes = pred.shape[-1] - 5
+    if pred.shape[-1] < 5 + num_classes or num_classes < 1:
+        raise ShapeError(f"decoded: expected last dim >= 5 + {num_classes}, got {pred.shape}")
+    thresholds = sorted({float(t) for t in conf_thresholds})
+    if not thresholds:
+        raise ValueError("conf_thresholds: expected at least one threshold")
+    pred = pred.astype(np.float32, copy=False)
+    per_image = []
+    for image in range(pred.shape[0]):
+        detections, scores = _candidates(pred[image], num_classes, np.float32(thresholds[0]))
+        per_image.append(_image_thresholds(detections, scores, thresholds, nms_threshold))
+    return {threshold: [outputs[i] for outputs in per_image] for i, threshold in enumerate(thresholds)}
 
 
 def postprocess(
@@ -411,42 +645,6 @@ def postprocess(
         >>> out[0].shape, out[0][0, 6]
         ((1, 7), np.float32(1.0))
     """
-    pred = _to_numpy(decoded)
-    if pred.ndim != 3 or pred.shape[-1] < 6:
-        raise ShapeError(f"decoded: expected [B, A, 5 + num_classes], got {pred.shape}")
-    if num_classes is None:
-        num_classes = pred.shape[-1] - 5
-    if pred.shape[-1] < 5 + num_classes or num_classes < 1:
-        raise ShapeError(f"decoded: expected last dim >= 5 + {num_classes}, got {pred.shape}")
-    pred = pred.astype(np.float32, copy=False)
-    half_w = pred[..., 2] / np.float32(2)
-    half_h = pred[..., 3] / np.float32(2)
-    corners = np.stack(
-        [pred[..., 0] - half_w, pred[..., 1] - half_h, pred[..., 0] + half_w, pred[..., 1] + half_h], axis=-1
-    )
-    threshold = np.float32(conf_threshold)
-    output: list[np.ndarray | None] = []
-    for image in range(pred.shape[0]):
-        class_probs = pred[image, :, 5 : 5 + num_classes]
-        if class_probs.shape[0] == 0:
-            output.append(None)
-            continue
-        class_pred = np.argmax(class_probs, axis=1)
-        class_conf = np.take_along_axis(class_probs, class_pred[:, None], axis=1)[:, 0]
-        obj = pred[image, :, 4]
-        keep = obj * class_conf >= threshold
-        if not keep.any():
-            output.append(None)
-            continue
-        detections = np.concatenate(
-            [
-                corners[image][keep],
-                obj[keep, None],
-                class_conf[keep, None],
-                class_pred[keep, None].astype(np.float32),
-            ],
-            axis=1,
-        )
-        order = batched_nms(detections[:, :4], detections[:, 4] * detections[:, 5], detections[:, 6], nms_threshold)
-        output.append(detections[order])
-    return output
+    return postprocess_thresholds(decoded, [conf_threshold], nms_threshold, num_classes=num_classes)[
+        float(conf_threshold)
+    ]

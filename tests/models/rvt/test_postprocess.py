@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from davis_rig.errors import ShapeError
-from davis_rig.models.rvt.postprocess import batched_nms, nms, postprocess, torch_cpu_unstable_argsort_desc
+from davis_rig.models.rvt.postprocess import (
+    batched_nms,
+    nms,
+    postprocess,
+    postprocess_thresholds,
+    torch_cpu_unstable_argsort_desc,
+)
 
 THRESHOLDS = {"0p001": 0.001, "0p1": 0.1, "0p25": 0.25}
 
@@ -24,6 +30,18 @@ def _check_fixture(fx):
                 assert got is not None and got.dtype == np.float32
                 np.testing.assert_array_equal(got, expected, err_msg=f"step{step} conf {conf}")
         np.testing.assert_array_equal(decoded, before)  # the input is not modified
+
+
+def test_thresholds_at_once_match_official_postprocess_rvt_t(rvt_t_fixture):
+    for step in range(rvt_t_fixture.num_steps):
+        got = postprocess_thresholds(rvt_t_fixture[f"step{step}.head.decoded"], THRESHOLDS.values(), 0.45)
+        assert sorted(got) == sorted(THRESHOLDS.values())
+        for name, conf in THRESHOLDS.items():
+            expected = rvt_t_fixture[f"step{step}.post.conf{name}"]
+            if expected.shape[0] == 0:
+                assert got[conf][0] is None
+            else:
+                np.testing.assert_array_equal(got[conf][0], expected, err_msg=f"step{step} conf {conf}")
 
 
 def test_matches_official_postprocess_mini(mini_fixture):
@@ -245,3 +263,63 @@ def test_candidate_sweep_and_dense_blocks_give_the_same_nms(monkeypatch):
     monkeypatch.setattr(postprocess_module, "_MAX_SWEEP_PAIRS", 0)  # force the dense block comparisons
     for (b, s, c), expected in zip(cases, sweep):
         np.testing.assert_array_equal(batched_nms(b, s, c, 0.45), expected)
+
+
+# --- several thresholds at once ----------------------------------------------------------------------------------
+def _postprocess_reference(pred, threshold, nms_threshold=0.45):
+    """One image, one threshold: confidence filter, then :func:`batched_nms` (checked against torch above)."""
+    class_pred = np.argmax(pred[:, 5:], axis=1)
+    class_conf = pred[np.arange(len(pred)), 5 + class_pred]
+    keep = pred[:, 4] * class_conf >= np.float32(threshold)
+    if not keep.any():
+        return None
+    half_w, half_h = pred[:, 2] / np.float32(2), pred[:, 3] / np.float32(2)
+    rows = np.stack([pred[:, 0] - half_w, pred[:, 1] - half_h, pred[:, 0] + half_w, pred[:, 1] + half_h,
+                     pred[:, 4], class_conf, class_pred.astype(np.float32)], axis=1)[keep]
+    return rows[batched_nms(rows[:, :4], rows[:, 4] * rows[:, 5], rows[:, 6], nms_threshold)]
+
+
+def _decoded(rng, anchors, levels):
+    """Random decoded output [1, A, 7] with scores quantized to ``levels`` values (many exact ties)."""
+    cxcy = rng.uniform(0, 320, (anchors, 2))
+    wh = rng.uniform(4, 90, (anchors, 2))
+    obj = np.round(rng.uniform(0, 1, anchors) * levels) / levels
+    probs = rng.uniform(0, 1, (anchors, 2))
+    return np.concatenate([cxcy, wh, obj[:, None], probs], axis=1)[None].astype(np.float32)
+
+
+@pytest.mark.parametrize("anchors, levels", [(1680, 8), (1680, 1000), (2600, 5), (300, 3), (50, 1000)])
+def test_postprocess_thresholds_equals_one_call_per_threshold(anchors, levels):
+    # thresholds whose candidate counts fall on both sides of torchvision's 1000-box path switch, equal counts,
+    # and sets whose largest coordinate (the offset path's class offset) changes or stays between thresholds
+    rng = np.random.default_rng(anchors + levels)
+    thresholds = (0.001, 0.01, 0.1, 0.2, 0.25, 0.3, 0.45, 0.6, 0.9, 1.0)
+    for trial in range(3):
+        decoded = _decoded(rng, anchors, levels)
+        if trial == 1:
+            decoded[0, 0, :4] = (400, 400, 30, 30)  # the largest coordinate on a high-score box ...
+            decoded[0, 0, 4:6] = 1.0
+        if trial == 2:
+            decoded[0, 0, 4] = 0.02  # ... and on a low-score one
+        got = postprocess_thresholds(decoded, thresholds[::-1] + (0.1,))
+        assert sorted(got) == sorted(thresholds)
+        for threshold in thresholds:
+            expected = _postprocess_reference(decoded[0], threshold)
+            if expected is None:
+                assert got[threshold] == [None]
+            else:
+                np.testing.assert_array_equal(got[threshold][0], expected, err_msg=f"threshold {threshold}")
+                np.testing.assert_array_equal(postprocess(decoded, threshold)[0], expected)
+
+
+def test_postprocess_thresholds_batch_and_errors():
+    rng = np.random.default_rng(1)
+    decoded = np.concatenate([_decoded(rng, 200, 10), _decoded(rng, 200, 10)])
+    got = postprocess_thresholds(decoded, [0.1, 0.5])
+    for image in range(2):
+        for threshold in (0.1, 0.5):
+            np.testing.assert_array_equal(got[threshold][image], _postprocess_reference(decoded[image], threshold))
+    with pytest.raises(ValueError, match="at least one"):
+        postprocess_thresholds(decoded, [])
+    with pytest.raises(ShapeError, match="expected"):
+        postprocess_thresholds(decoded[0], [0.1])
