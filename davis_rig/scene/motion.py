@@ -187,7 +187,8 @@ class Motion:
 
     Attributes:
         rotations_wxyz: float32 [T, J, 4], local bone rotations (unit quaternions w, x, y, z), bone order
-            of the asset (``bone_names``).
+            of the asset (``bone_names``). Rotation matrices float [T, J, 3, 3] are accepted too and stored
+            as quaternions (:func:`quat_from_matrix`, w >= 0).
         root_translation_m: float32 [T, 3], root translation ``t`` (m, world, Z up).
         fps_hz: frame rate (frames per second), > 0.
         name: short label (e.g. the trial id ``"CMU/07/07_01"`` or ``"gait(walk, 1.3 m/s)"``).
@@ -212,7 +213,10 @@ class Motion:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        r = np.asarray(self.rotations_wxyz, dtype=np.float32)
+        r = np.asarray(self.rotations_wxyz)
+        if r.ndim == 4 and r.shape[-2:] == (3, 3):
+            r = quat_from_matrix(r)
+        r = np.asarray(r, dtype=np.float32)
         tr = np.asarray(self.root_translation_m, dtype=np.float32)
         if r.ndim != 3 or r.shape[-1] != 4:
             raise ShapeError(f"rotations_wxyz must be [T, J, 4], got {r.shape}")

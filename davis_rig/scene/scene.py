@@ -6,9 +6,10 @@ height, so ``heading_rad = 0`` means the person faces (walks towards) the camera
 means the person walks to the image right (+X). With ``advance=True`` the body moves forward at the motion's
 own speed and the path is centred so that the person passes the placement point at the middle of the clip.
 
-Motions: the asset's walk cycle by default (sampled at any rate, cyclic), or any :class:`Motion` (local
-rotations ``[T, J, 4]`` + root translation ``[T, 3]`` at ``fps_hz``, resampled to the render rate by
-quaternion nlerp / linear interpolation, clamped at its ends) as the MOTION module supplies them.
+Motions: the asset's walk cycle by default (sampled at any rate, cyclic), or any
+:class:`~davis_rig.scene.motion.Motion` (local rotations ``[T, J, 4]`` + root translation ``[T, 3]`` at
+``fps_hz``), sampled at the frame times by :func:`davis_rig.scene.motion.sample` (slerp / linear root; a
+cycle wraps around its period, a clip is clamped at its ends).
 
 Render rate: >= 200 fps (:data:`MIN_RENDER_RATE_HZ`), so every 50 ms RVT window spans >= 10 frames.
 """
@@ -30,6 +31,7 @@ from davis_rig.scene.camera import (
     distance_for_height,
     look_at,
 )
+from davis_rig.scene.motion import Motion, sample
 from davis_rig.scene.renderer import RasterizedMesh, rasterize_mesh
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
@@ -37,11 +39,8 @@ from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 __all__ = [
     "MIN_RENDER_RATE_HZ",
     "Clip",
-    "Motion",
     "SceneSpec",
-    "matrix_to_quaternion",
     "render_clip",
-    "resample_motion",
     "scene_camera",
     "scene_vertices",
 ]
@@ -59,93 +58,12 @@ def _torch():
 
 
 @dataclass(frozen=True)
-class Motion:
-    """A body motion as forward-kinematics parameters of :class:`~davis_rig.scene.body.BodyModel`.
-
-    Attributes:
-        rotations_wxyz: float [T, J, 4], local bone rotations (unit quaternions w, x, y, z); rotation
-            matrices [T, J, 3, 3] are accepted too and converted to quaternions.
-        root_translation_m: float [T, 3], root head translation (m, Z up; forward = -Y in body axes).
-        fps_hz: frame rate (frames per second).
-    """
-
-    rotations_wxyz: np.ndarray
-    root_translation_m: np.ndarray
-    fps_hz: float
-
-    def __post_init__(self) -> None:
-        r = np.asarray(self.rotations_wxyz)
-        if r.ndim == 4 and r.shape[-2:] == (3, 3):
-            object.__setattr__(self, "rotations_wxyz", matrix_to_quaternion(r))
-            r = self.rotations_wxyz
-        tr = np.asarray(self.root_translation_m)
-        if r.ndim != 3 or r.shape[-1] != 4:
-            raise ShapeError(f"rotations_wxyz must be [T, J, 4], got {r.shape}")
-        if tr.shape != (r.shape[0], 3):
-            raise ShapeError(f"root_translation_m must be [{r.shape[0]}, 3], got {tr.shape}")
-        if not self.fps_hz > 0:
-            raise ValueError(f"fps_hz must be > 0, got {self.fps_hz}")
-
-
-def matrix_to_quaternion(matrices) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation matrices, float32 [..., 4] (Shepperd's method, w >= 0).
-
-    Args:
-        matrices: float [..., 3, 3] rotation matrices (column-vector convention).
-    """
-    m = np.asarray(matrices, dtype=np.float64)
-    if m.shape[-2:] != (3, 3):
-        raise ShapeError(f"matrices must be [..., 3, 3], got {m.shape}")
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # four candidate solutions, each well-conditioned when its (squared) component is the largest
-    cands = np.stack(
-        [
-            np.stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
-            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
-        ],
-        axis=-2,
-    )  # [..., 4 candidates, 4]  # fmt: skip
-    best = np.argmax(np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1), -1)
-    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    q *= np.where(q[..., :1] < 0, -1.0, 1.0)
-    return q.astype(np.float32)
-
-
-def resample_motion(motion: Motion, t_s) -> tuple[np.ndarray, np.ndarray]:
-    """A motion at arbitrary times (clamped to its duration): quaternion nlerp and linear root translation.
-
-    Args:
-        motion: the motion.
-        t_s: times from the motion's first frame, [N] (s).
-
-    Returns:
-        ``(rotations_wxyz float32 [N, J, 4], root_translation_m float32 [N, 3])``.
-    """
-    q = np.asarray(motion.rotations_wxyz, dtype=np.float64)
-    tr = np.asarray(motion.root_translation_m, dtype=np.float64)
-    n = q.shape[0]
-    pos = np.clip(np.asarray(t_s, dtype=np.float64) * motion.fps_hz, 0, n - 1)
-    i0 = np.minimum(np.floor(pos).astype(np.int64), n - 1)
-    i1 = np.minimum(i0 + 1, n - 1)
-    a = (pos - i0)[:, None]
-    q0, q1 = q[i0], q[i1]
-    sign = np.where((q0 * q1).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-    out = (1 - a[..., None]) * q0 + a[..., None] * sign * q1
-    out /= np.linalg.norm(out, axis=-1, keepdims=True)
-    root = (1 - a) * tr[i0] + a * tr[i1]
-    return out.astype(np.float32), root.astype(np.float32)
-
-
-@dataclass(frozen=True)
 class SceneSpec:
     """Everything that defines one rendered clip (all randomness resolved from ``seed``).
 
     Attributes:
         shape_index: body shape of the asset.
-        motion: a :class:`Motion`, or ``None`` for the asset's walk cycle of that shape.
+        motion: a :class:`~davis_rig.scene.motion.Motion`, or ``None`` for the asset's walk cycle of that shape.
         motion_start_s: time into the motion of the first frame (s).
         advance: walk cycle only: move forward at the cycle's speed (False = walk in place, as the official
             code). A :class:`Motion` always uses its own root translation.
@@ -286,9 +204,8 @@ def scene_vertices(spec: SceneSpec, model) -> "object":
             root = root.clone()
             root[:, 1] += speed * t_mid  # centre the path: mid-clip position at the placement point
     else:
-        rot_np, root_np = resample_motion(spec.motion, t_s)
-        _, mid = resample_motion(spec.motion, np.array([t_mid]))
-        root_np = root_np.copy()
+        rot_np, root_np = sample(spec.motion, t_s)
+        _, mid = sample(spec.motion, [t_mid])
         root_np[:, :2] -= mid[:, :2]
         rotations = torch.as_tensor(rot_np, device=model.device)
         root = torch.as_tensor(root_np, device=model.device)

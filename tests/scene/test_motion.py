@@ -148,12 +148,21 @@ def test_render_rate_gives_ten_frames_per_window(asset):
     assert (per_window == 10).all()
 
 
-def test_scene_resampler_accepts_this_motion(asset):
-    from davis_rig.scene.scene import resample_motion
+def test_motion_accepts_rotation_matrices():
+    from davis_rig.scene.body import quaternion_to_matrix
 
-    walk = Motion.from_walk_cycle(asset, 0, advance=False)
-    rot, root = resample_motion(walk, np.array([0.0, 1.0 / walk.fps_hz]))
-    np.testing.assert_allclose(root, walk.root_translation_m[:2], atol=1e-6)
+    rng = np.random.default_rng(0)
+    q = _random_quats(rng, (10, 5))
+    q[..., 0] = np.abs(q[..., 0])
+    q[0, :3] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]  # identity and 180-degree turns (w = 0)
+    m = quaternion_to_matrix(torch.as_tensor(q)).numpy()
+    root = rng.normal(size=(10, 3))
+    from_matrices = Motion(m, root, 30.0)
+    assert from_matrices.rotations_wxyz.shape == (10, 5, 4) and from_matrices.rotations_wxyz.dtype == np.float32
+    np.testing.assert_allclose(from_matrices.rotations_wxyz, q, atol=1e-6)  # w >= 0 -> the same sign as q
+    np.testing.assert_allclose(quat_to_matrix(from_matrices.rotations_wxyz), m, atol=1e-6)
+    with pytest.raises(ShapeError, match=r"\[T, J, 4\]"):
+        Motion(m[..., :2], root, 30.0)  # [T, J, 3, 2] is neither
 
 
 # ------------------------------------------------------------------ heading, turning, concatenation

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from davis_rig.scene.camera import EgoMotion, EoTJitter
-from davis_rig.scene.scene import Motion, SceneSpec, render_clip, resample_motion, scene_camera, scene_vertices
+from davis_rig.scene.motion import Motion, loop, sample
+from davis_rig.scene.scene import SceneSpec, render_clip, scene_camera, scene_vertices
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 
@@ -64,9 +65,22 @@ def test_motion_equals_the_walk_cycle_in_place(model):
     # the Motion path centres the root at mid-clip; compare shapes of the body up to that translation
     shift = (a - b).mean(dim=1, keepdim=True)
     np.testing.assert_allclose((a - b - shift).numpy(), 0.0, atol=2e-4)
-    rot, root = resample_motion(motion, np.array([0.0, 1.0 / walk.fps_hz, 100.0]))
+    rot, root = sample(motion, np.array([0.0, 1.0 / walk.fps_hz, 100.0]))
     np.testing.assert_allclose(rot[1], walk.rotations_wxyz[1] * np.sign((rot[1] * walk.rotations_wxyz[1]).sum(-1))[:, None], atol=1e-6)
     np.testing.assert_allclose(root[2], walk.root_translation_m[-1], atol=1e-6)  # clamped at the end
+
+
+def test_cyclic_motion_wraps_around_its_period(asset, model):
+    """A cycle (``cycle_advance_m`` set) plays on past its last frame: one period later, the same pose."""
+    walk = Motion.from_walk_cycle(asset, 0, advance=False)
+    period_s = walk.duration_s
+    fps = 200.0
+    a = scene_vertices(SceneSpec(motion=walk, duration_s=0.02, render_rate_hz=fps), model)
+    b = scene_vertices(SceneSpec(motion=walk, motion_start_s=period_s, duration_s=0.02, render_rate_hz=fps), model)
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-5)
+    twice = loop(walk, 2)
+    c = scene_vertices(SceneSpec(motion=twice, motion_start_s=period_s, duration_s=0.02, render_rate_hz=fps), model)
+    np.testing.assert_allclose(b.numpy(), c.numpy(), atol=1e-5)
 
 
 def test_jitter_and_ego_motion_cameras():
@@ -119,19 +133,9 @@ def test_render_clip_on_cuda_matches_cpu(model):
     np.testing.assert_allclose(cpu.boxes, gpu.boxes, atol=1.0)
 
 
-def test_motion_accepts_rotation_matrices(model):
+def test_scene_accepts_a_motion_of_rotation_matrices(model):
     from davis_rig.scene.body import quaternion_to_matrix
-    from davis_rig.scene.scene import matrix_to_quaternion
 
-    rng = np.random.default_rng(0)
-    q = rng.normal(size=(50, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[:, 0] = np.abs(q[:, 0])
-    q[:3] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]  # identity and 180-degree turns (w = 0)
-    m = quaternion_to_matrix(torch.as_tensor(q)).numpy()
-    back = matrix_to_quaternion(m)
-    np.testing.assert_allclose(quaternion_to_matrix(torch.as_tensor(back, dtype=torch.float64)).numpy(), m, atol=1e-6)
-    np.testing.assert_allclose(back[3:], q[3:], atol=1e-6)
     walk = model.asset.walk_cycle(0)
     mats = quaternion_to_matrix(torch.as_tensor(np.array(walk.rotations_wxyz))).numpy()
     a = scene_vertices(SceneSpec(motion=Motion(mats, np.array(walk.root_translation_m), walk.fps_hz), duration_s=0.02), model)
