@@ -74,6 +74,7 @@ from davis_rig.scene.motion import (
     rotation_about_z,
     turn,
 )
+from davis_rig.scene.skeleton import Rig, sole_points
 
 __all__ = [
     "FIT_MAX_ERROR_DEG",
@@ -297,55 +298,18 @@ def _slerp_matrices(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
     return quat_to_matrix(quat_slerp(qa, qb, np.full(len(a), weight)))
 
 
-class _Rig:
-    """Bone lookup and rest geometry of one shape, for the generator."""
-
-    def __init__(self, asset, shape_index: int):
-        self.asset = asset
-        self.names = tuple(asset.bone_names)
-        self.parents = np.asarray(asset.bone_parents, dtype=np.int64)
-        self.rest = np.asarray(asset.rest_bone_poses[shape_index], dtype=np.float64)
-        self.heads = self.rest[:, :3, 3]
-        self.index = {n: i for i, n in enumerate(self.names)}
-        verts = np.asarray(asset.rest_vertices_m[shape_index], dtype=np.float64)
-        self.ground_z = float(verts[:, 2].min())
-        self.hip_height_m = float(self.heads[self.index["upperleg01.L"], 2] - self.ground_z)
-        # sole vertices per foot: lowest 1.5 cm of each foot, attached to their dominant bone
-        dominant = asset.skin_indices[np.arange(len(verts)), np.argmax(asset.skin_weights, axis=1)].astype(np.int64)
-        self.soles = {}
-        for side in ("L", "R"):
-            foot = self.index[f"foot.{side}"]
-            in_foot = np.isin(dominant, self._descendants(foot))
-            low = in_foot & (verts[:, 2] < verts[in_foot, 2].min() + 0.015)
-            self.soles[side] = (verts[low], dominant[low])
-
-    def _descendants(self, bone: int) -> np.ndarray:
-        keep = np.zeros(len(self.names), dtype=bool)
-        keep[bone] = True
-        for c in range(bone + 1, len(self.names)):
-            keep[c] = keep[self.parents[c]]
-        return np.flatnonzero(keep)
-
-    def i(self, name: str) -> int:
-        return self.index[name]
-
-    def direction(self, a: str, b: str) -> np.ndarray:
-        d = self.heads[self.i(b)] - self.heads[self.i(a)]
-        return d / np.linalg.norm(d)
-
-
 def _sagittal_straighten(direction: np.ndarray) -> np.ndarray:
     """Rx(alpha) that removes the forward/backward (y) component of a mostly vertical direction."""
     return _rx(np.arctan(direction[1] / direction[2]))
 
 
-def _lift_leg(rig: _Rig, side: str, hip, knee, ankle, lift_m):
+def _lift_leg(rig: Rig, side: str, hip, knee, ankle, lift_m):
     """Sagittal two-link IK: raise the ankle by ``lift_m`` (m) at the same forward position, foot orientation kept.
 
     Angles in degrees (thigh from vertical, knee flexion, ankle dorsiflexion), arrays [T]; returns new ones.
     """
     def sagittal_length(a: str, b: str) -> float:
-        d = rig.heads[rig.i(b)] - rig.heads[rig.i(a)]
+        d = rig.heads[rig.bone(b)] - rig.heads[rig.bone(a)]
         return float(np.hypot(d[1], d[2]))
 
     l1 = sagittal_length(f"upperleg01.{side}", f"lowerleg01.{side}")
@@ -362,7 +326,7 @@ def _lift_leg(rig: _Rig, side: str, hip, knee, ankle, lift_m):
             np.where(changed, np.degrees(ankle_new), ankle))
 
 
-def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale: float, rng_values: dict,
+def _world_rotations(rig: Rig, params: GaitParams, phase: np.ndarray, hip_scale: float, rng_values: dict,
                      lift_m: dict | None = None) -> np.ndarray:
     """Per-bone world rotations relative to rest, [T, J, 3, 3], for phases [T] of the left leg.
 
@@ -385,7 +349,7 @@ def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale
     g_root = rotation_about_z(pel_rot * deg) @ _ry(pel_obl * deg) @ _rx(pel_tilt * deg)
     g_thorax = rotation_about_z(-pel_rot * deg) @ _rx(np.full(t, lean * deg))
     g_head = _rx(np.full(t, 0.3 * lean * deg))
-    key: dict[int, np.ndarray] = {rig.i("root"): g_root}
+    key: dict[int, np.ndarray] = {rig.bone("root"): g_root}
     for side, offset, sign in (("L", 0.0, 1.0), ("R", 0.5, -1.0)):
         angles = joint_angles_deg(phase + offset + v[f"phase_{side}"], run, s)
         hip_mean = angles["hip"].mean()
@@ -401,10 +365,10 @@ def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale
         a_thigh = _sagittal_straighten(rig.direction(f"upperleg01.{side}", f"lowerleg01.{side}"))
         a_shank = _sagittal_straighten(rig.direction(f"lowerleg01.{side}", f"foot.{side}"))
         for bone in ("upperleg01", "upperleg02"):
-            key[rig.i(f"{bone}.{side}")] = thigh @ a_thigh
+            key[rig.bone(f"{bone}.{side}")] = thigh @ a_thigh
         for bone in ("lowerleg01", "lowerleg02"):
-            key[rig.i(f"{bone}.{side}")] = shank @ a_shank
-        key[rig.i(f"foot.{side}")] = foot
+            key[rig.bone(f"{bone}.{side}")] = shank @ a_shank
+        key[rig.bone(f"foot.{side}")] = foot
         # arms swing opposite to the same-side leg: most forward at the other leg's heel strike
         shoulder = -8.0 * (1 - run) + swing * v["arm"] * -np.cos(two_pi_p + 2 * np.pi * offset)
         target = np.array([sign * np.sin(params.arm_abduction_deg * deg), 0.0, -np.cos(params.arm_abduction_deg * deg)])
@@ -414,32 +378,20 @@ def _world_rotations(rig: _Rig, params: GaitParams, phase: np.ndarray, hip_scale
         elbow_angle = elbow + 8.0 * (1 - run) * -np.cos(two_pi_p + 2 * np.pi * offset)
         fore = upper @ _rx(-elbow_angle * deg)
         for bone in ("upperarm01", "upperarm02"):
-            key[rig.i(f"{bone}.{side}")] = upper @ a_upper
+            key[rig.bone(f"{bone}.{side}")] = upper @ a_upper
         for bone in ("lowerarm01", "lowerarm02", "wrist"):
-            key[rig.i(f"{bone}.{side}")] = fore @ a_fore
+            key[rig.bone(f"{bone}.{side}")] = fore @ a_fore
         for bone in ("clavicle", "shoulder01"):
-            key[rig.i(f"{bone}.{side}")] = g_thorax
+            key[rig.bone(f"{bone}.{side}")] = g_thorax
     for k, bone in enumerate(("spine05", "spine04", "spine03", "spine02", "spine01")):
-        key[rig.i(bone)] = _slerp_matrices(g_root, g_thorax, (k + 1) / 5.0)
+        key[rig.bone(bone)] = _slerp_matrices(g_root, g_thorax, (k + 1) / 5.0)
     for k, bone in enumerate(("neck01", "neck02", "neck03")):
-        key[rig.i(bone)] = _slerp_matrices(g_thorax, g_head, (k + 1) / 3.0)
-    key[rig.i("head")] = g_head
+        key[rig.bone(bone)] = _slerp_matrices(g_thorax, g_head, (k + 1) / 3.0)
+    key[rig.bone("head")] = g_head
     g = np.empty((t, len(rig.names), 3, 3))
     for c in range(len(rig.names)):  # bones not driven follow their parent rigidly (toes, fingers, eyes, pelvis.*)
         g[:, c] = key[c] if c in key else g[:, rig.parents[c]]
     return g
-
-
-def _forward_points(rig: _Rig, g: np.ndarray, side: str) -> np.ndarray:
-    """World positions of the sole vertices of one foot for root translation 0, [T, P, 3]."""
-    t = g.shape[0]
-    heads = np.empty((t, len(rig.names), 3))
-    heads[:, 0] = rig.heads[0]
-    for c in range(1, len(rig.names)):
-        p = rig.parents[c]
-        heads[:, c] = heads[:, p] + g[:, p] @ (rig.heads[c] - rig.heads[p])
-    pts, bones = rig.soles[side]
-    return heads[:, bones] + np.einsum("tpij,pj->tpi", g[:, bones], pts - rig.heads[bones])
 
 
 def _stance_weights(phase: np.ndarray, s: float) -> np.ndarray:
@@ -451,11 +403,11 @@ def _stance_weights(phase: np.ndarray, s: float) -> np.ndarray:
     return np.where(p < s, np.clip(p / ds, 0, 1) * np.clip((s - p) / ds, 0, 1), 0.0)
 
 
-def _root_path(rig: _Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: float) -> tuple[np.ndarray, dict]:
+def _root_path(rig: Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: float) -> tuple[np.ndarray, dict]:
     """Root translation [T, 3] over one cycle (horizontal advance from the stance pivots) and diagnostics."""
     t = len(phase)
     dt = period_s / t
-    soles = {side: _forward_points(rig, g, side) for side in ("L", "R")}
+    soles = {side: sole_points(rig, g, side) for side in ("L", "R")}
     weights = {"L": _stance_weights(phase, s), "R": _stance_weights(phase + 0.5, s)}
     step = np.zeros((t, 2))
     lowest, moves = {}, {}
@@ -510,14 +462,14 @@ def _root_path(rig: _Rig, g: np.ndarray, phase: np.ndarray, s: float, period_s: 
     return root, info
 
 
-def _clearance_lift(rig: _Rig, g, root, phase, s: float, frames: int) -> dict | None:
+def _clearance_lift(rig: Rig, g, root, phase, s: float, frames: int) -> dict | None:
     """Ankle lift (m) per swing frame that brings each swing foot to SWING_CLEARANCE_M, smoothed; None if not needed."""
     out = {}
     width = max(3, int(round(0.06 * frames)))
     window = np.hanning(2 * width + 1)
     window /= window.sum()
     for side, offset in (("L", 0.0), ("R", 0.5)):
-        height = _forward_points(rig, g, side)[..., 2].min(axis=1) + root[:, 2]
+        height = sole_points(rig, g, side)[..., 2].min(axis=1) + root[:, 2]
         swing = _stance_weights(phase + offset + SCHEDULE_MARGIN, s + 2 * SCHEDULE_MARGIN) == 0
         deficit = np.where(swing, np.maximum(SWING_CLEARANCE_M - height, 0.0), 0.0)
         idx = (np.arange(frames)[:, None] + np.arange(-width, width + 1)[None]) % frames
@@ -572,7 +524,7 @@ def generate_gait(
     asset = BodyAsset.load() if asset is None else asset
     if num_cycles < 1:
         raise ValueError(f"num_cycles must be >= 1, got {num_cycles}")
-    rig = _Rig(asset, shape_index)
+    rig = Rig.from_asset(asset, shape_index)
     v = _variation(params)
     speed = params.speed_m_s
     if params.stride_m is not None:

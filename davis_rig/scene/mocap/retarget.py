@@ -31,6 +31,7 @@ import numpy as np
 
 from davis_rig.errors import ShapeError
 from davis_rig.scene.motion import Motion, motion_from_world_rotations
+from davis_rig.scene.skeleton import Rig, sole_points
 
 __all__ = [
     "ANNY_BONE_SEGMENT",
@@ -184,7 +185,7 @@ def retarget(
                                        bone_names=tuple(asset.bone_names), **motion_fields)
 
 
-def _world_deltas(motion: Motion, rig) -> np.ndarray:
+def _world_deltas(motion: Motion, rig: Rig) -> np.ndarray:
     """Per-bone world rotations relative to rest ``G_c = W_c R_c^T`` of a motion, float64 [T, J, 3, 3]."""
     from davis_rig.scene.motion import quat_to_matrix
 
@@ -225,9 +226,7 @@ def foot_locked_root(
     """
     from dataclasses import replace
 
-    from davis_rig.scene.gait import _forward_points, _Rig
-
-    rig = _Rig(asset, shape_index)
+    rig = Rig.from_asset(asset, shape_index)
     world = _world_deltas(motion, rig)
     root = motion.root_translation_m.astype(np.float64)
     t = motion.num_frames
@@ -235,7 +234,7 @@ def foot_locked_root(
         return motion
     low, moves = {}, {}
     for side in ("L", "R"):
-        pts = _forward_points(rig, world, side)  # root-relative
+        pts = sole_points(rig, world, side)  # root-relative
         pivot = np.argmin(pts[..., 2], axis=1)
         low[side] = pts[np.arange(t), pivot, 2] + root[:, 2]
         moves[side] = pts[np.arange(1, t), pivot[:-1], :2] - pts[np.arange(t - 1), pivot[:-1], :2]
@@ -262,10 +261,8 @@ def ground_offsets(motion: Motion, asset, shape_index: int = 0) -> np.ndarray:
     motion on the ground without a :class:`~davis_rig.scene.body.BodyModel`. Agrees with the skinned mesh's
     lowest foot vertex to the LBS blend error of the sole (a few mm).
     """
-    from davis_rig.scene.gait import _forward_points, _Rig
-
-    rig = _Rig(asset, shape_index)
+    rig = Rig.from_asset(asset, shape_index)
     world = _world_deltas(motion, rig)
-    low = np.minimum(_forward_points(rig, world, "L")[..., 2].min(axis=1),
-                     _forward_points(rig, world, "R")[..., 2].min(axis=1))
+    low = np.minimum(sole_points(rig, world, "L")[..., 2].min(axis=1),
+                     sole_points(rig, world, "R")[..., 2].min(axis=1))
     return low + motion.root_translation_m[:, 2].astype(np.float64)
