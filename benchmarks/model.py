@@ -4,8 +4,9 @@ For RVT-T and RVT-B (**random weights** — latency does not depend on the value
 
 * ``eager_step``: one recurrent step (backbone + FPN + head, with states) under ``torch.inference_mode``;
 * ``ort_step``: the same step exported with ``export_step_onnx`` and run by :class:`RVTOnnxRunner`
-  (input already padded float32); ratio eager / ORT (the two are timed alternately, so load drift on a
-  shared machine affects both alike);
+  (input already padded float32, idle threads not spinning: the runner's default); ``ort_spinning``: the same
+  with onnxruntime's busy-waiting threads; ratio eager / ORT (the three are timed alternately, so load drift
+  on a shared machine affects all alike);
 * ``bptt_3steps``: 3 recurrent steps forward + backward w.r.t. the three inputs (the digital optimizer's inner
   cost; loss = Σ obj · max class prob of the last step);
 * ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1.
@@ -150,6 +151,7 @@ def main() -> None:
             for threads in args.threads:
                 torch.set_num_threads(threads)
                 runner = RVTOnnxRunner(onnx_path, intra_op_threads=threads)
+                spinning = RVTOnnxRunner(onnx_path, intra_op_threads=threads, allow_spinning=True)
                 _, ort_warm = runner.step(hists[0])
 
                 def eager_step():
@@ -159,8 +161,12 @@ def main() -> None:
                 def ort_step():
                     runner.step(hists[1], ort_warm)
 
+                def ort_spinning():
+                    spinning.step(hists[1], ort_warm)
+
                 timings = _time_interleaved_ms(
-                    {"eager_step": eager_step, "ort_step": ort_step}, args.warmup, args.repeats
+                    {"eager_step": eager_step, "ort_step": ort_step, "ort_spinning": ort_spinning},
+                    args.warmup, args.repeats,
                 )
                 if not args.no_bptt:
 
@@ -179,7 +185,9 @@ def main() -> None:
                         f"IQR {iqr_ms:6.1f} ms  min {min_ms:8.1f} ms"
                     )
                 eager, ort_ms = results[(variant, threads, "eager_step")], results[(variant, threads, "ort_step")]
-                print(f"{config.name:6s} threads {threads}  ratio eager/ORT {eager / ort_ms:.2f}")
+                spin_ms = results[(variant, threads, "ort_spinning")]
+                print(f"{config.name:6s} threads {threads}  ratio eager/ORT {eager / ort_ms:.2f}  "
+                      f"spinning/not {spin_ms / ort_ms:.2f}")
             diffs = _compare(model, RVTOnnxRunner(onnx_path), hists)
             print(f"{config.name:6s} ORT vs PyTorch (random weights, 3 steps): {_format_diffs(diffs)}")
             if variant == args.variants[0]:

@@ -9,9 +9,9 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
    crop origin (default: centred; the origin stored by ``davis-label`` is used so events and labels share one
    frame), timestamps made non-decreasing like RVT's reader, stacked histograms (10 bins, cutoff 10).
 3. **RVT.** One ONNX step per window, the LSTM states carried from the first window of the recording (zero
-   states there), the official post-processing (obj · class ≥ threshold, class-wise NMS 0.45) run once per
-   threshold on each window's output (exact per threshold; a threshold that keeps exactly the same candidate
-   anchors as the next lower one reuses that output, identical by construction).
+   states there), the official post-processing (obj · class ≥ threshold, class-wise NMS 0.45) of each window's
+   output at every threshold at once (exactly equal to one run per threshold; NMS work is shared where that is
+   exact). Reading + histograms, inference and post-processing run in three overlapping threads.
 4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
    ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
    the label time, so label-time matching is exact (tolerance 0: APS labels are 40 ms apart, RVT's ±50 ms would
@@ -100,7 +100,8 @@ class SessionScores:
         labels: BBOX_DTYPE [L] (crop px, device µs), as stored, sorted by time.
         crop_origin_xy: the crop used.
         num_events: events read (before the crop).
-        timings_s: ``read``, ``histogram``, ``inference``, ``postprocess`` seconds.
+        timings_s: busy seconds of the stages ``read``, ``histogram``, ``inference``, ``postprocess`` (they
+            overlap) and ``wall``, the seconds :func:`score_session` took.
         event_images: int16 [G, 240, 304] ON − OFF counts of the first windows (for the GIF), maybe empty.
     """
 
@@ -161,8 +162,47 @@ def _open_checked(path: Path):
     return reader, np.sort(labels, order="t", kind="stable")
 
 
+def _event_chunks(reader, ends: np.ndarray, origin, settings: EvalSettings, timings: dict):
+    """Producer: per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images)``.
+
+    Reads the chunk's events (plus the window before it), crops them, makes their timestamps non-decreasing
+    across the whole recording (RVT's reader) and builds the stacked histograms; adds its busy seconds to
+    ``timings["read"]`` and ``timings["histogram"]``.
+    """
+    from davis_rig.events.crop import crop_events
+    from davis_rig.events.histogram import stacked_histograms
+
+    window_us = int(settings.window_us)
+    running_max = np.iinfo(np.int64).min
+    gif_left = settings.gif_windows
+    for i0 in range(0, len(ends), settings.chunk_windows):
+        chunk_ends = ends[i0 : i0 + settings.chunk_windows]
+        tic = time.perf_counter()
+        events = reader.events_between(int(chunk_ends[0]) - window_us, int(chunk_ends[-1]) + 1)
+        num_read = len(events)
+        events = crop_events(events, origin, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
+        if len(events):
+            t = np.maximum.accumulate(np.maximum(events["t"], running_max))
+            running_max = int(t[-1])
+            events["t"] = t
+        tac = time.perf_counter()
+        hists = stacked_histograms(events, chunk_ends, window_us=window_us)
+        gif = hists[:max(gif_left, 0)]
+        half = hists.shape[1] // 2
+        gif = gif[:, half:].sum(1, dtype=np.int16) - gif[:, :half].sum(1, dtype=np.int16)
+        gif_left -= len(gif)
+        timings["read"] += tac - tic
+        timings["histogram"] += time.perf_counter() - tac
+        yield chunk_ends, hists, gif, num_read
+
+
 def score_session(path, runner, settings: EvalSettings, *, progress: Callable | None = None) -> SessionScores:
     """Run RVT over a labelled session window by window (states carried) and post-process per threshold.
+
+    Three stages overlap: a background thread reads and histograms the next chunk of windows, the calling
+    thread runs the ONNX steps (onnxruntime releases the GIL), and a second thread post-processes each step's
+    output at all thresholds at once (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`, exactly
+    equal to one official post-processing per threshold). The results do not depend on the overlap.
 
     Args:
         path: session.h5 with ``/labels``.
@@ -172,16 +212,22 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
             (e.g. ``tqdm``); ``None`` for silence.
 
     Returns:
-        :class:`SessionScores`.
+        :class:`SessionScores`; ``timings_s`` holds each stage's busy seconds (``read``, ``histogram``,
+        ``inference``, ``postprocess``) and ``wall`` (the stages overlap, so their sum exceeds it).
 
     Raises:
         SessionError: unreadable session, no events, no labels, not a DAVIS346 recording.
     """
-    from davis_rig.events.crop import center_crop_origin, crop_events
-    from davis_rig.events.histogram import stacked_histograms
-    from davis_rig.models.rvt.postprocess import postprocess
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+    from contextlib import closing
+
+    from davis_rig.evaluation.prefetch import prefetch
+    from davis_rig.events.crop import center_crop_origin
+    from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
     path = Path(path)
+    wall = time.perf_counter()
     reader, labels = _open_checked(path)
     timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
     try:
@@ -199,52 +245,44 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         ends = t0 + window_us * np.arange(1, n_windows + 1, dtype=np.int64)
         thresholds = sorted({float(th) for th in settings.thresholds})
         detections = {th: [] for th in thresholds}
-        states = None
-        running_max = np.iinfo(np.int64).min
-        gif = []
-        bar = progress(total=n_windows, desc=path.name) if progress is not None else None
-        num_events = 0
-        for i0 in range(0, n_windows, settings.chunk_windows):
-            chunk_ends = ends[i0 : i0 + settings.chunk_windows]
+
+        def post(decoded):
             tic = time.perf_counter()
-            events = reader.events_between(int(chunk_ends[0]) - window_us, int(chunk_ends[-1]) + 1)
-            num_events += len(events)
-            events = crop_events(events, origin, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
-            if len(events):
-                t = np.maximum.accumulate(np.maximum(events["t"], running_max))
-                running_max = int(t[-1])
-                events["t"] = t
-            tac = time.perf_counter()
-            hists = stacked_histograms(events, chunk_ends, window_us=window_us)
-            toc = time.perf_counter()
-            timings["read"] += tac - tic
-            timings["histogram"] += toc - tac
-            for k, hist in enumerate(hists):
-                tic = time.perf_counter()
-                decoded, states = runner.step(hist[None], states)
-                tac = time.perf_counter()
-                # obj · max class prob exactly as postprocess computes it; thresholds ascending -> nested candidate
-                # sets, so an equal count means the same candidates and the same (exact) post-processed output
-                pred = np.asarray(decoded[0], dtype=np.float32)
-                score = pred[:, 4] * pred[:, 5:].max(axis=1)
-                previous_count, previous = -1, None
-                for th in thresholds:
-                    count = int(np.count_nonzero(score >= np.float32(th)))
-                    if count != previous_count:
-                        previous = postprocess(decoded, th, settings.nms_threshold)[0] if count else None
-                        previous_count = count
-                    detections[th].append(previous)
-                timings["postprocess"] += time.perf_counter() - tac
-                timings["inference"] += tac - tic
-                if len(gif) < settings.gif_windows:
-                    half = hist.shape[0] // 2
-                    gif.append(hist[half:].sum(0, dtype=np.int16) - hist[:half].sum(0, dtype=np.int16))
-            if bar is not None:
-                bar.update(len(chunk_ends))
+            out = postprocess_thresholds(decoded, thresholds, settings.nms_threshold)
+            timings["postprocess"] += time.perf_counter() - tic
+            return out
+
+        def collect(future) -> None:
+            out = future.result()
+            for th in thresholds:
+                detections[th].append(out[th][0])
+
+        states = None
+        gif = []
+        num_events = 0
+        pending = deque()
+        bar = progress(total=n_windows, desc=path.name) if progress is not None else None
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool, \
+                closing(prefetch(_event_chunks(reader, ends, origin, settings, timings), depth=2)) as chunks:
+            for chunk_ends, hists, gif_part, num_read in chunks:
+                num_events += num_read
+                gif.extend(gif_part)
+                for hist in hists:
+                    tic = time.perf_counter()
+                    decoded, states = runner.step(hist[None], states)
+                    timings["inference"] += time.perf_counter() - tic
+                    pending.append(post_pool.submit(post, decoded))
+                    while len(pending) > settings.chunk_windows or (pending and pending[0].done()):
+                        collect(pending.popleft())
+                if bar is not None:
+                    bar.update(len(chunk_ends))
+            while pending:
+                collect(pending.popleft())
         if bar is not None:
             bar.close()
     finally:
         reader.close()
+    timings["wall"] = time.perf_counter() - wall
     return SessionScores(path=path, t0_us=t0, window_end_us=ends, detections=detections, labels=labels,
                          crop_origin_xy=tuple(int(v) for v in origin), num_events=num_events, timings_s=timings,
                          event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW))

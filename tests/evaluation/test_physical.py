@@ -156,5 +156,5 @@ def test_report_json_round_trip_has_every_number(labelled, tmp_path):
     assert data["settings"]["seq_len"] == 5 and data["settings"]["thresholds"] == [0.001, 0.01, 0.1, 0.25]
     assert recorded["metrics"]["0.25"]["AP"] == pytest.approx(1.0)
     assert recorded["metrics"]["0.25"]["AP_S"] is None  # NaN -> null
-    assert set(recorded["info"]["timings_s"]) == {"read", "histogram", "inference", "postprocess", "metrics"}
+    assert set(recorded["info"]["timings_s"]) == {"read", "histogram", "inference", "postprocess", "wall", "metrics"}
     assert not any(isinstance(v, float) and math.isnan(v) for v in recorded["metrics"]["0.25"].values())

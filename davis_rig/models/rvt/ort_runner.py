@@ -149,14 +149,24 @@ class RVTOnnxRunner:
     Args:
         path: the ``.onnx`` file written by ``export_step_onnx``.
         providers: onnxruntime execution providers; default ``["CPUExecutionProvider"]``.
-        intra_op_threads: onnxruntime intra-op threads; default: onnxruntime's choice.
+        intra_op_threads: onnxruntime intra-op threads; default: onnxruntime's choice (the physical cores).
+        allow_spinning: let idle intra-op threads busy-wait for the next operator (onnxruntime's default). Off
+            here: on a shared CPU the spinning threads take the cores from the threads that read, histogram and
+            post-process beside the inference (benchmarks/model.py measures both).
 
     Raises:
         MissingDependencyError: onnxruntime is not installed.
         ModelFormatError: the file is not a loadable ONNX model or has the wrong inputs/outputs/shapes.
     """
 
-    def __init__(self, path: str | Path, providers: Sequence[str] | None = None, intra_op_threads: int | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        providers: Sequence[str] | None = None,
+        intra_op_threads: int | None = None,
+        *,
+        allow_spinning: bool = False,
+    ):
         try:
             import onnxruntime as ort
         except ImportError as exc:  # pragma: no cover - onnxruntime is a core dependency
@@ -167,6 +177,7 @@ class RVTOnnxRunner:
             options.intra_op_num_threads = int(intra_op_threads)
             options.inter_op_num_threads = 1
         options.log_severity_level = 3
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
         try:
             self._session = ort.InferenceSession(
                 str(self.path), sess_options=options, providers=list(providers or ["CPUExecutionProvider"])
