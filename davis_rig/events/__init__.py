@@ -1,9 +1,17 @@
-"""Event-stream kernels: RVT input histograms, time windows, crop (numpy; the torch variant is lazy).
+"""Event-stream kernels: crop, RVT input histograms and time windows (numpy); simulators (torch, lazy).
 
-``davis_rig.events.histogram`` is numpy-only and bit-exact with the official RVT pre-processing;
-``davis_rig.events.histogram_torch`` is the differentiable float version (imports torch when called).
+- :mod:`~davis_rig.events.crop`: centre crop of the DAVIS346 stream to RVT's 304 x 240 frame.
+- :mod:`~davis_rig.events.histogram`: RVT's stacked histograms, numpy, bit-exact with the official pre-processing.
+- :mod:`~davis_rig.events.histogram_torch`: the differentiable float version of those histograms.
+- :mod:`~davis_rig.events.simulator`: the exact DVS event simulator (video -> events, v2e non-idealities).
+- :mod:`~davis_rig.events.v2e_torch`: the paper's differentiable V2E, video -> stacked histograms.
+
+Importing this package does not import torch: the names of the last three modules are loaded on first access.
 """
 
+from __future__ import annotations
+
+from davis_rig._lazy import lazy_exports
 from davis_rig.events.crop import center_crop_origin, crop_events, monotonic_timestamps
 from davis_rig.events.histogram import (
     COUNT_CUTOFF,
@@ -16,6 +24,37 @@ from davis_rig.events.histogram import (
     time_bins,
     window_indices,
 )
+
+_LAZY = {
+    "davis_rig.events.histogram_torch": (
+        "StackedHistogramTorch",
+        "stacked_histogram_torch",
+        "stacked_histograms_torch",
+        "time_bins_torch",
+    ),
+    "davis_rig.events.simulator": (
+        "DEFAULT_THRESHOLD",
+        "LIN_LOG_THRESHOLD",
+        "EventSimulator",
+        "SimulatorConfig",
+        "lin_log",
+        "simulate_events",
+    ),
+    "davis_rig.events.v2e_torch": (
+        "BINNINGS",
+        "LUMA_WEIGHTS",
+        "MODES",
+        "OFFICIAL_RELAXED_SCALE",
+        "DifferentiableV2E",
+        "floor_ste",
+        "pair_bins",
+        "rgb_to_luma",
+        "v2e_counts",
+        "v2e_histograms",
+    ),
+}
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
     "COUNT_CUTOFF",
@@ -30,4 +69,5 @@ __all__ = [
     "stacked_histograms",
     "time_bins",
     "window_indices",
+    *(name for names in _LAZY.values() for name in names),
 ]

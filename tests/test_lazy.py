@@ -1,0 +1,41 @@
+"""davis_rig._lazy: PEP 562 lazy exports."""
+
+from __future__ import annotations
+
+import sys
+import types
+
+import pytest
+
+from davis_rig._lazy import lazy_exports
+
+
+@pytest.fixture()
+def package(monkeypatch):
+    pkg = types.ModuleType("fake_pkg")
+    monkeypatch.setitem(sys.modules, "fake_pkg", pkg)
+    return pkg
+
+
+def test_loads_on_first_access_and_caches(package, monkeypatch):
+    loaded = []
+    real_import = __import__("importlib").import_module
+
+    def spy(name):
+        loaded.append(name)
+        return real_import(name)
+
+    monkeypatch.setattr("davis_rig._lazy.importlib.import_module", spy)
+    package.__getattr__, package.__dir__ = lazy_exports("fake_pkg", {"json": ("dumps", "loads"), "math": ("pi",)})
+    assert loaded == []
+    assert package.dumps("x") == '"x"'
+    assert loaded == ["json"] and "dumps" in vars(package)  # cached: a plain attribute from now on
+    assert package.pi == pytest.approx(3.14159265)
+    assert {"dumps", "loads", "pi"} <= set(dir(package))
+    with pytest.raises(AttributeError, match="module 'fake_pkg' has no attribute 'nope'"):
+        package.nope  # noqa: B018
+
+
+def test_a_name_in_two_modules_is_refused():
+    with pytest.raises(ValueError, match="'x' is exported by both a and b"):
+        lazy_exports("fake_pkg", {"a": ("x",), "b": ("x", "y")})
