@@ -61,6 +61,7 @@ torch is imported lazily (MissingDependencyError names the extra).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -93,61 +94,51 @@ OFFICIAL_RELAXED_SCALE = 10.0 / 27.0
 MODES = ("dvs", "floor", "official_relaxed")
 BINNINGS = ("interval", "rvt_frame_end")
 
-_FLOOR_STE = None
 
-
+# The autograd Functions are classes over torch: each is built once, on first use (torch is imported lazily).
+@functools.cache
 def _floor_ste_fn():
-    global _FLOOR_STE
-    if _FLOOR_STE is None:
-        torch = _torch()
+    torch = _torch()
 
-        class FloorSTE(torch.autograd.Function):
-            """Forward ``floor`` (exact), backward identity (straight-through estimator)."""
+    class FloorSTE(torch.autograd.Function):
+        """Forward ``floor`` (exact), backward identity (straight-through estimator)."""
 
-            @staticmethod
-            def forward(ctx, x):
-                return torch.floor(x)
+        @staticmethod
+        def forward(ctx, x):
+            return torch.floor(x)
 
-            @staticmethod
-            def backward(ctx, grad):
-                return grad
+        @staticmethod
+        def backward(ctx, grad):
+            return grad
 
-        _FLOOR_STE = FloorSTE
-    return _FLOOR_STE
+    return FloorSTE
 
 
-_LIN_LOG_FN = None
-
-
+@functools.cache
 def _lin_log_fn():
     """``lin_log(scale · x)`` as one autograd Function: the simulator's exact forward, a 4-kernel backward."""
-    global _LIN_LOG_FN
-    if _LIN_LOG_FN is None:
-        torch = _torch()
+    torch = _torch()
 
-        class ScaledLinLog(torch.autograd.Function):
-            @staticmethod
-            def forward(ctx, x, scale, threshold):
-                scaled = x * scale
-                ctx.save_for_backward(x)
-                ctx.scale, ctx.threshold = scale, threshold
-                return lin_log(scaled, threshold)
+    class ScaledLinLog(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x, scale, threshold):
+            scaled = x * scale
+            ctx.save_for_backward(x)
+            ctx.scale, ctx.threshold = scale, threshold
+            return lin_log(scaled, threshold)
 
-            @staticmethod
-            def backward(ctx, grad):
-                (x,) = ctx.saved_tensors
-                slope = math.log(ctx.threshold) / ctx.threshold
-                # d/dx: scale · ln(thr)/thr below the knee, d ln(scale x)/dx = 1/x above it
-                dydx = torch.where(x * ctx.scale <= ctx.threshold, ctx.scale * slope, torch.reciprocal(x))
-                return grad * dydx, None, None
+        @staticmethod
+        def backward(ctx, grad):
+            (x,) = ctx.saved_tensors
+            slope = math.log(ctx.threshold) / ctx.threshold
+            # d/dx: scale · ln(thr)/thr below the knee, d ln(scale x)/dx = 1/x above it
+            dydx = torch.where(x * ctx.scale <= ctx.threshold, ctx.scale * slope, torch.reciprocal(x))
+            return grad * dydx, None, None
 
-        _LIN_LOG_FN = ScaledLinLog
-    return _LIN_LOG_FN
+    return ScaledLinLog
 
 
-_DVS_FN = None
-
-
+@functools.cache
 def _dvs_fn():
     """The ``"dvs"`` recursion as one autograd Function (forward under no_grad, analytic STE backward).
 
@@ -155,52 +146,49 @@ def _dvs_fn():
     ``off = relu(floor_ste(−d/θ_off))``, ``d = L_{k+1} − ref``, ``ref += θ_on on − θ_off off`` (see
     :func:`_dvs_counts_unrolled`, which the tests compare it with), with fewer kernels and saved tensors.
     """
-    global _DVS_FN
-    if _DVS_FN is None:
-        torch = _torch()
+    torch = _torch()
 
-        class DvsCounts(torch.autograd.Function):
-            @staticmethod
-            def forward(ctx, log_video, theta_on, theta_off):
-                frames = log_video.unbind(0)
-                ref = frames[0]
-                ons, offs = [], []
-                for frame in frames[1:]:
-                    diff = frame - ref
-                    on = torch.clamp(torch.floor(diff / theta_on), min=0)
-                    off = torch.clamp(torch.floor(-diff / theta_off), min=0)
-                    ref = ref + on * theta_on - off * theta_off
-                    ons.append(on)
-                    offs.append(off)
-                on, off = torch.stack(ons), torch.stack(offs)
-                ctx.save_for_backward(on, off, theta_on, theta_off)
-                return on, off
+    class DvsCounts(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, log_video, theta_on, theta_off):
+            frames = log_video.unbind(0)
+            ref = frames[0]
+            ons, offs = [], []
+            for frame in frames[1:]:
+                diff = frame - ref
+                on = torch.clamp(torch.floor(diff / theta_on), min=0)
+                off = torch.clamp(torch.floor(-diff / theta_off), min=0)
+                ref = ref + on * theta_on - off * theta_off
+                ons.append(on)
+                offs.append(off)
+            on, off = torch.stack(ons), torch.stack(offs)
+            ctx.save_for_backward(on, off, theta_on, theta_off)
+            return on, off
 
-            @staticmethod
-            def backward(ctx, grad_on, grad_off):
-                on, off, theta_on, theta_off = ctx.saved_tensors
-                m_on = (on > 0).to(on.dtype)
-                m_off = (off > 0).to(off.dtype)
-                if grad_on is None:
-                    grad_on = torch.zeros_like(on)
-                if grad_off is None:
-                    grad_off = torch.zeros_like(off)
-                # gd_k = ∂loss/∂d_k = A_k + g_ref · M_k with A = g_on m_on/θ_on − g_off m_off/θ_off, M = m_on + m_off;
-                # the reference carries g_ref ← g_ref − gd_k = g_ref (1 − M_k) − A_k back to the previous pair.
-                a = grad_on * m_on / theta_on - grad_off * m_off / theta_off
-                m = m_on + m_off
-                keep = 1.0 - m
-                neg_a = -a
-                grad_video = torch.empty((on.shape[0] + 1, *on.shape[1:]), dtype=on.dtype, device=on.device)
-                g_ref = torch.zeros_like(on[0])
-                for k in range(on.shape[0] - 1, -1, -1):
-                    torch.addcmul(a[k], g_ref, m[k], out=grad_video[k + 1])
-                    g_ref = torch.addcmul(neg_a[k], g_ref, keep[k])
-                grad_video[0] = g_ref
-                return grad_video, None, None
+        @staticmethod
+        def backward(ctx, grad_on, grad_off):
+            on, off, theta_on, theta_off = ctx.saved_tensors
+            m_on = (on > 0).to(on.dtype)
+            m_off = (off > 0).to(off.dtype)
+            if grad_on is None:
+                grad_on = torch.zeros_like(on)
+            if grad_off is None:
+                grad_off = torch.zeros_like(off)
+            # gd_k = ∂loss/∂d_k = A_k + g_ref · M_k with A = g_on m_on/θ_on − g_off m_off/θ_off, M = m_on + m_off;
+            # the reference carries g_ref ← g_ref − gd_k = g_ref (1 − M_k) − A_k back to the previous pair.
+            a = grad_on * m_on / theta_on - grad_off * m_off / theta_off
+            m = m_on + m_off
+            keep = 1.0 - m
+            neg_a = -a
+            grad_video = torch.empty((on.shape[0] + 1, *on.shape[1:]), dtype=on.dtype, device=on.device)
+            g_ref = torch.zeros_like(on[0])
+            for k in range(on.shape[0] - 1, -1, -1):
+                torch.addcmul(a[k], g_ref, m[k], out=grad_video[k + 1])
+                g_ref = torch.addcmul(neg_a[k], g_ref, keep[k])
+            grad_video[0] = g_ref
+            return grad_video, None, None
 
-        _DVS_FN = DvsCounts
-    return _DVS_FN
+    return DvsCounts
 
 
 def _dvs_counts_unrolled(log_video, threshold_on, threshold_off):

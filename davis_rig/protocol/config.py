@@ -455,9 +455,7 @@ def exposure_write(exposure_us: int, clocks: Clocks) -> ConfigWrite:
     Raises:
         ProtocolError: exposure outside the documented range.
     """
-    if not 0 <= exposure_us <= MAX_EXPOSURE_US:
-        raise ProtocolError(f"exposure must be 0..{MAX_EXPOSURE_US} µs, got {exposure_us}")
-    return ConfigWrite(Module.APS, Aps.EXPOSURE, clocks.adc_cycles(exposure_us))
+    return _aps_time_write(Aps.EXPOSURE, "exposure", exposure_us, MAX_EXPOSURE_US, clocks)
 
 
 def frame_interval_write(frame_interval_us: int, clocks: Clocks) -> ConfigWrite:
@@ -473,6 +471,11 @@ def frame_interval_write(frame_interval_us: int, clocks: Clocks) -> ConfigWrite:
     Raises:
         ProtocolError: interval outside the documented range.
     """
-    if not 0 <= frame_interval_us <= MAX_FRAME_INTERVAL_US:
-        raise ProtocolError(f"frame interval must be 0..{MAX_FRAME_INTERVAL_US} µs, got {frame_interval_us}")
-    return ConfigWrite(Module.APS, Aps.FRAME_INTERVAL, clocks.adc_cycles(frame_interval_us))
+    return _aps_time_write(Aps.FRAME_INTERVAL, "frame interval", frame_interval_us, MAX_FRAME_INTERVAL_US, clocks)
+
+
+def _aps_time_write(param: Aps, what: str, value_us: int, max_us: int, clocks: Clocks) -> ConfigWrite:
+    """An APS time register write: ``value_us`` checked against 0..``max_us`` µs, sent in ADC-clock cycles."""
+    if not 0 <= value_us <= max_us:
+        raise ProtocolError(f"{what} must be 0..{max_us} µs, got {value_us}")
+    return ConfigWrite(Module.APS, param, clocks.adc_cycles(value_us))
