@@ -30,9 +30,10 @@ NUM_BINS: Final = 10
 COUNT_CUTOFF: Final = 10
 #: Official Gen1 window duration (``conf_preprocess/extraction/const_duration.yaml``), µs.
 WINDOW_US: Final = 50_000
-#: Below ``size / _SPARSE_FRACTION`` events (~146k for 20x240x304) counting by sorting beats ``np.bincount``,
-#: whose int64 output touches all 1.46 M bins (measured crossover ~150k events, benchmarks/representation.py).
-_SPARSE_FRACTION = 10
+#: Below ``size / _SPARSE_FRACTION`` events (~97k for 20x240x304) counting by sorting beats the per-bin
+#: ``np.bincount`` calls, whose fixed cost is zeroing and clipping all 1.46 M cells (measured crossover 75k-100k
+#: events, benchmarks/representation.py).
+_SPARSE_FRACTION = 15
 
 __all__ = [
     "COUNT_CUTOFF",
@@ -128,9 +129,6 @@ def stacked_histogram(
         return np.zeros((2 * num_bins, height, width), dtype=np.uint8)
 
     t_us = t_us.astype(np.int64, copy=False)  # (unsigned input: differences must be able to go negative)
-    x = x.astype(np.int64, copy=False)
-    y = y.astype(np.int64, copy=False)
-    p = np.clip(p.astype(np.int64, copy=False), 0, None)
     x_min, x_max, y_min, y_max = int(x.min()), int(x.max()), int(y.min()), int(y.max())
     if x_min < 0 or x_max >= width or y_min < 0 or y_max >= height:
         raise ShapeError(
@@ -139,25 +137,40 @@ def stacked_histogram(
         )
     if int(p.max()) > 1:
         raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
-    if n > 1 and bool(np.any(np.diff(t_us) < 0)):
+    if n > 1 and bool(np.any(t_us[1:] < t_us[:-1])):
         raise FormatError("t_us: expected non-decreasing timestamps within a window")
 
+    # cell index x + W·y (int32 unless the frame is huge); polarities < 0 count as 0 like the official reader
+    plane = height * width
+    index_dtype = np.int32 if size < 2**31 else np.int64
+    pixel = y.astype(index_dtype)
+    pixel *= width
+    pixel += x.astype(index_dtype, copy=False)
+    polarity = np.maximum(p, 0).astype(index_dtype, copy=False)
     bins = time_bins(t_us, num_bins)
-    flat = x + width * y + (height * width) * bins + (num_bins * height * width) * p
     cutoff = np.uint8(min(max(count_cutoff, 0), 255))
+    out = np.zeros((2, num_bins, plane), dtype=np.uint8)  # = [2·B, H, W], channel p·B + b
     # uint8 accumulation wraps modulo 256 (torch put_(accumulate=True) on a uint8 tensor), then the clip.
-    # The int64 -> uint8 cast keeps the low byte, i.e. exactly that wrap.
+    # The integer -> uint8 cast keeps the low byte, i.e. exactly that wrap.
     if n * _SPARSE_FRACTION < size:
-        # sparse window: count the occupied cells only (sort + run lengths), instead of touching every bin
-        # in int64; int32 keys sort about twice as fast as int64 ones.
-        keys = np.sort(flat.astype(np.int32) if size < 2**31 else flat)
-        starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+        # sparse window: count the occupied cells only (sort + run lengths) instead of touching every bin
+        polarity *= num_bins
+        polarity += bins.astype(index_dtype, copy=False)
+        cells = np.sort(pixel + polarity * plane)
+        starts = np.flatnonzero(np.concatenate(([True], cells[1:] != cells[:-1])))
         counts = np.diff(np.append(starts, n))
-        out = np.zeros(size, dtype=np.uint8)
-        out[keys[starts]] = np.minimum(counts.astype(np.uint8), cutoff)
+        out.reshape(-1)[cells[starts]] = np.minimum(counts.astype(np.uint8), cutoff)
     else:
-        out = np.bincount(flat, minlength=size).astype(np.uint8)
-        np.minimum(out, cutoff, out=out)
+        # dense window: timestamps are sorted, so each time bin is a contiguous run of events; one np.bincount
+        # per bin over the 2·H·W pixel-polarity cells keeps its counters cache-resident (one bincount over all
+        # 2·B·H·W cells scatters into an int64 array B times larger)
+        pixel += polarity * plane
+        bounds = np.searchsorted(bins, np.arange(num_bins + 1)).tolist()
+        for b in range(num_bins):
+            if bounds[b] < bounds[b + 1]:
+                counts = np.bincount(pixel[bounds[b] : bounds[b + 1]], minlength=2 * plane).astype(np.uint8)
+                np.minimum(counts, cutoff, out=counts)
+                out[:, b] = counts.reshape(2, plane)
     return out.reshape(2 * num_bins, height, width)
 
 
