@@ -6,48 +6,15 @@ from dataclasses import dataclass
 
 from davis_rig.protocol.config import (
     DAVIS346_CHIP_IDS,
-    Aps,
+    DEVICE_INFO_REGISTERS,
     Clocks,
     DeviceFeatures,
-    Dvs,
-    ExtInput,
-    Imu,
-    Module,
-    Mux,
-    SysInfo,
+    device_info_fields,
 )
 from davis_rig.protocol.layout import SensorLayout
 
 #: The read-only registers read at open, in wire order (§5 steps 2-3 without libcaer's repeated reads).
-DEVICE_INFO_READS: tuple[tuple[int, int], ...] = tuple(
-    (int(m), int(p))
-    for m, p in (
-        (Module.SYSINFO, SysInfo.CHIP_IDENTIFIER),
-        (Module.SYSINFO, SysInfo.DEVICE_IS_MASTER),
-        (Module.DVS, Dvs.HAS_PIXEL_FILTER),
-        (Module.DVS, Dvs.HAS_BACKGROUND_ACTIVITY_FILTER),
-        (Module.DVS, Dvs.HAS_ROI_FILTER),
-        (Module.DVS, Dvs.HAS_SKIP_FILTER),
-        (Module.DVS, Dvs.HAS_POLARITY_FILTER),
-        (Module.DVS, Dvs.HAS_STATISTICS),
-        (Module.APS, Aps.COLOR_FILTER),
-        (Module.APS, Aps.HAS_GLOBAL_SHUTTER),
-        (Module.EXTINPUT, ExtInput.HAS_GENERATOR),
-        (Module.MUX, Mux.HAS_STATISTICS),
-        (Module.DVS, Dvs.SIZE_COLUMNS),
-        (Module.DVS, Dvs.SIZE_ROWS),
-        (Module.DVS, Dvs.ORIENTATION_INFO),
-        (Module.APS, Aps.SIZE_COLUMNS),
-        (Module.APS, Aps.SIZE_ROWS),
-        (Module.APS, Aps.ORIENTATION_INFO),
-        (Module.IMU, Imu.TYPE),
-        (Module.SYSINFO, SysInfo.LOGIC_CLOCK),
-        (Module.SYSINFO, SysInfo.ADC_CLOCK),
-        (Module.SYSINFO, SysInfo.USB_CLOCK),
-        (Module.SYSINFO, SysInfo.CLOCK_DEVIATION),
-        (Module.IMU, Imu.ORIENTATION_INFO),
-    )
-)
+DEVICE_INFO_READS: tuple[tuple[int, int], ...] = tuple((int(m), int(p)) for m, p, _ in DEVICE_INFO_REGISTERS)
 
 
 @dataclass(frozen=True)
@@ -127,50 +94,18 @@ def read_device_info(transport) -> DeviceInfo:
         TransportError / DeviceDisconnectedError: a read failed.
         ProtocolError: the read-outs are inconsistent (e.g. zero sizes, zero clocks).
     """
-    r = {key: transport.config_read(*key) for key in DEVICE_INFO_READS}
-
-    def get(module: int, param: int) -> int:
-        return r[(int(module), int(param))]
-
-    layout = SensorLayout.from_mapping(
-        {
-            "dvs_size_columns": get(Module.DVS, Dvs.SIZE_COLUMNS),
-            "dvs_size_rows": get(Module.DVS, Dvs.SIZE_ROWS),
-            "dvs_orientation_info": get(Module.DVS, Dvs.ORIENTATION_INFO),
-            "aps_size_columns": get(Module.APS, Aps.SIZE_COLUMNS),
-            "aps_size_rows": get(Module.APS, Aps.SIZE_ROWS),
-            "aps_orientation_info": get(Module.APS, Aps.ORIENTATION_INFO),
-            "imu_type": get(Module.IMU, Imu.TYPE),
-            "imu_orientation_info": get(Module.IMU, Imu.ORIENTATION_INFO),
-            "chip_id": get(Module.SYSINFO, SysInfo.CHIP_IDENTIFIER),
-            "aps_color_filter": get(Module.APS, Aps.COLOR_FILTER),
-        }
-    )
-    clocks = Clocks(
-        logic_mhz=get(Module.SYSINFO, SysInfo.LOGIC_CLOCK),
-        adc_mhz=get(Module.SYSINFO, SysInfo.ADC_CLOCK),
-        usb_mhz=get(Module.SYSINFO, SysInfo.USB_CLOCK),
-        deviation=get(Module.SYSINFO, SysInfo.CLOCK_DEVIATION),
-    )
-    features = DeviceFeatures(
-        dvs_has_pixel_filter=bool(get(Module.DVS, Dvs.HAS_PIXEL_FILTER)),
-        dvs_has_background_activity_filter=bool(get(Module.DVS, Dvs.HAS_BACKGROUND_ACTIVITY_FILTER)),
-        dvs_has_roi_filter=bool(get(Module.DVS, Dvs.HAS_ROI_FILTER)),
-        dvs_has_skip_filter=bool(get(Module.DVS, Dvs.HAS_SKIP_FILTER)),
-        dvs_has_polarity_filter=bool(get(Module.DVS, Dvs.HAS_POLARITY_FILTER)),
-        dvs_has_statistics=bool(get(Module.DVS, Dvs.HAS_STATISTICS)),
-        aps_has_global_shutter=bool(get(Module.APS, Aps.HAS_GLOBAL_SHUTTER)),
-        extinput_has_generator=bool(get(Module.EXTINPUT, ExtInput.HAS_GENERATOR)),
-        mux_has_statistics=bool(get(Module.MUX, Mux.HAS_STATISTICS)),
-    )
+    values = {field: transport.config_read(int(m), int(p)) for m, p, field in DEVICE_INFO_REGISTERS}
+    layout = SensorLayout.from_mapping(device_info_fields(values, "layout"))
+    clocks = Clocks(**device_info_fields(values, "clocks"))
+    features = DeviceFeatures(**{k: bool(v) for k, v in device_info_fields(values, "features").items()})
     return DeviceInfo(
         serial=transport.serial,
         product_id=transport.product_id,
         firmware_version=transport.firmware_version,
         logic_version=transport.logic_version,
         logic_patch=transport.logic_patch,
-        chip_id=get(Module.SYSINFO, SysInfo.CHIP_IDENTIFIER),
-        is_master=bool(get(Module.SYSINFO, SysInfo.DEVICE_IS_MASTER)),
+        chip_id=values["layout.chip_id"],
+        is_master=bool(values["is_master"]),
         layout=layout,
         clocks=clocks,
         features=features,

@@ -442,6 +442,48 @@ class DeviceFeatures:
     mux_has_statistics: bool = False
 
 
+#: The read-only registers a camera reports at open (PROTOCOL.md §5 steps 2-3, without libcaer's repeated reads),
+#: in wire order, each with the field it fills: ``layout.<key>`` (a ``SensorLayout`` mapping key),
+#: ``clocks.<field>`` (:class:`Clocks`), ``features.<field>`` (:class:`DeviceFeatures`) or ``is_master``. The
+#: host decodes them (``davis_rig.device.info``) and the virtual camera answers them (``davis_rig.usb.virtual``)
+#: from this one table.
+DEVICE_INFO_REGISTERS: tuple[tuple[Module, int, str], ...] = (
+    (Module.SYSINFO, SysInfo.CHIP_IDENTIFIER, "layout.chip_id"),
+    (Module.SYSINFO, SysInfo.DEVICE_IS_MASTER, "is_master"),
+    (Module.DVS, Dvs.HAS_PIXEL_FILTER, "features.dvs_has_pixel_filter"),
+    (Module.DVS, Dvs.HAS_BACKGROUND_ACTIVITY_FILTER, "features.dvs_has_background_activity_filter"),
+    (Module.DVS, Dvs.HAS_ROI_FILTER, "features.dvs_has_roi_filter"),
+    (Module.DVS, Dvs.HAS_SKIP_FILTER, "features.dvs_has_skip_filter"),
+    (Module.DVS, Dvs.HAS_POLARITY_FILTER, "features.dvs_has_polarity_filter"),
+    (Module.DVS, Dvs.HAS_STATISTICS, "features.dvs_has_statistics"),
+    (Module.APS, Aps.COLOR_FILTER, "layout.aps_color_filter"),
+    (Module.APS, Aps.HAS_GLOBAL_SHUTTER, "features.aps_has_global_shutter"),
+    (Module.EXTINPUT, ExtInput.HAS_GENERATOR, "features.extinput_has_generator"),
+    (Module.MUX, Mux.HAS_STATISTICS, "features.mux_has_statistics"),
+    (Module.DVS, Dvs.SIZE_COLUMNS, "layout.dvs_size_columns"),
+    (Module.DVS, Dvs.SIZE_ROWS, "layout.dvs_size_rows"),
+    (Module.DVS, Dvs.ORIENTATION_INFO, "layout.dvs_orientation_info"),
+    (Module.APS, Aps.SIZE_COLUMNS, "layout.aps_size_columns"),
+    (Module.APS, Aps.SIZE_ROWS, "layout.aps_size_rows"),
+    (Module.APS, Aps.ORIENTATION_INFO, "layout.aps_orientation_info"),
+    (Module.IMU, Imu.TYPE, "layout.imu_type"),
+    (Module.SYSINFO, SysInfo.LOGIC_CLOCK, "clocks.logic_mhz"),
+    (Module.SYSINFO, SysInfo.ADC_CLOCK, "clocks.adc_mhz"),
+    (Module.SYSINFO, SysInfo.USB_CLOCK, "clocks.usb_mhz"),
+    (Module.SYSINFO, SysInfo.CLOCK_DEVIATION, "clocks.deviation"),
+    (Module.IMU, Imu.ORIENTATION_INFO, "layout.imu_orientation_info"),
+)
+
+
+def device_info_fields(values: dict[str, int], group: str) -> dict[str, int]:
+    """The ``group`` (``"layout"``, ``"clocks"``, ``"features"``) entries of ``{field: value}``, without the prefix.
+
+    Example: ``device_info_fields({"clocks.adc_mhz": 30, "is_master": 1}, "clocks") == {"adc_mhz": 30}``.
+    """
+    prefix = group + "."
+    return {field[len(prefix):]: value for field, value in values.items() if field.startswith(prefix)}
+
+
 def exposure_write(exposure_us: int, clocks: Clocks) -> ConfigWrite:
     """The APS EXPOSURE register write for an exposure in µs (converted to ADC cycles).
 

@@ -39,6 +39,7 @@ from davis_rig.protocol.config import (
     DATA_ENDPOINT,
     DAVIS_FX3_PID,
     DEBUG_ENDPOINT,
+    DEVICE_INFO_REGISTERS,
     INIVATION_VID,
     REQUEST_TYPE_VENDOR_IN,
     REQUEST_TYPE_VENDOR_OUT,
@@ -49,8 +50,6 @@ from davis_rig.protocol.config import (
     ConfigWrite,
     DeviceFeatures,
     Dvs,
-    ExtInput,
-    Imu,
     Module,
     Mux,
     SysInfo,
@@ -232,36 +231,18 @@ class VirtualDavis346:
 
     # --- construction helpers ---------------------------------------------------------------------
     def _build_read_only(self, logic_version: int, logic_patch: int) -> dict[tuple[int, int], int]:
-        info, c, f = self.device_info, self.clocks, self.features
-        ro = {
-            (Module.SYSINFO, SysInfo.LOGIC_VERSION): logic_version,
-            (Module.SYSINFO, SysInfo.CHIP_IDENTIFIER): info["chip_id"],
-            (Module.SYSINFO, SysInfo.DEVICE_IS_MASTER): 1,
-            (Module.SYSINFO, SysInfo.LOGIC_CLOCK): c.logic_mhz,
-            (Module.SYSINFO, SysInfo.ADC_CLOCK): c.adc_mhz,
-            (Module.SYSINFO, SysInfo.USB_CLOCK): c.usb_mhz,
-            (Module.SYSINFO, SysInfo.CLOCK_DEVIATION): c.deviation,
-            (Module.SYSINFO, SysInfo.LOGIC_PATCH): logic_patch,
-            (Module.DVS, Dvs.SIZE_COLUMNS): info["dvs_size_columns"],
-            (Module.DVS, Dvs.SIZE_ROWS): info["dvs_size_rows"],
-            (Module.DVS, Dvs.ORIENTATION_INFO): info["dvs_orientation_info"],
-            (Module.DVS, Dvs.HAS_PIXEL_FILTER): f.dvs_has_pixel_filter,
-            (Module.DVS, Dvs.HAS_BACKGROUND_ACTIVITY_FILTER): f.dvs_has_background_activity_filter,
-            (Module.DVS, Dvs.HAS_ROI_FILTER): f.dvs_has_roi_filter,
-            (Module.DVS, Dvs.HAS_SKIP_FILTER): f.dvs_has_skip_filter,
-            (Module.DVS, Dvs.HAS_POLARITY_FILTER): f.dvs_has_polarity_filter,
-            (Module.DVS, Dvs.HAS_STATISTICS): f.dvs_has_statistics,
-            (Module.APS, Aps.SIZE_COLUMNS): info["aps_size_columns"],
-            (Module.APS, Aps.SIZE_ROWS): info["aps_size_rows"],
-            (Module.APS, Aps.ORIENTATION_INFO): info["aps_orientation_info"],
-            (Module.APS, Aps.COLOR_FILTER): info["aps_color_filter"],
-            (Module.APS, Aps.HAS_GLOBAL_SHUTTER): f.aps_has_global_shutter,
-            (Module.IMU, Imu.TYPE): info["imu_type"],
-            (Module.IMU, Imu.ORIENTATION_INFO): info["imu_orientation_info"],
-            (Module.EXTINPUT, ExtInput.HAS_GENERATOR): f.extinput_has_generator,
-            (Module.MUX, Mux.HAS_STATISTICS): f.mux_has_statistics,
-        }
-        return {(int(m), int(p)): int(v) for (m, p), v in ro.items()}
+        groups = {"layout": self.device_info, "clocks": vars(self.clocks), "features": vars(self.features)}
+
+        def value(field: str) -> int:
+            if field == "is_master":
+                return 1
+            group, name = field.split(".")
+            return int(groups[group][name])
+
+        ro = {(int(m), int(p)): value(field) for m, p, field in DEVICE_INFO_REGISTERS}
+        ro[(int(Module.SYSINFO), int(SysInfo.LOGIC_VERSION))] = int(logic_version)
+        ro[(int(Module.SYSINFO), int(SysInfo.LOGIC_PATCH))] = int(logic_patch)
+        return ro
 
     @classmethod
     def from_replay(cls, path: Any, *, paced: bool = False, **kwargs: Any) -> "VirtualDavis346":
