@@ -69,5 +69,5 @@ __all__ = [
     "stacked_histograms",
     "time_bins",
     "window_indices",
-    *(name for names in _LAZY.values() for name in names),
 ]
+__all__ += [name for names in _LAZY.values() for name in names]

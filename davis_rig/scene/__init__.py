@@ -104,7 +104,7 @@ from davis_rig.scene.motion import (
 )
 from davis_rig.scene.skeleton import SOLE_BAND_M, Rig, descendants, sole_points
 
-_EAGER = [
+__all__ = [
     "ApsConfig", "aps_frame_times", "synthesize_aps_frames", "to_adc",
     "KINDS", "checker", "from_image", "gradient", "noise", "random_background", "rectangles", "stripes", "uniform",
     "ASSET_FORMAT_VERSION", "DEFAULT_ASSET_PATH", "PART_NAMES", "BodyAsset", "BodyModel", "WalkCycle",
@@ -155,4 +155,4 @@ _LAZY = {
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
-__all__ = [*_EAGER, *(name for names in _LAZY.values() for name in names)]
+__all__ += [name for names in _LAZY.values() for name in names]
