@@ -32,6 +32,7 @@ from davis_rig.scene.mocap.retarget import (
     anny_segments,
     foot_locked_root,
     ground_offsets,
+    put_on_ground,
     rest_offsets,
 )
 from davis_rig.scene.mocap.splits import (
@@ -48,6 +49,6 @@ __all__ = [
     "read_amass", "retarget_smplh", "smplh_global_rotations",
     "CMU_JOINT_MAP", "CMU_UNITS_TO_M", "BvhSkeleton", "bvh_global_rotations", "load_bvh", "read_bvh",
     "ANNY_BONE_SEGMENT", "ANNY_SEGMENT_ENDS", "LIMB_SEGMENTS", "SEGMENTS", "Y_UP_TO_Z_UP", "anny_segments",
-    "foot_locked_root", "ground_offsets", "rest_offsets",
+    "foot_locked_root", "ground_offsets", "put_on_ground", "rest_offsets",
     "PAPER_TEST_TRIALS", "PAPER_TRAIN_TRIALS", "TrialSplit", "find_trials", "split_trials", "trial_id",
 ]  # fmt: skip

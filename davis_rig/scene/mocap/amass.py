@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.scene.mocap.retarget import Y_UP_TO_Z_UP, foot_locked_root, ground_offsets, retarget
+from davis_rig.scene.mocap.retarget import Y_UP_TO_Z_UP, foot_locked_root, put_on_ground, retarget
 from davis_rig.scene.motion import Motion, quat_from_rotvec, quat_to_matrix
 
 __all__ = [
@@ -241,15 +241,4 @@ def load_amass(
     )
     if translation == "foot_locked":
         motion = foot_locked_root(motion, asset, shape_index)
-    return _put_on_ground(motion, asset, shape_index, ground)
-
-
-def _put_on_ground(motion: Motion, asset, shape_index: int, ground: str | None) -> Motion:
-    if ground is None:
-        return motion
-    from dataclasses import replace
-
-    low = ground_offsets(motion, asset, shape_index)
-    root = motion.root_translation_m.astype(np.float64).copy()
-    root[:, 2] -= low if ground == "frame" else low.min()
-    return replace(motion, root_translation_m=root, metadata={**motion.metadata, "ground": ground})
+    return put_on_ground(motion, asset, shape_index, ground)

@@ -17,7 +17,7 @@ CMU BVH (the Carnegie Mellon conversion, ``cmuconvert``): Y up, actor's left = +
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
 
@@ -29,7 +29,7 @@ from davis_rig.scene.mocap.retarget import (
     SEGMENTS,
     Y_UP_TO_Z_UP,
     foot_locked_root,
-    ground_offsets,
+    put_on_ground,
     retarget,
 )
 from davis_rig.scene.motion import Motion
@@ -274,9 +274,4 @@ def load_bvh(
                       metadata={"format": "BVH", "units_to_m": scale, "translation": translation})
     if translation == "foot_locked":
         motion = foot_locked_root(motion, asset, shape_index)
-    if ground is None:
-        return motion
-    low = ground_offsets(motion, asset, shape_index)
-    root = motion.root_translation_m.astype(np.float64).copy()
-    root[:, 2] -= low if ground == "frame" else low.min()
-    return replace(motion, root_translation_m=root, metadata={**motion.metadata, "ground": ground})
+    return put_on_ground(motion, asset, shape_index, ground)

@@ -42,6 +42,7 @@ __all__ = [
     "anny_segments",
     "foot_locked_root",
     "ground_offsets",
+    "put_on_ground",
     "rest_offsets",
     "retarget",
 ]
@@ -266,3 +267,30 @@ def ground_offsets(motion: Motion, asset, shape_index: int = 0) -> np.ndarray:
     low = np.minimum(sole_points(rig, world, "L")[..., 2].min(axis=1),
                      sole_points(rig, world, "R")[..., 2].min(axis=1))
     return low + motion.root_translation_m[:, 2].astype(np.float64)
+
+
+def put_on_ground(motion: Motion, asset, shape_index: int = 0, ground: str | None = "clip") -> Motion:
+    """Shift the root vertically so that the lowest sole vertex (:func:`ground_offsets`) is at z = 0.
+
+    Args:
+        motion: a motion on the asset's rig.
+        asset, shape_index: the rig.
+        ground: ``"clip"`` (one shift: the lowest point over the whole clip touches z = 0, flight phases
+            stay in the air), ``"frame"`` (every frame touches z = 0) or ``None`` (the motion unchanged).
+
+    Returns:
+        The shifted motion (``metadata["ground"]`` records the mode).
+
+    Raises:
+        ValueError: another ``ground``.
+    """
+    if ground not in ("clip", "frame", None):
+        raise ValueError(f"ground must be 'clip', 'frame' or None, got {ground!r}")
+    if ground is None:
+        return motion
+    from dataclasses import replace
+
+    low = ground_offsets(motion, asset, shape_index)
+    root = motion.root_translation_m.astype(np.float64).copy()
+    root[:, 2] -= low if ground == "frame" else low.min()
+    return replace(motion, root_translation_m=root, metadata={**motion.metadata, "ground": ground})
