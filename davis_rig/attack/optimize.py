@@ -6,7 +6,8 @@ One step (:func:`attack_loss` + Adam)::
     grid = binarize_ste(u, alpha(step))   (soft-to-hard schedule, straight-through gradient)
     for each clip drawn from the pool:    (pre-rasterized, no grad; see davis_rig.attack.eot)
         video = compose(lookup(grid))     [T, H, W]   grad -> grid
-        hist  = V2E(video) + noise        [W, 20, H, W] ("dvs" counts with the clip's per-pixel thresholds)
+        hist  = V2E(video) + noise        [W, 20, H, W] ("dvs" counts with the clip's per-pixel thresholds;
+                                          backward: relaxed-count surrogate or the paper's STE, clip_histograms)
     RVT over the W windows with recurrent states, batched over the clips (frozen, eval mode)
     L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss)
     backward; (DDP: gradients all-reduced and averaged over ranks); Adam step
@@ -56,6 +57,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 __all__ = [
     "AttackConfig",
     "AttackResult",
+    "V2E_GRADIENTS",
     "attack_loss",
     "clip_histograms",
     "load_attack_detector",
@@ -64,6 +66,8 @@ __all__ = [
 ]
 
 _VAL_SEED_OFFSET = 1_000_003
+#: Backward rules of the differentiable event counts (:func:`clip_histograms`).
+V2E_GRADIENTS = ("relaxed", "ste")
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,8 @@ class AttackConfig:
         validation_threshold: confidence threshold of the validation SeqASR.
         checkpoint_every, snapshot_every: periods (steps).
         v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms`.
+        v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
+            ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
         box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the detector's forward and backward; texture, V2E and
             loss stay fp32).
@@ -113,6 +119,7 @@ class AttackConfig:
     snapshot_every: int = 500
     v2e_mode: str = "dvs"
     v2e_binning: str = "interval"
+    v2e_gradient: str = "relaxed"
     box_margin_px: float | None = None
     precision: str = "fp32"
     seed: int = 0
@@ -123,6 +130,8 @@ class AttackConfig:
                      "checkpoint_every", "snapshot_every", "num_validation_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.v2e_gradient not in V2E_GRADIENTS:
+            raise ValueError(f"v2e_gradient must be one of {V2E_GRADIENTS}, got {self.v2e_gradient!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
         if self.clips_per_step > self.pool_size:
@@ -193,23 +202,51 @@ def load_attack_detector(path=None, device=None):
     return detector
 
 
-def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs",
-                    binning: str = "interval") -> "torch.Tensor":
+def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", binning: str = "interval",
+                    gradient: str = "relaxed") -> "torch.Tensor":
     """Differentiable RVT input of one pool clip: float tensor [W, 20, H, W] (V2E counts + noise, clipped at 10).
+
+    The forward value is always the event counts of ``mode`` (``"dvs"``: identical to the exact simulator without
+    noise) plus the clip's noise events, clipped at ``COUNT_CUTOFF``. The backward pass depends on ``gradient``:
+
+    - ``"ste"`` (paper): the V2E's own gradient, straight through the floor of the counts; the clamp at 10 has
+      zero gradient. Measured on the interim RVT-mini (2 clips, ``docs/attack.md``): a step along its negative
+      gradient does not reliably lower the loss (the floor's surrogate ignores whether a threshold is crossed).
+    - ``"relaxed"``: the gradient of the continuous counts ``relu(±(L_{k+1} - L_k) / theta)`` per frame pair
+      (the official code's relaxed simulator in count units, clip-mean threshold theta) through the same binning,
+      used as a straight-through surrogate of the exact counts (``surrogate + (exact - surrogate).detach()``), no
+      clamp. Along its negative gradient the exact-count loss falls monotonically for steps up to 0.3 grid units.
 
     Args:
         grid: float tensor [n, n] texture grid (1 = white), gradients flow to it.
         clip: a :class:`~davis_rig.attack.eot.PoolClip`.
-        mode, binning: V2E settings.
-    """
-    from davis_rig.events.v2e_torch import v2e_histograms
+        mode, binning: V2E settings (:func:`davis_rig.events.v2e_torch.v2e_histograms`).
+        gradient: ``"relaxed"`` or ``"ste"`` (:data:`V2E_GRADIENTS`).
 
+    Raises:
+        ValueError: unknown ``gradient``.
+    """
+    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, v2e_histograms
+
+    if gradient not in V2E_GRADIENTS:
+        raise ValueError(f"gradient must be one of {V2E_GRADIENTS}, got {gradient!r}")
     video = clip.video(grid)
-    hist = v2e_histograms(video, clip.t_us, clip.window_end_us, mode=mode, binning=binning, count_cutoff=None,
-                          threshold_on=clip.threshold, threshold_off=clip.threshold)
-    if clip.noise_index.numel():
-        hist = hist + clip.noise_histogram(hist.dtype)
-    return torch.clamp(hist, max=float(COUNT_CUTOFF))
+
+    def exact_counts(v: "torch.Tensor") -> "torch.Tensor":
+        hist = v2e_histograms(v, clip.t_us, clip.window_end_us, mode=mode, binning=binning, count_cutoff=None,
+                              threshold_on=clip.threshold, threshold_off=clip.threshold)
+        if clip.noise_index.numel():
+            hist = hist + clip.noise_histogram(hist.dtype)
+        return torch.clamp(hist, max=float(COUNT_CUTOFF))
+
+    if gradient == "ste":
+        return exact_counts(video)
+    with torch.no_grad():
+        exact = exact_counts(video)
+    theta = float(clip.threshold.mean())
+    surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
+                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+    return surrogate + (exact - surrogate).detach()
 
 
 def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, config: AttackConfig) -> AdversarialLoss:
@@ -227,7 +264,7 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
     from davis_rig.models.rvt.detector import pad_to_input
 
     device = next(detector.parameters()).device
-    x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning) for c in clips], dim=1)
+    x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning, config.v2e_gradient) for c in clips], dim=1)
     x = x.to(device)
     decoded, states = [], None
     amp = config.precision == "bf16"

@@ -74,6 +74,9 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
     p.add_argument("--box-margin", type=float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
+    p.add_argument("--v2e-gradient", choices=["relaxed", "ste"], default="relaxed",
+                   help="backward of the event counts: relaxed-count surrogate (default) or the paper's "
+                        "straight-through floor (ste); the forward counts are the same (docs/attack.md)")
     p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
     p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
@@ -141,7 +144,7 @@ def optimize_command(args) -> int:
                           pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
                           alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                           num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
-                          precision=args.precision,
+                          v2e_gradient=args.v2e_gradient, precision=args.precision,
                           seed=args.seed)
     detector = load_attack_detector(args.detector, device=device)
     motions = _motions(args, "train")

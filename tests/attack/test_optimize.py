@@ -107,9 +107,10 @@ def test_pool_rebuilds_from_generations_and_splits_slots(body):
         ClipPool(TINY_EOT, body, 4, size=1, rank=0, world_size=2)
 
 
-def test_loss_decreases_on_tiny_detector(detector, body, tmp_path):
+@pytest.mark.parametrize("rule", ["relaxed", "ste"])
+def test_loss_decreases_on_tiny_detector(detector, body, tmp_path, rule):
     cfg = _tiny(iterations=6, pool_size=1, refresh_every=1000, dropout=0.0, alpha_schedule="soft",
-                box_margin_px=0.0, lr=0.5, checkpoint_every=1000, snapshot_every=1000)
+                box_margin_px=0.0, lr=0.1, checkpoint_every=1000, snapshot_every=1000, v2e_gradient=rule)
     optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
     losses = [r["loss"] for r in _log(tmp_path / "log.jsonl")[0]]
     assert len(losses) == 6 and all(math.isfinite(v) for v in losses)
@@ -201,3 +202,31 @@ def test_config_validation():
     with pytest.raises(ValueError):
         AttackConfig(precision="fp16")
     assert replace(AttackConfig(), grid_n=20).to_dict()["grid_n"] == 20
+
+
+def test_clip_histograms_forward_exact_backward_by_rule(body):
+    from davis_rig.attack.optimize import clip_histograms
+    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, v2e_histograms
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
+    weight = torch.rand(3, 20, *clip.raster.hw, generator=torch.Generator().manual_seed(1))
+    hists, grads = {}, {}
+    for rule in ("ste", "relaxed"):
+        g = grid.clone().requires_grad_(True)
+        hists[rule] = clip_histograms(g, clip, gradient=rule)
+        (hists[rule] * weight).sum().backward()
+        grads[rule] = g.grad
+    assert torch.equal(hists["ste"], hists["relaxed"])  # the forward value does not depend on the rule
+    assert hists["ste"].max() <= 10 and torch.equal(hists["ste"], hists["ste"].round())
+    g = grid.clone().requires_grad_(True)
+    theta = float(clip.threshold.mean())
+    surrogate = v2e_histograms(clip.video(g), clip.t_us, clip.window_end_us, mode="official_relaxed",
+                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+    (surrogate * weight).sum().backward()
+    assert torch.allclose(grads["relaxed"], g.grad, rtol=1e-5, atol=1e-6)
+    assert grads["relaxed"].abs().sum() > 0 and not torch.allclose(grads["relaxed"], grads["ste"])
+    with pytest.raises(ValueError, match="gradient"):
+        clip_histograms(grid, clip, gradient="soft")
+    with pytest.raises(ValueError, match="v2e_gradient"):
+        AttackConfig(v2e_gradient="soft")

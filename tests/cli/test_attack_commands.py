@@ -42,6 +42,7 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
     got = (config.grid_n, config.parts, config.iterations, config.clips_per_step, config.seed)
     assert got == (20, ("torso",), 30, 2, 4)
     assert (config.lr, config.lambda_obj, config.betas) == (1e-4, 1e4, (0.9, 0.99))
+    assert config.v2e_gradient == "relaxed"
     assert kw == {"resume": True, "device": __import__("torch").device("cpu"), "progress": False, "max_steps": 3,
                   "motions": ()}
 
