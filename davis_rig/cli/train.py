@@ -11,6 +11,7 @@ import json
 import sys
 
 from davis_rig.cli._common import EXIT_OK, run_command
+from davis_rig.models.rvt.config import RVTConfig  # pure Python: keeps --help fast
 
 NAME = "davis-train"
 
@@ -38,8 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (train/, val/)")
     parser.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder of the run")
-    parser.add_argument("--model", choices=["tiny", "small", "base", "mini"], default="tiny",
-                        help="architecture preset (default: tiny = RVT-T)")
+    parser.add_argument("--model", choices=sorted(RVTConfig.presets()), default="tiny",
+                        help="architecture preset (default: tiny = RVT-T; nano = RVT-T at half width, for CPUs)")
     parser.add_argument("--steps", type=int, default=400_000, help="total optimizer steps (default: 400000, RVT)")
     parser.add_argument("--batch", type=int, default=8, help="sequence chunks per batch (default: 8)")
     parser.add_argument("--seq-len", type=int, default=21, help="windows per chunk, the TBPTT length (default: 21)")

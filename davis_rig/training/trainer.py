@@ -56,7 +56,7 @@ class TrainConfig:
     """Training hyper-parameters (defaults: RVT Gen1 recipe).
 
     Attributes:
-        model: ``"tiny"``, ``"small"``, ``"base"`` or ``"mini"`` (RVTConfig preset).
+        model: a :meth:`RVTConfig.presets` name: ``"tiny"``, ``"small"``, ``"base"``, ``"mini"`` or ``"nano"``.
         steps: total optimizer steps (the one-cycle schedule spans them).
         batch_size: chunks per batch. seq_len: windows per chunk (TBPTT length L).
         lr, weight_decay, pct_start, div_factor, final_div_factor: AdamW + OneCycleLR (final lr = lr /

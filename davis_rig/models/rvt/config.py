@@ -142,9 +142,14 @@ class RVTConfig:
         )
 
     @classmethod
+    def nano(cls, **overrides) -> "RVTConfig":
+        """RVT-T at half width for CPU training (1,115,093 parameters): C=16, dim_head 16, FPN depth 0.33."""
+        return cls(**{"embed_dim": 16, "dim_head": 16, "fpn_depth": 0.33, "name": "RVT-nano", **overrides})
+
+    @classmethod
     def presets(cls) -> dict[str, "RVTConfig"]:
-        """All named presets: ``{"tiny": ..., "small": ..., "base": ..., "mini": ...}``."""
-        return {"tiny": cls.tiny(), "small": cls.small(), "base": cls.base(), "mini": cls.mini()}
+        """All named presets: ``{"tiny": ..., "small": ..., "base": ..., "mini": ..., "nano": ...}``."""
+        return {"tiny": cls.tiny(), "small": cls.small(), "base": cls.base(), "mini": cls.mini(), "nano": cls.nano()}
 
     # ------------------------------------------------------------------ derived
     @property

@@ -121,3 +121,15 @@ def test_package_import_does_not_import_torch():
         "d = r.RVTDetector; assert 'torch' in sys.modules and d.__name__ == 'RVTDetector'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_nano_preset_is_rvt_t_at_half_width():
+    config = RVTConfig.presets()["nano"]
+    assert config == RVTConfig.nano() and config.name == "RVT-nano"
+    assert config.stage_dims == (16, 32, 64, 128) and config.num_heads == (1, 2, 4, 8)
+    assert config.fpn_num_bottlenecks == 1 and config.in_res_hw == (256, 320)
+    torch = pytest.importorskip("torch")
+    from davis_rig.models.rvt.detector import RVTDetector
+
+    torch.manual_seed(0)
+    assert sum(p.numel() for p in RVTDetector(config).parameters()) == 1_115_093  # the docstring's count
