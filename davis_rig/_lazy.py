@@ -1,9 +1,10 @@
-"""Lazy package exports (PEP 562): names loaded from their module on first access.
+"""Deferred imports of heavy optional dependencies (torch, smplx), so that importing a package stays light.
 
-A package whose modules need a heavy optional dependency (torch) lists their public names here instead of
-importing them, so that importing the package stays light::
+- :func:`optional_import`: import a dependency when a function needs it, or raise
+  :class:`~davis_rig.errors.MissingDependencyError` naming the pip extra that installs it.
+- :func:`lazy_exports`: PEP 562 package exports loaded from their module on first access::
 
-    __getattr__, __dir__ = lazy_exports(__name__, {"davis_rig.events.v2e_torch": ("v2e_histograms",)})
+      __getattr__, __dir__ = lazy_exports(__name__, {"davis_rig.events.v2e_torch": ("v2e_histograms",)})
 """
 
 from __future__ import annotations
@@ -11,8 +12,28 @@ from __future__ import annotations
 import importlib
 import sys
 from collections.abc import Callable, Iterable, Mapping
+from types import ModuleType
 
-__all__ = ["lazy_exports"]
+from davis_rig.errors import MissingDependencyError
+
+__all__ = ["lazy_exports", "optional_import"]
+
+
+def optional_import(module: str, needed_for: str, extra: str = "torch") -> ModuleType:
+    """Import ``module``, or raise with the message ``"<needed_for> needs <module>: pip install 'davis_rig[<extra>]'"``.
+
+    Args:
+        module: the dependency, e.g. ``"torch"``.
+        needed_for: what needs it, e.g. ``"the renderer"``.
+        extra: the optional-dependency group of davis_rig that installs it.
+
+    Raises:
+        MissingDependencyError: ``module`` cannot be imported.
+    """
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingDependencyError(f"{needed_for} needs {module}: pip install 'davis_rig[{extra}]'") from exc
 
 
 def lazy_exports(

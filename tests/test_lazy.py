@@ -39,3 +39,14 @@ def test_loads_on_first_access_and_caches(package, monkeypatch):
 def test_a_name_in_two_modules_is_refused():
     with pytest.raises(ValueError, match="'x' is exported by both a and b"):
         lazy_exports("fake_pkg", {"a": ("x",), "b": ("x", "y")})
+
+
+def test_optional_import_returns_the_module_or_names_the_extra():
+    import json
+
+    from davis_rig._lazy import optional_import
+    from davis_rig.errors import MissingDependencyError
+
+    assert optional_import("json", "a feature") is json
+    with pytest.raises(MissingDependencyError, match=r"^the widget needs no_such_mod_xyz: pip install 'davis_rig\[extra1\]'$"):
+        optional_import("no_such_mod_xyz", "the widget", "extra1")

@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import FormatError, ShapeError
 from davis_rig.types import EVENT_DTYPE
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -67,11 +68,7 @@ SHOT_NOISE_INTENSITY_FACTOR = 0.25
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("the event simulator needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "the event simulator")
 
 
 def lin_log(x: "torch.Tensor", threshold: float = LIN_LOG_THRESHOLD) -> "torch.Tensor":

@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import FormatError, ShapeError
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -74,11 +75,7 @@ _REQUIRED_KEYS = {
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("the body model needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "the body model")
 
 
 @dataclass(frozen=True)

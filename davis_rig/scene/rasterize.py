@@ -47,7 +47,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import ShapeError
 
 __all__ = ["Fragments", "SparseFragments", "rasterize", "rasterize_sparse"]
 
@@ -55,11 +56,7 @@ _NO_KEY = (1 << 63) - 1
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("the rasterizer needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "the rasterizer")
 
 
 @dataclass

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import ShapeError
 from davis_rig.scene.camera import PinholeCamera
 from davis_rig.scene.rasterize import rasterize_sparse
 from davis_rig.scene.shading import Light, lambert, vertex_normals
@@ -34,11 +35,7 @@ EMPTY_PART = 255
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("the renderer needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "the renderer")
 
 
 @dataclass

@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import ShapeError
 from davis_rig.scene.background import random_background, uniform
 from davis_rig.scene.camera import (
     DEFAULT_PERSON_HEIGHT_M,
@@ -50,11 +51,7 @@ MIN_RENDER_RATE_HZ = 200.0
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("rendering needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "rendering")
 
 
 @dataclass(frozen=True)

@@ -10,17 +10,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import ShapeError
 
 __all__ = ["Light", "lambert", "vertex_normals"]
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("shading needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "shading")
 
 
 @dataclass(frozen=True)

@@ -20,25 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
-from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import FormatError, ShapeError
 
 __all__ = ["SmplBody", "read_obj_uvs"]
 
 
 def _smplx():
-    try:
-        import smplx
-    except ImportError as exc:
-        raise MissingDependencyError("the SMPL body needs smplx: pip install 'davis_rig[smpl]'") from exc
-    return smplx
+    return optional_import("smplx", "the SMPL body", "smpl")
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("the SMPL body needs torch: pip install 'davis_rig[smpl]'") from exc
-    return torch
+    return optional_import("torch", "the SMPL body", "smpl")
 
 
 def read_obj_uvs(path: str | Path, num_faces: int | None = None) -> np.ndarray:

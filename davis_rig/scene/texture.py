@@ -25,7 +25,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import ShapeError
 
 __all__ = ["TexelLookup", "prepare_lookup", "sample_texture", "upsample_grid"]
 
@@ -33,11 +34,7 @@ MODES = ("nearest", "bilinear")
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError("texture sampling needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
+    return optional_import("torch", "texture sampling")
 
 
 @dataclass
