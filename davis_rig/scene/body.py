@@ -29,6 +29,7 @@ import numpy as np
 
 from davis_rig._lazy import optional_import
 from davis_rig.errors import FormatError, ShapeError
+from davis_rig.scene._npz import read_npz
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -167,17 +168,8 @@ class BodyAsset:
             FormatError: a key is missing, of the wrong dtype/shape, or the format version is unknown.
         """
         path = DEFAULT_ASSET_PATH if path is None else Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"body asset not found: {path}")
-        try:
-            npz = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise FormatError(f"{path}: not a readable .npz body asset ({exc})") from exc
-        with npz:
-            missing = sorted(set(_REQUIRED_KEYS) - set(npz.files))
-            if missing:
-                raise FormatError(f"{path}: body asset lacks keys {missing} (has {sorted(npz.files)})")
-            arrays = {key: npz[key] for key in _REQUIRED_KEYS}
+        arrays = read_npz(path, _REQUIRED_KEYS, "body asset")
+        arrays = {key: arrays[key] for key in _REQUIRED_KEYS}
         version = int(arrays["format_version"])
         if version != ASSET_FORMAT_VERSION:
             raise FormatError(f"{path}: body asset format {version}, expected {ASSET_FORMAT_VERSION}")

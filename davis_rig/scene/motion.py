@@ -309,22 +309,13 @@ class Motion:
             FileNotFoundError: no file. FormatError: not a motion file or an unknown format version.
         """
         import json
-        from pathlib import Path
 
         from davis_rig.errors import FormatError
+        from davis_rig.scene._npz import read_npz
 
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"motion file not found: {path}")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError) as exc:
-            raise FormatError(f"{path}: not a readable motion .npz ({exc})") from exc
-        keys = {"format_version", "rotations_wxyz", "root_translation_m", "fps_hz", "cycle_advance_m", "bone_names",
-                "info_json"}
-        if not keys <= set(data):
-            raise FormatError(f"{path}: motion file lacks {sorted(keys - set(data))}")
+        keys = ("format_version", "rotations_wxyz", "root_translation_m", "fps_hz", "cycle_advance_m", "bone_names",
+                "info_json")
+        data = read_npz(path, keys, "motion file")
         if int(data["format_version"]) != MOTION_FORMAT_VERSION:
             raise FormatError(f"{path}: motion format {int(data['format_version'])}, expected {MOTION_FORMAT_VERSION}")
         info = json.loads(str(data["info_json"]))

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import FormatError, ShapeError
+from davis_rig.scene._npz import read_npz
 from davis_rig.scene.mocap.retarget import Y_UP_TO_Z_UP, foot_locked_root, put_on_ground, retarget
 from davis_rig.scene.motion import Motion, quat_from_rotvec, quat_to_matrix
 
@@ -101,21 +102,12 @@ def read_amass(path: str | Path) -> AmassTrial:
         FormatError: not an AMASS pose file (missing keys, wrong shapes, non-finite values).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"AMASS file not found: {path}")
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise FormatError(f"{path}: not a readable .npz ({exc})") from exc
-    with npz:
-        missing = [k for k in ("poses", "trans", "mocap_framerate") if k not in npz.files]
-        if missing:
-            raise FormatError(f"{path}: AMASS keys {missing} missing (has {sorted(npz.files)})")
-        poses = np.asarray(npz["poses"], dtype=np.float64)
-        trans = np.asarray(npz["trans"], dtype=np.float64)
-        fps = float(npz["mocap_framerate"])
-        betas = np.asarray(npz["betas"], dtype=np.float64) if "betas" in npz.files else np.zeros(16)
-        gender = str(npz["gender"]) if "gender" in npz.files else "neutral"
+    npz = read_npz(path, ("poses", "trans", "mocap_framerate"), "AMASS file")
+    poses = np.asarray(npz["poses"], dtype=np.float64)
+    trans = np.asarray(npz["trans"], dtype=np.float64)
+    fps = float(npz["mocap_framerate"])
+    betas = np.asarray(npz["betas"], dtype=np.float64) if "betas" in npz else np.zeros(16)
+    gender = str(npz["gender"]) if "gender" in npz else "neutral"
     if poses.ndim != 2 or poses.shape[1] < 66 or poses.shape[1] % 3:
         raise FormatError(f"{path}: poses must be [T, 3k] with k >= 22 (SMPL-H: 156), got {poses.shape}")
     if trans.shape != (poses.shape[0], 3):
