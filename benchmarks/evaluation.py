@@ -1,4 +1,4 @@
-"""Benchmark: physical evaluation of a 60 s DAVIS346 session on the CPU (RVT-T and RVT-B, random weights).
+"""Benchmark: physical evaluation of a 60 s DAVIS346 session on the CPU (RVT-T/RVT-B random weights, trained models).
 
 The session is synthesised through the real capture path: events of a person-sized blob walking back and forth
 across the sensor (90 % of the events inside the blob, 10 % background noise; default 0.5 M ev/s) are encoded
@@ -7,41 +7,36 @@ again (:class:`~davis_rig.protocol.decoder.StreamDecoder`, timed: the **decode**
 :class:`~davis_rig.session.SessionWriter`; pedestrian labels at 25 Hz follow the blob (written like
 ``davis-label`` does; the YOLO labeller is measured separately by ``tools/measure_labeler.py``).
 
-Then, per model (RVT-T, RVT-B exported to ONNX from random weights — latency does not depend on the values):
-a warm-up run on the first 2 s, then ``--repeats`` full runs of :func:`davis_rig.evaluation.physical.score_session`
-+ :func:`compute_metrics` at the paper's four thresholds; medians of the stage times **read** (h5 read + crop),
-**histogram**, **inference** (ORT steps), **postprocess** (4 thresholds), **metrics** (COCO AP + SeqASR), the
-total and the real-time factor (session seconds / wall seconds; > 1 = faster than real time).
+Models: RVT-T / RVT-B exported to ONNX from random weights (``--models``; inference latency does not depend on the
+values, and random weights are the post-processing worst case: every one of the 1680 anchors passes every paper
+threshold) and trained RVT step graphs (``--onnx``; default: the bundled detector when it exists), whose few
+confident boxes are the realistic post-processing load.
 
-Run: ``python benchmarks/evaluation.py [--duration-s 60] [--rate-mevs 0.5] [--models tiny base] [--threads 2]
-[--repeats 1]`` (needs torch for the export).
+Per model: a warm-up run on a 2 s session, then ``--repeats`` full runs of
+:func:`davis_rig.evaluation.physical.score_session` + :func:`compute_metrics` at the paper's four thresholds.
+``score_session`` overlaps its stages in three threads, so the table gives each stage's **busy** seconds (read =
+h5 read + crop, histogram, inference = ORT steps, postprocess = all four thresholds) next to the **scoring wall**
+time; then **metrics** (COCO AP + SeqASR), the **total** wall time and the real-time factor (session seconds /
+total seconds; > 1 = faster than real time). Medians over the repeats.
+
+Run: ``python benchmarks/evaluation.py [--duration-s 60] [--rate-mevs 0.5] [--models tiny base] [--onnx M.onnx ...]
+[--threads 2] [--repeats 1] [--session S.h5]`` (torch is needed only to export the random-weight models).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from _common import metadata_line
 
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, make_events
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 PERSON_WH = (60, 170)
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def blob_x(t_us: np.ndarray, duration_us: int) -> np.ndarray:
@@ -113,6 +108,7 @@ def export_model(variant: str, directory: Path) -> Path:
 
 
 def run_once(session: Path, runner, settings) -> dict:
+    """One scoring + metrics run; stage seconds, totals and detection counts."""
     from davis_rig.evaluation.physical import compute_metrics, score_session
 
     tic = time.perf_counter()
@@ -124,53 +120,75 @@ def run_once(session: Path, runner, settings) -> dict:
     out["metrics"] = toc - tac
     out["total"] = toc - tic
     out["windows"] = len(scores.window_end_us)
-    out["detections_0.001"] = sum(0 if d is None else len(d) for d in scores.detections[min(scores.detections)])
-    out["AP_0.001"] = metrics[min(metrics)]["AP"]
+    lowest = min(scores.detections)
+    out["boxes_lowest"] = sum(0 if d is None else len(d) for d in scores.detections[lowest])
+    out["AP_lowest"] = metrics[min(metrics)]["AP"]
     return out
+
+
+def bundled_detector() -> list[Path]:
+    """The bundled trained detector, if this checkout has it."""
+    from davis_rig.errors import MissingDependencyError
+    from davis_rig.models import default_detector_path
+
+    try:
+        return [default_detector_path()]
+    except MissingDependencyError:
+        return []
+
+
+STAGES = ("read", "histogram", "inference", "postprocess", "wall", "metrics", "total")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration-s", type=float, default=60.0)
     parser.add_argument("--rate-mevs", type=float, default=0.5)
-    parser.add_argument("--models", nargs="+", default=["tiny", "base"])
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--models", nargs="*", default=["tiny", "base"], help="random-weight presets")
+    parser.add_argument("--onnx", nargs="*", type=Path, default=None,
+                        help="trained RVT step graphs (default: the bundled detector, if present)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--session", type=Path, default=None,
+                        help="reuse this benchmark session (written first if missing)")
     args = parser.parse_args()
-
-    import onnxruntime
 
     from davis_rig.evaluation.physical import EvalSettings
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 
-    print(f"commit {_commit()}  python {platform.python_version()}  numpy {np.__version__}  onnxruntime "
-          f"{onnxruntime.__version__}  cpus {os.cpu_count()}  intra-op threads {args.threads}  "
-          f"load average {os.getloadavg()[0]:.1f}")
+    print(metadata_line(("numpy", "onnxruntime", "h5py"), intra_op_threads=args.threads, repeats=args.repeats))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        session = tmp / "bench.h5"
-        synth = synthesize_session(session, args.duration_s, args.rate_mevs)
-        mev = synth["events"] / 1e6
-        print(f"session: {args.duration_s:.0f} s, {mev:.1f} M events ({args.rate_mevs} M ev/s), "
-              f"{synth['bytes'] / 1e6:.0f} MB USB stream, {synth['labels']} labels; "
-              f"encode {synth['encode_s']:.2f} s, decode {synth['decode_s']:.2f} s "
-              f"({mev / synth['decode_s']:.1f} M ev/s, {args.duration_s / synth['decode_s']:.0f}x real time), "
-              f"session write {synth['write_s']:.2f} s")
+        session = args.session or tmp / "bench.h5"
+        if session.is_file():
+            print(f"session: {session} (reused)")
+        else:
+            synth = synthesize_session(session, args.duration_s, args.rate_mevs)
+            mev = synth["events"] / 1e6
+            print(f"session: {args.duration_s:.0f} s, {mev:.1f} M events ({args.rate_mevs} M ev/s), "
+                  f"{synth['bytes'] / 1e6:.0f} MB USB stream, {synth['labels']} labels; "
+                  f"encode {synth['encode_s']:.2f} s, decode {synth['decode_s']:.2f} s "
+                  f"({mev / synth['decode_s']:.1f} M ev/s, {args.duration_s / synth['decode_s']:.0f}x real time), "
+                  f"session write {synth['write_s']:.2f} s")
         warm = tmp / "warm.h5"
         synthesize_session(warm, min(2.0, args.duration_s), args.rate_mevs, seed=1)
         settings = EvalSettings(intra_op_threads=args.threads)
-        stages = ("read", "histogram", "inference", "postprocess", "metrics", "total")
-        print(f"{'model':6s} " + " ".join(f"{s:>11s}" for s in stages) + "   real-time factor  per-window inference")
-        for variant in args.models:
-            runner = RVTOnnxRunner(export_model(variant, tmp), intra_op_threads=args.threads)
+        models = [(f"{variant} (random)", lambda v=variant: export_model(v, tmp)) for variant in args.models]
+        trained = bundled_detector() if args.onnx is None else args.onnx
+        models += [(f"{path.parent.name}/{path.name}", lambda p=path: p) for path in trained]
+        print("stage seconds: busy time per stage (the stages overlap), wall = scoring wall time")
+        print(f"{'model':28s} " + " ".join(f"{s:>11s}" for s in STAGES)
+              + "   real time  ms/window (inference)  boxes/window at lowest threshold")
+        for name, make in models:
+            runner = RVTOnnxRunner(make(), intra_op_threads=args.threads)
             run_once(warm, runner, settings)  # warm-up
             runs = [run_once(session, runner, settings) for _ in range(args.repeats)]
-            med = {s: statistics.median(r[s] for r in runs) for s in stages}
+            med = {s: statistics.median(r[s] for r in runs) for s in STAGES}
             windows = runs[0]["windows"]
-            print(f"{variant:6s} " + " ".join(f"{med[s]:10.2f}s" for s in stages)
-                  + f"   {args.duration_s / med['total']:6.2f}x"
-                  + f"            {1000 * med['inference'] / windows:6.1f} ms/window ({windows} windows; "
-                    f"{runs[0]['detections_0.001']} boxes at 0.001)")
+            duration_s = windows * settings.window_us / 1e6
+            print(f"{name:28s} " + " ".join(f"{med[s]:10.2f}s" for s in STAGES)
+                  + f"   {duration_s / med['total']:6.2f}x    {1000 * med['inference'] / windows:6.1f} "
+                    f"({windows} windows)          {runs[0]['boxes_lowest'] / windows:7.1f}")
 
 
 if __name__ == "__main__":

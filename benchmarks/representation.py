@@ -17,46 +17,14 @@ Run: ``python benchmarks/representation.py [--repeats N] [--rates-mev 1 12] [--t
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import subprocess
-import time
-from pathlib import Path
 
 import numpy as np
+from _common import metadata_line, time_ms
 
 from davis_rig.events import stacked_histogram, stacked_histograms
 
 WINDOW_US = 50_000
 HEIGHT, WIDTH = 240, 304
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float, float]:
-    """Median, IQR and minimum (ms) of ``repeats`` timed calls after ``warmup`` untimed ones."""
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
 
 
 def synthetic_events(rate_mev_s: float, duration_us: int, seed: int = 0):
@@ -93,24 +61,17 @@ def main() -> None:
         import torch
 
         torch.set_num_threads(args.threads)
-        torch_version = torch.__version__
     except ImportError:
         torch = None
-        torch_version = "absent"
 
     print("# RVT stacked-histogram benchmark (50 ms windows, 20x240x304 output, uniform synthetic events)")
-    print(
-        f"# commit {_commit()}  numpy {np.__version__}  torch {torch_version}  python {platform.python_version()}  "
-        f"cpu {platform.processor() or platform.machine()}  torch threads {args.threads}  "
-        f"repeats {args.repeats} (+{args.warmup} warm-up)"
-    )
-    print(f"# cpus {os.cpu_count()}  load average before the run {os.getloadavg()[0]:.2f} (figures are wall-clock)")
+    print(metadata_line(("numpy", "torch"), repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     for rate in args.rates_mev:
         x, y, t_us, p = synthetic_events(rate, WINDOW_US, seed=int(rate * 10))
         n = t_us.shape[0]
         results: dict[str, float] = {}
 
-        median, iqr, min_ms = _time_ms(lambda: stacked_histogram(x, y, t_us, p), args.warmup, args.repeats)
+        median, iqr, min_ms = time_ms(lambda: stacked_histogram(x, y, t_us, p), args.warmup, args.repeats)
         results["numpy"] = median
         print(f"{rate:5.1f} Mev/s ({n:7d} ev/window)  numpy          median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
@@ -120,12 +81,12 @@ def main() -> None:
             tx, ty, tt, tp = (torch.from_numpy(a.astype(np.int64)) for a in (x, y, t_us, p))
             reference = _official_torch(torch, tx, ty, tt, tp).numpy()
             assert np.array_equal(reference, stacked_histogram(x, y, t_us, p)), "numpy != official torch"
-            median, iqr, min_ms = _time_ms(lambda: _official_torch(torch, tx, ty, tt, tp), args.warmup, args.repeats)
+            median, iqr, min_ms = time_ms(lambda: _official_torch(torch, tx, ty, tt, tp), args.warmup, args.repeats)
             results["official_torch"] = median
             print(f"{'':30s} official_torch median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
             weights = torch.rand(n)
-            median, iqr, min_ms = _time_ms(lambda: stacked_histogram_torch(tx, ty, tt, tp, weights), args.warmup, args.repeats)
+            median, iqr, min_ms = time_ms(lambda: stacked_histogram_torch(tx, ty, tt, tp, weights), args.warmup, args.repeats)
             results["torch_float"] = median
             print(f"{'':30s} torch_float    median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
@@ -134,13 +95,13 @@ def main() -> None:
                 hist = stacked_histogram_torch(tx, ty, tt, tp, w)
                 (hist * hist).sum().backward()
 
-            median, iqr, min_ms = _time_ms(forward_backward, args.warmup, args.repeats)
+            median, iqr, min_ms = time_ms(forward_backward, args.warmup, args.repeats)
             results["torch_float_fwd_bwd"] = median
             print(f"{'':30s} torch_fwd_bwd  median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
         xs, ys, ts, ps = synthetic_events(rate, 1_000_000, seed=int(rate * 10) + 1)
         ends = np.arange(50_000, 1_000_001, 50_000)
-        median, iqr, min_ms = _time_ms(lambda: stacked_histograms((xs, ys, ts, ps), ends), 1, max(3, args.repeats // 4))
+        median, iqr, min_ms = time_ms(lambda: stacked_histograms((xs, ys, ts, ps), ends), 1, max(3, args.repeats // 4))
         results["windows_1s_per_window"] = median / len(ends)
         print(
             f"{'':30s} windows_1s     median {median / len(ends):8.2f} ms/window  "
