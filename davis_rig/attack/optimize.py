@@ -264,7 +264,8 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
     from davis_rig.models.rvt.detector import pad_to_input
 
     device = next(detector.parameters()).device
-    x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning, config.v2e_gradient) for c in clips], dim=1)
+    x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning, config.v2e_gradient)
+                     for c in clips], dim=1)
     x = x.to(device)
     decoded, states = [], None
     amp = config.precision == "bf16"
@@ -455,11 +456,14 @@ def optimize_texture(
         generations = state["pool"]["generations"]
         best = json.loads(state["best"]) if state["best"] else None
 
-    pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size, base_seed=config.seed,
-                    motions=motions, rank=rank, world_size=world, generations=generations)
-    val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips) if rank == 0 else []
     per_rank = config.clips_per_step // world
     end = config.iterations if max_steps is None else min(config.iterations, start + int(max_steps))
+    pool, val_clips = None, []
+    if end > start:  # a finished run is only re-read: no clip is rendered
+        pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size, base_seed=config.seed,
+                        motions=motions, rank=rank, world_size=world, generations=generations)
+        if rank == 0:
+            val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips)
     if rank == 0 and start > 0:
         _truncate_log(out / "log.jsonl", start)
     log = open(out / "log.jsonl", "a") if rank == 0 else None

@@ -1,8 +1,8 @@
-"""``davis-attack optimize`` and ``davis-attack evaluate``: argument parsers and actions (one API call each).
+"""``davis-attack optimize``, ``evaluate`` and ``reproduce``: argument parsers and actions (one API call each).
 
-:mod:`davis_rig.cli.attack` owns the ``davis-attack`` entry point and its subparsers; it registers these two
-subcommands with :func:`add_optimize_parser` and :func:`add_evaluate_parser`. Heavy imports (torch, the scene)
-happen inside the actions so ``--help`` stays fast.
+:mod:`davis_rig.cli.attack` owns the ``davis-attack`` entry point and its subparsers; it registers these
+subcommands with :func:`add_optimize_parser`, :func:`add_evaluate_parser` and :func:`add_reproduce_parser`. Heavy
+imports (torch, the scene) happen inside the actions so ``--help`` stays fast.
 """
 
 from __future__ import annotations
@@ -23,6 +23,17 @@ examples:
 RUN_DIR gets log.jsonl (loss, obj, cls, alpha per step; validation SeqASR), snapshots/step_*.png, checkpoints/
 last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Under torchrun
 (WORLD_SIZE > 1) the process group is initialised from the environment: nccl on CUDA, gloo on CPU.
+"""
+
+REPRODUCE_EPILOG = """\
+examples:
+  davis-attack reproduce --table 1 --out repro/ --grids 10 --iterations 300 --lr 1e-2     # CPU-sized budget
+  davis-attack reproduce --table 2 --out repro/ --iterations 11500                          # paper budget
+  davis-attack reproduce --table 2 --out repro/ --combinations legs torso+legs --headings 2 --phases 0
+
+Runs go to DIR/runs/<n>x<n>_<parts>/ (resumed when present, so Table 2's full-body run is Table 1's 10x10 run and
+a second call continues where one stopped); then DIR/table<k>.md/json/png and DIR/reproduce_table<k>.json (budget,
+detector, seconds per step, best validation per run).
 """
 
 EVALUATE_EPILOG = """\
@@ -53,17 +64,9 @@ def _detector_args(parser: argparse.ArgumentParser) -> None:
                         help="with --amass: use the first N trials of the split")
 
 
-def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``optimize`` on a subparsers object; the action is stored as ``func``."""
-    p = subparsers.add_parser("optimize", help="optimise an adversarial texture (EoT, resumable, DDP)",
-                              description="Optimise a black/white adversarial texture against a frozen RVT.",
-                              epilog=OPTIMIZE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
-    p.add_argument("--cells", type=int, default=10, help="grid cells per side n (paper: 10 ... 60; default 10)")
-    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
-                   help="painted body parts (default: torso arms legs); 'all' = whole body without mask")
+def _budget_args(p: argparse.ArgumentParser) -> None:
+    """The optimisation budget and settings shared by ``optimize`` and ``reproduce``."""
     p.add_argument("--iterations", type=int, default=11_500, help="optimisation steps (default: 11500)")
-    p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
     p.add_argument("--clips-per-step", type=int, default=1, help="EoT clips per step over all ranks (default: 1)")
     p.add_argument("--pool-size", type=int, default=32, help="pre-rasterized clips in the pool (default: 32)")
     p.add_argument("--refresh-every", type=int, default=50, help="pool refresh period in steps (default: 50)")
@@ -80,6 +83,39 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
     p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
+
+
+def _scene_args(p: argparse.ArgumentParser) -> None:
+    """The test scenes and thresholds shared by ``evaluate`` and ``reproduce``."""
+    p.add_argument("--thresholds", type=float, nargs="+", default=None, help="confidence thresholds")
+    p.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
+    p.add_argument("--headings", type=int, choices=[1, 2, 4], default=4,
+                   help="person headings per shape: 1, 2 or 4 (default 4)")
+    p.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+
+
+_HEADINGS_RAD = {1: (math.pi / 2,), 2: (math.pi / 2, -math.pi / 2), 4: (math.pi / 2, -math.pi / 2, 0.0, math.pi)}
+
+
+def _eval_config(args, default_thresholds):
+    from davis_rig.attack.evaluate import EvalConfig
+
+    scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
+    return EvalConfig(scales=scales, thresholds=tuple(args.thresholds or default_thresholds),
+                      headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases))
+
+
+def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``optimize`` on a subparsers object; the action is stored as ``func``."""
+    p = subparsers.add_parser("optimize", help="optimise an adversarial texture (EoT, resumable, DDP)",
+                              description="Optimise a black/white adversarial texture against a frozen RVT.",
+                              epilog=OPTIMIZE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
+    p.add_argument("--cells", type=int, default=10, help="grid cells per side n (paper: 10 ... 60; default 10)")
+    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
+                   help="painted body parts (default: torso arms legs); 'all' = whole body without mask")
+    _budget_args(p)
+    p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
     p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
     _detector_args(p)
     p.set_defaults(func=optimize_command)
@@ -96,13 +132,28 @@ def add_evaluate_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--texture", action="append", default=[], metavar="KEY=PATH",
                    help="texture file (.npy/.png, n x n or upsampled map); repeatable")
     p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts (Table 1 / named)")
-    p.add_argument("--thresholds", type=float, nargs="+", default=None, help="confidence thresholds")
-    p.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
-    p.add_argument("--headings", type=int, default=4, help="person headings per shape: 1, 2 or 4 (default 4)")
-    p.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+    _scene_args(p)
     p.add_argument("--visualise", action="store_true", help="also write event frames with boxes and a GIF")
     _detector_args(p)
     p.set_defaults(func=evaluate_command)
+    return p
+
+
+def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``reproduce`` on a subparsers object; the action is stored as ``func``."""
+    p = subparsers.add_parser("reproduce", help="optimize every texture of Table 1 or 2, then evaluate the table",
+                              description="Reproduce the paper's Table 1 or 2 with an explicit budget.",
+                              epilog=REPRODUCE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--table", type=int, choices=[1, 2], required=True, help="Table 1 (grid sizes) or 2 (body parts)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (runs/ + table files)")
+    p.add_argument("--grids", type=int, nargs="+", default=None,
+                   help="Table 1 grid sizes (default: 60 50 40 30 20 10)")
+    p.add_argument("--combinations", nargs="+", default=None, metavar="PARTS",
+                   help="Table 2 part combinations joined by '+', e.g. legs torso+legs (default: all 7)")
+    _budget_args(p)
+    _scene_args(p)
+    _detector_args(p)
+    p.set_defaults(func=reproduce_command)
     return p
 
 
@@ -129,23 +180,27 @@ def _init_distributed(device):
     return device
 
 
+def _attack_config(args, grid_n: int, parts):
+    from davis_rig.attack.optimize import AttackConfig
+
+    return AttackConfig(grid_n=grid_n, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
+                        pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
+                        alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
+                        num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
+                        v2e_gradient=args.v2e_gradient, precision=args.precision, seed=args.seed)
+
+
 def optimize_command(args) -> int:
     """Action of ``davis-attack optimize``: one :func:`davis_rig.attack.optimize.optimize_texture` call."""
     import torch
 
-    from davis_rig.attack.optimize import AttackConfig, load_attack_detector, optimize_texture
+    from davis_rig.attack.optimize import load_attack_detector, optimize_texture
 
     if args.threads:
         torch.set_num_threads(args.threads)
     device = _init_distributed(_device(args.device))
     parts = None if args.parts == ["all"] else tuple(args.parts)
-    config = AttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations,
-                          clips_per_step=args.clips_per_step,
-                          pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
-                          alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
-                          num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
-                          v2e_gradient=args.v2e_gradient, precision=args.precision,
-                          seed=args.seed)
+    config = _attack_config(args, args.cells, parts)
     detector = load_attack_detector(args.detector, device=device)
     motions = _motions(args, "train")
     try:
@@ -202,14 +257,8 @@ def evaluate_command(args) -> int:
         return _usage(f"Table 1 keys are grid sizes (e.g. 10=path), got {sorted(textures)}")
     if args.table is None and not textures:
         return _usage("give at least one --texture NAME=PATH (or --table 1 / 2)")
-    headings = {1: (math.pi / 2,), 2: (math.pi / 2, -math.pi / 2),
-                4: (math.pi / 2, -math.pi / 2, 0.0, math.pi)}.get(args.headings)
-    if headings is None:
-        return _usage(f"--headings must be 1, 2 or 4, got {args.headings}")
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
-    scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
-    config = ev.EvalConfig(scales=scales, thresholds=tuple(args.thresholds or default_thr), headings_rad=headings,
-                           phases=tuple(args.phases))
+    config = _eval_config(args, default_thr)
     detector = load_attack_detector(args.detector, device=device)
     command = "davis-attack " + " ".join(sys.argv[1:])
     parts = None if args.parts == ["all"] else tuple(args.parts)
@@ -239,4 +288,29 @@ def evaluate_command(args) -> int:
         summary.update(frames=[str(p) for p in vis["frames"]], gif=str(vis["gif"]))
     print(res["markdown"].read_text())
     print(json.dumps(summary))
+    return 0
+
+
+def reproduce_command(args) -> int:
+    """Action of ``davis-attack reproduce``: one :func:`davis_rig.attack.reproduce.reproduce_table` call."""
+    import torch
+
+    from davis_rig.attack import evaluate as ev
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.reproduce import reproduce_table
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = _device(args.device)
+    combos = None if args.combinations is None else [tuple(c.split("+")) for c in args.combinations]
+    default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
+    detector = load_attack_detector(args.detector, device=device)
+    res = reproduce_table(args.table, detector, args.out, attack=_attack_config(args, 10, None),
+                          eval_config=_eval_config(args, default_thr), grids=args.grids, combinations=combos,
+                          train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
+                          detector_name=str(args.detector) if args.detector else "bundled default",
+                          command="davis-attack " + " ".join(sys.argv[1:]), progress=not args.no_progress)
+    print(res["markdown"].read_text())
+    print(json.dumps({"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"]),
+                      "record": str(res["record"])}))
     return 0

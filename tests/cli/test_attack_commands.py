@@ -18,6 +18,7 @@ def _parser():
     sub = parser.add_subparsers(dest="command", required=True)
     cmd.add_optimize_parser(sub)
     cmd.add_evaluate_parser(sub)
+    cmd.add_reproduce_parser(sub)
     return parser
 
 
@@ -88,3 +89,32 @@ def test_main_entry_point_exit_codes(tmp_path, capsys):
                  "--device", "cpu"]) == 4  # CheckpointError -> data exit code, one message
     err = capsys.readouterr().err
     assert "davis-attack optimize: error:" in err and "missing.ckpt" in err
+
+
+def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
+    import davis_rig.attack.optimize as opt
+    import davis_rig.attack.reproduce as rep
+
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake(table, detector, out, **kw):
+        seen.update(table=table, detector=detector, out=out, kw=kw)
+        md = Path(out) / "table2.md"
+        md.parent.mkdir(parents=True, exist_ok=True)
+        md.write_text("| Parts |\n")
+        return {"markdown": md, "json": md, "plot": md, "record": md, "rows": [], "runs": {}}
+
+    monkeypatch.setattr(rep, "reproduce_table", fake)
+    args = _parser().parse_args(["reproduce", "--table", "2", "--out", str(tmp_path), "--combinations", "legs",
+                                 "torso+legs", "--iterations", "300", "--lr", "0.01", "--box-margin", "8",
+                                 "--headings", "2", "--phases", "0", "--detector", "d.ckpt", "--no-progress"])
+    assert args.func(args) == 0
+    kw = seen["kw"]
+    assert (seen["table"], seen["detector"], seen["out"]) == (2, "DET", str(tmp_path))
+    assert kw["combinations"] == [("legs",), ("torso", "legs")] and kw["grids"] is None
+    attack = kw["attack"]
+    assert (attack.iterations, attack.lr, attack.box_margin_px, attack.v2e_gradient) == (300, 0.01, 8.0, "relaxed")
+    scenes = kw["eval_config"]
+    assert scenes.thresholds == (0.25,) and scenes.headings_rad == (math.pi / 2, -math.pi / 2)
+    assert scenes.phases == (0.0,) and kw["detector_name"] == "d.ckpt"
