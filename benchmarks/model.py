@@ -9,7 +9,8 @@ For RVT-T and RVT-B (**random weights** — latency does not depend on the value
   on a shared machine affects all alike);
 * ``bptt_3steps``: 3 recurrent steps forward + backward w.r.t. the three inputs (the digital optimizer's inner
   cost; loss = Σ obj · max class prob of the last step);
-* ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1.
+* ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1, and at
+  the paper's four thresholds: one call per threshold vs ``postprocess_thresholds`` (identical output).
 
 Accuracy: max |ORT − PyTorch| over 3 steps with states carried, for the random-weight models and, when the
 ``shared/rvt/rvt_t_fixture.safetensors`` reference is beside the repository, for RVT-T with the fixture's
@@ -21,67 +22,21 @@ Run: ``python benchmarks/model.py [--repeats N] [--variants tiny base] [--thread
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import onnxruntime
 import torch
+from _common import REPO_ROOT, metadata_line, time_interleaved_ms, time_ms
 
 from davis_rig.models.rvt import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 from davis_rig.models.rvt.onnx_export import export_step_onnx
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-from davis_rig.models.rvt.postprocess import postprocess
+from davis_rig.models.rvt.postprocess import postprocess, postprocess_thresholds
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 RVT_T_FIXTURE = (REPO_ROOT / ".." / "shared" / "rvt" / "rvt_t_fixture.safetensors").resolve()
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _time_ms(fn, warmup: int, repeats: int) -> tuple[float, float, float]:
-    """Median, IQR and minimum (ms) of ``repeats`` timed calls after ``warmup`` untimed ones."""
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append((time.perf_counter() - start) * 1e3)
-    quartiles = statistics.quantiles(samples, n=4) if len(samples) >= 2 else [samples[0]] * 3
-    return statistics.median(samples), quartiles[2] - quartiles[0], min(samples)
-
-
-def _time_interleaved_ms(fns: dict, warmup: int, repeats: int) -> dict[str, tuple[float, float, float]]:
-    """Like :func:`_time_ms` for several functions, called in turn so that load drift hits all alike."""
-    for _ in range(warmup):
-        for fn in fns.values():
-            fn()
-    samples: dict[str, list[float]] = {name: [] for name in fns}
-    for _ in range(repeats):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            fn()
-            samples[name].append((time.perf_counter() - start) * 1e3)
-    out = {}
-    for name, values in samples.items():
-        quartiles = statistics.quantiles(values, n=4) if len(values) >= 2 else [values[0]] * 3
-        out[name] = (statistics.median(values), quartiles[2] - quartiles[0], min(values))
-    return out
 
 
 def _compare(model: RVTDetector, runner: RVTOnnxRunner, hists: list[np.ndarray]) -> dict[str, float]:
@@ -121,12 +76,8 @@ def main() -> None:
     args = parser.parse_args()
 
     print("# RVT model benchmark: PyTorch eager vs onnxruntime (random weights, batch 1, 20x256x320, fp32, CPU)")
-    print(
-        f"# commit {_commit()}  torch {torch.__version__}  onnxruntime {onnxruntime.__version__}  "
-        f"numpy {np.__version__}  python {platform.python_version()}  cpu {platform.processor() or platform.machine()}"
-        f"  torch capability {torch.backends.cpu.get_cpu_capability()}  repeats {args.repeats} (+{args.warmup} warm-up)"
-    )
-    print(f"# cpus {os.cpu_count()}  load average before the run {os.getloadavg()[0]:.2f} (figures are wall-clock)")
+    print(metadata_line(("numpy", "torch", "onnxruntime"), torch_capability=torch.backends.cpu.get_cpu_capability(),
+                        repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     rng = np.random.default_rng(0)
     hists = []
     for _ in range(3):
@@ -164,7 +115,7 @@ def main() -> None:
                 def ort_spinning():
                     spinning.step(hists[1], ort_warm)
 
-                timings = _time_interleaved_ms(
+                timings = time_interleaved_ms(
                     {"eager_step": eager_step, "ort_step": ort_step, "ort_spinning": ort_spinning},
                     args.warmup, args.repeats,
                 )
@@ -177,7 +128,7 @@ def main() -> None:
                             decoded, states = model(x, states)
                         (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
 
-                    timings["bptt_3steps"] = _time_ms(bptt_3steps, 1, max(3, args.repeats // 2))
+                    timings["bptt_3steps"] = time_ms(bptt_3steps, 1, max(3, args.repeats // 2))
                 for name, (median_ms, iqr_ms, min_ms) in timings.items():
                     results[(variant, threads, name)] = median_ms
                     print(
@@ -193,10 +144,17 @@ def main() -> None:
             if variant == args.variants[0]:
                 decoded = diffs["_decoded"][-1]
                 for conf in (0.001, 0.1):
-                    median_ms, iqr_ms, min_ms = _time_ms(lambda: postprocess(decoded, conf), 2, args.repeats)
+                    median_ms, iqr_ms, min_ms = time_ms(lambda: postprocess(decoded, conf), 2, args.repeats)
                     kept = postprocess(decoded, conf)[0]
                     print(f"postprocess conf {conf:<5}  median {median_ms:6.1f} ms  IQR {iqr_ms:5.1f} ms  min {min_ms:6.1f} ms  "
                           f"({0 if kept is None else len(kept)} detections kept)")
+                paper = (0.001, 0.01, 0.1, 0.25)
+                both = time_interleaved_ms({
+                    "one call per threshold": lambda: [postprocess(decoded, conf) for conf in paper],
+                    "postprocess_thresholds": lambda: postprocess_thresholds(decoded, paper),
+                }, 2, args.repeats)
+                for name, timing in both.items():
+                    print(f"postprocess at {paper}, {name:22s} {timing}")
 
         if RVT_T_FIXTURE.is_file():
             from safetensors.numpy import load_file
