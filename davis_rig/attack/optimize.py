@@ -168,7 +168,8 @@ def load_attack_detector(path=None, device=None):
 
     Args:
         path: ``.ckpt``/``.pt``/``.pth``/``.safetensors`` (official RVT checkpoints included); ``None`` = the
-            bundled default detector. An ``.onnx`` path is resolved to the ``.safetensors`` beside it
+            bundled default detector's weights (:func:`davis_rig.models.default_detector_weights_path`). An
+            ``.onnx`` path is resolved to the ``.safetensors`` beside it
             (same stem, or ``model_fp16.safetensors`` of a training export).
         device: torch device.
 
@@ -176,15 +177,15 @@ def load_attack_detector(path=None, device=None):
         :class:`~davis_rig.models.rvt.detector.RVTDetector`.
 
     Raises:
-        MissingDependencyError: no path and the bundled detector is not shipped yet.
+        MissingDependencyError: no path and the bundled weights are not installed (the message names the file).
         CheckpointError: unreadable checkpoint, or an ONNX file without torch weights beside it.
     """
     from davis_rig.models.rvt.checkpoint import load_detector
 
     if path is None:
-        from davis_rig.models import default_detector_path
+        from davis_rig.models import default_detector_weights_path
 
-        path = default_detector_path()
+        path = default_detector_weights_path()
     path = Path(path)
     if path.suffix.lower() == ".onnx":
         candidates = [path.with_suffix(".safetensors"), path.parent / "model_fp16.safetensors"]

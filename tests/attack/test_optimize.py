@@ -230,3 +230,15 @@ def test_clip_histograms_forward_exact_backward_by_rule(body):
         clip_histograms(grid, clip, gradient="soft")
     with pytest.raises(ValueError, match="v2e_gradient"):
         AttackConfig(v2e_gradient="soft")
+
+
+def test_load_attack_detector_defaults_to_bundled_weights(monkeypatch, tmp_path):
+    import davis_rig.models as models
+    from davis_rig.errors import MissingDependencyError
+
+    monkeypatch.setattr(models, "DEFAULT_DETECTOR_DIR", tmp_path)
+    with pytest.raises(MissingDependencyError, match="rvt_default.safetensors"):
+        load_attack_detector()
+    (tmp_path / models.DEFAULT_WEIGHTS_FILE).write_bytes(FIXTURE.read_bytes())
+    det = load_attack_detector()
+    assert not det.training and det.config == load_detector(FIXTURE).config
