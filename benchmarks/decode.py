@@ -10,23 +10,18 @@ Streams:
   events/s.
 
 Decoding is timed for 8 KiB transfers fed one by one (libcaer's transfer size), the same transfers 8 at a time via
-``feed_many``, and 1 MiB feeds. Each figure is the median (and IQR) over ``--repeats`` timed runs after one warm-up
-run. The DAVIS346 peaks at about 12 M events/s, i.e. about 28 M words/s with this word mix.
+``feed_many``, and 1 MiB feeds. Each figure is the median (IQR, minimum) over ``--repeats`` timed runs after one
+warm-up run (``_common.time_ms``). The DAVIS346 peaks at about 12 M events/s, i.e. about 28 M words/s with this word mix.
 """
 
 from __future__ import annotations
 
-import os
+from _common import limit_blas_threads, metadata_line, time_ms
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+limit_blas_threads(1)  # before numpy is imported: the decoder figures are single-threaded
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -106,22 +101,6 @@ def per_word_loop_decode(words: list[int], rows: int = 260, cols: int = 346) -> 
     return events
 
 
-BEST: dict[int, float] = {}  # id(fn) -> fastest run, s (contention on a shared machine inflates the median)
-
-
-def timed(fn, repeats: int) -> tuple[float, float, float]:
-    """Run ``fn`` once to warm up, then ``repeats`` times; return (median, q1, q3) wall seconds."""
-    fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - start)
-    q1, median, q3 = np.percentile(samples, [25, 50, 75])
-    BEST[id(fn)] = min(samples)
-    return float(median), float(q1), float(q3)
-
-
 def decode_runner(data: bytes, mode: str):
     transfers = split_transfers(data, 8192 if mode != "1MiB" else 1 << 20)
     batches = [transfers[i : i + 8] for i in range(0, len(transfers), 8)]
@@ -138,27 +117,13 @@ def decode_runner(data: bytes, mode: str):
     return run
 
 
-def metadata() -> str:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, check=False).stdout.strip() or "unknown"
-    except OSError:
-        commit = "unknown"
-    load = os.getloadavg() if hasattr(os, "getloadavg") else ("n/a",)
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return (
-        f"commit {commit} | python {platform.python_version()} | numpy {np.__version__} | "
-        f"{platform.processor() or platform.machine()} | cpus available {cpus} | threads 1 (numpy ufuncs are "
-        f"single-threaded) | load average {tuple(round(x, 2) for x in load)}"
-    )
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--seconds", type=float, default=2.0, help="device seconds of DVS stream")
     args = parser.parse_args(argv)
-    print(metadata())
+    print(metadata_line(("numpy",), threads="1 (numpy ufuncs are single-threaded)",
+                        repeats=f"{args.repeats} (+1 warm-up)"))
 
     data, n_events = dvs_stream(args.seconds)
     n_words = len(data) // 2
@@ -166,17 +131,16 @@ def main(argv=None) -> int:
           f"({n_events / (len(data) // 2):.3f} events/word)")
     results = {}
     for mode in ("8KiB", "feed_many", "1MiB"):
-        runner = decode_runner(data, mode)
-        median, q1, q3 = timed(runner, args.repeats)
+        timing = time_ms(decode_runner(data, mode), 1, args.repeats)
+        median = timing.median_ms / 1e3
         results[mode] = n_words / median / 1e6
         label = {"8KiB": "decode, 8 KiB transfers, feed()", "feed_many": "decode, 8 × 8 KiB via feed_many()",
                  "1MiB": "decode, 1 MiB feeds"}[mode]
         print(f"  {label:38s} {results[mode]:7.1f} M words/s  ({n_events / median / 1e6:6.1f} M events/s)  "
-              f"median {median * 1e3:7.1f} ms, IQR {q1 * 1e3:.1f}-{q3 * 1e3:.1f} ms, "
-              f"best {n_words / BEST[id(runner)] / 1e6:.1f} M words/s")
+              f"{timing}, best {n_words / timing.min_ms / 1e3:.1f} M words/s")
     sample = np.frombuffer(data, "<u2")[:200_000]
     sample_list = sample.tolist()
-    loop_time, _, _ = timed(lambda: per_word_loop_decode(sample_list), max(1, args.repeats // 3))
+    loop_time = time_ms(lambda: per_word_loop_decode(sample_list), 1, max(1, args.repeats // 3)).median_ms / 1e3
     loop_rate = sample.shape[0] / loop_time / 1e6
     assert len(per_word_loop_decode(sample_list)) == len(StreamDecoder(LAYOUT).feed(sample.tobytes()).events)
     print(f"  {'baseline: per-word Python loop (200k words)':38s} {loop_rate:7.2f} M words/s")
@@ -187,26 +151,27 @@ def main(argv=None) -> int:
 
     aps_seconds = min(args.seconds, 1.0)
     events, frames = aps_scene(aps_seconds)
-    encoder_time, enc_q1, enc_q3 = timed(lambda: StreamEncoder(LAYOUT).encode(events, frames), args.repeats)
+    encoder = time_ms(lambda: StreamEncoder(LAYOUT).encode(events, frames), 1, args.repeats)
+    encoder_time = encoder.median_ms / 1e3
     aps_data = StreamEncoder(LAYOUT).encode(events, frames)
     n_aps_words = len(aps_data) // 2
     print(f"\nAPS-heavy stream: {len(frames)} full frames + {len(events) / 1e6:.2f} M events = "
           f"{n_aps_words / 1e6:.2f} M words ({aps_seconds:g} s of device time)")
     for mode in ("8KiB", "1MiB"):
-        median, q1, q3 = timed(decode_runner(aps_data, mode), args.repeats)
+        timing = time_ms(decode_runner(aps_data, mode), 1, args.repeats)
+        median = timing.median_ms / 1e3
         print(f"  decode, {mode:5s} feeds {n_aps_words / median / 1e6:7.1f} M words/s  "
-              f"({len(frames) / median:6.0f} frames/s)  median {median * 1e3:.1f} ms, IQR {q1 * 1e3:.1f}-{q3 * 1e3:.1f} ms")
-    print(f"  encode (events + frames) {n_aps_words / encoder_time / 1e6:7.1f} M words/s  "
-          f"median {encoder_time * 1e3:.1f} ms, IQR {enc_q1 * 1e3:.1f}-{enc_q3 * 1e3:.1f} ms")
+              f"({len(frames) / median:6.0f} frames/s)  {timing}")
+    print(f"  encode (events + frames) {n_aps_words / encoder_time / 1e6:7.1f} M words/s  {encoder}")
 
     rng = np.random.default_rng(2)
     n = int(12e6 * min(args.seconds, 1.0))
     t_us = np.sort(rng.integers(0, int(1e6 * min(args.seconds, 1.0)), n))
     dvs_events = make_events(t_us, rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n))
-    median, q1, q3 = timed(lambda: StreamEncoder(LAYOUT).encode(dvs_events), args.repeats)
+    timing = time_ms(lambda: StreamEncoder(LAYOUT).encode(dvs_events), 1, args.repeats)
+    median = timing.median_ms / 1e3
     print(f"\nDVS encode: {n / 1e6:.1f} M events (12 M events/s for {min(args.seconds, 1.0):g} s): "
-          f"{n / median / 1e6:.1f} M events/s, median {median * 1e3:.1f} ms, IQR {q1 * 1e3:.1f}-{q3 * 1e3:.1f} ms, "
-          f"real-time factor {n / median / 12e6:.2f}x")
+          f"{n / median / 1e6:.1f} M events/s, {timing}, real-time factor {n / median / 12e6:.2f}x")
     return 0
 
 
