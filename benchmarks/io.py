@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -23,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import metadata_line
 
 from davis_rig.types import DAVIS346_HW, make_events
 
@@ -38,31 +37,12 @@ def synthetic_events(n: int, rate_hz: float, seed: int = 0) -> np.ndarray:
     return make_events(t, x, y, rng.integers(0, 2, n))
 
 
-def metadata() -> dict:
+def metadata() -> str:
+    """The shared header line plus the HDF5 library and Blosc thread settings."""
     import h5py
-    import hdf5plugin
 
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent).stdout.strip()
-    except OSError:
-        commit = "?"
-    return {
-        "commit": commit,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "h5py": h5py.__version__,
-        "hdf5": h5py.version.hdf5_version,
-        "hdf5plugin": hdf5plugin.version,
-        "cpus": os.cpu_count(),
-        "blosc_threads": os.environ.get("BLOSC_NTHREADS", "default"),
-        "loadavg_1min": round(os.getloadavg()[0], 2),
-        "machine": platform.machine(),
-    }
-
-
-def _median(values):
-    return statistics.median(values)
+    return metadata_line(("numpy", "h5py", "hdf5plugin"), hdf5=h5py.version.hdf5_version,
+                         blosc_threads=os.environ.get("BLOSC_NTHREADS", "default"))
 
 
 def codec_comparison(events: np.ndarray, repeats: int) -> list[tuple[str, float, float]]:
@@ -92,7 +72,7 @@ def codec_comparison(events: np.ndarray, repeats: int) -> list[tuple[str, float,
                 if repeat:  # the first run is the warm-up
                     rates.append(len(events) / elapsed / 1e6)
                     sizes.append(path.stat().st_size / len(events))
-            results.append((name, _median(rates), _median(sizes)))
+            results.append((name, statistics.median(rates), statistics.median(sizes)))
     return results
 
 
@@ -123,7 +103,7 @@ def writer_throughput(events: np.ndarray, repeats: int, chunk_events: int = 2048
                 rates.append(len(events) / elapsed / 1e6)
                 cpu_rates.append(len(events) / cpu / 1e6)
                 sizes.append(path.stat().st_size / len(events))
-    return _median(rates), _median(sizes), _median(cpu_rates)
+    return statistics.median(rates), statistics.median(sizes), statistics.median(cpu_rates)
 
 
 def end_to_end(events: np.ndarray, transfer_bytes: int, queue_transfers: int) -> dict:
@@ -188,7 +168,7 @@ def main(argv=None) -> int:
     parser.add_argument("--skip-e2e", action="store_true")
     args = parser.parse_args(argv)
 
-    print("metadata:", metadata())
+    print(metadata())
     codec_events = synthetic_events(4_000_000, args.rate, seed=1)
     print(f"\n== compression of the event columns ({len(codec_events) / 1e6:.0f} M events, median of "
           f"{args.repeats}) ==")
