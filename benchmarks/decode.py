@@ -11,7 +11,8 @@ Streams:
 
 Decoding is timed for 8 KiB transfers fed one by one (libcaer's transfer size), the same transfers 8 at a time via
 ``feed_many``, and 1 MiB feeds. Each figure is the median (IQR, minimum) over ``--repeats`` timed runs after one
-warm-up run (``_common.time_ms``). The DAVIS346 peaks at about 12 M events/s, i.e. about 28 M words/s with this word mix.
+warm-up run (``_common.time_ms``). The DAVIS346 peaks at about 12 M events/s, i.e. about 28 M words/s with this
+word mix.
 """
 
 from __future__ import annotations
