@@ -48,5 +48,6 @@ def test_optional_import_returns_the_module_or_names_the_extra():
     from davis_rig.errors import MissingDependencyError
 
     assert optional_import("json", "a feature") is json
-    with pytest.raises(MissingDependencyError, match=r"^the widget needs no_such_mod_xyz: pip install 'davis_rig\[extra1\]'$"):
+    message = r"^the widget needs no_such_mod_xyz: pip install 'davis_rig\[extra1\]'$"
+    with pytest.raises(MissingDependencyError, match=message):
         optional_import("no_such_mod_xyz", "the widget", "extra1")

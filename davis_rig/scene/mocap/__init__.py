@@ -22,7 +22,14 @@ from davis_rig.scene.mocap.amass import (
     retarget_smplh,
     smplh_global_rotations,
 )
-from davis_rig.scene.mocap.bvh import CMU_JOINT_MAP, CMU_UNITS_TO_M, BvhSkeleton, bvh_global_rotations, load_bvh, read_bvh
+from davis_rig.scene.mocap.bvh import (
+    CMU_JOINT_MAP,
+    CMU_UNITS_TO_M,
+    BvhSkeleton,
+    bvh_global_rotations,
+    load_bvh,
+    read_bvh,
+)
 from davis_rig.scene.mocap.retarget import (
     ANNY_BONE_SEGMENT,
     ANNY_SEGMENT_ENDS,
