@@ -64,7 +64,8 @@ class TrainConfig:
         grad_clip: max gradient L2 norm (0 = off).
         precision: ``"auto"`` (bf16 on CUDA if supported, else fp16; fp32 on CPU), ``"fp32"``, ``"bf16"``, ``"fp16"``.
         ema_decay: EMA of the weights (e.g. 0.9998) used for validation and export; ``None`` = off.
-        val_every, ckpt_every, log_every: intervals in steps (0 = never; a checkpoint is always written at the end).
+        val_every, ckpt_every, log_every: intervals in steps (0 = never; a checkpoint is always written at the
+            end, and a finished run is always validated at its last step).
         val_batch_size, val_seq_len: streaming lanes and chunk length for validation.
         val_conf_threshold: postprocess threshold for AP (RVT's reported evaluation: 0.001).
         val_skip_first_us: labels and detections within this time from a sequence's start are ignored (RVT 0.5 s).
@@ -570,7 +571,7 @@ class Trainer:
                 bar.close()
             batches.close()
         finished = self.step >= cfg.steps
-        if finished and cfg.val_every and self.step % cfg.val_every != 0:
+        if finished and (not cfg.val_every or self.step % cfg.val_every != 0):  # val_every 0: only at the end
             last_val = self._validate_and_select()
         self.history_s += time.perf_counter() - start
         self.save_checkpoint()

@@ -15,6 +15,7 @@ import torch
 from davis_rig.attack.texture import TextureGenerator
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+CONFIG_LR = 0.05  # the worker's AttackConfig.lr
 
 WORKER = textwrap.dedent(
     """
@@ -67,8 +68,10 @@ def test_two_gloo_ranks_equal_one_process_on_the_union(tmp_path):
     torch.manual_seed(0)
     start = TextureGenerator(4).state_dict()
     for key, value in one["generator"].items():
-        # ranks average per-rank means over 1 clip each; one process takes the mean over the batch of 2
-        torch.testing.assert_close(two["generator"][key], value, rtol=1e-5, atol=1e-6)
+        # ranks average per-rank means over 1 clip each; one process takes the mean over the batch of 2. The sums
+        # run in another order, and Adam divides by sqrt(v): near-zero gradients turn rounding into update
+        # differences of up to ~1e-3 lr (measured 3e-5 at lr 0.05), far below one step's size (lr).
+        torch.testing.assert_close(two["generator"][key], value, rtol=1e-3, atol=2e-3 * CONFIG_LR)
     assert any(not torch.equal(one["generator"][k], start[k]) for k in start)  # the steps did move the weights
     logs = [[json.loads(x) for x in (tmp_path / f"world{w}" / "log.jsonl").read_text().splitlines()] for w in (1, 2)]
     assert len(logs[0]) == len(logs[1]) == 3  # 2 steps + the final validation

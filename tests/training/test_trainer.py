@@ -50,12 +50,25 @@ def test_resume_is_bit_identical_on_cpu(moving_boxes_dataset, tmp_path):
     resumed.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")
     assert resumed.step == 1
     resumed.fit()
-    assert [r["loss"] for r in _log(tmp_path / "a")] == [r["loss"] for r in _log(tmp_path / "b")]
+    assert _log(tmp_path / "a")[-1]["kind"] == "val"  # val_every=0: validated once, at the end
+    assert ([r["loss"] for r in _log(tmp_path / "a") if r["kind"] == "train"]
+            == [r["loss"] for r in _log(tmp_path / "b") if r["kind"] == "train"])
     for (name, a), b in zip(straight.model.state_dict().items(), resumed.model.state_dict().values()):
         assert torch.equal(a, b), name
     opt_a, opt_b = straight.optimizer.state_dict()["state"], resumed.optimizer.state_dict()["state"]
     assert all(torch.equal(opt_a[k]["exp_avg"], opt_b[k]["exp_avg"]) for k in opt_a)
     assert straight.scheduler.get_last_lr() == resumed.scheduler.get_last_lr()
+
+
+@pytest.mark.parametrize(("val_every", "val_steps"), [(0, [3]), (2, [2, 3]), (3, [3])])
+def test_finished_run_is_validated_at_its_last_step(moving_boxes_dataset, tmp_path, val_every, val_steps):
+    torch.set_num_threads(2)
+    trainer = Trainer(moving_boxes_dataset, tmp_path / "run", _config(steps=3, val_every=val_every))
+    trainer.fit(max_steps=2)  # an unfinished chunk validates only on its val_every steps
+    assert [r["step"] for r in _log(tmp_path / "run") if r["kind"] == "val"] == [s for s in val_steps if s <= 2]
+    summary = trainer.fit()
+    assert [r["step"] for r in _log(tmp_path / "run") if r["kind"] == "val"] == val_steps
+    assert summary["val"]["num_labels"] > 0 and summary["best"]["step"] is not None
 
 
 def test_checkpoint_round_trip_export_and_errors(moving_boxes_dataset, tmp_path):
