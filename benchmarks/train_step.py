@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.augment import AugmentConfig
 from davis_rig.training.dataset import DatasetWriter, collate_chunks
@@ -112,7 +113,7 @@ def _bench_model(data: Path, run: Path, model: str, args) -> dict[str, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default="tiny", choices=["tiny", "small", "base", "mini"])
+    parser.add_argument("--model", default="tiny", choices=sorted(RVTConfig.presets()))
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--seq-len", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=3)
