@@ -40,7 +40,7 @@ person walking across a static camera at the distance where a 1.75 m person span
 Datasets: :func:`generate_dataset` (``davis-make-dataset``) plans the sequences per split (:func:`dataset_plan`,
 every scene a pure function of ``(seed, split, index)``, :func:`scene_for_job`), renders them in worker
 processes, skips finished ones (resumable) and writes RVT's layout plus a dataset card;
-:func:`evaluate_held_out` scores a ``davis-train`` run per held-out subset.
+:mod:`davis_rig.training.evaluate` (``davis-eval-dataset``) scores a detector per held-out subset.
 
 Cost (measured while generating 27 sequences x 2 s on a shared 2-core CPU, one torch thread, other jobs
 running): 6.4 s of wall time per generated second (rasterize 3.4, simulate 1.5, compose 0.7, pose 0.6,
@@ -92,7 +92,6 @@ __all__ = [
     "SequenceJob",
     "clothing_texture",
     "dataset_plan",
-    "evaluate_held_out",
     "generate_dataset",
     "person_motion",
     "render_sequence",
@@ -1084,63 +1083,3 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
                "test_subsets": ["/".join(s) for s in TEST_SUBSETS]})
     return {"generated": len(results), "skipped": skipped, "total": len(jobs), "card": str(card),
             "seconds": time.perf_counter() - clock, "stage_seconds": stage}
-
-
-def evaluate_held_out(data_dir, run_dir, *, device: str = "cpu", split: str = "test",
-                      checkpoint: str | None = None) -> dict[str, dict[str, Any]]:
-    """COCO AP of a training run per held-out subset (RVT protocol, :meth:`Trainer.validate`).
-
-    The sequences of ``split`` are grouped by their ``meta.json`` ``subset`` (``"white/large"``, ...), each group
-    is streamed through the run's eval model (EMA if the run used one) and scored on its own; ``"all"`` scores the
-    whole split.
-
-    Args:
-        data_dir: dataset folder (with ``train/`` and ``split/``).
-        run_dir: a ``davis-train`` run folder.
-        device: torch device.
-        split: the split to score (default ``test``).
-        checkpoint: checkpoint file (default ``run_dir/checkpoints/last.pt``).
-
-    Returns:
-        ``{subset: {"AP", "AP_50", "AP_75", ..., "num_labels", "num_detections", "sequences"}}``.
-
-    Raises:
-        FormatError: no sequences in the split. CheckpointError: no usable checkpoint.
-    """
-    import json
-    import os
-    import tempfile
-
-    from davis_rig.errors import CheckpointError, FormatError
-    from davis_rig.training.dataset import list_sequences
-    from davis_rig.training.trainer import TrainConfig, Trainer
-
-    torch = _torch()
-    data_dir, run_dir = Path(data_dir).resolve(), Path(run_dir)
-    ckpt = Path(checkpoint) if checkpoint is not None else run_dir / "checkpoints" / "last.pt"
-    if not ckpt.is_file():
-        raise CheckpointError(f"{ckpt}: no checkpoint")
-    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
-    config = dataclasses.replace(TrainConfig.from_dict(saved.get("train_config", {})), device=device, progress=False,
-                                 val_max_sequences=None)
-    del saved
-    groups: dict[str, list[Path]] = {}
-    for path in list_sequences(data_dir, split):
-        meta_path = path / "meta.json"
-        subset = json.loads(meta_path.read_text()).get("subset", "") if meta_path.is_file() else ""
-        groups.setdefault(subset or "other", []).append(path)
-        groups.setdefault("all", []).append(path)
-    if not groups:
-        raise FormatError(f"{data_dir / split}: no sequences")
-    results = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for subset, paths in sorted(groups.items()):
-            view = Path(tmp) / subset.replace("/", "_")
-            (view / "val").mkdir(parents=True)
-            os.symlink(data_dir / "train", view / "train")  # the trainer opens the train split when built
-            for path in paths:
-                os.symlink(path, view / "val" / path.name)
-            trainer = Trainer(view, Path(tmp) / "run", config)
-            trainer.load_checkpoint(ckpt)
-            results[subset] = trainer.validate("val")
-    return results

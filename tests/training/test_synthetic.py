@@ -216,14 +216,17 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
 
 
 def test_held_out_evaluation_scores_each_subset(tiny_dataset, tmp_path):
-    from davis_rig.training.trainer import TrainConfig, train
+    import torch
+
+    from davis_rig.models.rvt import RVTConfig, RVTDetector
+    from davis_rig.models.rvt.checkpoint import save_safetensors
+    from davis_rig.training.evaluate import SplitScoreConfig, evaluate_split
 
     root, _ = tiny_dataset
-    config = TrainConfig(model="mini", steps=1, batch_size=1, seq_len=2, val_every=0, ckpt_every=0, log_every=1,
-                         val_batch_size=1, val_seq_len=3, val_skip_first_us=0, device="cpu", progress=False,
-                         sampling="random")
-    train(root, tmp_path / "run", config, export=False)
-    results = syn.evaluate_held_out(root, tmp_path / "run")
-    assert sorted(results) == ["all", "white/large"]
-    for r in results.values():
+    torch.manual_seed(0)
+    weights = save_safetensors(RVTDetector(RVTConfig.mini()), tmp_path / "mini.safetensors")
+    result = evaluate_split(root, weights, config=SplitScoreConfig(skip_first_us=0, seq_len=1))
+    assert sorted(result["groups"]) == ["all", "white", "white/large"]
+    for r in result["groups"].values():
         assert r["sequences"] == 1 and r["num_labels"] == 3 and 0.0 <= r["AP"] <= 1.0
+        assert r["seqasr"][0.25]["num_sequences"] == 3
