@@ -74,7 +74,12 @@ def test_fixture_safetensors_is_read_as_a_checkpoint(mini_fixture, mini_weights)
     assert set(weights) == set(mini_weights)
 
 
-def test_pickle_with_code_is_refused_and_not_executed(tmp_path, mini_weights):
+def _save_checkpoint_with_code(tmp_path, weights: dict[str, torch.Tensor]):
+    """Save a Lightning-like checkpoint whose unpickling would run ``touch <marker>``.
+
+    Returns:
+        (checkpoint path, marker path): the marker exists only if the payload was executed.
+    """
     marker = tmp_path / "executed"
 
     class Payload:
@@ -82,21 +87,19 @@ def test_pickle_with_code_is_refused_and_not_executed(tmp_path, mini_weights):
             return (os.system, (f"touch {marker}",))
 
     path = tmp_path / "evil.ckpt"
-    torch.save({"state_dict": {"mdl." + k: v for k, v in mini_weights.items()}, "callbacks": Payload()}, path)
+    torch.save({"state_dict": {"mdl." + k: v for k, v in weights.items()}, "callbacks": Payload()}, path)
+    return path, marker
+
+
+def test_pickle_with_code_is_refused_and_not_executed(tmp_path, mini_weights):
+    path, marker = _save_checkpoint_with_code(tmp_path, mini_weights)
     with pytest.raises(CheckpointError, match=r"refused to unpickle.*weights_only=True.*'(posix|os|nt)\.system'"):
         load_detector(path)
     assert not marker.exists()
 
 
 def test_inert_mode_extracts_weights_without_running_code(tmp_path, mini_weights):
-    marker = tmp_path / "executed"
-
-    class Payload:
-        def __reduce__(self):
-            return (os.system, (f"touch {marker}",))
-
-    path = tmp_path / "evil.ckpt"
-    torch.save({"state_dict": {"mdl." + k: v for k, v in mini_weights.items()}, "callbacks": Payload()}, path)
+    path, marker = _save_checkpoint_with_code(tmp_path, mini_weights)
     model = load_detector(path, inert_unknown_globals=True)
     assert not marker.exists()
     _assert_same_weights(model, mini_weights)
