@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from davis_rig.attack.evaluate import (
     PAPER_THRESHOLDS,
@@ -26,14 +25,7 @@ from davis_rig.scene.body import BodyModel
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
 TINY = EvalConfig(scales=("large", "small"), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _decoded(score: float, box=(50.0, 40.0, 110.0, 200.0), anchors: int = 3) -> np.ndarray:

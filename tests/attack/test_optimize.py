@@ -19,15 +19,7 @@ from davis_rig.scene.body import BodyModel
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
 TINY_EOT = EoTConfig(supersample=1)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def single_thread():
-    """Multi-threaded CPU reductions are not bit-reproducible run to run; exact resume is checked on one thread."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # exact resume is checked on one thread
 
 
 @pytest.fixture(scope="module")

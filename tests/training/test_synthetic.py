@@ -23,17 +23,7 @@ from davis_rig.types import PEDESTRIAN_CLASS_ID, RVT_HW  # noqa: E402
 
 SHORT = syn.SyntheticSceneConfig(duration_s=0.15)
 SIZES = {"train": 1, "val": 0, "test": 1}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """One intra-op thread: on a shared 2-core machine oversubscribed threads make rendering ~20x slower."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # rendering on oversubscribed threads is ~20x slower
 
 
 @pytest.fixture(scope="module")
