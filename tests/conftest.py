@@ -1,10 +1,23 @@
-"""Fixtures shared by every test folder.
+"""Fixtures and helper modules shared by every test folder.
 
 ``one_torch_thread``: a module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``.
 Torch is imported only when a test uses it.
+
+Helper modules registered here by file path (``from camera_reads import ...`` works under any import mode):
+``camera_reads`` (read a camera over the virtual DAVIS346 until drained).
 """
 
+import importlib.util
+import sys
+from pathlib import Path
+
 import pytest
+
+if "camera_reads" not in sys.modules:
+    _spec = importlib.util.spec_from_file_location("camera_reads", Path(__file__).with_name("camera_reads.py"))
+    _module = importlib.util.module_from_spec(_spec)
+    sys.modules["camera_reads"] = _module
+    _spec.loader.exec_module(_module)
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,6 @@
 
 import json
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -16,6 +15,8 @@ from davis_rig.protocol.decoder import DecodedChunk
 from davis_rig.protocol.sequences import Sleep, config_writes, default_config_sequence, start_sequence, stop_sequence
 from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+
+from camera_reads import read_until_drained
 
 VECTORS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json").read_text())["vectors"]
 CLOCKS = Clocks(logic_mhz=104, adc_mhz=30, usb_mhz=80, deviation=1000)
@@ -147,22 +148,9 @@ def _decode_all(vector, batch_bytes=1 << 20, **faults):
     with cam:
         cam.add_raw_listener(raw.append)
         cam.start()
-        chunks = drain(cam, dev, raw)
+        chunks = read_until_drained(cam, dev, raw)
         stats = cam.stats
     return DecodedChunk.concatenate(chunks), raw, stats
-
-
-def drain(cam, dev, raw, limit_s=20.0):
-    """Read until the device served everything and the raw listener saw every served byte (no idle guessing)."""
-    chunks = []
-    deadline = time.monotonic() + limit_s
-    while time.monotonic() < deadline:
-        chunk = cam.read(0.02)
-        if chunk is not None:
-            chunks.append(chunk)
-        elif dev.drained and sum(len(r) for r in raw) == dev.bytes_served:
-            return chunks
-    raise AssertionError(f"data still missing after {limit_s} s")
 
 
 @pytest.mark.parametrize("vector", VECTORS, ids=[v["id"] for v in VECTORS])

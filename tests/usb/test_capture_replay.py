@@ -13,6 +13,8 @@ from davis_rig.usb.replay import ReplayReader
 from davis_rig.usb.sources import EncodedSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
+from camera_reads import read_until_drained
+
 TOOL = Path(__file__).resolve().parents[2] / "tools" / "capture_replay.py"
 
 
@@ -48,13 +50,7 @@ def test_capture_then_replay_gives_the_same_events(tmp_path):
         raw = []
         cam.add_raw_listener(raw.append)
         cam.start()
-        chunks = []
-        for _ in range(1000):  # at most ~20 s of idle reads
-            if (chunk := cam.read(0.02)) is not None:
-                chunks.append(chunk)
-            elif replay.drained and sum(map(len, raw)) == replay.bytes_served:
-                break
-        got = DecodedChunk.concatenate(chunks)
+        got = DecodedChunk.concatenate(read_until_drained(cam, replay, raw))
     assert np.array_equal(got.events, events)
 
 

@@ -12,6 +12,8 @@ from davis_rig.types import make_events
 from davis_rig.usb.sources import EncodedSource, Faults, _slice_edges
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
+from camera_reads import read_until_drained
+
 LAYOUT = SensorLayout.davis346()
 
 
@@ -42,13 +44,7 @@ def test_encoded_scene_round_trips_through_the_virtual_camera():
         raw = []
         cam.add_raw_listener(raw.append)
         cam.start()
-        chunks = []
-        for _ in range(1000):  # at most ~20 s of idle reads
-            if (chunk := cam.read(0.02)) is not None:
-                chunks.append(chunk)
-            elif dev.drained and sum(map(len, raw)) == dev.bytes_served:
-                break
-        got = DecodedChunk.concatenate(chunks)
+        got = DecodedChunk.concatenate(read_until_drained(cam, dev, raw))
         stats = cam.stats
     assert np.array_equal(got.events, events)
     assert len(got.frames) == 2
