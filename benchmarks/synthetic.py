@@ -15,29 +15,17 @@ Run: ``python benchmarks/synthetic.py [--scenes 4] [--seconds 1] [--threads 1] [
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
-import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from _common import metadata_line
 
 from davis_rig.scene.body import BodyModel
 from davis_rig.training import synthetic as syn
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("pose", "rasterize", "compose", "simulate", "histogram", "label")
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True,
-                             check=True)
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _run(scenes, model) -> dict[str, list[float]]:
@@ -66,9 +54,7 @@ def main() -> None:
     syn.render_sequence(syn.sample_scene(rng, "train", syn.SyntheticSceneConfig(duration_s=0.1)), model=model)
     train = [syn.sample_scene(rng, "train", config) for _ in range(args.scenes)]
     test = [syn.held_out_scene(rng, *syn.TEST_SUBSETS[i % 9], config) for i in range(args.scenes)]
-    print(f"commit {_commit()}  python {platform.python_version()}  torch {torch.__version__}  numpy {np.__version__}"
-          f"  threads {torch.get_num_threads()}  device {args.device}"
-          f"  cpu {platform.processor() or platform.machine()}")
+    print(metadata_line(device=args.device))
     print(f"{args.scenes} scenes per kind x {args.seconds:g} s; train people per scene: "
           f"{[len(s.people) for s in train]}; median seconds per generated second")
     results = {}

@@ -14,16 +14,14 @@ Run: ``python benchmarks/train_step.py [--model tiny] [--batch 8] [--seq-len 5] 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from _common import metadata_line
 
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import pad_to_input
@@ -32,17 +30,6 @@ from davis_rig.training.dataset import DatasetWriter, collate_chunks
 from davis_rig.training.losses import yolox_loss
 from davis_rig.training.trainer import TrainConfig, Trainer, _to_cxcywh
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True,
-                             check=True)
-        return out.stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _write_dataset(root: Path, num_sequences: int, num_windows: int) -> None:
@@ -123,9 +110,7 @@ def main() -> None:
     parser.add_argument("--precision", default="auto")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"commit {_commit()} | python {platform.python_version()} | torch {torch.__version__} | numpy "
-          f"{np.__version__} | threads {torch.get_num_threads()} | cpus {os.cpu_count()} | device {args.device} | "
-          f"load avg {os.getloadavg()[0]:.1f}")
+    print(metadata_line(device=args.device))
     print(f"batch {args.batch}, L {args.seq_len}, every window labelled, augmentation on, repeats {args.repeats} "
           f"(median, IQR)")
     with tempfile.TemporaryDirectory() as tmp:
