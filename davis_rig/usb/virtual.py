@@ -92,6 +92,18 @@ def usb_error(errno: int) -> usb.core.USBError:
     return usb.core.USBError(text, code, errno)
 
 
+def _deadline(timeout_ms: int) -> float | None:
+    """The ``time.monotonic()`` deadline, s, of a transfer timeout in ms; ``None`` for 0 (pyusb: wait forever)."""
+    return None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
+
+
+def _copy_into(buff: Any, data: bytes) -> int:
+    """Copy as much of ``data`` as fits into the writable transfer buffer ``buff``; returns the byte count."""
+    n = min(len(data), len(buff))
+    memoryview(buff).cast("B")[:n] = data[:n]
+    return n
+
+
 #: wMaxPacketSize of the bulk endpoint at SuperSpeed, bytes.
 MAX_PACKET_BYTES = 1024
 
@@ -390,7 +402,7 @@ class VirtualDavis346:
 
     def bulk_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
         """Serve one bulk read on 0x82 into ``buff``; returns the byte count (see class docstring for faults)."""
-        deadline = None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
+        deadline = _deadline(timeout_ms)
         with self._cond:
             self._check_present()
             if endpoint != DATA_ENDPOINT:
@@ -443,8 +455,7 @@ class VirtualDavis346:
             if len(data) > limit:
                 self._pending = data[limit:]  # the rest comes with the next read, like a device FIFO
                 data = data[:limit]
-            n = len(data)
-            memoryview(buff).cast("B")[:n] = data
+            n = _copy_into(buff, data)
             self.transfers_served += 1
             self.bytes_served += n
             if f.disconnect_after_transfers is not None and self.transfers_served >= f.disconnect_after_transfers:
@@ -473,7 +484,7 @@ class VirtualDavis346:
 
     def intr_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
         """Interrupt endpoint 0x81: serve queued debug messages, else time out."""
-        deadline = None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
+        deadline = _deadline(timeout_ms)
         with self._cond:
             self._check_present()
             if endpoint != DEBUG_ENDPOINT:
@@ -482,10 +493,7 @@ class VirtualDavis346:
                 if not self._wait(deadline):
                     raise usb_error(errno_mod.ETIMEDOUT)
                 self._check_present()
-            data = self._debug.pop(0)
-            n = min(len(data), len(buff))
-            memoryview(buff).cast("B")[:n] = data[:n]
-            return n
+            return _copy_into(buff, self._debug.pop(0))
 
     # --- descriptors ------------------------------------------------------------------------------
     def strings(self) -> dict[int, str]:
@@ -677,9 +685,7 @@ class VirtualDavis346Backend(usb.backend.IBackend):
                     raise usb_error(errno_mod.EPIPE)
                 encoded = text.encode("utf-16-le")
                 payload = struct.pack("<BB", 2 + len(encoded), 3) + encoded
-            n = min(len(payload), len(data))
-            memoryview(data).cast("B")[:n] = payload[:n]
-            return n
+            return _copy_into(data, payload)
         raise usb_error(errno_mod.EPIPE)
 
     def clear_halt(self, dev_handle, ep):
