@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +13,7 @@ from davis_rig.errors import DeviceNotFoundError, SessionError
 from davis_rig.session.record import RecordingSummary
 
 
-def test_help_is_fast_and_imports_nothing_heavy():
+def test_help_is_fast_and_imports_nothing_heavy(fresh_python):
     code = (
         "import sys, io, contextlib\n"
         "from davis_rig.cli.record import main\n"
@@ -26,8 +24,7 @@ def test_help_is_fast_and_imports_nothing_heavy():
         "assert '--out' in buf.getvalue() and '--recover' in buf.getvalue()\n"
         "print(sorted(m for m in ('h5py', 'usb', 'torch', 'numpy', 'hdf5plugin') if m in sys.modules))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
+    assert fresh_python(code) == "[]"
 
 
 class FakeOpen:
@@ -131,12 +128,11 @@ def test_errors_become_one_message_and_an_exit_code(monkeypatch, capsys, error, 
     assert err.startswith("davis-record: error: ") and str(error) in err and "Traceback" not in err
 
 
-def test_capture_path_does_not_import_torch():
+def test_capture_path_does_not_import_torch(fresh_python):
     code = (
         "import sys\n"
         "import davis_rig.cli.record, davis_rig.session, davis_rig.session.record, davis_rig.session.recovery\n"
         "import davis_rig.session.reader, davis_rig.session.writer\n"
         "print('torch' in sys.modules, 'dv_processing' in sys.modules)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False False"
+    assert fresh_python(code) == "False False"

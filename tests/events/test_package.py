@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import importlib
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 import davis_rig.events as events
 
 MODULES = ("crop", "histogram", "histogram_torch", "simulator", "v2e_torch")
-REPO = Path(__file__).resolve().parents[2]
 
 
 def test_all_is_the_union_of_the_modules_public_names():
@@ -33,7 +29,7 @@ def test_unknown_name_raises_attribute_error():
         events.not_a_kernel  # noqa: B018
 
 
-def test_import_does_not_import_torch_and_works_with_torch_blocked():
+def test_import_does_not_import_torch_and_works_with_torch_blocked(fresh_python):
     code = (
         "import sys\n"
         "import davis_rig.events as e\n"
@@ -44,6 +40,4 @@ def test_import_does_not_import_torch_and_works_with_torch_blocked():
         "from davis_rig.events import simulate_events, v2e_histograms\n"
         "print('ok')\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "ok"
+    assert fresh_python(code) == "ok"

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -114,13 +112,13 @@ def test_from_dict_errors():
         RVTConfig.from_dict({"embed_dim": 32})
 
 
-def test_package_import_does_not_import_torch():
+def test_package_import_does_not_import_torch(fresh_python):
     code = (
         "import sys; import davis_rig.models.rvt as r; c = r.RVTConfig.tiny(); "
         "assert c.num_anchors == 1680; assert 'torch' not in sys.modules, 'torch imported'; "
         "d = r.RVTDetector; assert 'torch' in sys.modules and d.__name__ == 'RVTDetector'"
     )
-    subprocess.run([sys.executable, "-c", code], check=True)
+    fresh_python(code)
 
 
 def test_nano_preset_is_rvt_t_at_half_width():
