@@ -1,4 +1,4 @@
-"""Shared helpers of the benchmark scripts: timing with warm-up, run metadata, thread setup.
+"""Shared helpers of the benchmark scripts: timing with warm-up, run metadata, thread setup, random-weight RVT.
 
 The scripts run as ``python benchmarks/<name>.py``, so this folder is on ``sys.path`` and they import
 ``from _common import ...``. The module imports neither numpy nor torch: a script may set the BLAS thread count
@@ -202,3 +202,61 @@ def cuda_sync(device: object) -> Callable[[], None] | None:
     if device.type != "cuda":
         return None
     return lambda: torch.cuda.synchronize(device)
+
+
+def random_detector(variant: str, device: object = "cpu", seed: int = 0):
+    """An RVT detector preset with seeded random weights, in eval mode, parameters frozen.
+
+    Latency does not depend on the weight values, so the timing benchmarks need no checkpoint.
+
+    Args:
+        variant: an ``RVTConfig`` preset name (``tiny``, ``small``, ``base``, ``mini``, ``nano``).
+        device: where the weights live (``torch.device`` or string).
+        seed: ``torch.manual_seed`` set before the weights are drawn.
+
+    Returns:
+        ``RVTDetector`` with ``requires_grad`` off on every parameter (gradients flow to the inputs only).
+    """
+    import torch
+
+    from davis_rig.models.rvt import RVTConfig
+    from davis_rig.models.rvt.detector import RVTDetector
+
+    torch.manual_seed(seed)
+    detector = RVTDetector(RVTConfig.presets()[variant]).to(device).eval()
+    for parameter in detector.parameters():
+        parameter.requires_grad_(False)
+    return detector
+
+
+def detection_score(decoded):
+    """Σ objectness × max class probability over all anchors: the scalar the digital attack's gradient comes from.
+
+    Args:
+        decoded: decoded detector output, float tensor (B, A, 5 + classes): box (4), objectness, class probs.
+
+    Returns:
+        0-d tensor.
+    """
+    return (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum()
+
+
+def bptt_case(model, inputs) -> Callable[[], None]:
+    """A timed case: ``len(inputs)`` recurrent steps from no state, then backward through all of them.
+
+    Args:
+        model: ``RVTDetector`` (``model(x, states) -> (decoded, states)``).
+        inputs: padded histograms, float tensors (B, 20, H, W); each call clones them with ``requires_grad``.
+
+    Returns:
+        A function of no arguments: forward over the steps, backward of :func:`detection_score` of the last step.
+    """
+
+    def bptt() -> None:
+        xs = [x.clone().requires_grad_(True) for x in inputs]
+        states = None
+        for x in xs:
+            decoded, states = model(x, states)
+        detection_score(decoded).backward()
+
+    return bptt

@@ -22,13 +22,12 @@ import argparse
 import time
 
 import torch
-from _common import cuda_sync, metadata_line, set_torch_threads, time_ms
+from _common import cuda_sync, metadata_line, random_detector, set_torch_threads, time_ms
 
 from davis_rig.attack.eot import EoTConfig, draw_scene, prepare_clip
 from davis_rig.attack.optimize import AttackConfig, attack_loss, clip_histograms, load_attack_detector
 from davis_rig.attack.texture import TextureGenerator, binarize_ste
-from davis_rig.models.rvt import RVTConfig
-from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
+from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.scene.body import BodyModel
 from davis_rig.scene.masks import part_mask
 
@@ -39,11 +38,7 @@ GOAL_S = 0.1
 def _detector(model_name: str, path: str | None, device: torch.device):
     if path is not None:
         return load_attack_detector(path, device=device)
-    torch.manual_seed(0)
-    detector = RVTDetector(getattr(RVTConfig, model_name)()).to(device).eval()
-    for p in detector.parameters():
-        p.requires_grad_(False)
-    return detector
+    return random_detector(model_name, device)
 
 
 def run(device: torch.device, detector, clips_per_step: int, warmup: int, repeats: int, precision: str = "fp32",

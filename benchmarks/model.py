@@ -28,9 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _common import REPO_ROOT, metadata_line, time_interleaved_ms, time_ms
+from _common import REPO_ROOT, bptt_case, metadata_line, random_detector, time_interleaved_ms, time_ms
 
-from davis_rig.models.rvt import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 from davis_rig.models.rvt.onnx_export import export_step_onnx
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
@@ -87,11 +86,8 @@ def main() -> None:
     results: dict[tuple[str, int, str], float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for variant in args.variants:
-            torch.manual_seed(0)
-            config = getattr(RVTConfig, variant)()
-            model = RVTDetector(config).eval()
-            for parameter in model.parameters():
-                parameter.requires_grad_(False)
+            model = random_detector(variant)
+            config = model.config
             start = time.perf_counter()
             onnx_path = export_step_onnx(model, Path(tmp) / f"{variant}.onnx")
             print(f"{config.name}: ONNX export {time.perf_counter() - start:.1f} s, "
@@ -120,15 +116,7 @@ def main() -> None:
                     args.warmup, args.repeats,
                 )
                 if not args.no_bptt:
-
-                    def bptt_3steps():
-                        xs = [x.clone().requires_grad_(True) for x in inputs]
-                        states = None
-                        for x in xs:
-                            decoded, states = model(x, states)
-                        (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
-
-                    timings["bptt_3steps"] = time_ms(bptt_3steps, 1, max(3, args.repeats // 2))
+                    timings["bptt_3steps"] = time_ms(bptt_case(model, inputs), 1, max(3, args.repeats // 2))
                 for name, (median_ms, iqr_ms, min_ms) in timings.items():
                     results[(variant, threads, name)] = median_ms
                     print(

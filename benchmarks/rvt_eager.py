@@ -14,9 +14,8 @@ from __future__ import annotations
 import argparse
 
 import torch
-from _common import metadata_line, set_torch_threads, time_ms
+from _common import bptt_case, detection_score, metadata_line, random_detector, set_torch_threads, time_ms
 
-from davis_rig.models.rvt import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector
 
 #: Official model, 1 thread, ms (ARCHITECTURE.md §9, measured on the reference machine).
@@ -48,20 +47,13 @@ def _cases(model: RVTDetector, generator: torch.Generator):
     def fwd_bwd_1step():
         x = inputs[1].clone().requires_grad_(True)
         decoded, _ = model(x, warm_states)
-        (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
-
-    def bptt_3steps():
-        xs = [x.clone().requires_grad_(True) for x in inputs]
-        states = None
-        for x in xs:
-            decoded, states = model(x, states)
-        (decoded[..., 4] * decoded[..., 5:].max(-1).values).sum().backward()
+        detection_score(decoded).backward()
 
     return {
         "forward_step": forward_step,
         "backbone": backbone,
         "fwd_bwd_1step": fwd_bwd_1step,
-        "bptt_3steps": bptt_3steps,
+        "bptt_3steps": bptt_case(model, inputs),
     }
 
 
@@ -79,10 +71,8 @@ def main() -> None:
     results: dict[tuple[str, int, str], float] = {}
     generator = torch.Generator().manual_seed(0)
     for variant in args.variants:
-        config = getattr(RVTConfig, variant)()
-        model = RVTDetector(config).eval()
-        for parameter in model.parameters():
-            parameter.requires_grad_(False)
+        model = random_detector(variant)
+        config = model.config
         cases = _cases(model, generator)
         for threads in args.threads:
             set_torch_threads(threads)

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 import torch
-from _common import cuda_sync, metadata_line, set_torch_threads, time_ms
+from _common import cuda_sync, metadata_line, random_detector, set_torch_threads, time_ms
 
 from davis_rig.events.histogram import stacked_histogram
 from davis_rig.events.simulator import simulate_events
@@ -61,8 +61,7 @@ def main() -> None:
     parser.add_argument("--no-cuda", action="store_true")
     args = parser.parse_args()
 
-    from davis_rig.models.rvt import RVTConfig
-    from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
+    from davis_rig.models.rvt.detector import pad_to_input
 
     print("# V2E benchmark: differentiable V2E per 50 ms window (304x240, 11 frames at 200 fps, fp32) vs RVT-B")
     print(metadata_line())
@@ -105,10 +104,7 @@ def main() -> None:
                 return stacked_histogram(ev["x"], ev["y"], ev["t"], ev["p"], height=HEIGHT, width=WIDTH)
 
             results["exact simulator + histogram"] = time_ms(exact, 1, max(3, args.repeats // 3), sync)
-        torch.manual_seed(0)
-        model = RVTDetector(RVTConfig.base()).to(device).eval()
-        for p in model.parameters():
-            p.requires_grad_(False)
+        model = random_detector("base", device)
         x0 = pad_to_input(torch.rand(1, 20, HEIGHT, WIDTH, device=device) * 3)
 
         def rvt_fwd_bwd():

@@ -72,3 +72,28 @@ def test_limit_blas_threads_refuses_after_numpy_import():
     before = {v: os.environ.get(v) for v in common.BLAS_THREAD_VARIABLES}
     common.limit_blas_threads(None)
     assert {v: os.environ.get(v) for v in common.BLAS_THREAD_VARIABLES} == before
+
+
+def test_random_detector_is_seeded_frozen_and_in_eval_mode():
+    torch = pytest.importorskip("torch")
+    model = common.random_detector("mini", seed=3)
+    assert model.config.name == "RVT-mini" and not model.training
+    assert not any(p.requires_grad for p in model.parameters())
+    again = common.random_detector("mini", seed=3)
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), again.state_dict().values()))
+
+
+def test_detection_score_and_bptt_case():
+    torch = pytest.importorskip("torch")
+    decoded = torch.tensor([[[0, 0, 0, 0, 0.5, 0.2, 0.6], [0, 0, 0, 0, 1.0, 0.3, 0.1]]])  # (B=1, A=2, 7)
+    assert common.detection_score(decoded).item() == pytest.approx(0.5 * 0.6 + 1.0 * 0.3)
+    calls = []
+
+    def model(x, states):
+        calls.append(states)
+        return torch.cat([x, x], dim=-1), len(calls)  # decoded (1, 1, 8) from x (1, 1, 4)
+
+    inputs = [torch.ones(1, 1, 4), 2 * torch.ones(1, 1, 4)]
+    common.bptt_case(model, inputs)()
+    assert calls == [None, 1]  # states carried from none
+    assert all(x.grad is None for x in inputs)  # the caller's inputs are cloned, not touched
