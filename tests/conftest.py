@@ -3,10 +3,11 @@
 ``one_torch_thread``: a module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``.
 Torch is imported only when a test uses it. ``fresh_python``: run a snippet in a new interpreter (import checks).
 
-Helper modules registered here by file path (``from camera_reads import ...`` works under any import mode):
-``camera_reads`` (read a camera over the virtual DAVIS346 until drained).
+Helper modules (:data:`HELPER_MODULES`) are imported by name from any test, ``from eval_data import ...``, under
+any pytest import mode and without ``sys.path`` changes: a finder loads them from their files on first import.
 """
 
+import importlib.abc
 import importlib.util
 import subprocess
 import sys
@@ -15,12 +16,30 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+TESTS = REPO_ROOT / "tests"
 
-if "camera_reads" not in sys.modules:
-    _spec = importlib.util.spec_from_file_location("camera_reads", Path(__file__).with_name("camera_reads.py"))
-    _module = importlib.util.module_from_spec(_spec)
-    sys.modules["camera_reads"] = _module
-    _spec.loader.exec_module(_module)
+#: Helper modules shared by tests, by top-level module name.
+HELPER_MODULES = {
+    # read a camera over the virtual DAVIS346 until drained (tests/usb, tests/device)
+    "camera_reads": TESTS / "camera_reads.py",
+    # tiny ONNX graphs with known outputs, sessions recorded through the virtual camera (evaluation, labelers, cli)
+    "eval_data": TESTS / "evaluation" / "eval_data.py",
+    # synthetic events, frames and fake cameras of the session tests
+    "session_data": TESTS / "session" / "session_data.py",
+}
+
+
+class _HelperModuleFinder(importlib.abc.MetaPathFinder):
+    """Finds the top-level modules named in :data:`HELPER_MODULES` at their files."""
+
+    def find_spec(self, fullname, path, target=None):
+        if path is None and fullname in HELPER_MODULES:
+            return importlib.util.spec_from_file_location(fullname, HELPER_MODULES[fullname])
+        return None
+
+
+if not any(isinstance(finder, _HelperModuleFinder) for finder in sys.meta_path):
+    sys.meta_path.insert(0, _HelperModuleFinder())
 
 
 @pytest.fixture(scope="module")

@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import pytest
 
 from davis_rig.cli import eval as cli
 from davis_rig.labelers.session_labels import label_session
 
-if "eval_data" not in sys.modules:
-    _spec = importlib.util.spec_from_file_location(
-        "eval_data", Path(__file__).resolve().parents[1] / "evaluation" / "eval_data.py")
-    sys.modules["eval_data"] = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(sys.modules["eval_data"])
-
-from eval_data import person_rvt, person_yolo, scene_session, sha256  # noqa: E402
+from eval_data import person_rvt, person_yolo, scene_session, sha256
 
 
 @pytest.fixture(scope="module")

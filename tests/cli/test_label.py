@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -12,13 +11,7 @@ import pytest
 from davis_rig.cli import label as cli
 from davis_rig.session import SessionReader
 
-if "eval_data" not in sys.modules:
-    _spec = importlib.util.spec_from_file_location(
-        "eval_data", Path(__file__).resolve().parents[1] / "evaluation" / "eval_data.py")
-    sys.modules["eval_data"] = importlib.util.module_from_spec(_spec)
-    _spec.loader.exec_module(sys.modules["eval_data"])
-
-from eval_data import person_yolo, scene_session, sha256  # noqa: E402
+from eval_data import person_yolo, scene_session, sha256
 
 
 def test_label_writes_labels_and_reports(tmp_path, capsys):
