@@ -2,6 +2,7 @@
 
 ``one_torch_thread``: a module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``.
 Torch is imported only when a test uses it. ``fresh_python``: run a snippet in a new interpreter (import checks).
+``load_tool``: import a script of ``tools/`` as a module.
 
 Helper modules (:data:`HELPER_MODULES`) are imported by name from any test, ``from eval_data import ...``, under
 any pytest import mode and without ``sys.path`` changes: a finder loads them from their files on first import.
@@ -75,3 +76,21 @@ def _run_fresh_python(code: str) -> str:
 def fresh_python():
     """``fresh_python(code) -> stdout``: for checks of what an import pulls in (see :func:`_run_fresh_python`)."""
     return _run_fresh_python
+
+
+def _load_tool(name: str):
+    """Import ``tools/<name>.py`` (a script, not a package) afresh as module ``<name>_tool``.
+
+    The module is entered in ``sys.modules`` before it runs: dataclasses resolve annotations through it.
+    """
+    spec = importlib.util.spec_from_file_location(f"{name}_tool", REPO_ROOT / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def load_tool():
+    """``load_tool(name) -> module``: a fresh import of ``tools/<name>.py`` (see :func:`_load_tool`)."""
+    return _load_tool

@@ -2,28 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 pytest.importorskip("torch")
 cv2 = pytest.importorskip("cv2")
 
-TOOL_PATH = Path(__file__).resolve().parents[2] / "tools" / "contact_sheet.py"
 
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("contact_sheet_tool", TOOL_PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_contact_sheet_png(tmp_path, capsys):
+def test_contact_sheet_png(tmp_path, capsys, load_tool):
     out = tmp_path / "sheet.png"
-    assert _tool().main(["--out", str(out), "--supersample", "1", "--duration-ms", "10", "--grid-n", "4"]) == 0
+    tool = load_tool("contact_sheet")
+    assert tool.main(["--out", str(out), "--supersample", "1", "--duration-ms", "10", "--grid-n", "4"]) == 0
     sheet = cv2.imread(str(out))
     assert sheet is not None
     scenes = 5

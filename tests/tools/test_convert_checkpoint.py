@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -20,17 +19,9 @@ from davis_rig.models.rvt.detector import RVTDetector  # noqa: E402
 TOOL_PATH = Path(__file__).resolve().parents[2] / "tools" / "convert_checkpoint.py"
 
 
-def _load_tool():
-    spec = importlib.util.spec_from_file_location("convert_checkpoint_tool", TOOL_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
-def tool():
-    return _load_tool()
+def tool(load_tool):
+    return load_tool("convert_checkpoint")
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,5 @@
 """tools/capture_replay.py: capture through the real transport (virtual camera), then replay and decode identically."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 from davis_rig.device.camera import Davis346
@@ -15,18 +12,9 @@ from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
 from camera_reads import read_until_drained
 
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "capture_replay.py"
 
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("capture_replay_tool", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_capture_then_replay_gives_the_same_events(tmp_path):
-    tool = load_tool()
+def test_capture_then_replay_gives_the_same_events(tmp_path, load_tool):
+    tool = load_tool("capture_replay")
     rng = np.random.default_rng(5)
     n = 5000
     events = make_events(np.sort(rng.integers(0, 50_000, n)), rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n))
@@ -54,8 +42,8 @@ def test_capture_then_replay_gives_the_same_events(tmp_path):
     assert np.array_equal(got.events, events)
 
 
-def test_main_reports_errors_with_exit_code(tmp_path, capsys, monkeypatch):
-    tool = load_tool()
+def test_main_reports_errors_with_exit_code(tmp_path, capsys, monkeypatch, load_tool):
+    tool = load_tool("capture_replay")
 
     def fail(*args, **kwargs):
         from davis_rig.errors import DeviceNotFoundError
