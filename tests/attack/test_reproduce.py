@@ -7,7 +7,6 @@ import math
 from pathlib import Path
 
 import pytest
-import torch
 
 from davis_rig.attack.eot import EoTConfig
 from davis_rig.attack.evaluate import EvalConfig
@@ -34,8 +33,7 @@ def test_table_runs_keys_and_order():
             table_runs(**bad)
 
 
-def test_reproduce_table1_optimizes_then_evaluates_and_resumes(tmp_path):
-    torch.set_num_threads(1)
+def test_reproduce_table1_optimizes_then_evaluates_and_resumes(tmp_path, one_torch_thread):
     detector = load_detector(FIXTURE)
     attack = AttackConfig(iterations=2, pool_size=1, num_validation_clips=1, validate_every=1, checkpoint_every=1,
                           snapshot_every=1, lr=0.05, eot=EoTConfig(supersample=1))
