@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 __all__ = ["write_model_card", "render_model_card"]
 
@@ -40,6 +40,7 @@ def render_model_card(
     test_metrics: Mapping[str, Mapping[str, Any]] | None = None,
     compute: Mapping[str, Any] | None = None,
     files: Mapping[str, str] | None = None,
+    commands: Sequence[str] | None = None,
 ) -> str:
     """Markdown text of a model card.
 
@@ -52,6 +53,7 @@ def render_model_card(
         test_metrics: per test condition (e.g. clothing × distance) a dict of AP, AP_50, SeqASR... or ``None``.
         compute: what training took (device, steps, hours, ...).
         files: shipped file name → description.
+        commands: shell commands that reproduce the model (data, training, evaluation), or ``None``.
 
     Returns:
         The markdown text.
@@ -97,6 +99,8 @@ def render_model_card(
             lines.append(f"| {condition} | " + " | ".join(_fmt(metrics.get(c)) for c in columns) + " |")
     else:
         lines.append("- held-out test set: not measured")
+    if commands:
+        lines += ["", "## Reproduce", "", "```"] + list(commands) + ["```"]
     lines += ["", "## Limits", "", _LIMITS, ""]
     return "\n".join(lines)
 
