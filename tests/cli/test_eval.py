@@ -104,7 +104,6 @@ def test_bad_inputs_exit_nonzero_with_a_message(sessions, tmp_path, capsys):
         ([str(truncated), "--model", str(model)], 4, "cannot open as HDF5"),
         ([str(a), "--model", str(person_yolo(tmp_path))], 4, "not an RVT step graph"),
         ([str(other_sensor), "--model", str(model)], 4, "expected a DAVIS346 recording"),
-        ([str(a)], 5, "bundled default detector"),
     ]
     for argv, code, message in cases:
         before = {p: sha256(p) for p in (unlabelled, no_events, truncated, a, other_sensor)}
@@ -112,6 +111,18 @@ def test_bad_inputs_exit_nonzero_with_a_message(sessions, tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("davis-eval: error:") and message in err, err
         assert {p: sha256(p) for p in before} == before
+
+
+def test_missing_bundled_detector_exits_5_and_says_how_to_pass_one(sessions, tmp_path, monkeypatch, capsys):
+    import davis_rig.models
+
+    _, a, _ = sessions
+    monkeypatch.setattr(davis_rig.models, "DEFAULT_DETECTOR_DIR", tmp_path / "not_installed")
+    before = sha256(a)
+    assert cli.main([str(a), "--quiet"]) == 5
+    err = capsys.readouterr().err
+    assert err.startswith("davis-eval: error:") and "bundled default detector" in err and "--model" in err, err
+    assert sha256(a) == before
 
 
 def _other_sensor_session(path):
