@@ -44,7 +44,7 @@ from typing import Sequence
 import numpy as np
 
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
-from davis_rig.attack.loss import DEFAULT_LAMBDA, AdversarialLoss, adversarial_loss
+from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.errors import CheckpointError, MissingDependencyError
 from davis_rig.events.histogram import COUNT_CUTOFF
@@ -91,6 +91,8 @@ class AttackConfig:
         v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
             ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
         box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
+        loss_reduction: ``"mean"`` over the scored anchors (paper) or ``"top"``: the highest-confidence scored
+            anchor per window and clip (:func:`davis_rig.attack.loss.adversarial_loss`).
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the detector's forward and backward; texture, V2E and
             loss stay fp32).
         seed: seeds the generator init, dropout, pool and sampling.
@@ -121,6 +123,7 @@ class AttackConfig:
     v2e_binning: str = "interval"
     v2e_gradient: str = "relaxed"
     box_margin_px: float | None = None
+    loss_reduction: str = "mean"
     precision: str = "fp32"
     seed: int = 0
     eot: EoTConfig = field(default_factory=EoTConfig)
@@ -132,6 +135,8 @@ class AttackConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.v2e_gradient not in V2E_GRADIENTS:
             raise ValueError(f"v2e_gradient must be one of {V2E_GRADIENTS}, got {self.v2e_gradient!r}")
+        if self.loss_reduction not in LOSS_REDUCTIONS:
+            raise ValueError(f"loss_reduction must be one of {LOSS_REDUCTIONS}, got {self.loss_reduction!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
         if self.clips_per_step > self.pool_size:
@@ -251,7 +256,7 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
 
 
 def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, config: AttackConfig) -> AdversarialLoss:
-    """``L_adv`` of a texture grid over a batch of clips (mean over all anchors of all windows and clips).
+    """``L_adv`` of a texture grid over a batch of clips (over all windows and clips; ``config.loss_reduction``).
 
     Args:
         grid: float tensor [n, n] (after :func:`binarize_ste`).
@@ -278,7 +283,7 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
     if config.box_margin_px is not None:
         boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=device)  # [W, B, 4]
     return adversarial_loss(decoded, config.lambda_obj, config.lambda_cls, boxes=boxes,
-                            box_margin_px=config.box_margin_px or 0.0)
+                            box_margin_px=config.box_margin_px or 0.0, reduction=config.loss_reduction)
 
 
 def _step_seed(seed: int, step: int) -> int:

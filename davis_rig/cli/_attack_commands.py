@@ -77,6 +77,9 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
     p.add_argument("--box-margin", type=float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
+    p.add_argument("--loss", choices=["mean", "top"], default="mean",
+                   help="mean: obj and p_ped averaged over all scored anchors (paper); top: the highest-confidence "
+                        "anchor per window and clip (stronger signal on detectors with busy backgrounds)")
     p.add_argument("--v2e-gradient", choices=["relaxed", "ste"], default="relaxed",
                    help="backward of the event counts: relaxed-count surrogate (default) or the paper's "
                         "straight-through floor (ste); the forward counts are the same (docs/attack.md)")
@@ -187,6 +190,7 @@ def _attack_config(args, grid_n: int, parts):
                         pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
                         alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                         num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
+                        loss_reduction=args.loss,
                         v2e_gradient=args.v2e_gradient, precision=args.precision, seed=args.seed)
 
 

@@ -83,6 +83,34 @@ def test_no_anchor_in_any_box_gives_zero_with_zero_gradient():
     assert torch.equal(x.grad, torch.zeros_like(x))
 
 
+def test_top_reduction_scores_the_most_confident_anchor_of_each_window():
+    # W1: obj*ped = 0.10 (anchor 0) vs 0.06; W2: 0.12 vs 0.90 (anchor 1)
+    out = adversarial_loss([W1, W2], reduction="top")
+    assert out.obj.item() == pytest.approx((0.5 + 0.9) / 2)
+    assert out.cls.item() == pytest.approx((0.2 + 1.0) / 2)
+    assert out.total.item() == pytest.approx(1e4 * 0.7 + 1e4 * 0.6)
+    assert out.num_anchors.item() == 2
+    in_box = adversarial_loss([W1, W2], boxes=torch.tensor([[0.0, 0.0, 30.0, 40.0]]), reduction="top")
+    assert (in_box.obj.item(), in_box.cls.item()) == pytest.approx(((0.5 + 0.3) / 2, (0.2 + 0.4) / 2))
+
+
+def test_top_reduction_gradient_reaches_only_the_top_anchors():
+    x = torch.stack([W1, W2]).clone().requires_grad_(True)  # [W=2, B=1, A=2, 7]
+    adversarial_loss(x, lambda_obj=3.0, lambda_cls=5.0, reduction="top").total.backward()
+    expected = torch.zeros_like(x)
+    for window, anchor in ((0, 0), (1, 1)):
+        expected[window, 0, anchor, 4] = 3.0 / 2
+        expected[window, 0, anchor, 6] = 5.0 / 2
+    assert torch.allclose(x.grad, expected)
+    empty = W1.clone().requires_grad_(True)
+    out = adversarial_loss([empty], boxes=torch.tensor([[float("nan")] * 4]), reduction="top")
+    assert out.total.item() == 0.0 and out.num_anchors.item() == 0
+    out.total.backward()
+    assert torch.equal(empty.grad, torch.zeros_like(empty))
+    with pytest.raises(ValueError, match="reduction"):
+        adversarial_loss([W1], reduction="max")
+
+
 def test_inputs_not_modified_and_validation():
     before = W1.clone()
     adversarial_loss([W1], boxes=[[0.0, 0.0, 30.0, 40.0]], box_margin_px=1.0)
