@@ -37,7 +37,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Sequence
 
@@ -449,8 +449,11 @@ def optimize_texture(
             state = torch.load(ckpt_path, map_location=device, weights_only=True)
         except (OSError, RuntimeError, ValueError) as exc:
             raise CheckpointError(f"{ckpt_path}: unreadable attack checkpoint ({exc})") from exc
-        saved = dict(state["config"])
         current = config.to_dict()
+        # a field added after the checkpoint was written counts as its default value
+        defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
+                                         default=str))
+        saved = {**{k: v for k, v in defaults.items() if k not in state["config"]}, **dict(state["config"])}
         saved.pop("iterations", None)
         current.pop("iterations", None)
         if saved != current:

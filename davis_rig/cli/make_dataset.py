@@ -69,16 +69,21 @@ def build_parser() -> argparse.ArgumentParser:
                         help="torch CPU threads per process (default: torch's choice; 1 on a busy machine)")
     parser.add_argument("--compression", choices=["blosc-zstd", "gzip", "lzf", "none"], default="blosc-zstd",
                         help="histogram compression (default: blosc-zstd, as RVT)")
+    parser.add_argument("--clothing", nargs="+", default=None, metavar="KIND",
+                        help="clothing kinds of the train/val people (default: all of parts_grey parts_colour "
+                             "stripes checks grid white black pattern60); the test subsets are fixed")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     return parser
 
 
 def _make(args: argparse.Namespace, sizes: dict[str, int]) -> int:
-    from davis_rig.training.synthetic import generate_dataset
+    from davis_rig.training.synthetic import SyntheticSceneConfig, generate_dataset
 
+    config = SyntheticSceneConfig() if args.clothing is None else SyntheticSceneConfig(
+        clothing_kinds=tuple(args.clothing))
     summary = generate_dataset(args.out_dir, sizes, duration_s=args.seconds, seed=args.seed, device=args.device,
                                workers=args.workers, compression=args.compression, progress=not args.no_progress,
-                               threads=args.threads)
+                               threads=args.threads, config=config)
     print(json.dumps(summary, indent=1, default=str))
     return EXIT_OK
 
@@ -92,6 +97,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         sizes = parse_split_sizes(args.split_sizes, args.sequences)
+        if args.clothing is not None:
+            from davis_rig.training.synthetic import SyntheticSceneConfig
+
+            SyntheticSceneConfig(clothing_kinds=tuple(args.clothing))
     except ValueError as exc:
         print(f"{NAME}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

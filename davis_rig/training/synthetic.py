@@ -261,6 +261,10 @@ class SyntheticSceneConfig:
         shot_noise_rate_hz, leak_rate_hz: ranges of the noise rates (Hz per pixel).
         cutoff_probability, cutoff_hz: chance and range of the photoreceptor low-pass (Hz).
         simulator_dtype: ``"float64"`` (exact) or ``"float32"`` (faster, for big runs).
+        clothing_kinds: the kinds :func:`sample_scene` draws clothing from (uniformly; default all of
+            :data:`CLOTHING_KINDS`). E.g. without ``"grid"`` and ``"pattern60"`` the detector never sees
+            black/white cell textures (an attack victim that, like the paper's Gen1 RVT, was not trained on them).
+            The held-out test subsets keep their fixed clothing.
     """
 
     duration_s: float = 2.0
@@ -287,8 +291,13 @@ class SyntheticSceneConfig:
     cutoff_probability: float = 0.3
     cutoff_hz: tuple[float, float] = (100.0, 2000.0)
     simulator_dtype: str = "float64"
+    clothing_kinds: tuple[str, ...] = CLOTHING_KINDS
 
     def __post_init__(self) -> None:
+        unknown = sorted(set(self.clothing_kinds) - set(CLOTHING_KINDS))
+        if not self.clothing_kinds or unknown:
+            raise ValueError(f"clothing_kinds: expected a non-empty subset of {CLOTHING_KINDS}, got "
+                             f"{tuple(self.clothing_kinds)}")
         if not self.duration_s >= 0.05:
             raise ValueError(f"duration_s must be >= 0.05 s (one window), got {self.duration_s}")
         if self.render_rate_hz < 200.0 or (1e6 / self.render_rate_hz) % 1:
@@ -343,7 +352,7 @@ def _person(rng, split: str, config: SyntheticSceneConfig, duration_s: float, ca
         x_mid_m = float(rng.uniform(-1.1, 1.1) * _half_width_m(depth, camera))
     return PersonSpec(
         shape_index=shape,
-        clothing=str(rng.choice(CLOTHING_KINDS)) if clothing is None else clothing,
+        clothing=str(rng.choice(config.clothing_kinds)) if clothing is None else clothing,
         clothing_seed=_seed(rng, split),
         motion="walk_cycle" if walk_cycle else "gait",
         speed_m_s=speed,
@@ -1027,7 +1036,12 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
     if gen_path.is_file():
         with open(gen_path, encoding="utf-8") as handle:
             previous = json.load(handle)
-        if previous.get("settings") != json.loads(json.dumps(settings)):
+        stored = previous.get("settings", {})
+        if isinstance(stored.get("config"), dict):  # a field added later counts as its default value
+            defaults = json.loads(json.dumps(dataclasses.asdict(SyntheticSceneConfig())))
+            stored["config"] = {**{k: v for k, v in defaults.items() if k not in stored["config"]},
+                                **stored["config"]}
+        if stored != json.loads(json.dumps(settings)):
             raise FormatError(f"{root}: generated with other settings ({gen_path}); use a new folder or the same "
                               f"--seed/--seconds (stored: seed={previous.get('settings', {}).get('seed')}, "
                               f"seconds={previous.get('settings', {}).get('duration_s')})")

@@ -138,6 +138,19 @@ def test_resume_refuses_other_config(detector, body, tmp_path):
         optimize_texture(_tiny(iterations=4, lr=0.1), detector, tmp_path, body_model=body, progress=False, resume=True)
 
 
+def test_resume_accepts_checkpoint_written_before_a_field_existed(detector, body, tmp_path):
+    optimize_texture(_tiny(iterations=2), detector, tmp_path, body_model=body, progress=False)
+    path = tmp_path / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    del state["config"]["loss_reduction"]  # a run started before --loss existed
+    torch.save(state, path)
+    rest = optimize_texture(_tiny(iterations=3), detector, tmp_path, body_model=body, progress=False, resume=True)
+    assert rest.steps == 1
+    with pytest.raises(CheckpointError, match="loss_reduction"):
+        optimize_texture(_tiny(iterations=4, loss_reduction="top"), detector, tmp_path, body_model=body,
+                         progress=False, resume=True)
+
+
 def test_best_on_validation_selection(detector, body, tmp_path):
     cfg = _tiny(iterations=3, validate_every=1, lr=0.5, dropout=0.0)
     result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)

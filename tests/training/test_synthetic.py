@@ -166,6 +166,32 @@ def test_splits_are_disjoint_in_shapes_seeds_and_speeds():
     assert set(counts) <= {0, 1, 2, 3} and len(set(counts)) >= 3
 
 
+def test_clothing_kinds_restrict_train_people_but_not_the_test_subsets():
+    natural = syn.SyntheticSceneConfig(clothing_kinds=("white", "stripes"))
+    plan = syn.dataset_plan({"train": 30, "val": 0, "test": 9})
+    worn = {p.clothing for job in plan if job.split == "train" for p in syn.scene_for_job(job, 0, natural).people}
+    assert worn == {"white", "stripes"}
+    test = {syn.scene_for_job(job, 0, natural).subset.split("/")[0] for job in plan if job.split == "test"}
+    assert test == set(syn.TEST_CLOTHING)
+    with pytest.raises(ValueError, match="clothing_kinds"):
+        syn.SyntheticSceneConfig(clothing_kinds=())
+    with pytest.raises(ValueError, match="clothing_kinds"):
+        syn.SyntheticSceneConfig(clothing_kinds=("white", "tartan"))
+
+
+def test_generation_resumes_a_dataset_written_before_clothing_kinds_existed(tiny_dataset):
+    root, _ = tiny_dataset
+    gen = root / syn.GENERATION_FILE
+    stored = json.loads(gen.read_text())
+    del stored["settings"]["config"]["clothing_kinds"]
+    gen.write_text(json.dumps(stored))
+    again = syn.generate_dataset(root, SIZES, duration_s=0.15, seed=5, compression="gzip")
+    assert again["generated"] == 0 and again["skipped"] == 2
+    with pytest.raises(FormatError, match="other settings"):
+        syn.generate_dataset(root, SIZES, duration_s=0.15, seed=5, compression="gzip",
+                             config=syn.SyntheticSceneConfig(clothing_kinds=("white",)))
+
+
 def test_clothing_textures():
     labels = part_label_map(256)
     cloth = np.isin(labels, [PART_NAMES.index(p) for p in ("torso", "arms", "legs")])
@@ -198,8 +224,12 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     ((root, sizes, kw),) = calls
     assert root == str(tmp_path) and sizes == {"train": 7, "val": 0, "test": 3}
     assert kw == {"duration_s": 1.5, "seed": 9, "device": "cuda", "workers": 3, "compression": "blosc-zstd",
-                  "progress": False, "threads": None}
+                  "progress": False, "threads": None, "config": syn.SyntheticSceneConfig()}
     assert json.loads(capsys.readouterr().out) == {"ok": 1}
+    assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "white", "stripes"]) == 0
+    assert calls[-1][2]["config"].clothing_kinds == ("white", "stripes")
+    assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "tartan"]) == 2
+    assert "tartan" in capsys.readouterr().err
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
