@@ -1,0 +1,32 @@
+"""tools/probe_texture_sensitivity.py on the mini RVT fixture: baselines, per-clip optimisation, summary."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+
+ROOT = Path(__file__).resolve().parents[2]
+FIXTURE = ROOT / "tests" / "fixtures" / "rvt_mini_fixture.safetensors"
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("probe", ROOT / "tools" / "probe_texture_sensitivity.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_probe_prints_baselines_and_the_optimized_grid_per_clip(capsys):
+    assert _tool().main(["--detector", str(FIXTURE), "--cells", "4", "--clips", "1", "--steps", "3"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    (row,), summary = lines[:-1], lines[-1]["summary"]
+    assert row["clip"] == 0 and isinstance(row["optimized_fooled"], bool)
+    for key in ("white", "black", "random", "optimized"):
+        assert 0.0 <= row[key] <= 1.0
+        assert summary[key] == pytest.approx(row[key], abs=1e-4)
+    assert summary["clips"] == 1 and summary["cells"] == 4 and summary["steps"] == 3
+    assert summary["parts"] == ["torso", "arms", "legs"] and summary["fooled"] in (0, 1)

@@ -1,0 +1,80 @@
+"""How much can clothing texture move a detector at all? An upper bound before a long universal attack.
+
+For each of a few EoT validation clips (the attack's training distribution) this prints the detector's mean top
+pedestrian score (highest ``obj * p_ped`` per window, the number that has to fall below the confidence threshold)
+for plain white, plain black and a random texture, then optimizes a **free** n x n grid for that one clip alone
+(no generator, no dropout, soft values in (0, 1), Adam on logits, ``--loss top``) and reports the top score of its
+hard (binarized) version. A per-clip free grid is strictly easier than the universal texture of
+``davis-attack optimize``: if it cannot push the top score below the threshold, the attack cannot either, and the
+detector is (for this body-part mask and grid size) insensitive to texture.
+
+Run: ``python tools/probe_texture_sensitivity.py [--detector CKPT] [--cells 10] [--parts all] [--clips 2]
+[--steps 200]``; prints one JSON line per clip and a summary line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--detector", default=None, help="RVT checkpoint (default: the bundled detector)")
+    parser.add_argument("--cells", type=int, default=10, help="grid cells per side (default 10)")
+    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
+                        help="painted body parts (default torso arms legs; 'all' = whole body)")
+    parser.add_argument("--clips", type=int, default=2, help="validation clips probed one by one (default 2)")
+    parser.add_argument("--steps", type=int, default=200, help="Adam steps per clip (default 200)")
+    parser.add_argument("--lr", type=float, default=0.2, help="Adam learning rate on the logits (default 0.2)")
+    parser.add_argument("--threshold", type=float, default=0.25, help="confidence threshold (default 0.25)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the clips and the random texture")
+    args = parser.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    from davis_rig.attack.optimize import AttackConfig, _validation_clips, attack_loss, load_attack_detector, validate
+    from davis_rig.attack.texture import black_texture, random_texture, white_texture
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    config = AttackConfig(grid_n=args.cells, parts=parts, loss_reduction="top", seed=args.seed)
+    detector = load_attack_detector(args.detector)
+    clips = _validation_clips(config, BodyModel(), part_mask(parts) if parts else None, args.clips)
+    baselines = {"white": white_texture(args.cells), "black": black_texture(args.cells),
+                 "random": random_texture(args.cells, seed=args.seed)}
+    rows = []
+    for index, clip in enumerate(clips):
+        row = {"clip": index}
+        for name, grid in baselines.items():
+            row[name] = round(validate(grid, [clip], detector, args.threshold)["mean_top_score"], 4)
+        logits = torch.zeros(args.cells, args.cells, requires_grad=True)
+        optimizer = torch.optim.Adam([logits], lr=args.lr)
+        start = time.perf_counter()
+        for _ in range(args.steps):
+            loss = attack_loss(torch.sigmoid(logits), [clip], detector, config)
+            optimizer.zero_grad()
+            loss.total.backward()
+            optimizer.step()
+        hard = (torch.sigmoid(logits) > 0.5).detach().numpy().astype(np.float32)
+        result = validate(hard, [clip], detector, args.threshold)
+        row.update(optimized=round(result["mean_top_score"], 4), optimized_fooled=result["SeqASR"] == 1.0,
+                   seconds=round(time.perf_counter() - start, 1))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    summary = {key: round(float(np.mean([r[key] for r in rows])), 4)
+               for key in ("white", "black", "random", "optimized")}
+    summary.update(clips=len(rows), fooled=sum(r["optimized_fooled"] for r in rows), threshold=args.threshold,
+                   cells=args.cells, parts="all" if parts is None else list(parts), steps=args.steps)
+    print(json.dumps({"summary": summary}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
