@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO_ROOT / "davis_rig" / "assets" / "detector"
 
 
 def _compute(run_dir: Path, checkpoint: dict) -> dict:
@@ -38,8 +39,10 @@ def _compute(run_dir: Path, checkpoint: dict) -> dict:
             "final_train_loss": round(train[-1]["loss"], 4) if train else None}
 
 
-def _commands(run_dir: Path, data_dir: Path, train_config: dict) -> list[str]:
+def _commands(run_dir: Path, data_dir: Path, train_config: dict, out: Path) -> list[str]:
     """The shell commands that made this model: dataset, training, installation (with the held-out scores)."""
+    from davis_rig.training.synthetic import CLOTHING_KINDS
+
     generation = json.loads((data_dir / "generation.json").read_text(encoding="utf-8"))
     sizes = generation["split_sizes"]
     settings = generation["settings"]
@@ -49,10 +52,19 @@ def _commands(run_dir: Path, data_dir: Path, train_config: dict) -> list[str]:
              f"--seed {c['seed']} --val-every {c['val_every']}")
     if c.get("ema_decay"):
         train += f" --ema {c['ema_decay']:g}"
+    clothing = settings.get("config", {}).get("clothing_kinds")
+    if clothing is not None and tuple(clothing) != CLOTHING_KINDS:
+        clothing_flag = " --clothing " + " ".join(clothing)
+    else:
+        clothing_flag = ""
+    ship = f"python tools/ship_detector.py {run_dir.name} {data_dir.name}"
+    if out != DEFAULT_OUT:
+        ship += f" --out {out.relative_to(REPO_ROOT) if out.is_relative_to(REPO_ROOT) else out}"
     return [f"davis-make-dataset {data_dir.name} --sequences {sum(sizes.values())} --split-sizes "
             + ",".join(f"{k}={v}" for k, v in sizes.items())
-            + f" --seed {settings['seed']} --seconds {settings['duration_s']:g} --workers 2 --threads 1",
-            train, f"python tools/ship_detector.py {run_dir.name} {data_dir.name}",
+            + f" --seed {settings['seed']} --seconds {settings['duration_s']:g} --workers 2 --threads 1"
+            + clothing_flag,
+            train, ship,
             f"davis-eval-dataset {data_dir.name}    # prints the test table above"]
 
 
@@ -60,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("data_dir", type=Path)
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "davis_rig" / "assets" / "detector")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--name", default="davis_rig default detector",
+                        help="model name in the card (default: 'davis_rig default detector')")
     parser.add_argument("--threshold", type=float, nargs="+", default=[0.25])
     args = parser.parse_args(argv)
 
@@ -97,14 +111,14 @@ def main(argv: list[str] | None = None) -> int:
         test_metrics[f"test {group}"] = row
     write_model_card(
         args.out / "MODEL_CARD.md",
-        model_name=f"davis_rig default detector, {metadata_config(weights).name} trained on synthetic events",
+        model_name=f"{args.name}, {metadata_config(weights).name} trained on synthetic events",
         model_config=metadata_config(weights).to_dict(), train_config=checkpoint["train_config"],
         dataset_card=dataset_card, validation=checkpoint["best"] if checkpoint["best"].get("AP") is not None
         else None, test_metrics=test_metrics, compute=_compute(args.run_dir, checkpoint),
         files={weights.name: "fp16 weights + RVTConfig metadata (safetensors; the attack's default)",
                "rvt_default.onnx": "one recurrent step, fp32 ONNX from the fp16 weights (davis-eval's default)",
                "test_scores.json": "davis-eval-dataset on the held-out test split (full record)"},
-        commands=_commands(args.run_dir, args.data_dir, checkpoint["train_config"]))
+        commands=_commands(args.run_dir, args.data_dir, checkpoint["train_config"], args.out.resolve()))
     sizes = {p.name: p.stat().st_size for p in args.out.iterdir()}
     print(json.dumps({"out": str(args.out), "bytes": sizes, "total_mb": round(sum(sizes.values()) / 2**20, 2)}))
     return 0

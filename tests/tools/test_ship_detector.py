@@ -44,7 +44,8 @@ def test_unfinished_run_is_refused(load_tool, tmp_path, capsys):
 def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_path, capsys):
     data, run = finished_run
     out = tmp_path / "detector"
-    assert load_tool("ship_detector").main([str(run), str(data), "--out", str(out), "--threshold", "0.1", "0.25"]) == 0
+    assert load_tool("ship_detector").main([str(run), str(data), "--out", str(out), "--threshold", "0.1", "0.25",
+                                            "--name", "undefended test detector"]) == 0
     printed = capsys.readouterr().out
     assert {p.name for p in out.iterdir()} == {"rvt_default.safetensors", "rvt_default.onnx", "test_scores.json",
                                                  "MODEL_CARD.md"}
@@ -63,4 +64,19 @@ def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_p
     card = (out / "MODEL_CARD.md").read_text()
     assert "synthetic" in card and "test white/large" in card and "SeqASR@0.25 %" in card
     assert "## Reproduce" in card and f"davis-train {data.name} --out {run.name} --model mini --steps 2" in card
+    assert "undefended test detector, " in card and f"ship_detector.py {run.name} {data.name} --out {out}" in card
+    assert "--clothing" not in card  # the fixture dataset draws every clothing kind
     assert "white/large" in printed and '"total_mb"' in printed
+
+
+def test_reproduce_commands_carry_the_clothing_restriction(load_tool, finished_run, tmp_path):
+    tool = load_tool("ship_detector")
+    data, run = finished_run
+    restricted = tmp_path / "natural"
+    restricted.mkdir()
+    generation = json.loads((data / "generation.json").read_text())
+    generation["settings"]["config"]["clothing_kinds"] = ["white", "stripes"]
+    (restricted / "generation.json").write_text(json.dumps(generation))
+    train_config = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["train_config"]
+    make, _, ship, _ = tool._commands(run, restricted, train_config, tool.DEFAULT_OUT)
+    assert make.endswith("--clothing white stripes") and ship == f"python tools/ship_detector.py {run.name} natural"
