@@ -208,8 +208,7 @@ def _introsort_desc(values: np.ndarray) -> np.ndarray:
     """Step-by-step emulation of libstdc++ ``std::sort`` with torch's descending comparator.
 
     torch's comparator (NaN first, then larger first) is replaced by integer ranks that compare the same way
-    (equal floats and all NaNs share a rank, NaN ranks highest), so the sort runs :func:`_libstdcxx_sort_keys`,
-    the same algorithm as :func:`libstdcxx_sort` with the comparison inlined (about 10x faster in CPython).
+    (equal floats and all NaNs share a rank, NaN ranks highest), and :func:`_libstdcxx_sort_keys` sorts them.
     """
     nan = np.isnan(values)
     ranks = np.empty(values.shape[0], dtype=np.int64)
@@ -220,13 +219,16 @@ def _introsort_desc(values: np.ndarray) -> np.ndarray:
 
 
 def _libstdcxx_sort_keys(keys: list) -> list:
-    """:func:`libstdcxx_sort` of ``range(len(keys))`` with ``comp(a, b) = keys[a] > keys[b]``, inlined.
+    """libstdc++'s ``std::sort`` (introsort) of ``range(len(keys))`` with ``comp(a, b) = keys[a] > keys[b]``.
 
-    Operation for operation the algorithm of :func:`libstdcxx_sort` (same pivots, partitions, heap and insertion
-    steps); the keys move along with the items in a parallel list so every comparison is one list lookup.
+    Operation for operation the C++ library's algorithm: median-of-three (``first+1``, middle, ``last-1``)
+    quicksort with an unguarded partition down to 16-element ranges, heap sort once ``2·floor(log2 n)`` levels
+    are exceeded, then a final insertion sort — so items whose keys compare equal end up in exactly the order the
+    C++ library gives them. The keys move along with the items in a parallel list, so every comparison is one
+    ``>`` on two list entries (the only operator used on the keys).
 
     Args:
-        keys: comparable keys (ints) of the items ``0 .. n-1``.
+        keys: the items' keys (ints for speed; any objects with ``>``) for the items ``0 .. n-1``.
 
     Returns:
         The items (indices) in sorted order: larger keys first, ties in libstdc++'s order.
@@ -336,127 +338,6 @@ def _libstdcxx_sort_keys(keys: list) -> list:
     else:
         insertion_sort(0, n)
     return it
-
-
-def libstdcxx_sort(items: list, comp) -> list:
-    """libstdc++'s ``std::sort`` (introsort) on a Python list, operation for operation; returns the list.
-
-    Median-of-three (``first+1``, middle, ``last-1``) quicksort with an unguarded partition down to
-    16-element ranges, heap sort once ``2·floor(log2 n)`` levels are exceeded, then a final insertion sort —
-    so elements that compare equal end up in exactly the order the C++ library gives them.
-
-    Args:
-        items: the elements (sorted in place).
-        comp: strict weak ordering ``comp(a, b) -> bool`` (``a`` goes before ``b``).
-
-    Returns:
-        ``items``, sorted.
-    """
-
-    def move_median_to_first(result: int, a: int, b: int, c: int) -> None:
-        if comp(items[a], items[b]):
-            if comp(items[b], items[c]):
-                pick = b
-            elif comp(items[a], items[c]):
-                pick = c
-            else:
-                pick = a
-        elif comp(items[a], items[c]):
-            pick = a
-        elif comp(items[b], items[c]):
-            pick = c
-        else:
-            pick = b
-        items[result], items[pick] = items[pick], items[result]
-
-    def unguarded_partition(first: int, last: int, pivot: int) -> int:
-        while True:
-            while comp(items[first], items[pivot]):
-                first += 1
-            last -= 1
-            while comp(items[pivot], items[last]):
-                last -= 1
-            if not first < last:
-                return first
-            items[first], items[last] = items[last], items[first]
-            first += 1
-
-    def adjust_heap(first: int, hole: int, length: int, value) -> None:
-        top = hole
-        child = hole
-        while child < (length - 1) // 2:
-            child = 2 * (child + 1)
-            if comp(items[first + child], items[first + child - 1]):
-                child -= 1
-            items[first + hole] = items[first + child]
-            hole = child
-        if (length & 1) == 0 and child == (length - 2) // 2:
-            child = 2 * (child + 1)
-            items[first + hole] = items[first + child - 1]
-            hole = child - 1
-        parent = (hole - 1) // 2  # __push_heap
-        while hole > top and comp(items[first + parent], value):
-            items[first + hole] = items[first + parent]
-            hole = parent
-            parent = (hole - 1) // 2
-        items[first + hole] = value
-
-    def heap_sort(first: int, last: int) -> None:  # __partial_sort(first, last, last)
-        length = last - first
-        if length >= 2:  # __make_heap
-            parent = (length - 2) // 2
-            while True:
-                adjust_heap(first, parent, length, items[first + parent])
-                if parent == 0:
-                    break
-                parent -= 1
-        while last - first > 1:  # __sort_heap: __pop_heap(first, last - 1, last - 1)
-            last -= 1
-            value = items[last]
-            items[last] = items[first]
-            adjust_heap(first, 0, last - first, value)
-
-    def introsort_loop(first: int, last: int, depth_limit: int) -> None:
-        while last - first > 16:
-            if depth_limit == 0:
-                heap_sort(first, last)
-                return
-            depth_limit -= 1
-            mid = first + (last - first) // 2
-            move_median_to_first(first, first + 1, mid, last - 1)
-            cut = unguarded_partition(first + 1, last, first)
-            introsort_loop(cut, last, depth_limit)
-            last = cut
-
-    def unguarded_linear_insert(last: int) -> None:
-        value = items[last]
-        nxt = last - 1
-        while comp(value, items[nxt]):
-            items[last] = items[nxt]
-            last = nxt
-            nxt -= 1
-        items[last] = value
-
-    def insertion_sort(first: int, last: int) -> None:
-        for i in range(first + 1, last):
-            if comp(items[i], items[first]):
-                value = items[i]
-                items[first + 1 : i + 1] = items[first:i]
-                items[first] = value
-            else:
-                unguarded_linear_insert(i)
-
-    n = len(items)
-    if n < 2:
-        return items
-    introsort_loop(0, n, 2 * (n.bit_length() - 1))
-    if n > 16:
-        insertion_sort(0, 16)
-        for i in range(16, n):
-            unguarded_linear_insert(i)
-    else:
-        insertion_sort(0, n)
-    return items
 
 
 def _per_class_keep(boxes: np.ndarray, scores: np.ndarray, idxs: np.ndarray, iou_threshold: float) -> np.ndarray:

@@ -210,25 +210,34 @@ def test_degenerate_and_duplicate_boxes_match_torch_transcription():
 
 
 def _mcilroy_adversary(n: int) -> np.ndarray:
-    """McIlroy's "killer adversary" against libstdc++'s median-of-3 introsort (drives it to the heap sort)."""
-    from davis_rig.models.rvt.postprocess import libstdcxx_sort
+    """McIlroy's "killer adversary" against libstdc++'s median-of-3 introsort (drives it to the heap sort).
+
+    The sort's keys are objects whose ``>`` (the only comparison the emulation makes) freezes "gas" values
+    lazily, so the sort itself builds its worst-case input.
+    """
+    from davis_rig.models.rvt.postprocess import _libstdcxx_sort_keys
 
     gas = n
     values = [gas] * n
     state = {"solid": 0, "candidate": 0}
 
-    def comp(a: int, b: int) -> bool:
-        if values[a] == gas and values[b] == gas:
-            frozen = a if a == state["candidate"] else b
-            values[frozen] = state["solid"]
-            state["solid"] += 1
-        if values[a] == gas:
-            state["candidate"] = a
-        elif values[b] == gas:
-            state["candidate"] = b
-        return values[a] < values[b]
+    class _Key:
+        def __init__(self, index: int) -> None:
+            self.index = index
 
-    libstdcxx_sort(list(range(n)), comp)
+        def __gt__(self, other: "_Key") -> bool:  # "self goes before other"
+            a, b = self.index, other.index
+            if values[a] == gas and values[b] == gas:
+                frozen = a if a == state["candidate"] else b
+                values[frozen] = state["solid"]
+                state["solid"] += 1
+            if values[a] == gas:
+                state["candidate"] = a
+            elif values[b] == gas:
+                state["candidate"] = b
+            return values[a] < values[b]
+
+    _libstdcxx_sort_keys([_Key(i) for i in range(n)])
     return -np.asarray(values, dtype=np.float32)
 
 
