@@ -32,7 +32,7 @@ from davis_rig.scene.camera import (
     distance_for_height,
     look_at,
 )
-from davis_rig.scene.motion import Motion, sample
+from davis_rig.scene.motion import Motion, rotation_about_z, sample
 from davis_rig.scene.renderer import RasterizedMesh, rasterize_mesh
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
@@ -176,11 +176,6 @@ class Clip:
         return out
 
 
-def _rotation_z(angle_rad: float) -> np.ndarray:
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def scene_vertices(spec: SceneSpec, model) -> "object":
     """World vertices of the person for every frame of the clip.
 
@@ -207,7 +202,7 @@ def scene_vertices(spec: SceneSpec, model) -> "object":
         rotations = torch.as_tensor(rot_np, device=model.device)
         root = torch.as_tensor(root_np, device=model.device)
     vertices = model.pose(spec.shape_index, rotations, root)
-    rz = torch.as_tensor(_rotation_z(spec.heading_rad), dtype=vertices.dtype, device=vertices.device)
+    rz = torch.as_tensor(rotation_about_z(spec.heading_rad), dtype=vertices.dtype, device=vertices.device)
     offset = torch.tensor([spec.offset_m[0], spec.offset_m[1], 0.0], dtype=vertices.dtype, device=vertices.device)
     return vertices @ rz.T + offset
 

@@ -73,6 +73,7 @@ from davis_rig.scene.camera import (
     distance_for_height,
     look_at,
 )
+from davis_rig.scene.motion import rotation_about_z
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
@@ -598,11 +599,6 @@ class SyntheticSequence:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
-def _rotation_z(angle_rad: float) -> np.ndarray:
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _camera_extrinsics(scene: SyntheticScene, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame world->camera extrinsics: camera at the origin looking along +Y, ego-motion applied."""
     h = scene.camera_height_m
@@ -778,7 +774,7 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
                 root[:, :2] -= anchor[:2]
                 v = model.pose(p.shape_index, torch.as_tensor(rot, device=dev),
                                torch.as_tensor(root.astype(np.float32), device=dev))
-                rz = torch.as_tensor(_rotation_z(p.heading_rad), dtype=v.dtype, device=dev)
+                rz = torch.as_tensor(rotation_about_z(p.heading_rad), dtype=v.dtype, device=dev)
                 offset = torch.tensor([p.x_mid_m, p.depth_mid_m, 0.0], dtype=v.dtype, device=dev)
                 verts.append(v @ rz.T + offset)
             vertices = torch.cat(verts, dim=1)
