@@ -23,6 +23,8 @@ TESTS = REPO_ROOT / "tests"
 HELPER_MODULES = {
     # read a camera over the virtual DAVIS346 until drained (tests/usb, tests/device)
     "camera_reads": TESTS / "camera_reads.py",
+    # the committed DAVIS346 test vectors and the full decode-vs-vector comparison (tests/protocol, tests/device)
+    "davis346_vectors": TESTS / "davis346_vectors.py",
     # tiny ONNX graphs with known outputs, sessions recorded through the virtual camera (evaluation, labelers, cli)
     "eval_data": TESTS / "evaluation" / "eval_data.py",
     # synthetic events, frames and fake cameras of the session tests

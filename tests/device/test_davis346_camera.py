@@ -1,8 +1,6 @@
 """Davis346 over the virtual backend: §5 read-out, §6/§7 sequences on the wire, data path, faults, clean stop."""
 
-import json
 import threading
-from pathlib import Path
 
 import pytest
 
@@ -17,8 +15,8 @@ from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
 from camera_reads import read_until_drained
+from davis346_vectors import VECTOR_IDS, VECTORS, assert_matches_expected, vector_transfers
 
-VECTORS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json").read_text())["vectors"]
 CLOCKS = Clocks(logic_mhz=104, adc_mhz=30, usb_mhz=80, deviation=1000)
 FEATURES = DeviceFeatures(dvs_has_background_activity_filter=True, dvs_has_roi_filter=True, aps_has_global_shutter=True)
 
@@ -141,8 +139,10 @@ def test_producer_switches_apply_immediately_while_running():
             cam.start()
 
 
-def _decode_all(vector, batch_bytes=1 << 20, **faults):
-    dev = VirtualDavis346(layout=vector["device_info"], source=TransferListSource.from_hex(vector["transfers_hex"]), faults=Faults(**faults))
+def _decode_all(vector, batch_bytes=1 << 20, transfers=None, **faults):
+    """Serve ``transfers`` (default: the vector's own) from a virtual camera with the vector's layout, decode all."""
+    transfers = vector_transfers(vector) if transfers is None else transfers
+    dev = VirtualDavis346(layout=vector["device_info"], source=TransferListSource(transfers), faults=Faults(**faults))
     cam, _ = open_camera(dev, batch_bytes=batch_bytes)
     raw = []
     with cam:
@@ -153,19 +153,23 @@ def _decode_all(vector, batch_bytes=1 << 20, **faults):
     return DecodedChunk.concatenate(chunks), raw, stats
 
 
-@pytest.mark.parametrize("vector", VECTORS, ids=[v["id"] for v in VECTORS])
+@pytest.mark.parametrize("vector", VECTORS, ids=VECTOR_IDS)
 def test_every_vector_decodes_through_the_real_pyusb_path(vector):
     chunk, raw, stats = _decode_all(vector)
-    expected = vector["expected"]
-    assert chunk.events.tolist() == [tuple(e) for e in expected["dvs"]]
-    assert len(chunk.frames) == len(expected["frames"])
-    for frame, exp in zip(chunk.frames, expected["frames"]):
-        assert frame.pixels.shape == (exp["length_y"], exp["length_x"])
-        assert frame.pixels.ravel().tolist() == exp["pixels_row_major"]
-        assert (frame.position_x, frame.position_y) == (exp["position_x"], exp["position_y"])
-        assert (frame.t_start_of_frame_us, frame.t_end_of_frame_us) == (exp["ts_start_of_frame"], exp["ts_end_of_frame"])
-    assert raw == [bytes.fromhex(h) for h in vector["transfers_hex"] if h]
+    assert_matches_expected(chunk, vector["expected"])
+    assert raw == [t for t in vector_transfers(vector) if t]
     assert stats.transfers == len(raw) == stats.decoded_transfers and stats.dropped_transfers == 0
+
+
+@pytest.mark.parametrize("vector", VECTORS, ids=VECTOR_IDS)
+@pytest.mark.parametrize("batch_bytes", [0, 1 << 20], ids=["one-transfer-per-read", "batched"])
+def test_every_vector_split_at_every_word_boundary_decodes_the_same(vector, batch_bytes):
+    data = b"".join(vector_transfers(vector))
+    words = [data[i : i + 2] for i in range(0, len(data), 2)]
+    chunk, raw, stats = _decode_all(vector, batch_bytes=batch_bytes, transfers=words)
+    assert_matches_expected(chunk, vector["expected"])
+    assert raw == words and stats.transfers == len(words) and stats.dropped_transfers == 0
+    assert stats.decoder.odd_bytes_dropped == 0
 
 
 def test_faults_that_lose_no_data_give_identical_output():
@@ -311,7 +315,7 @@ def test_default_config_refuses_non_davis346_chips():
     assert dev.writes == []
 
 
-@pytest.mark.parametrize("vector", VECTORS, ids=[v["id"] for v in VECTORS])
+@pytest.mark.parametrize("vector", VECTORS, ids=VECTOR_IDS)
 def test_batched_decoding_equals_one_transfer_per_read(vector):
     # odd-length transfers inside a batch are decoded alone, so their extra byte is dropped exactly as libcaer does
     one, raw_one, _ = _decode_all(vector, batch_bytes=0, odd_length=2, short_transfer_bytes=4)

@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from davis_rig.errors import ProtocolError
-from davis_rig.protocol import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, SensorLayout, SpecialType, StreamDecoder
+from davis_rig.protocol import DecodedChunk, SensorLayout, SpecialType, StreamDecoder
 from davis_rig.protocol.words import (
     adc_word,
     misc8_word,
@@ -18,57 +18,14 @@ from davis_rig.protocol.words import (
     x_word,
     y_word,
 )
-from davis_rig.types import EVENT_DTYPE
 
-INT32_MAX = 2**31 - 1
-
-
-def assert_matches_expected(chunk: DecodedChunk, expected: dict, proto) -> None:
-    """Compare a decoded chunk with a vector's ``expected`` block (our documented marker convention)."""
-    assert chunk.events.dtype == EVENT_DTYPE
-    assert proto.events_as_lists(chunk.events) == expected["dvs"]
-
-    assert chunk.specials.dtype == SPECIAL_DTYPE
-    got_types = [int(s["type"]) for s in chunk.specials]
-    assert got_types == [s["libcaer_type_id"] for s in expected["special"]]
-    for got, exp in zip(chunk.specials, expected["special"]):
-        if exp["t_us"] == INT32_MAX and exp["libcaer_type_id"] == SpecialType.TIMESTAMP_RESET:
-            assert int(got["t"]) == 0  # our convention: time right after the reset
-        elif exp["t_us"] == INT32_MAX and exp["libcaer_type_id"] == SpecialType.TIMESTAMP_WRAP:
-            # our convention: the new wrap base right after the big wrap (a multiple of 2**15, >= 2**31)
-            assert int(got["t"]) % 2**15 == 0 and int(got["t"]) >= 2**31
-        else:
-            assert int(got["t"]) == exp["t_us"]
-
-    assert len(chunk.frames) == len(expected["frames"])
-    for frame, exp in zip(chunk.frames, expected["frames"]):
-        assert frame.t_start_of_frame_us == exp["ts_start_of_frame"]
-        assert frame.t_start_exposure_us == exp["ts_start_of_exposure"]
-        assert frame.t_end_exposure_us == exp["ts_end_of_exposure"]
-        assert frame.t_end_of_frame_us == exp["ts_end_of_frame"]
-        assert frame.t_exposure_mid_us == exp["libcaer_frame_timestamp"]
-        assert (frame.position_x, frame.position_y) == (exp["position_x"], exp["position_y"])
-        assert frame.pixels.shape == (exp["length_y"], exp["length_x"])
-        assert frame.pixels.dtype == np.uint16
-        assert frame.pixels.ravel().tolist() == exp["pixels_row_major"]
-        assert frame.pixels_10bit.ravel().tolist() == exp["pixels_10bit"]
-
-    assert chunk.imu.dtype == IMU6_DTYPE
-    assert len(chunk.imu) == len(expected["imu6"])
-    for sample, exp in zip(chunk.imu, expected["imu6"]):
-        assert int(sample["t"]) == exp["t_us"]
-        tol = exp.get("tolerance", 1e-4)
-        got_accel = [sample["accel_x_g"], sample["accel_y_g"], sample["accel_z_g"]]
-        got_gyro = [sample["gyro_x_dps"], sample["gyro_y_dps"], sample["gyro_z_dps"]]
-        np.testing.assert_allclose(got_accel, exp["accel_g"], atol=tol)
-        np.testing.assert_allclose(got_gyro, exp["gyro_dps"], atol=tol)
-        assert abs(float(sample["temperature_c"]) - exp["temp_c"]) <= tol
+from davis346_vectors import assert_matches_expected
 
 
 # ---------------------------------------------------------------------------------------------- shared vectors
 def test_vector_decodes_exactly(vector, proto):
     chunk, _ = proto.decode_all(proto.layout(vector), proto.transfers(vector))
-    assert_matches_expected(chunk, vector["expected"], proto)
+    assert_matches_expected(chunk, vector["expected"])
 
 
 def test_vector_every_even_split_gives_same_output(vector, proto):
@@ -76,10 +33,10 @@ def test_vector_every_even_split_gives_same_output(vector, proto):
     layout = proto.layout(vector)
     for cut in range(0, len(data) + 1, 2):
         chunk, decoder = proto.decode_all(layout, [data[:cut], data[cut:]])
-        assert_matches_expected(chunk, vector["expected"], proto)
+        assert_matches_expected(chunk, vector["expected"])
         assert decoder.stats.odd_bytes_dropped == 0
     chunk, _ = proto.decode_all(layout, [data[i : i + 2] for i in range(0, len(data), 2)])
-    assert_matches_expected(chunk, vector["expected"], proto)
+    assert_matches_expected(chunk, vector["expected"])
 
 
 def test_vector_every_byte_split_with_reassembly(vector, proto):
@@ -87,10 +44,10 @@ def test_vector_every_byte_split_with_reassembly(vector, proto):
     layout = proto.layout(vector)
     for cut in range(len(data) + 1):
         chunk, decoder = proto.decode_all(layout, [data[:cut], data[cut:]], reassemble_odd_bytes=True)
-        assert_matches_expected(chunk, vector["expected"], proto)
+        assert_matches_expected(chunk, vector["expected"])
         assert decoder.stats.odd_bytes_dropped == 0
     chunk, _ = proto.decode_all(layout, [data[i : i + 1] for i in range(len(data))], reassemble_odd_bytes=True)
-    assert_matches_expected(chunk, vector["expected"], proto)
+    assert_matches_expected(chunk, vector["expected"])
 
 
 def test_v19_per_event_overflow_differs_from_libcaer_packet_quirk(vectors, proto):
