@@ -1,5 +1,6 @@
 """The issue's round trip: random events and frames -> StreamEncoder -> virtual DAVIS346 -> davis-record ->
-session.h5 -> identical data; plus unplug and garbage on the real Davis346 driver over the virtual backend."""
+session.h5 -> identical data; plus unplug and garbage on the real Davis346 driver over the virtual backend, and
+kill -9 / Ctrl-C of a `davis-record` subprocess."""
 
 from __future__ import annotations
 
@@ -137,21 +138,29 @@ def test_garbage_bytes_are_counted(tmp_path, rng):
         assert 0 < reader.num_events
 
 
+def write_paced_replay(path, events, span_us, slice_us=10_000):
+    """Write ``events`` (t in [0, span_us) µs) as a replay of one transfer per ``slice_us`` µs of device time.
+
+    Returns:
+        ``path``; ``davis-record --fake path`` replays it in real time (``span_us`` µs long).
+    """
+    encoder = StreamEncoder(LAYOUT)
+    bounds = np.searchsorted(events["t"], np.arange(0, span_us + slice_us, slice_us))
+    with ReplayWriter(path, ReplayHeader(device_info=LAYOUT.to_dict(), serial="RPLY0002", firmware_version=6,
+                                         logic_version=18, logic_patch=1)) as writer:
+        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+            writer.write(encoder.encode(events[a:b]), host_time_ns=k * slice_us * 1000)
+    return path
+
+
 def test_kill_9_of_davis_record_then_recover(tmp_path, rng):
     """kill -9 of a `davis-record --fake` subprocess, then `davis-record --recover`: at most ~1 s is lost."""
     import re
     import signal
     import time
 
-    span_us, slice_us = 20_000_000, 10_000
-    events = random_events(rng, 1_000_000, t0_us=0, span_us=span_us)
-    replay = tmp_path / "long.replay"
-    encoder = StreamEncoder(LAYOUT)
-    bounds = np.searchsorted(events["t"], np.arange(0, span_us + slice_us, slice_us))
-    with ReplayWriter(replay, ReplayHeader(device_info=LAYOUT.to_dict(), serial="RPLY0002", firmware_version=6,
-                                           logic_version=18, logic_patch=1)) as writer:
-        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
-            writer.write(encoder.encode(events[a:b]), host_time_ns=k * slice_us * 1000)
+    events = random_events(rng, 1_000_000, t0_us=0, span_us=20_000_000)
+    replay = write_paced_replay(tmp_path / "long.replay", events, 20_000_000)
     out = tmp_path / "s.h5"
     proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
@@ -182,4 +191,37 @@ def test_kill_9_of_davis_record_then_recover(tmp_path, rng):
     np.testing.assert_array_equal(recovered, events[: len(recovered)])
     written_a_second_before = max((n for t, n in seen if t <= killed_at - 1.0), default=0)
     assert len(recovered) >= written_a_second_before > 0
+    assert not journal_path(out).exists()
+
+
+def test_ctrl_c_of_davis_record_closes_a_complete_file(tmp_path, rng):
+    """SIGINT (Ctrl-C) to a `davis-record --fake` subprocess mid-recording: exit 0, a complete file, no journal."""
+    import re
+    import signal
+    import time
+
+    events = random_events(rng, 200_000, t0_us=0, span_us=10_000_000)
+    replay = write_paced_replay(tmp_path / "long.replay", events, 10_000_000)
+    out = tmp_path / "s.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
+                            stderr=subprocess.PIPE, stdout=subprocess.PIPE)
+    stderr = b""
+    deadline = time.monotonic() + 60
+    while b"Mev/s" not in stderr and time.monotonic() < deadline:  # the first live progress line
+        piece = proc.stderr.read1(4096)
+        if not piece:
+            break
+        stderr += piece
+    assert b"Mev/s" in stderr, f"davis-record printed no progress: {stderr.decode(errors='replace')}"
+    proc.send_signal(signal.SIGINT)
+    stdout, rest = proc.communicate(timeout=60)
+    stderr += rest
+    assert proc.returncode == 0, stderr.decode(errors="replace")
+    assert b"stopped by stop" in stdout
+    reported = int(re.search(rb": (\d+) events", stdout).group(1))
+    with SessionReader(out) as reader:
+        assert reader.complete and reader.stats["stopped_by"] == "stop"
+        recorded = reader.events()
+    assert 0 < len(recorded) == reported < len(events)  # stopped well before the 10 s replay ended
+    np.testing.assert_array_equal(recorded, events[: len(recorded)])  # everything read before the stop, in order
     assert not journal_path(out).exists()
