@@ -19,6 +19,7 @@ examples:
   davis-eval walk.h5 --model rvt_b.onnx                          # the paper's thresholds 0.001 0.01 0.1 0.25
   davis-eval case1.h5 case2.h5 ours.h5 --model rvt_b.onnx --names "Case1,Case2,Ours" --report out/
   davis-eval walk.h5 --model rvt_b.onnx --threshold 0.25 --seq-len 10 --skip-first-ms 0
+  davis-eval walk.h5 --time-tol-ms 50                            # RVT's +-50 ms label-time tolerance
 
 The sessions need /labels (davis-label). Prints the Table-3 style markdown table; --report DIR also writes
 report.json (every number and setting), table.md, ap_seqasr.png and an annotated GIF per recording.
@@ -41,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="windows between sequence starts (default: --seq-len, non-overlapping)")
     parser.add_argument("--skip-first-ms", type=float, default=500.0,
                         help="AP ignores labels/detections of the first MS ms (RVT protocol: 500; 0 keeps all)")
+    parser.add_argument("--time-tol-ms", type=float, default=0.0, metavar="MS",
+                        help="AP matches a label with the detections stamped within +-MS ms of it (default 0: its "
+                             "own window only; RVT protocol: 50)")
     parser.add_argument("--crop-origin", type=int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred)")
     parser.add_argument("--names", default=None, help="comma-separated column names (default: file names)")
@@ -63,6 +67,7 @@ def _eval(args: argparse.Namespace) -> int:
         thresholds=tuple(args.threshold) if args.threshold else PAPER_THRESHOLDS, seq_len=args.seq_len,
         seq_stride=args.seq_stride, crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
         skip_first_us=int(args.skip_first_ms * 1000) if args.skip_first_ms > 0 else None,
+        time_tol_us=int(round(args.time_tol_ms * 1000)),
         coco_backend=args.coco_backend, intra_op_threads=args.threads, gif_windows=gif_windows)
     names = [n.strip() for n in args.names.split(",")] if args.names else None
     progress = None
@@ -91,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.seq_len < 1 or (args.seq_stride is not None and args.seq_stride < 1):
         print(f"{NAME}: error: --seq-len and --seq-stride must be >= 1", file=sys.stderr)
+        return 2
+    if args.time_tol_ms < 0:
+        print(f"{NAME}: error: --time-tol-ms must be >= 0, got {args.time_tol_ms:g}", file=sys.stderr)
         return 2
     if args.threshold and any(not 0 <= t <= 1 for t in args.threshold):
         print(f"{NAME}: error: thresholds must be in [0, 1], got {args.threshold}", file=sys.stderr)

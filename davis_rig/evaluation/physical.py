@@ -14,8 +14,9 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
    exact). Reading + histograms, inference and post-processing run in three overlapping threads.
 4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
    ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
-   the label time, so label-time matching is exact (tolerance 0: APS labels are 40 ms apart, RVT's ±50 ms would
-   give one label image the detections of its neighbours too).
+   the label time, and label-time matching is exact by default (``time_tol_us = 0``: APS labels are 40 ms apart,
+   RVT's ±50 ms would give one label image the detections of its neighbours too); ``time_tol_us`` sets RVT's
+   tolerance (:data:`davis_rig.metrics.ap.TIME_TOL_US`) when wanted.
 5. **AP** (:mod:`davis_rig.metrics.ap`): Prophesee filter on labels and detections (``t > t0 + skip_first_us``
    with 0.5 s by default like RVT, diagonal ≥ 30 px, sides ≥ 10 px), one COCO image per label time, pedestrian
    COCO mAP@[.5:.95] with the class probability as ranking score.
@@ -38,7 +39,7 @@ from davis_rig.errors import FormatError, SessionError
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
-           "evaluate_sessions", "labels_crop_origin", "score_session"]
+           "evaluate_sessions", "labels_crop_origin", "labels_provenance", "score_session"]
 
 #: The paper's confidence thresholds (Tables 2 and 3).
 PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
@@ -55,6 +56,8 @@ class EvalSettings:
         window_us: window duration, µs (RVT Gen1: 50 000).
         crop_origin_xy: crop origin on the sensor; ``None`` = the labels' stored origin, else centred.
         skip_first_us: AP filter: ignore labels/detections with ``t <= t0 + skip_first_us``; ``None`` = keep all.
+        time_tol_us: AP label-time matching tolerance, µs: a label image gets the detections stamped within
+            ``±time_tol_us`` of its time (0 = only its own window's; RVT's protocol: 50 000).
         min_diag_px, min_side_px: Prophesee box filter.
         nms_threshold: RVT NMS IoU threshold.
         strict_iou: IoU of the strict SeqASR variant.
@@ -70,6 +73,7 @@ class EvalSettings:
     window_us: int = 50_000
     crop_origin_xy: tuple[int, int] | None = None
     skip_first_us: int | None = 500_000
+    time_tol_us: int = 0
     min_diag_px: float = 30.0
     min_side_px: float = 10.0
     nms_threshold: float = 0.45
@@ -84,6 +88,8 @@ class EvalSettings:
             raise ValueError(f"thresholds: expected values in [0, 1], got {self.thresholds}")
         if self.seq_len < 1 or (self.seq_stride is not None and self.seq_stride < 1):
             raise ValueError(f"seq_len/seq_stride: expected >= 1, got {self.seq_len}/{self.seq_stride}")
+        if self.time_tol_us < 0:
+            raise ValueError(f"time_tol_us: expected >= 0, got {self.time_tol_us}")
         if self.window_us <= 0 or self.chunk_windows < 1:
             raise ValueError(f"window_us and chunk_windows must be positive, got {self.window_us}/{self.chunk_windows}")
 
@@ -103,6 +109,7 @@ class SessionScores:
         timings_s: busy seconds of the stages ``read``, ``histogram``, ``inference``, ``postprocess`` (they
             overlap) and ``wall``, the seconds :func:`score_session` took.
         event_images: int16 [G, 240, 304] ON − OFF counts of the first windows (for the GIF), maybe empty.
+        labels_attrs: the ``/labels`` attributes (labeler provenance, see :func:`labels_provenance`).
     """
 
     path: Path
@@ -114,6 +121,7 @@ class SessionScores:
     num_events: int
     timings_s: dict
     event_images: np.ndarray = field(default_factory=lambda: np.zeros((0, *RVT_HW), np.int16))
+    labels_attrs: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -138,9 +146,31 @@ def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
     return None
 
 
+def labels_provenance(attrs: dict) -> dict:
+    """Who made the labels, for the report: the ``/labels`` attributes with ``settings`` decoded.
+
+    Args:
+        attrs: :meth:`~davis_rig.session.SessionReader.labels_attrs` (``davis-label`` stores ``labeler``,
+            ``labeler_version``, ``created_utc``, ``source`` (model file name), ``settings`` (JSON text: model,
+            layout, thresholds, classes, crop) and ``crop_origin_x/y``).
+
+    Returns:
+        A new dict: every attribute, ``settings`` parsed into a dict when it is JSON text (else kept as stored).
+    """
+    out = dict(attrs)
+    if isinstance(out.get("settings"), str):
+        try:
+            out["settings"] = json.loads(out["settings"])
+        except json.JSONDecodeError:
+            pass  # labels written by another tool: keep its text
+    return out
+
+
 def _open_checked(path: Path):
     from davis_rig.session import SessionReader
 
+    if path.is_file() and path.stat().st_size == 0:
+        raise SessionError(f"{path}: the file is empty (0 bytes), not a recorded session")
     reader = SessionReader(path).open()
     try:
         if reader.num_events == 0:
@@ -216,7 +246,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         ``inference``, ``postprocess``) and ``wall`` (the stages overlap, so their sum exceeds it).
 
     Raises:
-        SessionError: unreadable session, no events, no labels, not a DAVIS346 recording.
+        SessionError: unreadable or empty (0-byte) session file, no events, no labels, not a DAVIS346 recording.
     """
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
@@ -231,7 +261,8 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     reader, labels = _open_checked(path)
     timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
     try:
-        stored = labels_crop_origin(reader.labels_attrs())
+        labels_attrs = reader.labels_attrs()
+        stored = labels_crop_origin(labels_attrs)
         if settings.crop_origin_xy is not None and stored is not None and tuple(settings.crop_origin_xy) != stored:
             raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
                                f"{tuple(settings.crop_origin_xy)}; re-label with davis-label --crop-origin or drop "
@@ -285,7 +316,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     timings["wall"] = time.perf_counter() - wall
     return SessionScores(path=path, t0_us=t0, window_end_us=ends, detections=detections, labels=labels,
                          crop_origin_xy=tuple(int(v) for v in origin), num_events=num_events, timings_s=timings,
-                         event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW))
+                         event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW), labels_attrs=labels_attrs)
 
 
 def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int) -> np.ndarray:
@@ -326,7 +357,7 @@ def compute_metrics(scores: SessionScores, settings: EvalSettings) -> dict:
         dt = np.concatenate(dt_parts) if dt_parts else np.zeros(0, BBOX_DTYPE)
         dt = filter_boxes(dt, skip_until_us=skip, min_diag_px=settings.min_diag_px,
                           min_side_px=settings.min_side_px)
-        _, gts, dts = match_times(labels, dt, time_tol_us=0)
+        _, gts, dts = match_times(labels, dt, time_tol_us=settings.time_tol_us)
         ap = coco_ap(gts, dts, category=PEDESTRIAN_CLASS_ID, backend=settings.coco_backend)
         paper = seq_asr(windows_detected(dets, mode="paper"), sequences, "paper")
         strict = seq_asr(windows_detected(dets, mode="strict", labels_xyxy=per_window_labels,
@@ -387,6 +418,7 @@ def evaluate_sessions(
         info = {"model": str(model_path), "crop_origin_xy": list(scores.crop_origin_xy), "t0_us": scores.t0_us,
                 "num_windows": int(len(scores.window_end_us)), "num_events": scores.num_events,
                 "num_labels_stored": int(len(scores.labels)),
+                "labels_provenance": labels_provenance(scores.labels_attrs),
                 "duration_s": float(len(scores.window_end_us) * settings.window_us / 1e6),
                 "timings_s": dict(scores.timings_s)}
         results.append(RecordingResult(name=names[i] if names else p.stem, path=str(p), metrics=metrics, info=info))

@@ -3,12 +3,17 @@
 Supported output layouts (``layout="auto"`` picks one from the output shape and the ONNX metadata):
 
 * ``"yolov5"`` — ``[B, N, 5 + nc]`` rows ``(cx, cy, w, h, obj, class probs…)``, score = obj · class prob
-  (YOLOv5 ``export.py``; YOLOv7 ``export.py`` without ``--end2end``, with or without ``--grid``);
+  (YOLOv5 ``export.py``; YOLOv7 ``export.py --grid`` without ``--end2end``);
 * ``"yolov8"`` — ``[B, 4 + nc, N]`` rows ``(cx, cy, w, h, class probs…)`` transposed, score = class prob
   (Ultralytics YOLOv8/11 ``model.export(format="onnx")``);
-* ``"yolov7-nms"`` — ``[K, 7]`` rows ``(batch, x1, y1, x2, y2, class, score)`` (YOLOv7 ``--end2end`` for
-  onnxruntime: NMS inside the graph);
+* ``"yolov7-nms"`` — ``[K, 7]`` rows ``(batch, x1, y1, x2, y2, class, score)`` (YOLOv7
+  ``--grid --end2end --max-wh N``, the onnxruntime variant: NMS inside the graph);
 * ``"ultralytics-nms"`` — ``[B, K, 6]`` rows ``(x1, y1, x2, y2, score, class)`` (Ultralytics ``nms=True``).
+
+A YOLOv7 ``export.py`` run without ``--grid`` (and without ``--end2end``) is not supported: its outputs are the raw
+per-level head tensors ``[B, 3, H_l, W_l, 5 + nc]`` (logits before the sigmoid and the anchor grid decoding); such a
+model is refused with a :class:`~davis_rig.errors.ModelFormatError` that asks for a re-export with ``--grid``
+(optionally with ``--end2end --max-wh N``).
 
 Pre-processing like Ultralytics' ``LetterBox`` (keep aspect, scale up, centre, pad with 114) on the frame as
 8-bit grey repeated into 3 channels (the DAVIS346 APS is monochrome), RGB order, ``/ 255``, NCHW float32.
@@ -107,6 +112,25 @@ def _parse_names(meta: dict) -> list[str] | None:
     return None
 
 
+def _check_not_raw_heads(path: Path, outputs) -> None:
+    """Refuse a model whose first output is a raw per-level head ``[B, 3, H_l, W_l, 5 + nc]``.
+
+    That is what YOLOv7 ``export.py`` writes without ``--grid`` (one such output per detection level, logits
+    before the sigmoid and the anchor-grid decoding); the labeler does not decode it.
+
+    Raises:
+        ModelFormatError: naming the outputs and the export options that give a supported layout.
+    """
+    shape = outputs[0].shape
+    last = shape[-1] if len(shape) == 5 else None
+    if isinstance(last, int) and last >= 6:
+        shapes = ", ".join(f"{o.name} {list(o.shape)}" for o in outputs)
+        raise ModelFormatError(
+            f"{path}: raw per-level YOLO head outputs ({shapes}), as YOLOv7 export.py writes without --grid; "
+            "re-export with `python export.py --grid` (or `--grid --end2end --max-wh 640` for onnxruntime NMS "
+            "inside the graph)")
+
+
 @dataclass(frozen=True)
 class _Io:
     input_name: str
@@ -130,7 +154,8 @@ class YoloOnnxDetector:
 
     Raises:
         MissingDependencyError: onnxruntime is missing.
-        ModelFormatError: not loadable, not one image input [1|B, 3, H, W], or an output no layout fits.
+        ModelFormatError: not loadable, not one image input [1|B, 3, H, W], raw per-level head outputs (YOLOv7
+            exported without ``--grid``), or an output no layout fits.
     """
 
     def __init__(
@@ -178,6 +203,7 @@ class YoloOnnxDetector:
         if len(shape) != 4 or shape[1] not in (3, "3") or inputs[0].type != "tensor(float)":
             raise ModelFormatError(f"{self.path}: expected a float image input [B, 3, H, W], got "
                                    f"{inputs[0].type} {shape}")
+        _check_not_raw_heads(self.path, outputs)
         h, w = shape[2], shape[3]
         if not (isinstance(h, int) and isinstance(w, int)):
             size = self.metadata.get("imgsz")

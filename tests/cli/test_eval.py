@@ -39,6 +39,11 @@ def test_two_recordings_one_table_and_a_full_report(sessions, tmp_path, capsys):
         assert (rep / name).stat().st_size > 0, name
     data = json.loads((rep / "report.json").read_text())
     assert [r["name"] for r in data["recordings"]] == ["Case 1", "Ours"]
+    assert data["settings"]["time_tol_us"] == 0
+    for recording in data["recordings"]:  # who made the ground truth, per recording
+        provenance = recording["info"]["labels_provenance"]
+        assert provenance["labeler"] == "davis_rig.labelers.yolo" and provenance["source"] == "person_yolo.onnx"
+        assert provenance["settings"]["layout"] == "yolov8" and provenance["settings"]["classes"] == ["person"]
     assert data["recordings"][1]["metrics"]["0.1"]["seq_asr"] == 0.0
     assert (rep / "table.md").read_text() in out
     from PIL import Image
@@ -64,11 +69,11 @@ def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
     monkeypatch.setattr("davis_rig.evaluation.physical.evaluate_sessions", fake)
     assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1", "0.2", "--seq-len", "3", "--seq-stride", "1",
                      "--skip-first-ms", "0", "--crop-origin", "0", "0", "--coco-backend", "pycocotools",
-                     "--threads", "1", "--quiet"]) == 0
+                     "--threads", "1", "--time-tol-ms", "50", "--quiet"]) == 0
     paths, model, settings, names, progress = calls[0]
     assert (paths, model, names, progress) == (["x.h5"], "m.onnx", None, None)
     assert settings.thresholds == (0.1, 0.2) and settings.seq_len == 3 and settings.seq_stride == 1
-    assert settings.skip_first_us is None and settings.crop_origin_xy == (0, 0)
+    assert settings.skip_first_us is None and settings.crop_origin_xy == (0, 0) and settings.time_tol_us == 50_000
     assert settings.coco_backend == "pycocotools" and settings.intra_op_threads == 1 and settings.gif_windows == 0
     assert "| SeqASR ↑ | 0.2 | 25.0% |" in capsys.readouterr().out
 
@@ -77,6 +82,7 @@ def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
     (["--names", "a,b"], "--names has 2 names for 1 sessions"),
     (["--seq-len", "0"], "--seq-len"),
     (["--threshold", "2"], "thresholds must be in [0, 1]"),
+    (["--time-tol-ms", "-1"], "--time-tol-ms must be >= 0"),
 ])
 def test_bad_arguments_exit_2(argv_tail, message, capsys):
     assert cli.main(["x.h5", *argv_tail]) == 2
@@ -98,19 +104,23 @@ def test_bad_inputs_exit_nonzero_with_a_message(sessions, tmp_path, capsys):
     _other_sensor_session(other_sensor)
     truncated = tmp_path / "truncated.h5"
     truncated.write_bytes(a.read_bytes()[:40_000])
+    zero_bytes = tmp_path / "zero_bytes.h5"
+    zero_bytes.write_bytes(b"")
     cases = [
         ([str(unlabelled), "--model", str(model)], 4, "no /labels"),
         ([str(no_events), "--model", str(model)], 4, "no events"),
         ([str(truncated), "--model", str(model)], 4, "cannot open as HDF5"),
+        ([str(zero_bytes), "--model", str(model)], 4, "the file is empty (0 bytes)"),
         ([str(a), "--model", str(person_yolo(tmp_path))], 4, "not an RVT step graph"),
         ([str(other_sensor), "--model", str(model)], 4, "expected a DAVIS346 recording"),
     ]
     for argv, code, message in cases:
-        before = {p: sha256(p) for p in (unlabelled, no_events, truncated, a, other_sensor)}
+        before = {p: sha256(p) for p in (unlabelled, no_events, truncated, zero_bytes, a, other_sensor)}
         assert cli.main([*argv, "--quiet"]) == code, argv
         err = capsys.readouterr().err
         assert err.startswith("davis-eval: error:") and message in err, err
         assert {p: sha256(p) for p in before} == before
+    assert zero_bytes.stat().st_size == 0
 
 
 def test_missing_bundled_detector_exits_5_and_says_how_to_pass_one(sessions, tmp_path, monkeypatch, capsys):

@@ -12,14 +12,17 @@ import pytest
 from davis_rig.errors import FormatError, ModelFormatError, SessionError
 from davis_rig.evaluation.physical import (
     EvalSettings,
+    SessionScores,
     compute_metrics,
     evaluate_sessions,
     label_windows,
+    labels_provenance,
     score_session,
+    settings_dict,
 )
 from davis_rig.labelers.session_labels import label_session
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-from davis_rig.types import BBOX_DTYPE
+from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 from eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
 
@@ -110,10 +113,45 @@ def test_scores_carry_states_and_match_the_runner_on_the_same_windows(labelled, 
     assert [metrics[t]["seq_asr"] for t in (0.001, 0.01, 0.1, 0.25)] == sorted(m["seq_asr"] for m in metrics.values())
 
 
+def test_labels_provenance_decodes_davis_label_settings_and_keeps_foreign_text():
+    stored = {"labeler": "davis_rig.labelers.yolo", "settings": '{"layout": "yolov8"}', "crop_origin_x": 21}
+    assert labels_provenance(stored) == {"labeler": "davis_rig.labelers.yolo", "settings": {"layout": "yolov8"},
+                                         "crop_origin_x": 21}
+    assert stored["settings"] == '{"layout": "yolov8"}'  # the input is not modified
+    assert labels_provenance({"labeler": "hand", "settings": "drawn in CVAT"})["settings"] == "drawn in CVAT"
+    assert labels_provenance({}) == {}
+
+
 def test_label_windows_assignment():
     labels = np.zeros(4, BBOX_DTYPE)
     labels["t"] = [1, 50_000, 50_001, 400_000]
     assert label_windows(labels, np.array([50_000, 100_000]), 50_000).tolist() == [0, 0, 1, -1]
+
+
+def test_time_tolerance_matches_a_detection_of_a_neighbouring_label_time_only_when_set():
+    # labels of one standing person at 40 ms (window 0) and 80 ms (window 1); RVT finds it in window 1 only
+    labels = np.zeros(2, BBOX_DTYPE)
+    labels["t"] = [40_000, 80_000]
+    labels["x"], labels["y"], labels["w"], labels["h"] = 100, 50, 60, 120
+    labels["class_id"] = PEDESTRIAN_CLASS_ID
+    found = np.array([[100, 50, 160, 170, 0.9, 0.9, PEDESTRIAN_CLASS_ID]], np.float32)
+    scores = SessionScores(path="synthetic.h5", t0_us=0, window_end_us=np.array([50_000, 100_000, 150_000]),
+                           detections={0.25: [None, found, None]}, labels=labels, crop_origin_xy=(21, 10),
+                           num_events=0, timings_s={})
+
+    def metrics(time_tol_us):
+        return compute_metrics(scores, EvalSettings(thresholds=(0.25,), seq_len=1, skip_first_us=None,
+                                                    time_tol_us=time_tol_us))[0.25]
+
+    for exact in (metrics(0), metrics(39_999)):  # the 80 ms detection is 40 ms away from the 40 ms label
+        assert exact["num_images"] == 2 and exact["num_detections"] == 1
+        assert exact["AP"] == pytest.approx(51 / 101)  # recall 1/2 at precision 1 (101 recall points)
+    for tolerant in (metrics(40_000), metrics(50_000)):  # ±tol inclusive: the 40 ms label image gets it too
+        assert tolerant["num_detections"] == 2 and tolerant["AP"] == pytest.approx(1.0)
+    assert metrics(0)["seq_asr"] == metrics(50_000)["seq_asr"] == 0.5  # SeqASR does not use the tolerance
+    assert settings_dict(EvalSettings(time_tol_us=50_000))["time_tol_us"] == 50_000  # stored in report.json
+    with pytest.raises(ValueError, match="time_tol_us"):
+        EvalSettings(time_tol_us=-1)
 
 
 def test_bad_inputs_raise_before_scoring_and_leave_files_untouched(labelled, tmp_path):
@@ -154,7 +192,13 @@ def test_report_json_round_trip_has_every_number(labelled, tmp_path):
     data = json.loads(json.dumps(report_dict(results, SETTINGS)))
     recorded = data["recordings"][0]
     assert data["settings"]["seq_len"] == 5 and data["settings"]["thresholds"] == [0.001, 0.01, 0.1, 0.25]
+    assert data["settings"]["time_tol_us"] == 0
     assert recorded["metrics"]["0.25"]["AP"] == pytest.approx(1.0)
     assert recorded["metrics"]["0.25"]["AP_S"] is None  # NaN -> null
     assert set(recorded["info"]["timings_s"]) == {"read", "histogram", "inference", "postprocess", "wall", "metrics"}
+    provenance = recorded["info"]["labels_provenance"]  # davis-label's /labels attributes, settings decoded
+    assert provenance["labeler"] == "davis_rig.labelers.yolo" and provenance["source"] == "person_yolo.onnx"
+    assert provenance["settings"]["model_name"] == "person_yolo.onnx" and provenance["settings"]["layout"] == "yolov8"
+    assert provenance["settings"]["conf_threshold"] == 0.25 and provenance["settings"]["crop_origin_xy"] == [21, 10]
+    assert {"labeler_version", "created_utc", "crop_origin_x", "crop_origin_y"} <= set(provenance)
     assert not any(isinstance(v, float) and math.isnan(v) for v in recorded["metrics"]["0.25"].values())

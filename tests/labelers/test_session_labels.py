@@ -82,8 +82,10 @@ def test_session_without_frames_or_with_another_sensor_is_refused(tmp_path):
     with SessionWriter(other, device_info=info) as writer:
         writer.append_events(events)
         writer.append_frame(ApsFrame(np.zeros((180, 240), np.uint16), 0, 0, 0, 1, 2, 3))
+    before = sha256(other)
     with pytest.raises(SessionError, match="expected DAVIS346 346x260"):
         label_session(other, person_yolo(tmp_path))
+    assert sha256(other) == before
 
 
 @pytest.mark.parametrize("damage", ["empty", "truncated", "not_hdf5", "missing"])

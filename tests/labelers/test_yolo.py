@@ -69,6 +69,27 @@ def test_yolov7_grid_export_is_the_yolov5_layout_with_80_classes(tmp_path):
     assert_box(rows[0], BOX, 0.95 * 0.9)
 
 
+def test_yolov7_raw_export_without_grid_asks_for_grid(tmp_path):
+    """YOLOv7 ``export.py`` without ``--grid``: three raw per-level heads [1, 3, H, W, 5 + nc] (strides 8/16/32)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    levels = [(f"head{i}", [1, 3, 64 // s, 64 // s, 85]) for i, s in enumerate((8, 16, 32))]
+    graph = helper.make_graph(
+        [helper.make_node("ConstantOfShape", [f"{name}_shape"], [name]) for name, _ in levels], "yolov7_raw",
+        [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, 64, 64])],
+        [helper.make_tensor_value_info(name, TensorProto.FLOAT, shape) for name, shape in levels],
+        initializer=[helper.make_tensor(f"{name}_shape", TensorProto.INT64, [5], shape) for name, shape in levels])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+    onnx.checker.check_model(model)
+    path = tmp_path / "yolov7_no_grid.onnx"
+    onnx.save(model, str(path))
+    for layout in ("auto", "yolov5"):  # an explicit layout cannot decode it either
+        with pytest.raises(ModelFormatError, match=r"without --grid.*export\.py --grid") as info:
+            YoloOnnxDetector(path, layout=layout)
+        assert all(name in str(info.value) for name, _ in levels)
+
+
 def test_yolov7_end2end_nms_layout(tmp_path):
     b, o = frame_box_to_yolo_input(BOX), frame_box_to_yolo_input(OTHER)
     out = np.array([[0, *b, 0, 0.7], [0, *o, 2, 0.9], [1, *o, 0, 0.99]], np.float32)  # batch 1 row ignored
