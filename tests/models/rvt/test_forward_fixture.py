@@ -2,15 +2,25 @@
 
 Bit-exactness is not portable: the official run was made on another CPU, where oneDNN/MKL pick other
 kernels (even thread count changes the last bits, ARCHITECTURE.md §8). Our fp32 outputs and the fixture's are
-equally far from a float64 run of the same weights, so the tolerances below are fp32-rounding level with
-margin. Max differences measured on the dev machine (AMD EPYC, AVX2, 2 threads):
+equally far from a float64 run of the same weights, so the tolerances are fp32-rounding level: twice the
+larger of the §8 fp32-vs-fp64 figures (backbone 8e-7, FPN 5e-5, box relative 1.2e-4, scores 4e-6) and the
+worst difference measured here. Worst differences over the 3 steps, measured on the dev machine (AMD EPYC,
+AVX512, torch 2.13 CPU; deterministic at a given thread count):
 
-=========  ==========  ==========  ==========  ===========  =================  ===========
-fixture    backbone h  LSTM c      FPN outs    raw logits   decoded box (rel)  scores
-=========  ==========  ==========  ==========  ===========  =================  ===========
-mini       2.6e-7      5.6e-7      2.2e-5      1.1e-5       3.0e-5             2.0e-6
-RVT-T      9.7e-7      1.1e-6      7.1e-5      3.8e-5       1.6e-4             5.5e-6
-=========  ==========  ==========  ==========  ===========  =================  ===========
+=====================  ==========  ==========  ==========  ===========  =================  ===========
+fixture, threads       backbone h  LSTM c      FPN outs    raw logits   decoded box (rel)  scores
+=====================  ==========  ==========  ==========  ===========  =================  ===========
+mini, 2 (3, 4 alike)   3.7e-7      6.1e-7      2.5e-5      1.3e-5       2.7e-5             3.0e-6
+mini, 1                3.7e-7      6.3e-7      1.9e-5      1.2e-5       3.1e-5             2.7e-6
+RVT-T, 2 (3, 4 alike)  7.6e-7      1.6e-6      6.6e-5      3.0e-5       1.5e-4             4.8e-6
+RVT-T, 1               9.0e-7      1.4e-6      5.9e-5      3.7e-5       2.4e-4             6.5e-6
+RVT-T, 2, AVX2         9.7e-7      1.6e-6      7.1e-5      3.8e-5       1.6e-4             5.5e-6
+RVT-T, 1, AVX2         7.5e-7      1.6e-6      6.4e-5      4.3e-5       2.2e-4             5.5e-6
+=====================  ==========  ==========  ==========  ===========  =================  ===========
+
+(AVX2 rows: the same machine with ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2``; the mini fixture stays
+below the RVT-T figures there too.) Every measured worst exceeds its §8 figure, so each tolerance is 2x the
+largest entry of its column. The test prints the worst differences and puts them in its assertion message.
 """
 
 from __future__ import annotations
@@ -23,11 +33,13 @@ from davis_rig.errors import ShapeError
 from davis_rig.models.rvt import RVTConfig, load_detector
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 
-ATOL_BACKBONE = 5e-6  # h and c, values in (-1, 1) / a few units
-ATOL_FPN = 5e-4  # FPN outputs reach ~16
-ATOL_RAW = 5e-4  # head logits
-RTOL_BOX = 1e-3  # decoded cx, cy, w, h: exp() turns logit rounding into relative error (boxes up to 5455 px)
-ATOL_SCORE = 5e-5  # sigmoid'ed obj / class probabilities
+# 2x the worst difference measured (table above); each is above 2x its ARCHITECTURE.md §8 figure
+ATOL_H = 2e-6  # backbone features = LSTM h, values in (-1, 1); §8: 8e-7
+ATOL_C = 3.3e-6  # LSTM cell states c, a few units
+ATOL_FPN = 1.4e-4  # FPN outputs reach ~16; §8: 5e-5
+ATOL_RAW = 8.7e-5  # head logits (tx, ty, tw, th, obj, cls)
+RTOL_BOX = 4.8e-4  # decoded cx, cy, w, h relative to max(|ref|, 1): exp() amplifies logit rounding; §8: 1.2e-4
+ATOL_SCORE = 1.3e-5  # sigmoid'ed obj / class probabilities; §8: 4e-6
 
 
 def _max_abs(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -73,13 +85,13 @@ def test_fixture_outputs_step_by_step(fixture_and_model):
             assert decoded.shape == ref.shape == (1, 1680, 7)
             worst["box_rel"] = max(worst["box_rel"], _max_rel(decoded[..., :4], ref[..., :4]))
             worst["score"] = max(worst["score"], _max_abs(decoded[..., 4:], ref[..., 4:]))
-    report = ", ".join(f"{k} {v:.2e}" for k, v in worst.items())
-    assert worst["h"] <= ATOL_BACKBONE, report
-    assert worst["c"] <= ATOL_BACKBONE, report
-    assert worst["fpn"] <= ATOL_FPN, report
-    assert worst["raw"] <= ATOL_RAW, report
-    assert worst["box_rel"] <= RTOL_BOX, report
-    assert worst["score"] <= ATOL_SCORE, report
+    limits = {"h": ATOL_H, "c": ATOL_C, "fpn": ATOL_FPN, "raw": ATOL_RAW, "box_rel": RTOL_BOX, "score": ATOL_SCORE}
+    setup = f"{fx.path.name}, {torch.get_num_threads()} threads, {torch.backends.cpu.get_cpu_capability()}"
+    figures = ", ".join(f"{key} {worst[key]:.2e} (limit {limit:.1e})" for key, limit in limits.items())
+    report = f"{setup}: {figures}"
+    print(f"worst differences vs the official outputs: {report}")
+    over = [key for key, limit in limits.items() if not worst[key] <= limit]
+    assert not over, f"{over} over the tolerance: {report}"
 
 
 def _pairwise_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -263,6 +275,6 @@ def test_mini_fixture_on_cuda(mini_fixture):
                 assert _max_abs(decoded[..., 4:].cpu(), ref[..., 4:]) <= ATOL_SCORE
                 for stage in range(1, 5):
                     h_ref = mini_fixture.tensor(f"step{step}.backbone.stage{stage}")
-                    assert _max_abs(states[stage - 1][0].cpu(), h_ref) <= ATOL_BACKBONE
+                    assert _max_abs(states[stage - 1][0].cpu(), h_ref) <= ATOL_H
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = previous
