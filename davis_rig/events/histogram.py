@@ -12,6 +12,10 @@ The official RVT pre-processing (``data/utils/representations.py::StackedHistogr
 Windows are both-ends inclusive: events with ``t_end - window_us <= t <= t_end``
 (``scripts/genx/preprocess_dataset.py``), so an event exactly on a boundary counts in both neighbours.
 
+Before windowing, the official reader makes the timestamps of a whole recording non-decreasing
+(``H5Reader._correct_time``: a timestamp below the running maximum is raised to it); here that is opt-in,
+:func:`corrected_timestamps` / ``stacked_histograms(..., correct_time=True)``.
+
 This module imports numpy only (no torch): it is used on the capture/scoring path.
 """
 
@@ -39,6 +43,7 @@ __all__ = [
     "COUNT_CUTOFF",
     "NUM_BINS",
     "WINDOW_US",
+    "corrected_timestamps",
     "event_columns",
     "regular_window_ends",
     "stacked_histogram",
@@ -138,7 +143,10 @@ def stacked_histogram(
     if int(p.max()) > 1:
         raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
     if n > 1 and bool(np.any(t_us[1:] < t_us[:-1])):
-        raise FormatError("t_us: expected non-decreasing timestamps within a window")
+        raise FormatError(
+            "t_us: expected non-decreasing timestamps within a window "
+            "(stacked_histograms(..., correct_time=True) applies the official running-maximum correction)"
+        )
 
     # cell index x + W·y (int32 unless the frame is huge); polarities < 0 count as 0 like the official reader
     plane = height * width
@@ -223,6 +231,33 @@ def regular_window_ends(t_start_us: int, t_stop_us: int, *, window_us: int = WIN
     return np.arange(first_end, int(t_stop_us) + 1, int(step_us), dtype=np.int64)
 
 
+def corrected_timestamps(t_us) -> np.ndarray:
+    """The official out-of-order timestamp correction: each timestamp is raised to the running maximum.
+
+    RVT's reader (``scripts/genx/preprocess_dataset.py::H5Reader._correct_time``) walks a recording's
+    timestamps in file order and replaces every ``t`` smaller than the largest earlier one by that maximum, so
+    the stream becomes non-decreasing; events keep their order and number (nothing is dropped or re-sorted).
+    The official loop starts its maximum at 0 and asserts ``t[0] >= 0``; for such input the result equals
+    this running maximum.
+
+    Args:
+        t_us: timestamps in stream order, integer µs, shape [N].
+
+    Returns:
+        int64 array [N] (new; the input is not modified), non-decreasing.
+
+    Raises:
+        ShapeError: ``t_us`` is not 1-D.
+        FormatError: ``t_us`` is not an integer array.
+
+    Example:
+        >>> corrected_timestamps([0, 10, 5, 20, 15]).tolist()
+        [0, 10, 10, 20, 20]
+    """
+    t_us = _column("t_us", t_us, None).astype(np.int64, copy=False)
+    return np.maximum.accumulate(t_us)
+
+
 def event_columns(events) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Return ``(x, y, t_us, p)`` columns from a structured event array, a mapping or a 4-tuple.
 
@@ -264,6 +299,7 @@ def stacked_histograms(
     width: int = RVT_HW[1],
     num_bins: int = NUM_BINS,
     count_cutoff: int = COUNT_CUTOFF,
+    correct_time: bool = False,
 ) -> np.ndarray:
     """Official stacked histograms of a stream for a list of window ends.
 
@@ -273,15 +309,20 @@ def stacked_histograms(
             ``[end - window_us, end]`` inclusive (:func:`window_indices`).
         window_us: window duration, µs.
         height, width, num_bins, count_cutoff: as in :func:`stacked_histogram`.
+        correct_time: first make the timestamps non-decreasing as the official reader does
+            (:func:`corrected_timestamps`, running maximum over ``events``), then window. Pass the whole recording
+            (or a part that starts at its beginning) to get the official windows; the caller's arrays are not
+            modified.
 
     Returns:
         uint8 array [T, 2 * num_bins, H, W].
 
     Raises:
-        ShapeError, FormatError: as :func:`stacked_histogram`.
+        ShapeError, FormatError: as :func:`stacked_histogram` (without ``correct_time``, decreasing timestamps
+            inside a window raise FormatError).
     """
     x, y, t_us, p = event_columns(events)
-    t_us = _column("t_us", t_us, None)
+    t_us = corrected_timestamps(t_us) if correct_time else _column("t_us", t_us, None)
     ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
     if ends.ndim != 1:
         raise ShapeError(f"window_end_us: expected a scalar or shape [T], got {ends.shape}")

@@ -15,6 +15,7 @@ from davis_rig.events import (
     time_bins,
     window_indices,
 )
+from davis_rig.events.histogram import corrected_timestamps
 from davis_rig.types import make_events
 
 
@@ -178,6 +179,59 @@ def test_unsupported_event_container_raises_format_error():
         stacked_histograms("events", [50_000])
     with pytest.raises(FormatError, match="lacks keys"):
         stacked_histograms({"x": [0], "y": [0]}, [50_000])
+
+
+# --- official timestamp correction (H5Reader._correct_time) ------------------------------------------------
+def _official_correct_time(t_us):
+    """Transcription of RVT's ``H5Reader._correct_time`` (in place on a copy; numba loop run as Python)."""
+    time_array = np.array(t_us, dtype=np.int64)
+    assert time_array[0] >= 0
+    time_last = 0
+    for idx, time in enumerate(time_array):
+        if time < time_last:
+            time_array[idx] = time_last
+        else:
+            time_last = time
+    return time_array
+
+
+def test_corrected_timestamps_is_the_running_maximum():
+    t_us = np.array([0, 10, 5, 20, 15, 15, 30, 29, 31], np.int64)
+    before = t_us.copy()
+    corrected = corrected_timestamps(t_us)
+    np.testing.assert_array_equal(corrected, [0, 10, 10, 20, 20, 20, 30, 30, 31])
+    np.testing.assert_array_equal(corrected, _official_correct_time(t_us))
+    np.testing.assert_array_equal(t_us, before)  # input untouched
+    assert corrected.dtype == np.int64
+    np.testing.assert_array_equal(corrected_timestamps(np.array([3, 1, 2], np.uint32)), [3, 3, 3])
+    assert corrected_timestamps(np.zeros(0, np.int64)).shape == (0,)
+    rng = np.random.default_rng(0)
+    jittered = np.cumsum(rng.integers(0, 50, 2000)) + rng.integers(-200, 200, 2000)
+    jittered[0] = 0
+    np.testing.assert_array_equal(corrected_timestamps(jittered), _official_correct_time(jittered))
+    with pytest.raises(FormatError, match="integer"):
+        corrected_timestamps([0.5, 1.0])
+
+
+def test_stacked_histograms_correct_time_applies_the_official_rule_before_windowing():
+    # events 2 and 4 are out of order; corrected times: 0, 30, 30, 50, 50, 90 ms
+    t_us = np.array([0, 30_000, 20_000, 50_000, 40_000, 90_000], np.int64)
+    x = np.arange(6)
+    y = np.zeros(6, np.int64)
+    p = np.ones(6, np.int64)
+    ends = [50_000, 100_000]
+    with pytest.raises(FormatError, match="non-decreasing.*correct_time=True"):
+        stacked_histograms((x, y, t_us, p), ends)
+    before = t_us.copy()
+    hist = stacked_histograms((x, y, t_us, p), ends, correct_time=True)
+    np.testing.assert_array_equal(t_us, before)  # the caller's timestamps are not modified
+    corrected = np.array([0, 30_000, 30_000, 50_000, 50_000, 90_000])
+    np.testing.assert_array_equal(hist, stacked_histograms((x, y, corrected, p), ends))
+    # window 1 (0..50 ms): event 2 shares event 1's bin 6; event 4, now at 50 ms, is the last one (bin 9)
+    assert hist[0, 16, 0, 1] == 1 and hist[0, 16, 0, 2] == 1 and hist[0, 19, 0, 3] == 1 and hist[0, 19, 0, 4] == 1
+    # window 2 (50..100 ms): events 3 and 4 are its first events (bin 0), event 5 its last (bin 9)
+    assert hist[1, 10, 0, 3] == 1 and hist[1, 10, 0, 4] == 1 and hist[1, 19, 0, 5] == 1
+    assert int(hist[0].sum()) == 5 and int(hist[1].sum()) == 3
 
 
 # --- windows ------------------------------------------------------------------------------------------------

@@ -275,12 +275,13 @@ class RVTOnnxRunner:
         window_us: int = WINDOW_US,
         states: States | None = None,
         return_states: bool = False,
+        correct_time: bool = False,
     ) -> list[np.ndarray | None] | tuple[list[np.ndarray | None], States]:
         """Score a time-sorted event stream: one histogram + step + postprocess per window, states carried.
 
         Args:
             x, y: event columns/rows in the 304x240 RVT frame, integer [N] (crop DAVIS346 events first).
-            t_us: timestamps, int µs [N], non-decreasing.
+            t_us: timestamps, int µs [N], non-decreasing (or see ``correct_time``).
             p: polarities {0, 1}, integer [N].
             window_end_us: window ends, int µs [T]; window i holds ``end_i - window_us <= t <= end_i``.
             conf_threshold: postprocess confidence threshold (obj · class prob).
@@ -289,6 +290,8 @@ class RVTOnnxRunner:
             states: initial states (batch 1), ``None`` = zeros (start of a sequence).
             return_states: also return the states after the last window (to continue a long recording
                 chunk by chunk).
+            correct_time: make out-of-order timestamps non-decreasing first, as the official reader does
+                (running maximum over the given stream, ``events.histogram.corrected_timestamps``).
 
         Returns:
             One entry per window: float32 [K, 7] ``(x1, y1, x2, y2, obj, class_conf, class_id)`` by decreasing
@@ -298,7 +301,7 @@ class RVTOnnxRunner:
             ShapeError, FormatError: bad event columns (see ``stacked_histogram``) or states.
         """
         ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
-        hists = stacked_histograms((x, y, t_us, p), ends, window_us=window_us)
+        hists = stacked_histograms((x, y, t_us, p), ends, window_us=window_us, correct_time=correct_time)
         detections: list[np.ndarray | None] = []
         for hist in hists:
             decoded, states = self.step(hist[None], states)

@@ -16,7 +16,7 @@ pytest.importorskip("onnxruntime")
 
 from onnx import TensorProto, helper  # noqa: E402
 
-from davis_rig.errors import ModelFormatError, ShapeError  # noqa: E402
+from davis_rig.errors import FormatError, ModelFormatError, ShapeError  # noqa: E402
 from davis_rig.events import stacked_histograms  # noqa: E402
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner  # noqa: E402
 from davis_rig.models.rvt.postprocess import postprocess  # noqa: E402
@@ -107,6 +107,22 @@ def test_score_stream_in_chunks_equals_one_pass(runner, mini_fixture):
     first, states = runner.score_stream(x, y, t_us, p, ends[:1], conf_threshold=0.1, return_states=True)
     rest = runner.score_stream(x, y, t_us, p, ends[1:], conf_threshold=0.1, states=states)
     for a, b in zip(whole, first + rest):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_score_stream_correct_time_scores_the_officially_corrected_stream(runner, mini_fixture):
+    x, y, t_us, p = _events(mini_fixture)
+    ends = mini_fixture["input.window_end_ts_us"]
+    late = np.zeros(t_us.shape[0], bool)
+    late[1000::997] = True  # every 997th event arrives 3 ms late, in each of the 3 windows
+    t_late = t_us - np.where(late, 3_000, 0)
+    assert np.any(np.diff(t_late) < 0)
+    with pytest.raises(FormatError, match="non-decreasing"):
+        runner.score_stream(x, y, t_late, p, ends, conf_threshold=0.1)
+    corrected = runner.score_stream(x, y, t_late, p, ends, conf_threshold=0.1, correct_time=True)
+    expected = runner.score_stream(x, y, np.maximum.accumulate(t_late), p, ends, conf_threshold=0.1)
+    assert len(corrected) == len(expected) == 3
+    for a, b in zip(corrected, expected):
         np.testing.assert_array_equal(a, b)
 
 
