@@ -1,15 +1,18 @@
 #!/usr/bin/env python
 """Convert an RVT checkpoint (official Lightning .ckpt, .pt/.pth or .safetensors) to safetensors (+ ONNX step graph).
 
-Usage: python tools/convert_checkpoint.py CKPT --out-dir DIR [--config tiny|small|base|mini] [--onnx] [--verify]
-       [--inert-unknown-globals]
+Usage: python tools/convert_checkpoint.py CKPT --out-dir DIR [--config tiny|small|base|mini | --config-json PATH]
+       [--onnx] [--verify] [--inert-unknown-globals]
 
 Writes ``DIR/<stem>.safetensors`` (state dict without the ``mdl.`` prefix, config JSON in the metadata) and with
 ``--onnx`` ``DIR/<stem>_step.onnx`` (one recurrent step, dynamic batch). Prints the key report: entries read,
 the architecture (given or inferred from the shapes), parameter count, the md5 of the source and whether it
 matches a released Gen1 checkpoint. A checkpoint that does not fit the model prints the strict key/shape
-report and exits with code 4. ``--verify`` runs 3 recurrent steps on seeded random histograms in PyTorch and
-onnxruntime and prints the largest differences.
+report and exits with code 4. ``--config-json PATH`` gives any architecture as a JSON file that
+:meth:`RVTConfig.from_dict` reads (``RVTConfig.to_json()`` output, or an official hydra ``model`` config): needed
+for configs that are not presets, which the shapes cannot identify (``dim_head`` has no shape of its own).
+``--verify`` runs 3 recurrent steps on seeded random histograms in PyTorch and onnxruntime and prints the
+largest differences.
 """
 
 from __future__ import annotations
@@ -19,6 +22,10 @@ import hashlib
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # pragma: no cover
+    from davis_rig.models.rvt import RVTConfig
 
 #: md5 prefixes of the released Gen1 checkpoints (uzh-rpg/RVT README).
 RELEASED_MD5_PREFIXES = {"839317": "RVT-B gen1", "840f2b": "RVT-S gen1", "a770b9": "RVT-T gen1"}
@@ -75,6 +82,29 @@ def _md5(path: Path) -> str:
     return digest.hexdigest()
 
 
+def read_config_json(path: str | Path) -> RVTConfig:
+    """Read an architecture from a JSON file, as :meth:`RVTConfig.from_dict` accepts it.
+
+    Args:
+        path: JSON file: the flat dict of ``RVTConfig.to_dict()``, or an official hydra model config.
+
+    Returns:
+        The :class:`~davis_rig.models.rvt.RVTConfig`.
+
+    Raises:
+        OSError: the file cannot be read.
+        FormatError: not JSON, or not a valid / supported RVT config (the message names the file).
+    """
+    from davis_rig.errors import FormatError
+    from davis_rig.models.rvt import RVTConfig
+
+    path = Path(path)
+    try:
+        return RVTConfig.from_dict(path.read_text(encoding="utf-8"))
+    except FormatError as exc:
+        raise FormatError(f"{path}: {exc}") from exc
+
+
 def verify_onnx(model, onnx_path: Path, steps: int = 3, seed: int = 0) -> dict[str, float]:
     """Run ``steps`` recurrent steps on seeded random count histograms in PyTorch and onnxruntime.
 
@@ -112,7 +142,7 @@ def convert(
     checkpoint: str | Path,
     out_dir: str | Path,
     *,
-    config: str | None = None,
+    config: str | RVTConfig | None = None,
     onnx: bool = False,
     verify: bool = False,
     inert_unknown_globals: bool = False,
@@ -122,7 +152,8 @@ def convert(
     Args:
         checkpoint: ``.ckpt`` / ``.pt`` / ``.pth`` / ``.safetensors`` file.
         out_dir: output folder (created if missing).
-        config: preset name (``tiny``, ``small``, ``base``, ``mini``); default: inferred from the shapes.
+        config: preset name (``tiny``, ``small``, ``base``, ``mini``) or an ``RVTConfig`` (e.g. from
+            :func:`read_config_json`); default: inferred from the shapes.
         onnx: also export ``<stem>_step.onnx``.
         verify: compare PyTorch and onnxruntime on 3 steps (needs ``onnx``).
         inert_unknown_globals: see :func:`davis_rig.models.rvt.checkpoint.read_state_dict`.
@@ -139,13 +170,12 @@ def convert(
 
     source = Path(checkpoint)
     presets = RVTConfig.presets()
-    if config is not None and config not in presets:
-        raise ValueError(f"config: expected one of {sorted(presets)}, got {config!r}")
+    if config is not None and not isinstance(config, RVTConfig) and config not in presets:
+        raise ValueError(f"config: expected one of {sorted(presets)} or an RVTConfig, got {config!r}")
     if verify and not onnx:
         raise ValueError("verify needs onnx=True")
-    model = load_detector(
-        source, presets[config] if config else None, inert_unknown_globals=inert_unknown_globals
-    )
+    architecture = presets[config] if isinstance(config, str) else config
+    model = load_detector(source, architecture, inert_unknown_globals=inert_unknown_globals)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     md5 = _md5(source)
@@ -159,7 +189,7 @@ def convert(
         release=next((name for prefix, name in RELEASED_MD5_PREFIXES.items() if md5.startswith(prefix)), None),
         entries=len(model.state_dict()),
         parameters=sum(p.numel() for p in model.parameters()),
-        config_name=f"{model.config.name} ({'given' if config else 'inferred'})",
+        config_name=f"{model.config.name} ({'inferred' if config is None else 'given'})",
         safetensors=target,
     )
     if onnx:
@@ -176,8 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", help="RVT checkpoint: .ckpt (Lightning), .pt/.pth or .safetensors")
     parser.add_argument("--out-dir", required=True, help="output folder (created if missing)")
-    parser.add_argument(
-        "--config", choices=["tiny", "small", "base", "mini"], help="architecture (default: inferred from shapes)"
+    architecture = parser.add_mutually_exclusive_group()
+    architecture.add_argument(
+        "--config", choices=["tiny", "small", "base", "mini"], help="preset architecture (default: from the shapes)"
+    )
+    architecture.add_argument(
+        "--config-json",
+        metavar="PATH",
+        help="any architecture: a JSON file RVTConfig.from_dict reads (RVTConfig.to_json() or a hydra model config)",
     )
     parser.add_argument("--onnx", action="store_true", help="also export the one-step ONNX graph")
     parser.add_argument("--verify", action="store_true", help="with --onnx: compare PyTorch and onnxruntime")
@@ -196,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         report = convert(
             args.checkpoint,
             args.out_dir,
-            config=args.config,
+            config=read_config_json(args.config_json) if args.config_json else args.config,
             onnx=args.onnx,
             verify=args.verify,
             inert_unknown_globals=args.inert_unknown_globals,

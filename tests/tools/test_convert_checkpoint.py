@@ -82,6 +82,58 @@ def test_convert_api_infers_the_config_and_reports(tool, lightning_ckpt, tmp_pat
     assert report.safetensors == tmp_path / "rvt-mini.safetensors"
 
 
+def test_config_json_gives_the_architecture(tool, lightning_ckpt, tmp_path, capsys):
+    path, state = lightning_ckpt
+    config_path = tmp_path / "mini.json"
+    config_path.write_text(RVTConfig.mini().to_json())
+    assert tool.main([str(path), "--out-dir", str(tmp_path / "out"), "--config-json", str(config_path)]) == 0
+    assert "376 state-dict entries, all matched the RVT-mini (given) model" in capsys.readouterr().out
+    reloaded = load_detector(tmp_path / "out" / "rvt-mini.safetensors")
+    assert reloaded.config == RVTConfig.mini()
+    for key, value in reloaded.state_dict().items():
+        torch.testing.assert_close(value, state[key], rtol=0, atol=0)
+
+
+def test_config_json_converts_a_config_that_is_no_preset(tool, tmp_path, capsys):
+    """Stage dims 8/16/16/32: the shapes match no preset, so only ``--config-json`` can convert it."""
+    config = RVTConfig.mini(dim_multiplier=(1, 2, 2, 4), num_classes=3, name="mini-custom")
+    model = RVTDetector(config).eval()
+    path = tmp_path / "custom.ckpt"
+    torch.save({"state_dict": {f"mdl.{key}": value for key, value in model.state_dict().items()}}, path)
+    assert tool.main([str(path), "--out-dir", str(tmp_path / "inferred")]) == 4
+    assert "cannot infer the RVT variant" in capsys.readouterr().err
+
+    config_path = tmp_path / "custom.json"
+    config_path.write_text(config.to_json())
+    report = tool.convert(path, tmp_path / "out", config=tool.read_config_json(config_path), onnx=True)
+    assert report.config_name == "mini-custom (given)"
+    reloaded = load_detector(report.safetensors)
+    assert reloaded.config == config and reloaded.config.num_outputs == 8
+    for key, value in reloaded.state_dict().items():
+        torch.testing.assert_close(value, model.state_dict()[key], rtol=0, atol=0)
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+
+    assert RVTOnnxRunner(report.onnx).signature.num_outputs == 8
+
+
+def test_config_json_errors(tool, lightning_ckpt, tmp_path, capsys):
+    path, _ = lightning_ckpt
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"embed_dim": 8}')
+    assert tool.main([str(path), "--out-dir", str(tmp_path / "out"), "--config-json", str(bad)]) == 4
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "missing required keys ['dim_head']" in err
+    bad.write_text("not json")
+    assert tool.main([str(path), "--out-dir", str(tmp_path / "out"), "--config-json", str(bad)]) == 4
+    assert "not valid JSON" in capsys.readouterr().err
+    assert tool.main([str(path), "--out-dir", str(tmp_path / "out"), "--config-json", str(tmp_path / "none.json")]) == 4
+    assert "none.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as excinfo:  # one architecture source at a time
+        tool.main([str(path), "--out-dir", str(tmp_path), "--config", "mini", "--config-json", str(bad)])
+    assert excinfo.value.code == 2
+    assert not (tmp_path / "out").exists()
+
+
 def test_mismatching_checkpoint_prints_the_key_report_and_exits_4(tool, lightning_ckpt, tmp_path, capsys):
     path, state = lightning_ckpt
     broken = {f"mdl.{k}": v for k, v in state.items() if not k.startswith("yolox_head.obj_preds.2")}
