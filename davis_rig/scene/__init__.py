@@ -136,6 +136,7 @@ _LAZY = {
     "davis_rig.scene.scene": (
         "MIN_RENDER_RATE_HZ",
         "Clip",
+        "RenderBody",
         "SceneSpec",
         "render_clip",
         "scene_camera",

