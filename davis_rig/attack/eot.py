@@ -50,6 +50,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 __all__ = [
     "ClipPool",
     "amass_motions",
+    "bvh_motions",
     "EoTConfig",
     "PoolClip",
     "draw_scene",
@@ -436,15 +437,43 @@ def amass_motions(root, split: str = "train", *, asset=None, shape_index: int = 
         FileNotFoundError: root is not a folder. ValueError: bad split or no trial found.
     """
     from davis_rig.scene.mocap.amass import load_amass
+
+    paths = _split_trial_paths(root, "*_poses.npz", "AMASS", split, max_trials)
+    return [load_amass(p, asset, shape_index, translation=translation) for p in paths]
+
+
+def bvh_motions(root, split: str = "train", *, asset=None, shape_index: int = 0, max_trials: int | None = None,
+                translation: str = "foot_locked") -> list:
+    """Motions of one side of the CMU BVH trial split, retargeted onto the rig: :func:`amass_motions` for BVH files.
+
+    Args:
+        root: the user's CMU BVH folder (``<root>/<subject>/<subject>_<trial>.bvh``, e.g. ``07/07_01.bvh``; CMU
+            joint names and units, see :func:`davis_rig.scene.mocap.bvh.load_bvh`).
+        split, asset, shape_index, max_trials: as :func:`amass_motions` (the same split rule and trial ids).
+        translation: root translation mode of :func:`davis_rig.scene.mocap.bvh.load_bvh`.
+
+    Returns:
+        list of :class:`davis_rig.scene.motion.Motion`.
+
+    Raises:
+        FileNotFoundError: root is not a folder. ValueError: bad split or no trial found. FormatError: a file
+        is not a readable BVH.
+    """
+    from davis_rig.scene.mocap.bvh import load_bvh
+
+    paths = _split_trial_paths(root, "*.bvh", "BVH", split, max_trials)
+    return [load_bvh(p, asset, shape_index, translation=translation) for p in paths]
+
+
+def _split_trial_paths(root, pattern: str, kind: str, split: str, max_trials: int | None) -> list:
+    """Files of one side (``"train"`` / ``"test"``) of the trial split of ``<root>/<subject>/<pattern>``."""
     from davis_rig.scene.mocap.splits import find_trials, split_trials
 
     if split not in ("train", "test"):
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
-    trials = find_trials(root)
+    trials = find_trials(root, pattern=pattern)
     if not trials:
-        raise ValueError(f"no AMASS trials (*_poses.npz) under {root}")
+        raise ValueError(f"no {kind} trials ({pattern}) under {root}")
     parts = split_trials(trials)
     paths = parts.train_paths() if split == "train" else parts.test_paths()
-    if max_trials is not None:
-        paths = paths[: int(max_trials)]
-    return [load_amass(p, asset, shape_index, translation=translation) for p in paths]
+    return paths if max_trials is None else paths[: int(max_trials)]

@@ -57,11 +57,14 @@ def _detector_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch (default: torch's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--amass", default=None, metavar="DIR",
-                        help="AMASS CMU folder: optimize draws train-split motions, evaluate uses test-split motions "
-                             "(default: the body shapes' walk cycles)")
+    mocap = parser.add_mutually_exclusive_group()
+    mocap.add_argument("--amass", default=None, metavar="DIR",
+                       help="AMASS CMU folder: optimize draws train-split motions, evaluate uses test-split motions "
+                            "(default: the body shapes' walk cycles)")
+    mocap.add_argument("--bvh", default=None, metavar="DIR",
+                       help="CMU BVH folder (DIR/<subject>/<subject>_<trial>.bvh): as --amass, same trial split")
     parser.add_argument("--max-trials", type=int, default=None,
-                        help="with --amass: use the first N trials of the split")
+                        help="with --amass or --bvh: use the first N trials of the split")
 
 
 def _budget_args(p: argparse.ArgumentParser) -> None:
@@ -221,11 +224,15 @@ def optimize_command(args) -> int:
 
 
 def _motions(args, split: str) -> tuple:
-    if not args.amass:
-        return ()
-    from davis_rig.attack.eot import amass_motions
+    if args.amass:
+        from davis_rig.attack.eot import amass_motions
 
-    return tuple(amass_motions(args.amass, split, max_trials=args.max_trials))
+        return tuple(amass_motions(args.amass, split, max_trials=args.max_trials))
+    if args.bvh:
+        from davis_rig.attack.eot import bvh_motions
+
+        return tuple(bvh_motions(args.bvh, split, max_trials=args.max_trials))
+    return ()
 
 
 def _usage(message: str) -> int:

@@ -48,6 +48,35 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
                   "motions": ()}
 
 
+def test_mocap_folders_map_onto_the_split_loaders(monkeypatch, tmp_path, capsys):
+    """--bvh / --amass DIR: train-split motions for optimize (test split for evaluate); the flags exclude each other."""
+    import davis_rig.attack.eot as eot
+    import davis_rig.attack.optimize as opt
+
+    calls = []
+    monkeypatch.setattr(eot, "bvh_motions", lambda root, split, max_trials=None: calls.append(
+        ("bvh", root, split, max_trials)) or ["BVH"])
+    monkeypatch.setattr(eot, "amass_motions", lambda root, split, max_trials=None: calls.append(
+        ("amass", root, split, max_trials)) or ["AMASS"])
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake(config, detector, out, **kw):
+        seen.update(kw)
+        return SimpleNamespace(out_dir=Path(out), steps=0, seconds_per_step=0.0, best_step=0, best_seq_asr=math.nan)
+
+    monkeypatch.setattr(opt, "optimize_texture", fake)
+    base = ["optimize", "--out", str(tmp_path), "--device", "cpu", "--no-progress"]
+    args = _parser().parse_args([*base, "--bvh", "cmu_bvh", "--max-trials", "3"])
+    assert args.func(args) == 0 and seen["motions"] == ("BVH",)
+    args = _parser().parse_args([*base, "--amass", "amass_cmu"])
+    assert args.func(args) == 0 and seen["motions"] == ("AMASS",)
+    assert calls == [("bvh", "cmu_bvh", "train", 3), ("amass", "amass_cmu", "train", None)]
+    with pytest.raises(SystemExit):
+        _parser().parse_args([*base, "--amass", "a", "--bvh", "b"])
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
 def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
     import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt

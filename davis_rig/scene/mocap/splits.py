@@ -1,10 +1,12 @@
-"""Train/test split of AMASS CMU trials by trial, as in the paper (47 train / 13 test trials).
+"""Train/test split of CMU mocap trials by trial, as in the paper (47 train / 13 test trials).
 
 The paper names neither the trials nor the rule, so this module defines a documented, deterministic rule
 over the trials a user has:
 
-1. :func:`find_trials` lists ``<root>/<subject>/<subject>_<trial>_poses.npz`` files (AMASS CMU layout),
-   optionally only some subjects; trial ids are ``"<subject>/<subject>_<trial>"``.
+1. :func:`find_trials` lists ``<root>/<subject>/<subject>_<trial>_poses.npz`` files (AMASS CMU layout), or with
+   ``pattern="*.bvh"`` the ``<root>/<subject>/<subject>_<trial>.bvh`` files of the CMU BVH conversion,
+   optionally only some subjects; trial ids are ``"<subject>/<subject>_<trial>"`` in both formats, so a CMU
+   trial gets the same id (and, for the same set of trials, the same side) as AMASS ``.npz`` or as BVH.
 2. :func:`split_trials` ranks the trial ids by ``sha256(salt + ":" + trial_id)`` and puts the
    ``n_test`` lowest ranks in the test set (default ``n_test = round(n * 13 / 60)``: 13 of 60 trials as in
    the paper). The assignment of a trial depends only on its id, the salt and ``n``: it does not depend on
@@ -47,18 +49,19 @@ class TrialSplit:
 
 
 def trial_id(path: str | Path) -> str:
-    """``"<subject folder>/<file stem without _poses>"`` of an AMASS trial file, e.g. ``"07/07_01"``."""
+    """``"<subject folder>/<file stem without _poses>"`` of a trial file, e.g. ``"07/07_01"`` for
+    ``CMU/07/07_01_poses.npz`` (AMASS) and for ``cmu/07/07_01.bvh`` (BVH)."""
     p = Path(path)
     return f"{p.parent.name}/{p.stem.removesuffix('_poses')}"
 
 
 def find_trials(root: str | Path, subjects: Iterable[str] | None = None, pattern: str = "*_poses.npz") -> dict[str, Path]:
-    """AMASS CMU trial files under ``root`` (``<root>/<subject>/<pattern>``).
+    """Trial files under ``root`` (``<root>/<subject>/<pattern>``).
 
     Args:
-        root: the user's AMASS CMU folder.
+        root: the user's AMASS CMU folder, or CMU BVH folder with ``pattern="*.bvh"``.
         subjects: subject folder names to keep (e.g. ``["07", "08"]``); ``None`` = all.
-        pattern: file glob inside a subject folder.
+        pattern: file glob inside a subject folder (AMASS: ``"*_poses.npz"``, BVH: ``"*.bvh"``).
 
     Returns:
         trial id -> path, sorted by id.
@@ -68,7 +71,7 @@ def find_trials(root: str | Path, subjects: Iterable[str] | None = None, pattern
     """
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"AMASS folder not found: {root}")
+        raise FileNotFoundError(f"mocap folder not found: {root}")
     keep = None if subjects is None else {str(s) for s in subjects}
     found = {}
     for path in root.glob(f"*/{pattern}"):
@@ -92,7 +95,8 @@ def split_trials(
     """Deterministic train/test split (see the module docstring).
 
     Args:
-        trials: trial ids, trial file paths, or the dict of :func:`find_trials`.
+        trials: trial ids, trial file paths (``Path``, or strings ending in ``.npz`` / ``.bvh``), or the dict of
+            :func:`find_trials`.
         n_test: number of test trials (``by="trial"``) or subjects (``by="subject"``); default
             ``round(n * test_fraction)``, i.e. 13 of 60.
         test_fraction: used when ``n_test`` is None.
@@ -111,7 +115,7 @@ def split_trials(
     else:
         ids, paths = [], {}
         for t in trials:
-            is_file = isinstance(t, Path) or str(t).endswith(".npz")
+            is_file = isinstance(t, Path) or str(t).endswith((".npz", ".bvh"))
             tid = trial_id(t) if is_file else str(t)
             ids.append(tid)
             if is_file:

@@ -58,3 +58,20 @@ def test_split_by_subject_and_errors(cmu_folder):
         split_trials(["a/1"], n_test=2)
     with pytest.raises(ValueError):
         split_trials(["a/1"], by="session")
+
+
+def test_bvh_trials_get_the_amass_ids_and_split(cmu_folder, tmp_path):
+    """CMU BVH files ``<subject>/<subject>_<trial>.bvh``: same trial ids, hence the same split, as AMASS."""
+    amass = find_trials(cmu_folder)
+    root = tmp_path / "cmu_bvh"
+    for tid in amass:
+        subject, stem = tid.split("/")
+        (root / subject).mkdir(parents=True, exist_ok=True)
+        (root / subject / f"{stem}.bvh").write_bytes(b"")
+    (root / "01" / "01_01.txt").write_bytes(b"")  # not a trial
+    bvh = find_trials(root, pattern="*.bvh")
+    assert list(bvh) == list(amass) and trial_id(bvh["03/03_07"]) == "03/03_07"
+    split = split_trials(bvh)
+    assert split.test == split_trials(amass).test and split.test_paths()[0].suffix == ".bvh"
+    by_name = split_trials([str(p) for p in bvh.values()])  # strings ending in .bvh are file paths
+    assert by_name.test == split.test and by_name.paths == split.paths
