@@ -169,15 +169,18 @@ class PoolClip:
     Attributes:
         seed: the seed it was drawn from.
         spec: the :class:`~davis_rig.scene.scene.SceneSpec`.
-        raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad) without its ``uv``, ``face`` and
-            ``sample_index`` (not needed to compose; use ``lookup`` for the texels).
+        raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad) without its ``uv``, ``face``,
+            ``sample_index`` and ``coverage`` (a step needs only :meth:`~RasterizedMesh.person`; use ``lookup``
+            for the texels, ``backdrop`` for the background).
         lookup: :class:`~davis_rig.scene.texture.TexelLookup` of the grid (mask applied: white outside).
         background: float32 tensor [H, W].
+        backdrop: float32 tensor [T, H, W], the visible background ``background * (1 - coverage)`` (computed once).
         t_us: int64 [T] frame times (µs).
         window_end_us: int64 [W] window ends (µs).
         boxes: float32 [W, 4] person box ``(x0, y0, x1, y1)`` at each window end (px; NaN: not visible).
         threshold: float32 tensor [H, W], per-pixel contrast threshold (log units), ON = OFF.
-        noise_index: int64 tensor [K], flat indices into the [W, 2 * B, H, W] histogram of the noise events.
+        noise_cell: int64 tensor [K], distinct flat indices into the [W, 2 * B, H, W] histogram where noise fired.
+        noise_count: float32 tensor [K], noise events in each of those cells.
     """
 
     seed: int
@@ -185,25 +188,35 @@ class PoolClip:
     raster: object
     lookup: object
     background: "torch.Tensor"
+    backdrop: "torch.Tensor"
     t_us: np.ndarray
     window_end_us: np.ndarray
     boxes: np.ndarray
     threshold: "torch.Tensor"
-    noise_index: "torch.Tensor"
+    noise_cell: "torch.Tensor"
+    noise_count: "torch.Tensor"
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
-        """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W]."""
-        return self.raster.compose(self.lookup.sample(grid, fill=1.0), self.background)
+        """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
 
-    def noise_histogram(self, dtype=None) -> "torch.Tensor":
-        """The clip's noise events as a [W, 2 * B, H, W] count tensor (no grad)."""
-        h, w = self.raster.hw
-        n_windows = len(self.window_end_us)
-        dtype = dtype or self.threshold.dtype
-        out = torch.zeros(n_windows * 2 * NUM_BINS * h * w, dtype=dtype, device=self.threshold.device)
-        if self.noise_index.numel():
-            out.index_add_(0, self.noise_index, torch.ones_like(self.noise_index, dtype=dtype))
-        return out.view(n_windows, 2 * NUM_BINS, h, w)
+        Equals ``raster.compose(lookup.sample(grid), background)`` of the full raster (bit for bit with a float32
+        grid; the backdrop is kept in float32).
+        """
+        person = self.raster.person(self.lookup.sample(grid, fill=1.0))
+        return self.backdrop.to(person.dtype) + person
+
+    def add_noise(self, hist: "torch.Tensor") -> "torch.Tensor":
+        """``hist`` plus the clip's noise events (constants: the gradient passes through unchanged).
+
+        Args:
+            hist: float tensor [W, 2 * B, H, W] of event counts.
+
+        Returns:
+            Float tensor [W, 2 * B, H, W]; ``hist`` itself when the clip has no noise.
+        """
+        if not self.noise_cell.numel():
+            return hist
+        return hist.reshape(-1).index_add(0, self.noise_cell, self.noise_count.to(hist.dtype)).view_as(hist)
 
 
 def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[Motion] = ()) -> tuple[SceneSpec, dict]:
@@ -302,15 +315,18 @@ def prepare_clip(
     k = int(rng.poisson(mean_events)) if mean_events > 0 else 0
     # each noise event: window, polarity, bin, pixel uniformly (a pixel fires ON and OFF noise alike)
     noise_index = rng.integers(0, n_windows * 2 * NUM_BINS * h * w, size=k, dtype=np.int64)
+    noise_cell, noise_count = np.unique(noise_index, return_counts=True)
     device = clip.raster.coverage.device
-    background = clip.background
-    # compose needs only sample_pixel, shade and coverage: drop the per-sample UVs, faces and sample indices
-    # (a third of a clip's memory) once the texel lookup is built
-    raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None)
+    background = torch.as_tensor(clip.background, device=device)
+    backdrop = clip.raster.backdrop(background)
+    # a step needs only sample_pixel and shade (RasterizedMesh.person) once the texel lookup and the backdrop are
+    # built: drop the per-sample UVs, faces and sample indices and the coverage (half of a clip's memory)
+    raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None, coverage=None)
     return PoolClip(
-        seed=int(seed), spec=spec, raster=raster, lookup=lookup,
-        background=torch.as_tensor(background, device=device), t_us=t_us, window_end_us=ends, boxes=boxes,
-        threshold=torch.as_tensor(theta, device=device), noise_index=torch.as_tensor(noise_index, device=device),
+        seed=int(seed), spec=spec, raster=raster, lookup=lookup, background=background, backdrop=backdrop,
+        t_us=t_us, window_end_us=ends, boxes=boxes, threshold=torch.as_tensor(theta, device=device),
+        noise_cell=torch.as_tensor(noise_cell, device=device),
+        noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device),
     )
 
 

@@ -222,6 +222,7 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
       (the official code's relaxed simulator in count units, clip-mean threshold theta) through the same binning,
       used as a straight-through surrogate of the exact counts (``surrogate + (exact - surrogate).detach()``), no
       clamp. Along its negative gradient the exact-count loss falls monotonically for steps up to 0.3 grid units.
+      The exact counts (no grad) and the surrogate are taken from one lin-log video, computed once.
 
     Args:
         grid: float tensor [n, n] texture grid (1 = white), gradients flow to it.
@@ -232,27 +233,25 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
     Raises:
         ValueError: unknown ``gradient``.
     """
-    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, v2e_histograms
+    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, log_histograms, log_intensity
 
     if gradient not in V2E_GRADIENTS:
         raise ValueError(f"gradient must be one of {V2E_GRADIENTS}, got {gradient!r}")
-    video = clip.video(grid)
+    log_video = log_intensity(clip.video(grid))
 
-    def exact_counts(v: "torch.Tensor") -> "torch.Tensor":
-        hist = v2e_histograms(v, clip.t_us, clip.window_end_us, mode=mode, binning=binning, count_cutoff=None,
-                              threshold_on=clip.threshold, threshold_off=clip.threshold)
-        if clip.noise_index.numel():
-            hist = hist + clip.noise_histogram(hist.dtype)
-        return torch.clamp(hist, max=float(COUNT_CUTOFF))
+    def exact_counts() -> "torch.Tensor":
+        hist = log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
+                              count_cutoff=None, threshold_on=clip.threshold, threshold_off=clip.threshold)
+        return torch.clamp(clip.add_noise(hist), max=float(COUNT_CUTOFF))
 
     if gradient == "ste":
-        return exact_counts(video)
-    with torch.no_grad():
-        exact = exact_counts(video)
+        return exact_counts()
     theta = float(clip.threshold.mean())
-    surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
+    surrogate = log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
                                count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
-    return surrogate + (exact - surrogate).detach()
+    with torch.no_grad():
+        gap = exact_counts().sub_(surrogate)  # exact - surrogate, a constant
+    return surrogate + gap
 
 
 def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, config: AttackConfig) -> AdversarialLoss:

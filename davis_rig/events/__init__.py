@@ -47,6 +47,8 @@ _LAZY = {
         "OFFICIAL_RELAXED_SCALE",
         "DifferentiableV2E",
         "floor_ste",
+        "log_histograms",
+        "log_intensity",
         "pair_bins",
         "rgb_to_luma",
         "v2e_counts",

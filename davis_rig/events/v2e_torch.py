@@ -50,11 +50,16 @@ Use in the digital attack (one window per RVT step; the windows' ends on the fra
     hist = v2e_histograms(clip.video, clip.t_us, ends)                 # [n_windows, 20, 240, 304]
     x = pad_to_input(hist)                                             # davis_rig.models.rvt.detector
 
+Several count modes of one video (the attack's exact counts and relaxed surrogate) share one lin-log video:
+``log = log_intensity(video)``, then ``log_histograms(log, t_us, ends, mode=...)`` per mode (equal to
+:func:`v2e_histograms`, bit for bit).
+
 Test time (quantized events, what a camera would deliver): ``stacked_histograms(simulate_events(video, t_us), ends)``.
 
 Measured (``benchmarks/v2e.py``, 304 × 240, 11 frames at 200 fps, fp32, 2-core shared CPU under load): ``"dvs"``
 forward ≈ 7–11 ms and forward + backward ≈ 14–30 ms per 50 ms window (2 / 1 threads), i.e. 6–7 % of RVT-B's
-forward + backward (243 / 436 ms).
+forward + backward (243 / 436 ms). The attack's per-window cost (rendering + V2E as the optimiser runs them vs
+RVT-B): ``benchmarks/digital_cost.py``.
 
 torch is imported lazily (MissingDependencyError names the extra).
 """
@@ -81,6 +86,8 @@ __all__ = [
     "OFFICIAL_RELAXED_SCALE",
     "DifferentiableV2E",
     "floor_ste",
+    "log_histograms",
+    "log_intensity",
     "pair_bins",
     "rgb_to_luma",
     "v2e_counts",
@@ -151,17 +158,18 @@ def _dvs_fn():
     class DvsCounts(torch.autograd.Function):
         @staticmethod
         def forward(ctx, log_video, theta_on, theta_off):
-            frames = log_video.unbind(0)
-            ref = frames[0]
-            ons, offs = [], []
-            for frame in frames[1:]:
-                diff = frame - ref
-                on = torch.clamp(torch.floor(diff / theta_on), min=0)
-                off = torch.clamp(torch.floor(-diff / theta_off), min=0)
-                ref = ref + on * theta_on - off * theta_off
-                ons.append(on)
-                offs.append(off)
-            on, off = torch.stack(ons), torch.stack(offs)
+            # the same operations as the exact simulator, written into preallocated outputs and buffers (the
+            # recurrence through ref keeps the loop over frames)
+            on = torch.empty_like(log_video[1:])
+            off = torch.empty_like(on)
+            step_on, step_off = torch.empty_like(log_video[0]), torch.empty_like(log_video[0])
+            ref = log_video[0]
+            for k in range(on.shape[0]):
+                diff = log_video[k + 1] - ref
+                torch.div(diff, theta_on, out=on[k]).floor_().clamp_(min=0)
+                torch.div(diff.neg_(), theta_off, out=off[k]).floor_().clamp_(min=0)
+                ref = ref + torch.mul(on[k], theta_on, out=step_on)
+                ref -= torch.mul(off[k], theta_off, out=step_off)
             ctx.save_for_backward(on, off, theta_on, theta_off)
             return on, off
 
@@ -237,21 +245,70 @@ def rgb_to_luma(rgb: "torch.Tensor") -> "torch.Tensor":
     return LUMA_WEIGHTS[0] * r + LUMA_WEIGHTS[1] * g + LUMA_WEIGHTS[2] * b
 
 
-def _log_video(video, intensity_scale: float, lin_log_threshold: float):
+def log_intensity(
+    video,
+    *,
+    intensity_scale: float = 255.0,
+    lin_log_threshold: float = LIN_LOG_THRESHOLD,
+) -> "torch.Tensor":
+    """The log video the counts are taken from: v2e's lin-log of ``intensity_scale · Y`` (differentiable).
+
+    Compute it once and pass it to :func:`log_histograms` when several count modes of one video are needed
+    (the attack's exact counts and their relaxed surrogate): :func:`v2e_histograms` equals
+    ``log_histograms(log_intensity(video), ...)``.
+
+    Args:
+        video: linear intensity, float tensor [T, H, W] or RGB [T, 3, H, W], T ≥ 2 (gradients flow to it).
+        intensity_scale: the video is multiplied by this before the lin-log (255: [0, 1] → 8-bit DN).
+        lin_log_threshold: lin-log knee in scaled units.
+
+    Returns:
+        Float tensor [T, H, W], log units, the video's dtype and device (the simulator's exact values).
+
+    Raises:
+        ShapeError: bad video shape. FormatError: non-float video.
+    """
     torch = _torch()
     if not isinstance(video, torch.Tensor):
         video = torch.as_tensor(np.asarray(video))
     if video.ndim == 4:
         video = rgb_to_luma(video)
-    if video.ndim != 3:
-        raise ShapeError(f"video: expected [T, H, W] or RGB [T, 3, H, W], got {tuple(video.shape)}")
-    if not video.dtype.is_floating_point:
-        raise FormatError(f"video: expected a float tensor of linear intensity, got {video.dtype}")
-    if video.shape[0] < 2:
-        raise ShapeError(f"video: expected at least 2 frames, got {video.shape[0]}")
+    _check_frames(video, "video", "[T, H, W] or RGB [T, 3, H, W]")
     if video.requires_grad:
         return _lin_log_fn().apply(video, float(intensity_scale), float(lin_log_threshold))
     return lin_log(video * intensity_scale, lin_log_threshold)
+
+
+def _check_frames(frames, name: str, expected: str) -> None:
+    """Raise unless ``frames`` is a float tensor [T, H, W] with T ≥ 2."""
+    if frames.ndim != 3:
+        raise ShapeError(f"{name}: expected {expected}, got {tuple(frames.shape)}")
+    if not frames.dtype.is_floating_point:
+        raise FormatError(f"{name}: expected a float tensor, got {frames.dtype}")
+    if frames.shape[0] < 2:
+        raise ShapeError(f"{name}: expected at least 2 frames, got {frames.shape[0]}")
+
+
+def _log_counts(log_video, mode: str, threshold_on, threshold_off):
+    """ON / OFF counts [T-1, H, W] of a log video [T, H, W] in ``mode`` (see :func:`v2e_counts`)."""
+    torch = _torch()
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    if mode == "dvs":
+        theta_on = torch.as_tensor(threshold_on, dtype=log_video.dtype, device=log_video.device)
+        theta_off = torch.as_tensor(threshold_off, dtype=log_video.dtype, device=log_video.device)
+        return _dvs_fn().apply(log_video, theta_on, theta_off)
+    if not (isinstance(threshold_on, (int, float)) and isinstance(threshold_off, (int, float))
+            and threshold_on == threshold_off):
+        raise ValueError(f"mode {mode!r} uses one threshold θ: expected equal float thresholds, "
+                         f"got on={threshold_on!r}, off={threshold_off!r}")
+    s_hat = (log_video - log_video[0]) / threshold_on
+    s = floor_ste(s_hat) if mode == "floor" else s_hat
+    d = s[1:] - s[:-1]
+    on, off = torch.relu(d), torch.relu(-d)
+    if mode == "official_relaxed":
+        on, off = on * OFFICIAL_RELAXED_SCALE, off * OFFICIAL_RELAXED_SCALE
+    return on, off
 
 
 def v2e_counts(
@@ -288,25 +345,8 @@ def v2e_counts(
         >>> on.flatten().tolist(), off.flatten().tolist()
         ([2.0, 0.0], [0.0, 2.0])
     """
-    torch = _torch()
-    if mode not in MODES:
-        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
-    log_video = _log_video(video, intensity_scale, lin_log_threshold)
-    if mode == "dvs":
-        theta_on = torch.as_tensor(threshold_on, dtype=log_video.dtype, device=log_video.device)
-        theta_off = torch.as_tensor(threshold_off, dtype=log_video.dtype, device=log_video.device)
-        return _dvs_fn().apply(log_video, theta_on, theta_off)
-    if not (isinstance(threshold_on, (int, float)) and isinstance(threshold_off, (int, float))
-            and threshold_on == threshold_off):
-        raise ValueError(f"mode {mode!r} uses one threshold θ: expected equal float thresholds, "
-                         f"got on={threshold_on!r}, off={threshold_off!r}")
-    s_hat = (log_video - log_video[0]) / threshold_on
-    s = floor_ste(s_hat) if mode == "floor" else s_hat
-    d = s[1:] - s[:-1]
-    on, off = torch.relu(d), torch.relu(-d)
-    if mode == "official_relaxed":
-        on, off = on * OFFICIAL_RELAXED_SCALE, off * OFFICIAL_RELAXED_SCALE
-    return on, off
+    log_video = log_intensity(video, intensity_scale=intensity_scale, lin_log_threshold=lin_log_threshold)
+    return _log_counts(log_video, mode, threshold_on, threshold_off)
 
 
 def _rvt_bins(t_us: np.ndarray, t0_us: int, t1_us: int, num_bins: int) -> np.ndarray:
@@ -413,9 +453,51 @@ def v2e_histograms(
     Raises:
         ShapeError, FormatError, ValueError: see :func:`v2e_counts` and :func:`pair_bins`.
     """
+    log_video = log_intensity(video, intensity_scale=intensity_scale, lin_log_threshold=lin_log_threshold)
+    return log_histograms(log_video, t_us, window_end_us, mode=mode, binning=binning, window_us=window_us,
+                          num_bins=num_bins, count_cutoff=count_cutoff, threshold_on=threshold_on,
+                          threshold_off=threshold_off)
+
+
+def log_histograms(
+    log_video,
+    t_us,
+    window_end_us,
+    *,
+    mode: str = "dvs",
+    binning: str = "interval",
+    window_us: int = WINDOW_US,
+    num_bins: int = NUM_BINS,
+    count_cutoff: float | None = COUNT_CUTOFF,
+    threshold_on=DEFAULT_THRESHOLD,
+    threshold_off=DEFAULT_THRESHOLD,
+) -> "torch.Tensor":
+    """:func:`v2e_histograms` of a video already in log units (:func:`log_intensity`), differentiable w.r.t. it.
+
+    Args:
+        log_video: float tensor [T, H, W], log units, T ≥ 2.
+        t_us, window_end_us, mode, binning, window_us, num_bins, count_cutoff, threshold_on, threshold_off: see
+            :func:`v2e_histograms`.
+
+    Returns:
+        Float tensor [Wn, 2·B, H, W] (channel ``p·B + b``; p = 0 OFF, 1 ON), ``log_video``'s dtype and device.
+
+    Raises:
+        ShapeError, FormatError, ValueError: see :func:`v2e_counts` and :func:`pair_bins`.
+
+    Example:
+        >>> import torch
+        >>> log_video = torch.tensor([0.0, 0.45, 0.0]).reshape(3, 1, 1)  # up 2 θ, then down 2 θ
+        >>> hist = log_histograms(log_video, [0, 25_000, 50_000], 50_000)
+        >>> off, on = hist[0, :, 0, 0].reshape(2, 10).tolist()  # channel p·B + b: OFF bins, then ON bins
+        >>> on.index(2.0), off.index(2.0)  # 2 ON in pair 0-25 ms (bin 2), 2 OFF in pair 25-50 ms (bin 7)
+        (2, 7)
+    """
     torch = _torch()
-    on, off = v2e_counts(video, mode=mode, threshold_on=threshold_on, threshold_off=threshold_off,
-                         intensity_scale=intensity_scale, lin_log_threshold=lin_log_threshold)
+    if not isinstance(log_video, torch.Tensor):
+        raise FormatError(f"log_video: expected a torch tensor, got {type(log_video).__name__}")
+    _check_frames(log_video, "log_video", "[T, H, W]")
+    on, off = _log_counts(log_video, mode, threshold_on, threshold_off)
     t = np.asarray(t_us.detach().cpu().numpy() if hasattr(t_us, "detach") else t_us)
     if t.shape != (on.shape[0] + 1,):
         raise ShapeError(f"t_us: expected shape ({on.shape[0] + 1},) like the video's T, got {t.shape}")
@@ -429,10 +511,11 @@ def v2e_histograms(
     hist = torch.zeros((n_windows * 2 * num_bins, height, width), dtype=on.dtype, device=on.device)
     if p_idx.size:
         device = on.device
-        pairs = torch.as_tensor(p_idx, device=device)
         channel_off = torch.as_tensor(w_idx * 2 * num_bins + b_idx, device=device)
-        hist = hist.index_add(0, channel_off, off.index_select(0, pairs))
-        hist = hist.index_add(0, channel_off + num_bins, on.index_select(0, pairs))
+        if not np.array_equal(p_idx, np.arange(on.shape[0])):  # else every pair once, in order: no gather
+            pairs = torch.as_tensor(p_idx, device=device)
+            on, off = on.index_select(0, pairs), off.index_select(0, pairs)
+        hist.index_add_(0, channel_off, off).index_add_(0, channel_off + num_bins, on)
     hist = hist.reshape(n_windows, 2 * num_bins, height, width)
     if count_cutoff is not None:
         hist = torch.clamp(hist, max=float(count_cutoff))

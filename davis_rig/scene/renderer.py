@@ -71,6 +71,9 @@ class RasterizedMesh:
     def compose(self, values, background):
         """Composite per-sample texture values over a background (differentiable in both).
 
+        Equals ``backdrop(background, dtype) + person(values)`` (a clip re-rendered with many textures keeps
+        its :meth:`backdrop`).
+
         Args:
             values: float tensor [N] (texture value per covered sample, e.g. ``lookup.sample(T)``), or
                 ``None`` for an all-white texture.
@@ -82,22 +85,53 @@ class RasterizedMesh:
         Raises:
             ShapeError: sizes do not match.
         """
+        person = self.person(values)
+        return self.backdrop(background, person.dtype) + person
+
+    def backdrop(self, background, dtype=None):
+        """The visible part of the background, ``B (1 - alpha)`` (texture-independent; differentiable in ``B``).
+
+        Args:
+            background: float tensor/array [H, W] or [T, H, W] (linear intensity).
+            dtype: result dtype (default: the coverage's).
+
+        Returns:
+            float tensor [T, H, W].
+
+        Raises:
+            ShapeError: the background's size does not match.
+        """
         torch = _torch()
         h, w = self.hw
         t = self.num_frames
-        dtype = self.coverage.dtype
+        dtype = dtype or self.coverage.dtype
         bg = torch.as_tensor(background, device=self.coverage.device)
         if not torch.is_floating_point(bg):
-            bg = bg.to(dtype)
+            bg = bg.to(self.coverage.dtype)
         if tuple(bg.shape) not in ((h, w), (t, h, w)):
             raise ShapeError(f"background must be [{h}, {w}] or [{t}, {h}, {w}], got {tuple(bg.shape)}")
+        return bg.to(dtype) * (1 - self.coverage.to(dtype))
+
+    def person(self, values):
+        """The textured body's share of every pixel, ``alpha * mean(shade * T)`` (differentiable in ``values``).
+
+        Args:
+            values: float tensor [N] (texture value per covered sample), or ``None`` for an all-white texture.
+
+        Returns:
+            float tensor [T, H, W] in the dtype of ``shade * values``.
+
+        Raises:
+            ShapeError: ``values`` is not one value per covered sample.
+        """
+        torch = _torch()
+        h, w = self.hw
         if values is not None and tuple(values.shape) != tuple(self.shade.shape):
             raise ShapeError(f"values must be [{self.shade.shape[0]}], got {tuple(values.shape)}")
         lit = self.shade if values is None else self.shade.to(values.dtype) * values
-        out_dtype = lit.dtype
-        person = torch.zeros(t * h * w, dtype=out_dtype, device=lit.device).index_add(0, self.sample_pixel, lit)
-        person = person.view(t, h, w) / float(self.supersample**2)
-        return bg.to(out_dtype) * (1 - self.coverage.to(out_dtype)) + person
+        person = torch.zeros(self.num_frames * h * w, dtype=lit.dtype, device=lit.device)
+        person.index_add_(0, self.sample_pixel, lit)
+        return person.view(self.num_frames, h, w) / float(self.supersample**2)
 
     def render(self, texture=None, background=0.5, mode: str = "nearest", mask=None, size: int = 1024, fill=1.0):
         """One-shot texture lookup + :meth:`compose` (build the lookup once yourself when iterating).

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from davis_rig.attack.eot import ClipPool, EoTConfig, draw_scene, slot_seed, split_shapes
+from davis_rig.attack.eot import ClipPool, EoTConfig, draw_scene, prepare_clip, slot_seed, split_shapes
 from davis_rig.attack.optimize import AttackConfig, _better, load_attack_detector, optimize_texture
 from davis_rig.errors import CheckpointError
 from davis_rig.models.rvt.checkpoint import load_detector
@@ -91,7 +91,8 @@ def test_pool_rebuilds_from_generations_and_splits_slots(body):
         assert again.clips[slot].seed == pool.clips[slot].seed
         assert torch.equal(again.clips[slot].lookup.index, pool.clips[slot].lookup.index)
         assert torch.equal(again.clips[slot].raster.shade, pool.clips[slot].raster.shade)
-        assert torch.equal(again.clips[slot].noise_index, pool.clips[slot].noise_index)
+        assert torch.equal(again.clips[slot].noise_cell, pool.clips[slot].noise_cell)
+        assert torch.equal(again.clips[slot].noise_count, pool.clips[slot].noise_count)
     half = ClipPool(TINY_EOT, body, 4, size=3, base_seed=5, rank=1, world_size=2)
     assert sorted(half.clips) == [1]
     assert half.clips[1].seed == ClipPool(TINY_EOT, body, 4, size=3, base_seed=5).clips[1].seed
@@ -235,6 +236,65 @@ def test_clip_histograms_forward_exact_backward_by_rule(body):
         clip_histograms(grid, clip, gradient="soft")
     with pytest.raises(ValueError, match="v2e_gradient"):
         AttackConfig(v2e_gradient="soft")
+
+
+def test_pool_clip_video_equals_the_full_raster_composite(body):
+    # the pool clip keeps background * (1 - coverage) and drops the coverage: same video and gradient, bit for bit
+    from davis_rig.scene.scene import render_clip
+
+    spec, sensor = draw_scene(TINY_EOT, 7, body.num_shapes)
+    clip = prepare_clip(spec, sensor, body, 4, config=TINY_EOT)
+    full = render_clip(spec, None, model=body)
+    lookup = full.raster.lookup(size=1024, mode="nearest", grid_n=4)
+    weight = torch.randn(full.raster.num_frames, *full.raster.hw, generator=torch.Generator().manual_seed(2))
+    grids, videos = [], []
+    for render in (clip.video, lambda g: full.raster.compose(lookup.sample(g, fill=1.0), full.background)):
+        grids.append(torch.rand(4, 4, generator=torch.Generator().manual_seed(0)).requires_grad_(True))
+        videos.append(render(grids[-1]))
+        videos[-1].backward(weight)
+    assert clip.raster.coverage is None
+    assert torch.equal(videos[0], videos[1]) and torch.equal(grids[0].grad, grids[1].grad)
+
+
+@pytest.mark.parametrize("rule", ["relaxed", "ste"])
+def test_clip_histograms_equals_the_two_pass_computation(body, rule):
+    # a step takes the exact counts and the relaxed surrogate from one log video and adds the noise per cell; the
+    # plain computation (V2E of the video once per count mode, a dense histogram of the noise events) gives the
+    # same bits, forward and backward
+    from davis_rig.attack.optimize import clip_histograms
+    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, v2e_histograms
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    clip = replace(clip, noise_count=clip.noise_count + torch.arange(clip.noise_count.numel()) % 3)  # 1 .. 3 per cell
+    assert clip.noise_count.numel() > 100
+    grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
+    weight = torch.randn(3, 20, *clip.raster.hw, generator=torch.Generator().manual_seed(1))
+    shared = grid.clone().requires_grad_(True)
+    hist = clip_histograms(shared, clip, gradient=rule)
+    hist.backward(weight)
+
+    events = clip.noise_cell.repeat_interleave(clip.noise_count.long())
+    noise = torch.zeros(weight.numel()).index_add_(0, events, torch.ones(events.numel())).view_as(weight)
+
+    def exact(video):
+        counts = v2e_histograms(video, clip.t_us, clip.window_end_us, count_cutoff=None,
+                                threshold_on=clip.threshold, threshold_off=clip.threshold)
+        return torch.clamp(counts + noise, max=10.0)
+
+    two_pass = grid.clone().requires_grad_(True)
+    video = clip.video(two_pass)
+    if rule == "ste":
+        expected = exact(video)
+    else:
+        with torch.no_grad():
+            counts = exact(video)
+        theta = float(clip.threshold.mean())
+        surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", count_cutoff=None,
+                                   threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+        expected = surrogate + (counts - surrogate).detach()
+    expected.backward(weight)
+    assert torch.equal(hist, expected) and torch.equal(shared.grad, two_pass.grad)
+    assert shared.grad.abs().sum() > 0
 
 
 def test_load_attack_detector_defaults_to_bundled_weights(monkeypatch, tmp_path):

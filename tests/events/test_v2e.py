@@ -223,7 +223,7 @@ def test_dvs_gradient_follows_the_straight_through_surrogate():
 
 @pytest.mark.parametrize("per_pixel", [False, True])
 def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
-    from davis_rig.events.v2e_torch import _dvs_counts_unrolled, _log_video
+    from davis_rig.events.v2e_torch import _dvs_counts_unrolled, log_intensity
 
     video = torch.tensor(moving_scene(25, 9, 14, seed=3), requires_grad=True)
     rng = np.random.default_rng(0)
@@ -234,7 +234,7 @@ def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
     ((on * w_on).sum() + (off * w_off).sum()).backward()
     fused = video.grad.clone()
     video.grad = None
-    on_ref, off_ref = _dvs_counts_unrolled(_log_video(video, 255.0, 20.0), theta_on, theta_off)
+    on_ref, off_ref = _dvs_counts_unrolled(log_intensity(video, lin_log_threshold=20.0), theta_on, theta_off)
     ((on_ref * w_on).sum() + (off_ref * w_off).sum()).backward()
     assert torch.equal(on, on_ref) and torch.equal(off, off_ref) and on.sum() > 100
     assert torch.allclose(fused, video.grad, rtol=1e-12, atol=1e-12) and fused.abs().sum() > 0
@@ -242,10 +242,10 @@ def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
 
 def test_fused_lin_log_equals_autograd_of_lin_log():
     from davis_rig.events.simulator import lin_log
-    from davis_rig.events.v2e_torch import _log_video
+    from davis_rig.events.v2e_torch import log_intensity
 
     x = torch.tensor([[[0.0, 0.01, 20 / 255, 0.2]], [[0.5, 0.9, 1.0, 1.3]]], dtype=torch.float64, requires_grad=True)
-    y = _log_video(x, 255.0, 20.0)
+    y = log_intensity(x, lin_log_threshold=20.0)
     assert torch.equal(y, lin_log(x.detach() * 255.0))
     y.backward(torch.arange(8.0, dtype=torch.float64).reshape(2, 1, 4))
     fused = x.grad.clone()
