@@ -27,7 +27,7 @@ HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
 ORDER = ("decode", "usb_pipeline", "io", "representation", "model", "rvt_eager", "evaluation", "body", "motion",
-         "render", "v2e", "synthetic", "train_step", "attack_step")
+         "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
@@ -42,6 +42,7 @@ QUICK_ARGS = {
     "motion": ["--repeats", "3"],
     "render": ["--repeats", "3"],
     "v2e": ["--repeats", "3"],
+    "digital_cost": ["--quick"],
     "synthetic": ["--scenes", "2", "--seconds", "0.5"],
     "train_step": ["--repeats", "2"],
     "attack_step": ["--repeats", "2"],

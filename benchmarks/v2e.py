@@ -12,8 +12,10 @@ CUDA when available):
   on the padded histogram, backward of the sum of the decoded head output into the input (what an attack step
   costs in the detector).
 
-Ratios printed: V2E fwd+bwd / RVT-B fwd+bwd (the goal: rendering + V2E ≤ 10 % of the detector's cost; the
-rendering share comes from ``benchmarks/render.py``).
+Ratios printed: V2E fwd+bwd / RVT-B fwd+bwd per count mode. The attack runs none of these cases alone (its
+default is the exact "dvs" counts without grad plus the relaxed surrogate's forward and backward, from one log
+video): ``benchmarks/digital_cost.py`` times that, with the rendering, against the goal (rendering + V2E ≤ 10 %
+of the detector's cost).
 
 Run: ``python benchmarks/v2e.py [--repeats N] [--threads 1 2] [--no-cuda]``.
 """
