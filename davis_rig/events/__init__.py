@@ -12,12 +12,13 @@ Importing this package does not import torch: the names of the last three module
 from __future__ import annotations
 
 from davis_rig._lazy import lazy_exports
-from davis_rig.events.crop import center_crop_origin, crop_events, monotonic_timestamps
+from davis_rig.events.crop import center_crop_origin, crop_events
 from davis_rig.events.histogram import (
     COUNT_CUTOFF,
     NUM_BINS,
     WINDOW_US,
     event_columns,
+    monotonic_timestamps,
     regular_window_ends,
     stacked_histogram,
     stacked_histograms,

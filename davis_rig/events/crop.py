@@ -1,4 +1,4 @@
-"""Crop DAVIS346 events to the RVT frame, and make timestamps non-decreasing like RVT's reader.
+"""Crop DAVIS346 events to the RVT frame (346x260 -> 304x240), dropping the events outside.
 
 The paper crops the DAVIS346's 346x260 output to RVT's 304x240 input; the offset is not stated, so the
 default is the centred crop (origin x=21, y=10) and any other origin can be passed.
@@ -11,7 +11,7 @@ import numpy as np
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
 
-__all__ = ["center_crop_origin", "crop_events", "monotonic_timestamps"]
+__all__ = ["center_crop_origin", "crop_events"]
 
 
 def center_crop_origin(sensor_hw: tuple[int, int] = DAVIS346_HW, frame_hw: tuple[int, int] = RVT_HW) -> tuple[int, int]:
@@ -75,16 +75,3 @@ def crop_events(
     out["y"] = y[inside] - y0
     out["p"] = events["p"][inside]
     return out
-
-
-def monotonic_timestamps(t_us) -> np.ndarray:
-    """Replace every timestamp smaller than the running maximum by that maximum (RVT's ``_correct_time``).
-
-    Args:
-        t_us: timestamps, int µs, shape [N].
-
-    Returns:
-        New int64 array [N], non-decreasing.
-    """
-    t_us = np.asarray(t_us, dtype=np.int64)
-    return np.maximum.accumulate(t_us) if t_us.size else t_us.copy()

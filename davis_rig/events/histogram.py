@@ -14,7 +14,7 @@ Windows are both-ends inclusive: events with ``t_end - window_us <= t <= t_end``
 
 Before windowing, the official reader makes the timestamps of a whole recording non-decreasing
 (``H5Reader._correct_time``: a timestamp below the running maximum is raised to it); here that is opt-in,
-:func:`corrected_timestamps` / ``stacked_histograms(..., correct_time=True)``.
+:func:`monotonic_timestamps` / ``stacked_histograms(..., correct_time=True)``.
 
 This module imports numpy only (no torch): it is used on the capture/scoring path.
 """
@@ -43,7 +43,7 @@ __all__ = [
     "COUNT_CUTOFF",
     "NUM_BINS",
     "WINDOW_US",
-    "corrected_timestamps",
+    "monotonic_timestamps",
     "event_columns",
     "regular_window_ends",
     "stacked_histogram",
@@ -231,7 +231,7 @@ def regular_window_ends(t_start_us: int, t_stop_us: int, *, window_us: int = WIN
     return np.arange(first_end, int(t_stop_us) + 1, int(step_us), dtype=np.int64)
 
 
-def corrected_timestamps(t_us) -> np.ndarray:
+def monotonic_timestamps(t_us) -> np.ndarray:
     """The official out-of-order timestamp correction: each timestamp is raised to the running maximum.
 
     RVT's reader (``scripts/genx/preprocess_dataset.py::H5Reader._correct_time``) walks a recording's
@@ -251,7 +251,7 @@ def corrected_timestamps(t_us) -> np.ndarray:
         FormatError: ``t_us`` is not an integer array.
 
     Example:
-        >>> corrected_timestamps([0, 10, 5, 20, 15]).tolist()
+        >>> monotonic_timestamps([0, 10, 5, 20, 15]).tolist()
         [0, 10, 10, 20, 20]
     """
     t_us = _column("t_us", t_us, None).astype(np.int64, copy=False)
@@ -310,7 +310,7 @@ def stacked_histograms(
         window_us: window duration, µs.
         height, width, num_bins, count_cutoff: as in :func:`stacked_histogram`.
         correct_time: first make the timestamps non-decreasing as the official reader does
-            (:func:`corrected_timestamps`, running maximum over ``events``), then window. Pass the whole recording
+            (:func:`monotonic_timestamps`, running maximum over ``events``), then window. Pass the whole recording
             (or a part that starts at its beginning) to get the official windows; the caller's arrays are not
             modified.
 
@@ -322,7 +322,7 @@ def stacked_histograms(
             inside a window raise FormatError).
     """
     x, y, t_us, p = event_columns(events)
-    t_us = corrected_timestamps(t_us) if correct_time else _column("t_us", t_us, None)
+    t_us = monotonic_timestamps(t_us) if correct_time else _column("t_us", t_us, None)
     ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
     if ends.ndim != 1:
         raise ShapeError(f"window_end_us: expected a scalar or shape [T], got {ends.shape}")

@@ -15,7 +15,7 @@ from davis_rig.events import (
     time_bins,
     window_indices,
 )
-from davis_rig.events.histogram import corrected_timestamps
+from davis_rig.events.histogram import monotonic_timestamps
 from davis_rig.types import make_events
 
 
@@ -195,22 +195,22 @@ def _official_correct_time(t_us):
     return time_array
 
 
-def test_corrected_timestamps_is_the_running_maximum():
+def test_monotonic_timestamps_is_the_running_maximum():
     t_us = np.array([0, 10, 5, 20, 15, 15, 30, 29, 31], np.int64)
     before = t_us.copy()
-    corrected = corrected_timestamps(t_us)
+    corrected = monotonic_timestamps(t_us)
     np.testing.assert_array_equal(corrected, [0, 10, 10, 20, 20, 20, 30, 30, 31])
     np.testing.assert_array_equal(corrected, _official_correct_time(t_us))
     np.testing.assert_array_equal(t_us, before)  # input untouched
     assert corrected.dtype == np.int64
-    np.testing.assert_array_equal(corrected_timestamps(np.array([3, 1, 2], np.uint32)), [3, 3, 3])
-    assert corrected_timestamps(np.zeros(0, np.int64)).shape == (0,)
+    np.testing.assert_array_equal(monotonic_timestamps(np.array([3, 1, 2], np.uint32)), [3, 3, 3])
+    assert monotonic_timestamps(np.zeros(0, np.int64)).shape == (0,)
     rng = np.random.default_rng(0)
     jittered = np.cumsum(rng.integers(0, 50, 2000)) + rng.integers(-200, 200, 2000)
     jittered[0] = 0
-    np.testing.assert_array_equal(corrected_timestamps(jittered), _official_correct_time(jittered))
+    np.testing.assert_array_equal(monotonic_timestamps(jittered), _official_correct_time(jittered))
     with pytest.raises(FormatError, match="integer"):
-        corrected_timestamps([0.5, 1.0])
+        monotonic_timestamps([0.5, 1.0])
 
 
 def test_stacked_histograms_correct_time_applies_the_official_rule_before_windowing():

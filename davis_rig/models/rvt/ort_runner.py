@@ -291,7 +291,7 @@ class RVTOnnxRunner:
             return_states: also return the states after the last window (to continue a long recording
                 chunk by chunk).
             correct_time: make out-of-order timestamps non-decreasing first, as the official reader does
-                (running maximum over the given stream, ``events.histogram.corrected_timestamps``).
+                (running maximum over the given stream, ``events.histogram.monotonic_timestamps``).
 
         Returns:
             One entry per window: float32 [K, 7] ``(x1, y1, x2, y2, obj, class_conf, class_id)`` by decreasing
