@@ -52,8 +52,6 @@ from davis_rig.errors import ShapeError
 
 __all__ = ["Fragments", "SparseFragments", "rasterize", "rasterize_sparse"]
 
-_NO_KEY = (1 << 63) - 1
-
 
 def _torch():
     return optional_import("torch", "the rasterizer")
@@ -199,10 +197,11 @@ def rasterize_sparse(
         return result
     with torch.no_grad():
         scale = torch.tensor([s, s, 1.0], dtype=dtype, device=device)
-        # coordinate-major [3, T, V] so each corner gather is one contiguous index_select
-        comp = (vertices_px * scale).permute(2, 0, 1).contiguous()
+        # coordinate-major [3 T, V] so each corner gather is one index_select along the last dim of a 2-D tensor
+        # (3-4x faster than the same gather along dim 2 of [3, T, V] on CPU)
+        comp = (vertices_px * scale).permute(2, 0, 1).reshape(3 * n_frames, -1)
         fl = faces.long()
-        c0, c1, c2 = (comp.index_select(2, fl[:, k]) for k in range(3))  # each [3, T, F]
+        c0, c1, c2 = (comp.index_select(1, fl[:, k]).view(3, n_frames, n_faces) for k in range(3))  # each [3, T, F]
         x0_, x1_, x2_ = c0[0], c1[0], c2[0]
         y0_, y1_, y2_ = c0[1], c1[1], c2[1]
         area = (x1_ - x0_) * (y2_ - y0_) - (x2_ - x0_) * (y1_ - y0_)
@@ -237,6 +236,11 @@ def rasterize_sparse(
             ]
         table = torch.stack(coeffs + [pick(bw)], dim=1)  # [L, 7]
         z_table = torch.stack([pick(c0[2]), pick(c1[2]), pick(c2[2])], dim=1)  # [L, 3]
+        # the z-buffer spans only the union of the live bounding boxes (a slot per sample of that window in every
+        # frame): a buffer of all T*H s*W s samples costs more in page faults than the rest of the z-buffer
+        box_x0, box_y0 = int(ox.min()), int(oy.min())
+        box_w = int((ox + pick(bw)).max()) - box_x0
+        box_h = int((oy + pick(bh)).max()) - box_y0
         # chunks of faces with <= max_pairs candidate pairs each (a single huge face forms its own chunk)
         cumulative = torch.cumsum(counts, 0)
         bounds = [0]
@@ -247,7 +251,7 @@ def rasterize_sparse(
             bounds += [c for c in cuts if 0 < c < live.numel()]
         bounds.append(live.numel())
         bounds = sorted(set(bounds))
-        found = {"row": [], "sample": [], "b": []}
+        found = {"row": [], "sample": [], "slot": [], "b": []}
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             cnt = counts[lo:hi]
             n = int(cnt.sum())
@@ -273,6 +277,7 @@ def rasterize_sparse(
             py = oy.index_select(0, row).long() + dy.index_select(0, sel)
             found["row"].append(row)
             found["sample"].append(frame * (hs * ws) + py * ws + px)
+            found["slot"].append(frame * (box_h * box_w) + (py - box_y0) * box_w + (px - box_x0))
             found["b"].append(torch.stack([b0.index_select(0, sel), b1.index_select(0, sel), b2.index_select(0, sel)], 1))
         if not found["row"]:
             return result
@@ -282,11 +287,13 @@ def rasterize_sparse(
         depth = 1.0 / w_persp.sum(dim=1)
         face_frame = live.index_select(0, row)
         face = face_frame - torch.div(face_frame, n_faces, rounding_mode="floor") * n_faces
-        # z-buffer over the candidate samples only: unique (depth, face) keys, minimum per sample wins
+        # z-buffer over the candidate samples only: unique (depth, face) keys, minimum per sample wins. Only the
+        # slots of candidate samples are written (include_self=False) and read, so the buffer is left uninitialised
         key = (depth.float().view(torch.int32).long() << 32) | face
-        zbuf = torch.full((n_frames * hs * ws,), _NO_KEY, dtype=torch.int64, device=device)
-        zbuf.scatter_reduce_(0, sample, key, reduce="amin")
-        win = torch.nonzero(key == zbuf.index_select(0, sample)).squeeze(1)
+        slot = torch.cat(found["slot"])
+        zbuf = torch.empty((n_frames * box_h * box_w,), dtype=torch.int64, device=device)
+        zbuf.scatter_reduce_(0, slot, key, reduce="amin", include_self=False)
+        win = torch.nonzero(key == zbuf.index_select(0, slot)).squeeze(1)
         result.sample = sample.index_select(0, win)
         result.face = face.index_select(0, win)
         result.bary = w_persp.index_select(0, win) * depth.index_select(0, win)[:, None]

@@ -212,14 +212,23 @@ def boxes_from_points(points_px, hw: tuple[int, int]) -> np.ndarray:
         float32 [T, 4] ``(x0, y0, x1, y1)``; NaN rows where a point is behind the camera or the box
         misses the frame.
     """
-    p = np.asarray(points_px.detach().cpu() if hasattr(points_px, "detach") else points_px, dtype=np.float64)
     h, w = hw
-    lo = p[..., :2].min(axis=1)
-    hi = p[..., :2].max(axis=1)
+    if hasattr(points_px, "detach") and points_px.is_floating_point():
+        # reduce in the tensor's own dtype, then widen: the same float64 extremes (the widening is exact and
+        # monotonic) without a float64 copy of every point and a strided numpy reduction (~20 ms per clip)
+        q = points_px.detach()
+        lo = q[..., :2].amin(dim=1).cpu().double().numpy()
+        hi = q[..., :2].amax(dim=1).cpu().double().numpy()
+        behind = (q[..., 2] <= 0).any(dim=1).cpu().numpy()
+    else:
+        p = np.asarray(points_px.detach().cpu() if hasattr(points_px, "detach") else points_px, dtype=np.float64)
+        lo = p[..., :2].min(axis=1)
+        hi = p[..., :2].max(axis=1)
+        behind = (p[..., 2] <= 0).any(axis=1)
     out = np.stack(
         [np.clip(lo[:, 0], 0, w), np.clip(lo[:, 1], 0, h), np.clip(hi[:, 0], 0, w), np.clip(hi[:, 1], 0, h)], axis=1
     ).astype(np.float32)
-    bad = (p[..., 2] <= 0).any(axis=1) | (out[:, 2] <= out[:, 0]) | (out[:, 3] <= out[:, 1])
+    bad = behind | (out[:, 2] <= out[:, 0]) | (out[:, 3] <= out[:, 1])
     out[bad] = np.nan
     return out
 
