@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -10,18 +9,6 @@ from pathlib import Path
 import pytest
 
 _DIR = Path(__file__).resolve().parents[2] / "benchmarks"
-
-
-@pytest.fixture(scope="module")
-def digital_cost():
-    sys.path.insert(0, str(_DIR))  # the script imports _common as the scripts do
-    try:
-        spec = importlib.util.spec_from_file_location("benchmarks_digital_cost", _DIR / "digital_cost.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.path.remove(str(_DIR))
 
 
 def test_clips_prepared_per_step_counts_the_pool_and_every_refresh(digital_cost):

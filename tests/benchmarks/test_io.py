@@ -3,26 +3,9 @@ a tiny end-to-end run through the real driver, so the capture benchmark keeps ru
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
-from pathlib import Path
 
 import pytest
-
-_DIR = Path(__file__).resolve().parents[2] / "benchmarks"
-
-
-@pytest.fixture(scope="module")
-def bench_io():
-    sys.path.insert(0, str(_DIR))  # io.py imports _common as the scripts do
-    try:
-        spec = importlib.util.spec_from_file_location("benchmarks_io", _DIR / "io.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.path.remove(str(_DIR))
 
 
 def test_queue_depth_is_whole_reads_of_the_nominal_capacity(bench_io):

@@ -2,26 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
 from pathlib import Path
 
-import pytest
-
 _DIR = Path(__file__).resolve().parents[2] / "benchmarks"
-
-
-@pytest.fixture(scope="module")
-def run_all():
-    sys.path.insert(0, str(_DIR))  # run_all imports _common as the scripts do
-    try:
-        spec = importlib.util.spec_from_file_location("benchmarks_run_all", _DIR / "run_all.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.path.remove(str(_DIR))
 
 
 def test_every_script_is_listed_once_and_in_order(run_all):
