@@ -1,9 +1,11 @@
 """Benchmark: session.h5 I/O — writer throughput, compression choice, and fake camera -> session.h5 in real time.
 
-Run: ``python benchmarks/io.py [--rate 12e6] [--seconds 2] [--repeats 3] [--queue-mib 8] [--skip-e2e | --e2e-only]``.
+Run: ``python benchmarks/io.py [--rate 12e6] [--seconds 2] [--repeats 3] [--queue-mib 8] [--reader both]
+[--skip-e2e | --e2e-only]``.
 Prints medians (after one warm-up) and the metadata needed to compare runs (commit, versions, threads, load
 average). The end-to-end part drives the real ``Davis346`` driver over the virtual USB backend, paced in device
-real time at ``--rate`` events/s, into ``record_session`` (decoder + writer + journal), with a reader queue of
+real time at ``--rate`` events/s, through the driver's ring of asynchronous transfers and/or its synchronous
+reads (``--reader``), into ``record_session`` (decoder + writer + journal), with a reader queue of
 ``--queue-mib`` (far less than the scene, so falling behind shows as dropped transfers). It reports, apart: the
 streaming phase (first to last chunk written) as a real-time factor (data s / wall s) with the lag behind real
 time at its end and CPU-s per data-s (``resource.getrusage``, whole process: the virtual device's serving thread
@@ -26,6 +28,7 @@ import numpy as np
 from _common import metadata_line
 
 from davis_rig.types import DAVIS346_HW, make_events
+from davis_rig.usb.async_bulk import DEFAULT_TRANSFER_BYTES, DEFAULT_TRANSFERS
 
 
 #: Default nominal reader-queue capacity of the end-to-end run, MiB: ~0.17 s of the synthetic scene's ~50 MB/s stream
@@ -183,13 +186,15 @@ class _TimedCamera:
         return chunk
 
 
-def end_to_end(events: np.ndarray, transfer_bytes: int, queue_bytes: int) -> dict:
+def end_to_end(events: np.ndarray, transfer_bytes: int, queue_bytes: int, usb_transfers: int) -> dict:
     """Paced virtual DAVIS346 -> Davis346 -> record_session; returns the measured figures.
 
     Args:
         events: the scene, EVENT_DTYPE [N], time-sorted (t µs).
-        transfer_bytes: largest device transfer, bytes; the driver reads ``max(transfer_bytes, 8192)`` at a time.
+        transfer_bytes: largest device transfer, bytes. Synchronous reads ask for ``max(transfer_bytes, 8192)``
+            at a time; the ring's transfers have the driver's default size.
         queue_bytes: nominal capacity of the driver's reader queue, bytes (converted to whole reads).
+        usb_transfers: asynchronous transfers in flight (the driver's ring); 0 = a thread of synchronous reads.
 
     Returns:
         Figures (names carry units); the streaming phase runs from the first to the last chunk written, start-up
@@ -203,14 +208,14 @@ def end_to_end(events: np.ndarray, transfer_bytes: int, queue_bytes: int) -> dic
 
     span_s = (int(events["t"][-1]) - int(events["t"][0])) / 1e6
     source = EncodedSource(events, layout=SensorLayout.davis346(), paced=True, transfer_bytes=transfer_bytes)
-    read_bytes = max(transfer_bytes, 8192)
+    read_bytes = DEFAULT_TRANSFER_BYTES if usb_transfers else max(transfer_bytes, 8192)
     queue_transfers = queue_depth(queue_bytes, read_bytes)
     device = VirtualDavis346(source=source)
     stop = threading.Event()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "e2e.h5"
         with Davis346.open(backend=VirtualDavis346Backend(device), read_bytes=read_bytes,
-                           queue_transfers=queue_transfers) as camera:
+                           queue_transfers=queue_transfers, usb_transfers=usb_transfers) as camera:
             timed = _TimedCamera(camera, source.total_bytes, stop)
             cpu0, t0 = _cpu_s(), time.perf_counter()
             summary = record_session(timed, path, stop_event=stop, duration_s=span_s * 5 + 10)
@@ -221,6 +226,7 @@ def end_to_end(events: np.ndarray, transfer_bytes: int, queue_bytes: int) -> dic
         raise RuntimeError(f"no complete stream recorded ({summary.events} events, stopped by {summary.stopped_by})")
     data_s, stream_wall_s, lag_s = streaming_figures(timed.first, timed.last)
     return {
+        "reader": f"ring of {usb_transfers} transfers" if usb_transfers else "synchronous reads",
         "events_in": len(events),
         "events_recorded": summary.events,
         "span_s": span_s,
@@ -247,7 +253,7 @@ def print_end_to_end(result: dict, transfer_bytes: int) -> None:
     """Print one end-to-end result as a few labelled lines."""
     queue_s = result["queue_transfers"] * min(result["read_bytes"], result["mean_read_bytes"]) / \
         result["data_bytes_per_s"]
-    print(f"transfers of {transfer_bytes // 1024:3d} KiB: queue {result['queue_transfers']} reads x <= "
+    print(f"device transfers of {transfer_bytes // 1024:3d} KiB, {result['reader']}: queue {result['queue_transfers']} x <= "
           f"{result['read_bytes'] // 1024} KiB ({result['queue_transfers'] * result['read_bytes'] / 2**20:.1f} MiB "
           f"nominal, ~{queue_s:.3f} s of this stream at its mean read of {result['mean_read_bytes'] / 1024:.1f} KiB)")
     print(f"  streaming: real-time factor {result['realtime_factor']:.3f} ({result['stream_data_s']:.3f} s of data "
@@ -288,7 +294,10 @@ def main(argv=None) -> int:
     parts = parser.add_mutually_exclusive_group()
     parts.add_argument("--skip-e2e", action="store_true", help="leave out the end-to-end capture run")
     parts.add_argument("--e2e-only", action="store_true", help="run only the end-to-end capture run")
+    parser.add_argument("--reader", choices=("ring", "sync", "both"), default="both",
+                        help="end to end: the driver's ring of asynchronous transfers, synchronous reads, or both")
     args = parser.parse_args(argv)
+    readers = {"ring": [DEFAULT_TRANSFERS], "sync": [0], "both": [DEFAULT_TRANSFERS, 0]}[args.reader]
 
     print(metadata())
     if not args.e2e_only:
@@ -298,7 +307,9 @@ def main(argv=None) -> int:
         print(f"\n== end to end: paced virtual DAVIS346 at {args.rate / 1e6:.1f} M ev/s for {args.seconds} s -> "
               "Davis346 -> record_session (decoder + writer + journal), one run per transfer size ==")
         for transfer_bytes in (8192, 131072):
-            print_end_to_end(end_to_end(events, transfer_bytes, int(args.queue_mib * 2**20)), transfer_bytes)
+            for usb_transfers in readers:
+                result = end_to_end(events, transfer_bytes, int(args.queue_mib * 2**20), usb_transfers)
+                print_end_to_end(result, transfer_bytes)
     return 0
 
 

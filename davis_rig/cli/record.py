@@ -13,6 +13,7 @@ import sys
 import threading
 
 from davis_rig.cli._common import EXIT_OK, EXIT_USAGE, run_command
+from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS
 
 NAME = "davis-record"
 
@@ -46,6 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "the recording ends with the replay (or earlier with --duration / Ctrl-C)")
     parser.add_argument("--fake-fast", action="store_true",
                         help="with --fake: serve the replay as fast as possible instead of in real time")
+    parser.add_argument("--usb-transfers", type=int, default=DEFAULT_TRANSFERS, metavar="N",
+                        help=f"asynchronous USB transfers kept in flight (default {DEFAULT_TRANSFERS}, like libcaer); "
+                             "0 = a thread of synchronous reads")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
     parser.add_argument("--no-journal", action="store_true",
                         help="do not keep the raw-transfer journal (no crash recovery)")
@@ -70,11 +74,11 @@ def fake_backend(replay: str, fast: bool = False):
     return VirtualDavis346Backend(device), exhausted
 
 
-def open_camera(serial: str | None, backend=None):
+def open_camera(serial: str | None, backend=None, usb_transfers: int = DEFAULT_TRANSFERS):
     """Open the camera (``backend=None``: real USB) and return the ``Davis346`` (a context manager)."""
     from davis_rig.device.camera import Davis346
 
-    return Davis346.open(serial=serial, backend=backend)
+    return Davis346.open(serial=serial, backend=backend, usb_transfers=usb_transfers)
 
 
 def _stop_when(condition, stop: threading.Event, grace_s: float = 0.5) -> threading.Thread:
@@ -114,7 +118,7 @@ def _record(args: argparse.Namespace) -> int:
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
     previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     try:
-        with open_camera(args.serial, backend) as camera:
+        with open_camera(args.serial, backend, args.usb_transfers) as camera:
             summary = record_session(
                 camera,
                 args.out,

@@ -12,7 +12,8 @@ Typical use (libcaer's client flow, PROTOCOL.md §7.3)::
         cam.stop()
 
 The camera object owns a :class:`~davis_rig.usb.transport.UsbTransport` (control + bulk), a
-:class:`~davis_rig.device.reader.TransferReader` thread while started, and a fresh
+:class:`~davis_rig.device.reader.RingReader` (asynchronous transfers in flight; a
+:class:`~davis_rig.device.reader.TransferReader` thread on backends without them) while started, and a fresh
 :class:`~davis_rig.protocol.decoder.StreamDecoder` per start (libcaer resets its parsers at ``dataStart``).
 """
 
@@ -29,6 +30,8 @@ from davis_rig.device.reader import (
     DEFAULT_QUEUE_TRANSFERS,
     DEFAULT_READ_BYTES,
     DEFAULT_READ_TIMEOUT_MS,
+    RingReader,
+    TransferQueue,
     TransferReader,
 )
 from davis_rig.errors import DeviceDisconnectedError, DeviceError
@@ -46,6 +49,7 @@ from davis_rig.protocol.sequences import (
     stop_sequence,
     timestamp_reset_pulse,
 )
+from davis_rig.usb.async_bulk import DEFAULT_TRANSFER_BYTES, DEFAULT_TRANSFERS
 from davis_rig.usb.transport import UsbTransport, run_config_steps
 
 
@@ -87,9 +91,11 @@ class Davis346:
         sleep: ``sleep(seconds)`` used for the documented waits of start (10 + 200 + 50 ms); tests inject one.
         batch_bytes: :meth:`read` decodes the next transfer plus any already queued behind it, up to this many
             bytes, in one decoder call (about 2× cheaper than one call per transfer); 0 = one transfer per read.
-        read_bytes: bytes per USB read in the reader thread.
-        read_timeout_ms: per-read timeout, ms.
-        queue_transfers: reader queue depth (reads) before transfers are dropped.
+        usb_transfers: asynchronous bulk transfers kept in flight (libcaer: 8); 0, or a pyusb backend without
+            libusb's asynchronous API, = a thread of synchronous reads instead (see :mod:`davis_rig.device.reader`).
+        read_bytes: bytes per USB transfer (default 32 KiB) or per synchronous read (default 128 KiB).
+        read_timeout_ms: per-read timeout of synchronous reads, ms.
+        queue_transfers: reader queue depth (transfers) before transfers are dropped.
     """
 
     def __init__(
@@ -99,7 +105,8 @@ class Davis346:
         *,
         sleep: Callable[[float], Any] = time.sleep,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
-        read_bytes: int = DEFAULT_READ_BYTES,
+        usb_transfers: int = DEFAULT_TRANSFERS,
+        read_bytes: int | None = None,
         read_timeout_ms: int = DEFAULT_READ_TIMEOUT_MS,
         queue_transfers: int = DEFAULT_QUEUE_TRANSFERS,
     ):
@@ -107,6 +114,7 @@ class Davis346:
         self.info = info
         self._sleep = sleep
         self._batch_bytes = int(batch_bytes)
+        self._usb_transfers = int(usb_transfers)
         self._read_bytes = read_bytes
         self._read_timeout_ms = read_timeout_ms
         self._queue_transfers = queue_transfers
@@ -116,7 +124,7 @@ class Davis346:
         self._global_shutter = info.features.aps_has_global_shutter
         self._producers = {"dvs": True, "aps": True, "imu": False, "extinput": True}
         self._listeners: list[Callable[[bytes], Any]] = []
-        self._reader: TransferReader | None = None
+        self._reader: TransferQueue | None = None
         self._debug_reader: DebugReader | None = None
         self._decoder: StreamDecoder | None = None
         self._decoded_transfers = 0
@@ -140,7 +148,8 @@ class Davis346:
             serial: serial number; ``None`` = the first DAVIS that opens.
             backend: pyusb backend (``None`` = libusb-1.0; pass a ``VirtualDavis346Backend`` for tests).
             sleep: sleep function for the start waits.
-            **reader_options: ``batch_bytes``, ``read_bytes``, ``read_timeout_ms``, ``queue_transfers``.
+            **reader_options: ``batch_bytes``, ``usb_transfers``, ``read_bytes``, ``read_timeout_ms``,
+                ``queue_transfers``.
 
         Returns:
             The open camera.
@@ -359,12 +368,7 @@ class Davis346:
             raise DeviceError(f"DAVIS {self.info.serial}: already started")
         self._decoder = StreamDecoder(self.info.layout)
         self._decoded_transfers = 0
-        self._reader = TransferReader(
-            self.transport.read_data,
-            read_bytes=self._read_bytes,
-            timeout_ms=self._read_timeout_ms,
-            queue_transfers=self._queue_transfers,
-        )
+        self._reader = self._make_reader()
         steps = start_sequence(**self._producers)
         try:
             for step in steps:
@@ -379,6 +383,31 @@ class Davis346:
                 self._debug_reader.stop()
             raise
         self._running = True
+
+    def _make_reader(self) -> TransferQueue:
+        """A ring of asynchronous transfers where the backend has libusb's asynchronous API, else a read thread."""
+        api = self.transport.async_transfers() if self._usb_transfers > 0 else None
+        if api is None:
+            return TransferReader(
+                self.transport.read_data,
+                read_bytes=self._read_bytes or DEFAULT_READ_BYTES,
+                timeout_ms=self._read_timeout_ms,
+                queue_transfers=self._queue_transfers,
+            )
+        return RingReader(
+            api,
+            self.transport.clear_halt,
+            transfers=self._usb_transfers,
+            transfer_bytes=self._read_bytes or DEFAULT_TRANSFER_BYTES,
+            queue_transfers=self._queue_transfers,
+            describe=f"DAVIS {self.info.serial}",
+        )
+
+    @property
+    def reader_kind(self) -> str:
+        """``"ring"`` (asynchronous transfers in flight), ``"sync"`` (a read thread) or ``""`` before the first
+        start."""
+        return {RingReader: "ring", TransferReader: "sync"}.get(type(self._reader), "")
 
     def stop(self) -> None:
         """Stop streaming: ``davisDataStop`` (§7.2), then stop the reader thread.
@@ -509,7 +538,7 @@ class Davis346:
             dropped_transfers=reader.dropped_transfers if reader else 0,
             dropped_bytes=reader.dropped_bytes if reader else 0,
             timeouts=reader.timeouts if reader else 0,
-            stalls=self.transport.stalls,
+            stalls=self.transport.stalls + (reader.stalls if reader else 0),
             decoded_transfers=self._decoded_transfers,
             decoder=decoder,
         )

@@ -56,6 +56,7 @@ from davis_rig.protocol.config import (
     encode_multiple,
     encode_value,
 )
+from davis_rig.usb.async_bulk import AsyncTransferApi, LibusbAsyncApi
 
 #: Product ids this driver accepts, in libcaer's matching order for "any DAVIS" (FX2 first, then FX3).
 DAVIS_PIDS = (DAVIS_FX2_PID, DAVIS_FX3_PID)
@@ -464,6 +465,27 @@ class UsbTransport:
                 self._gone = True
             raise err from exc
         return memoryview(self._buffer)[:n].tobytes()
+
+    def async_transfers(self) -> AsyncTransferApi | None:
+        """libusb's asynchronous transfer API on this device, for a ring of bulk transfers in flight.
+
+        Returns:
+            :class:`~davis_rig.usb.async_bulk.LibusbAsyncApi` when pyusb opened the camera through libusb-1.0, the
+            virtual camera's API for a :class:`~davis_rig.usb.virtual.VirtualDavis346Backend`, else ``None``
+            (other pyusb backends only have synchronous reads: use :meth:`read_data`).
+        """
+        self._check_open()
+        backend = self.device.backend
+        handle = self.device._ctx.handle  # pyusb's open handle (interface 0 is claimed)
+        virtual_api = getattr(backend, "async_transfers", None)
+        if callable(virtual_api):
+            return virtual_api(handle)
+        from usb.backend import libusb1
+
+        library_path = getattr(getattr(backend, "lib", None), "_name", None)
+        if not isinstance(backend, libusb1._LibUSB) or handle is None or not library_path:
+            return None
+        return LibusbAsyncApi(library_path, backend.ctx.value, handle.handle.value)
 
     def read_debug(self, timeout_ms: int) -> bytes | None:
         """One interrupt read on the FX3 debug endpoint 0x81 (≤ 64 bytes).

@@ -32,14 +32,22 @@ def test_default_queue_holds_well_under_a_second_of_the_peak_stream(bench_io):
 
 
 def test_end_to_end_only_on_a_tiny_scene_reports_every_figure(bench_io, capsys):
-    assert bench_io.main(["--e2e-only", "--rate", "2e5", "--seconds", "0.1", "--queue-mib", "1"]) == 0
+    assert bench_io.main(["--e2e-only", "--rate", "2e5", "--seconds", "0.1", "--queue-mib", "4"]) == 0
     out = capsys.readouterr().out
     assert "compression" not in out and "SessionWriter" not in out
-    assert out.count("real-time factor") == 2  # 8 KiB and 128 KiB transfers
-    assert "queue 128 reads x <= 8 KiB (1.0 MiB nominal" in out and "queue 8 reads x <= 128 KiB" in out
+    assert out.count("real-time factor") == 4  # 8 KiB and 128 KiB device transfers, each with both readers
+    assert "8 KiB, synchronous reads: queue 512 x <= 8 KiB (4.0 MiB nominal" in out
+    assert "128 KiB, synchronous reads: queue 32 x <= 128 KiB" in out
+    assert out.count("ring of 8 transfers: queue 128 x <= 32 KiB") == 2
     for line in ("lag behind real time at the end", "CPU-s per data-s", "file close", "start-up"):
         assert line in out
-    assert re.findall(r"dropped transfers 0/\d+, recorded (\d+)/(\d+) events", out) == [("20000", "20000")] * 2
+    assert re.findall(r"dropped transfers 0/\d+, recorded (\d+)/(\d+) events", out) == [("20000", "20000")] * 4
+
+
+def test_end_to_end_with_one_reader(bench_io, capsys):
+    assert bench_io.main(["--e2e-only", "--rate", "2e5", "--seconds", "0.1", "--reader", "ring"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("real-time factor") == 2 and "synchronous reads" not in out
 
 
 def test_skip_e2e_and_e2e_only_exclude_each_other(bench_io):

@@ -32,8 +32,8 @@ class FakeOpen:
         self.calls = []
         self.camera = object()
 
-    def __call__(self, serial, backend=None):
-        self.calls.append((serial, backend))
+    def __call__(self, serial, backend=None, usb_transfers=8):
+        self.calls.append((serial, backend, usb_transfers))
 
         @contextlib.contextmanager
         def opened():
@@ -63,10 +63,11 @@ def test_arguments_map_onto_record_session(monkeypatch, capsys, tmp_path):
     monkeypatch.setattr("davis_rig.session.record.record_session", fake_record)
     out = str(tmp_path / "s.h5")
     code = cli.main(["--out", out, "--duration", "2.5", "--exposure", "4000", "--frame-interval", "40000",
-                     "--serial", "SN1", "--fake", "replay.bin", "--fake-fast", "--overwrite", "--quiet"])
+                     "--serial", "SN1", "--fake", "replay.bin", "--fake-fast", "--overwrite", "--quiet",
+                     "--usb-transfers", "0"])
     assert code == 0
     assert fakes == [("replay.bin", True)]
-    assert opener.calls == [("SN1", backend)]
+    assert opener.calls == [("SN1", backend, 0)]
     assert len(calls) == 1
     camera, path, kwargs = calls[0]
     stop_event = kwargs.pop("stop_event")
@@ -84,7 +85,7 @@ def test_defaults(monkeypatch, tmp_path):
     monkeypatch.setattr("davis_rig.session.record.record_session",
                         lambda camera, path, **kwargs: calls.append(kwargs) or _summary(path))
     assert cli.main(["--out", str(tmp_path / "s.h5"), "--no-journal"]) == 0
-    assert opener.calls == [(None, None)]
+    assert opener.calls == [(None, None, 8)]
     assert calls[0]["duration_s"] is None and calls[0]["exposure_us"] is None and calls[0]["journal"] is False
     assert calls[0]["progress"] is cli._progress_line
 
@@ -119,7 +120,7 @@ def test_bad_number_is_a_usage_error(capsys):
 @pytest.mark.parametrize("error, code", [(DeviceNotFoundError("no DAVIS346 attached"), EXIT_DEVICE),
                                          (SessionError("a.h5: file exists"), EXIT_DATA)])
 def test_errors_become_one_message_and_an_exit_code(monkeypatch, capsys, error, code):
-    def failing_open(serial, backend=None):
+    def failing_open(serial, backend=None, usb_transfers=8):
         raise error
 
     monkeypatch.setattr(cli, "open_camera", failing_open)

@@ -139,11 +139,15 @@ def test_producer_switches_apply_immediately_while_running():
             cam.start()
 
 
-def _decode_all(vector, batch_bytes=1 << 20, transfers=None, **faults):
+#: Both readers: a ring of 8 asynchronous transfers (the default) and a thread of synchronous reads.
+READERS = pytest.mark.parametrize("usb_transfers", [8, 0], ids=["ring", "sync"])
+
+
+def _decode_all(vector, batch_bytes=1 << 20, transfers=None, usb_transfers=8, **faults):
     """Serve ``transfers`` (default: the vector's own) from a virtual camera with the vector's layout, decode all."""
     transfers = vector_transfers(vector) if transfers is None else transfers
     dev = VirtualDavis346(layout=vector["device_info"], source=TransferListSource(transfers), faults=Faults(**faults))
-    cam, _ = open_camera(dev, batch_bytes=batch_bytes)
+    cam, _ = open_camera(dev, batch_bytes=batch_bytes, usb_transfers=usb_transfers)
     raw = []
     with cam:
         cam.add_raw_listener(raw.append)
@@ -153,9 +157,10 @@ def _decode_all(vector, batch_bytes=1 << 20, transfers=None, **faults):
     return DecodedChunk.concatenate(chunks), raw, stats
 
 
+@READERS
 @pytest.mark.parametrize("vector", VECTORS, ids=VECTOR_IDS)
-def test_every_vector_decodes_through_the_real_pyusb_path(vector):
-    chunk, raw, stats = _decode_all(vector)
+def test_every_vector_decodes_through_the_real_pyusb_path(vector, usb_transfers):
+    chunk, raw, stats = _decode_all(vector, usb_transfers=usb_transfers)
     assert_matches_expected(chunk, vector["expected"])
     assert raw == [t for t in vector_transfers(vector) if t]
     assert stats.transfers == len(raw) == stats.decoded_transfers and stats.dropped_transfers == 0
@@ -172,10 +177,13 @@ def test_every_vector_split_at_every_word_boundary_decodes_the_same(vector, batc
     assert stats.decoder.odd_bytes_dropped == 0
 
 
-def test_faults_that_lose_no_data_give_identical_output():
+@READERS
+def test_faults_that_lose_no_data_give_identical_output(usb_transfers):
     vector = next(v for v in VECTORS if v["id"].startswith("V12"))
     clean, _, _ = _decode_all(vector)
-    faulty, _, stats = _decode_all(vector, stall_every=2, timeout_every=3, short_transfer_bytes=2)
+    faulty, _, stats = _decode_all(
+        vector, usb_transfers=usb_transfers, stall_every=2, timeout_every=3, short_transfer_bytes=2
+    )
     assert faulty.events.tolist() == clean.events.tolist()
     assert [f.pixels.tolist() for f in faulty.frames] == [f.pixels.tolist() for f in clean.frames]
     assert stats.stalls > 0
@@ -194,10 +202,11 @@ def test_garbage_does_not_crash_the_pipeline():
     assert stats.decoder.words == sum(len(r) // 2 for r in raw)
 
 
-def test_unplug_delivers_data_read_before_then_raises():
+@READERS
+def test_unplug_delivers_data_read_before_then_raises(usb_transfers):
     transfers = [bytes.fromhex("64800a101430"), bytes.fromhex("96800a101530"), bytes.fromhex("c8800a101630")]
     dev = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(disconnect_after_transfers=2))
-    cam, _ = open_camera(dev)
+    cam, _ = open_camera(dev, usb_transfers=usb_transfers)
     got = []
     with cam:
         cam.start()
@@ -209,9 +218,10 @@ def test_unplug_delivers_data_read_before_then_raises():
     assert DecodedChunk.concatenate(got).events.tolist() == [(100, 20, 10, 1), (150, 21, 10, 1)]
 
 
-def test_stop_ends_chunks_from_another_thread_and_joins_the_reader():
+@READERS
+def test_stop_ends_chunks_from_another_thread_and_joins_the_reader(usb_transfers):
     dev = VirtualDavis346(source=TransferListSource([bytes.fromhex("64800a101430")]))
-    cam, _ = open_camera(dev)
+    cam, _ = open_camera(dev, usb_transfers=usb_transfers)
     before = threading.active_count()
     with cam:
         cam.start()
@@ -220,14 +230,16 @@ def test_stop_ends_chunks_from_another_thread_and_joins_the_reader():
         chunks = list(cam.chunks())  # no timeout: ends only because stop() was called
         timer.join()
         assert len(chunks) == 1 and not cam.running
+        assert cam.reader_kind == ("ring" if usb_transfers else "sync")
     assert threading.active_count() == before
-    assert all(t.name != "davis-usb-reader" for t in threading.enumerate())
+    assert all(t.name not in ("davis-usb-reader", "davis-usb-ring") for t in threading.enumerate())
 
 
-def test_slow_consumer_drops_whole_transfers_and_counts_them():
+@READERS
+def test_slow_consumer_drops_whole_transfers_and_counts_them(usb_transfers):
     transfers = [bytes.fromhex("64800a101430")] * 20
     dev = VirtualDavis346(source=TransferListSource(transfers))
-    cam, _ = open_camera(dev, queue_transfers=4)
+    cam, _ = open_camera(dev, queue_transfers=4, usb_transfers=usb_transfers)
     with cam:
         with pytest.warns(RuntimeWarning, match="dropped"):
             cam.start()
@@ -324,3 +336,23 @@ def test_batched_decoding_equals_one_transfer_per_read(vector):
     assert many.events.tolist() == one.events.tolist() == [tuple(e) for e in vector["expected"]["dvs"]]
     assert [f.pixels.tolist() for f in many.frames] == [f.pixels.tolist() for f in one.frames]
     assert many.specials.tolist() == one.specials.tolist()
+
+
+class _SyncOnlyBackend(VirtualDavis346Backend):
+    """A pyusb backend without libusb's asynchronous transfer API."""
+
+    async_transfers = None
+
+
+def test_backend_without_async_transfers_falls_back_to_synchronous_reads():
+    dev = VirtualDavis346(source=TransferListSource([bytes.fromhex("64800a101430")]))
+    cam = Davis346.open(backend=_SyncOnlyBackend(dev), sleep=lambda s: None, read_timeout_ms=10)
+    raw = []
+    with cam:
+        assert cam.transport.async_transfers() is None
+        cam.add_raw_listener(raw.append)
+        cam.start()
+        chunks = read_until_drained(cam, dev, raw)
+        assert cam.reader_kind == "sync"
+        cam.stop()
+    assert DecodedChunk.concatenate(chunks).events.tolist() == [(100, 20, 10, 1)]

@@ -1,0 +1,388 @@
+"""A ring of asynchronous bulk transfers on 0x82: several transfers in flight, like libcaer's 8 × 8 KiB.
+
+pyusb only exposes synchronous reads, so between two reads nothing is queued on the endpoint. libcaer instead keeps
+a ring of asynchronous transfers submitted and resubmits each one from its completion callback (PROTOCOL.md §2),
+so the host controller always holds empty buffers for the device. :class:`BulkTransferRing` does the same through
+libusb's asynchronous API (``libusb_alloc_transfer`` / ``libusb_submit_transfer`` / ``libusb_cancel_transfer`` /
+``libusb_handle_events_timeout_completed``), reached with ctypes on the libusb-1.0 library pyusb already loaded,
+on the device handle pyusb opened and claimed (:class:`LibusbAsyncApi`).
+
+The ring only talks to an :class:`AsyncTransferApi`: the real one above, or the virtual camera's
+(:class:`davis_rig.usb.virtual.VirtualAsyncTransfers`), which completes the same ctypes transfer structures
+through their C callback pointers — so every fake-device recording runs the ring's code unchanged.
+
+Completion order is submission order for one endpoint, and all callbacks run in the ring's single event thread,
+so the bytes reach ``on_data`` in stream order. Policies (libcaer's, PROTOCOL.md §2 and §9.10):
+
+* a transfer that completes (or is cancelled) with ``actual_length > 0`` delivers its bytes; a completed transfer is
+  resubmitted at once, before its bytes are handed on;
+* a stall: the other transfers are cancelled (their bytes delivered), the halt is cleared once all are back and the
+  whole ring is resubmitted (counted in :attr:`RingStats.stalls`; libcaer instead gives up the stream);
+* ``NO_DEVICE`` → :class:`~davis_rig.errors.DeviceDisconnectedError`, any other transfer error →
+  :class:`~davis_rig.errors.TransportError`: no transfer is resubmitted, the others are cancelled and the error is
+  reported after every byte received before it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+from davis_rig.errors import DeviceDisconnectedError, TransportError
+
+# libusb-1.0 constants (libusb.h)
+LIBUSB_TRANSFER_TYPE_BULK = 2
+LIBUSB_TRANSFER_COMPLETED = 0
+LIBUSB_TRANSFER_ERROR = 1
+LIBUSB_TRANSFER_TIMED_OUT = 2
+LIBUSB_TRANSFER_CANCELLED = 3
+LIBUSB_TRANSFER_STALL = 4
+LIBUSB_TRANSFER_NO_DEVICE = 5
+LIBUSB_TRANSFER_OVERFLOW = 6
+LIBUSB_ERROR_NO_DEVICE = -4
+LIBUSB_ERROR_NOT_FOUND = -5
+
+#: libusb_transfer_status names, for messages.
+TRANSFER_STATUS_NAMES = {
+    LIBUSB_TRANSFER_COMPLETED: "completed",
+    LIBUSB_TRANSFER_ERROR: "error",
+    LIBUSB_TRANSFER_TIMED_OUT: "timed out",
+    LIBUSB_TRANSFER_CANCELLED: "cancelled",
+    LIBUSB_TRANSFER_STALL: "stall",
+    LIBUSB_TRANSFER_NO_DEVICE: "no device",
+    LIBUSB_TRANSFER_OVERFLOW: "overflow",
+}
+
+#: Default number of transfers in flight (libcaer: 8).
+DEFAULT_TRANSFERS = 8
+#: Default bytes per transfer: 4 × libcaer's 8 KiB, so one Python callback covers more data at the peak rate.
+DEFAULT_TRANSFER_BYTES = 32 * 1024
+#: How long one event-handling call waits, ms (bounds how late a stop is noticed).
+EVENT_POLL_MS = 50
+
+
+class LibusbTransfer(ctypes.Structure):
+    """``struct libusb_transfer`` (libusb.h), without the trailing isochronous packet array (bulk only)."""
+
+
+LibusbTransferPointer = ctypes.POINTER(LibusbTransfer)
+#: ``void (*libusb_transfer_cb_fn)(struct libusb_transfer *)``
+TransferCallback = ctypes.CFUNCTYPE(None, LibusbTransferPointer)
+LibusbTransfer._fields_ = [
+    ("dev_handle", ctypes.c_void_p),
+    ("flags", ctypes.c_uint8),
+    ("endpoint", ctypes.c_uint8),
+    ("type", ctypes.c_uint8),
+    ("timeout", ctypes.c_uint),
+    ("status", ctypes.c_int),
+    ("length", ctypes.c_int),
+    ("actual_length", ctypes.c_int),
+    ("callback", TransferCallback),
+    ("user_data", ctypes.c_void_p),
+    ("buffer", ctypes.c_void_p),
+    ("num_iso_packets", ctypes.c_int),
+]
+
+
+class _Timeval(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_usec", ctypes.c_long)]
+
+
+class AsyncTransferApi(Protocol):
+    """What :class:`BulkTransferRing` needs of libusb's asynchronous API, for one open device.
+
+    Return codes are libusb's (0 = success, negative = ``LIBUSB_ERROR_*``).
+    """
+
+    dev_handle: int | None
+
+    def alloc_transfer(self) -> Any:
+        """A new ``LibusbTransfer`` pointer (no isochronous packets)."""
+
+    def free_transfer(self, transfer: Any) -> None:
+        """Free a transfer that is not in flight."""
+
+    def submit_transfer(self, transfer: Any) -> int:
+        """Queue a filled transfer on the device."""
+
+    def cancel_transfer(self, transfer: Any) -> int:
+        """Ask for an in-flight transfer to come back with ``CANCELLED`` (``LIBUSB_ERROR_NOT_FOUND`` if not in
+        flight); thread-safe."""
+
+    def handle_events(self, timeout_ms: int) -> int:
+        """Run completion callbacks that are due, waiting up to ``timeout_ms`` for one."""
+
+
+class LibusbAsyncApi:
+    """:class:`AsyncTransferApi` on the real libusb-1.0, for a device opened by pyusb's libusb1 backend.
+
+    Own ctypes prototypes on a separate ``CDLL`` object of the same library, so pyusb's are left untouched.
+
+    Args:
+        library_path: the libusb-1.0 shared library pyusb loaded.
+        context: ``libusb_context *`` of pyusb's backend.
+        dev_handle: ``libusb_device_handle *`` pyusb opened (interface 0 claimed).
+    """
+
+    def __init__(self, library_path: str, context: int | None, dev_handle: int):
+        lib = ctypes.CDLL(library_path)
+        self._alloc = lib.libusb_alloc_transfer
+        self._alloc.argtypes = [ctypes.c_int]
+        self._alloc.restype = LibusbTransferPointer
+        self._free = lib.libusb_free_transfer
+        self._free.argtypes = [LibusbTransferPointer]
+        self._free.restype = None
+        self._submit = lib.libusb_submit_transfer
+        self._submit.argtypes = [LibusbTransferPointer]
+        self._submit.restype = ctypes.c_int
+        self._cancel = lib.libusb_cancel_transfer
+        self._cancel.argtypes = [LibusbTransferPointer]
+        self._cancel.restype = ctypes.c_int
+        self._handle = lib.libusb_handle_events_timeout_completed
+        self._handle.argtypes = [ctypes.c_void_p, ctypes.POINTER(_Timeval), ctypes.POINTER(ctypes.c_int)]
+        self._handle.restype = ctypes.c_int
+        self._context = context
+        self.dev_handle = dev_handle
+
+    def alloc_transfer(self) -> Any:
+        transfer = self._alloc(0)
+        if not transfer:
+            raise MemoryError("libusb_alloc_transfer failed")
+        return transfer
+
+    def free_transfer(self, transfer: Any) -> None:
+        self._free(transfer)
+
+    def submit_transfer(self, transfer: Any) -> int:
+        return self._submit(transfer)
+
+    def cancel_transfer(self, transfer: Any) -> int:
+        return self._cancel(transfer)
+
+    def handle_events(self, timeout_ms: int) -> int:
+        timeout = _Timeval(timeout_ms // 1000, (timeout_ms % 1000) * 1000)
+        return self._handle(self._context, ctypes.byref(timeout), None)
+
+
+@dataclass
+class RingStats:
+    """Counters of a :class:`BulkTransferRing`.
+
+    Attributes:
+        completions: transfers that came back (any status).
+        empty_completions: completed transfers with no data (the device ended a transfer with a zero-length packet).
+        stalls: endpoint stalls cleared.
+    """
+
+    completions: int = 0
+    empty_completions: int = 0
+    stalls: int = 0
+
+
+class BulkTransferRing:
+    """Keep ``transfers`` bulk IN transfers of ``transfer_bytes`` in flight on one endpoint.
+
+    Args:
+        api: the asynchronous transfer API of the open device.
+        endpoint: bulk IN endpoint (0x82).
+        on_data: ``on_data(bytes)``, called in stream order from the ring's thread for every transfer that brought
+            data; it must not block for long (hand the bytes to a queue).
+        on_end: ``on_end(error)``, called once from the ring's thread when the last transfer is back (``None`` after
+            :meth:`stop`, else the error that ended the stream).
+        clear_halt: ``clear_halt()`` after a stall (a synchronous control request; raises if the device is gone).
+        transfers: transfers in flight.
+        transfer_bytes: bytes per transfer (a multiple of the 1024-byte packet size).
+        describe: device name for messages.
+    """
+
+    def __init__(
+        self,
+        api: AsyncTransferApi,
+        endpoint: int,
+        on_data: Callable[[bytes], Any],
+        on_end: Callable[[BaseException | None], Any],
+        clear_halt: Callable[[], Any],
+        *,
+        transfers: int = DEFAULT_TRANSFERS,
+        transfer_bytes: int = DEFAULT_TRANSFER_BYTES,
+        describe: str = "DAVIS",
+    ):
+        if transfers < 1:
+            raise ValueError(f"transfers must be >= 1, got {transfers}")
+        if transfer_bytes < 1:
+            raise ValueError(f"transfer_bytes must be >= 1, got {transfer_bytes}")
+        self._api = api
+        self.endpoint = int(endpoint)
+        self._on_data = on_data
+        self._on_end = on_end
+        self._clear_halt = clear_halt
+        self.transfers = int(transfers)
+        self.transfer_bytes = int(transfer_bytes)
+        self._describe = describe
+        self.stats = RingStats()
+        self._c_callback = TransferCallback(self._completed)  # kept alive as long as the ring
+        self._buffers = [(ctypes.c_ubyte * self.transfer_bytes)() for _ in range(self.transfers)]
+        self._slots: list[Any] = []
+        self._slot_of: dict[int, int] = {}
+        self._in_flight: set[int] = set()
+        self._stopping = threading.Event()
+        self._stalled = False
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+
+    # --- control ----------------------------------------------------------------------------------
+    def start(self) -> "BulkTransferRing":
+        """Allocate and submit the transfers, then start the event thread.
+
+        Raises:
+            DeviceDisconnectedError / TransportError: the first submission failed (nothing is left in flight).
+        """
+        if self._thread is not None:
+            raise RuntimeError("BulkTransferRing already started")
+        for index, buffer in enumerate(self._buffers):
+            transfer = self._api.alloc_transfer()
+            fields = transfer.contents
+            fields.dev_handle = self._api.dev_handle
+            fields.flags = 0
+            fields.endpoint = self.endpoint
+            fields.type = LIBUSB_TRANSFER_TYPE_BULK
+            fields.timeout = 0  # infinite, like libcaer: a stop cancels them
+            fields.length = self.transfer_bytes
+            fields.actual_length = 0
+            fields.callback = self._c_callback
+            fields.user_data = None
+            fields.buffer = ctypes.addressof(buffer)
+            fields.num_iso_packets = 0
+            self._slots.append(transfer)
+            self._slot_of[ctypes.addressof(fields)] = index
+        try:
+            for index in range(self.transfers):
+                self._submit(index)
+        except BaseException:
+            self._cancel_all()
+            while self._in_flight:
+                self._api.handle_events(EVENT_POLL_MS)
+            self._free_all()
+            raise
+        self._thread = threading.Thread(target=self._run, name="davis-usb-ring", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, join_timeout_s: float = 5.0) -> None:
+        """Cancel the transfers in flight (their bytes are still delivered) and wait for the event thread."""
+        self._stopping.set()
+        self._cancel_all()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(join_timeout_s)
+
+    @property
+    def running(self) -> bool:
+        """Whether the event thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def in_flight(self) -> int:
+        """Transfers currently submitted."""
+        return len(self._in_flight)
+
+    # --- internals --------------------------------------------------------------------------------
+    def _submit(self, index: int) -> None:
+        code = self._api.submit_transfer(self._slots[index])
+        if code != 0:
+            raise self._submit_error(code)
+        self._in_flight.add(index)
+
+    def _submit_error(self, code: int) -> BaseException:
+        if code == LIBUSB_ERROR_NO_DEVICE:
+            return DeviceDisconnectedError(
+                f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} could not be submitted: "
+                "the camera was disconnected",
+                code,
+            )
+        return TransportError(
+            f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} could not be submitted (libusb error {code})",
+            code,
+        )
+
+    def _cancel_all(self) -> None:
+        for index in list(self._in_flight):
+            self._api.cancel_transfer(self._slots[index])  # NOT_FOUND if it just came back: harmless
+
+    def _fail(self, error: BaseException) -> None:
+        if self._error is None:
+            self._error = error
+        self._cancel_all()
+
+    def _completed(self, transfer_pointer: Any) -> None:
+        """libusb completion callback (event thread). Exceptions must not escape into C."""
+        try:
+            fields = transfer_pointer.contents
+            index = self._slot_of[ctypes.addressof(fields)]
+            self._in_flight.discard(index)
+            status = fields.status
+            count = fields.actual_length
+            self.stats.completions += 1
+            data = ctypes.string_at(fields.buffer, count) if count > 0 else None
+            if status == LIBUSB_TRANSFER_COMPLETED:
+                if not (self._stopping.is_set() or self._stalled or self._error is not None):
+                    try:
+                        self._submit(index)
+                    except (DeviceDisconnectedError, TransportError) as exc:
+                        self._fail(exc)
+                if data is None:
+                    self.stats.empty_completions += 1
+            elif status == LIBUSB_TRANSFER_STALL:
+                self._stalled = True
+                self._cancel_all()
+            elif status == LIBUSB_TRANSFER_NO_DEVICE:
+                self._fail(
+                    DeviceDisconnectedError(
+                        f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} failed: "
+                        "the camera was disconnected"
+                    )
+                )
+            elif status != LIBUSB_TRANSFER_CANCELLED:
+                name = TRANSFER_STATUS_NAMES.get(status, f"status {status}")
+                self._fail(
+                    TransportError(f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} failed ({name})")
+                )
+            if data is not None:
+                self._on_data(data)
+        except BaseException as exc:  # a bug or a failing on_data: end the stream with it
+            self._fail(exc)
+
+    def _recover_stall(self) -> None:
+        """All transfers are back after a stall: clear the halt and resubmit the ring."""
+        self._stalled = False
+        self._clear_halt()
+        self.stats.stalls += 1
+        for index in range(self.transfers):
+            self._submit(index)
+
+    def _run(self) -> None:
+        try:
+            while self._in_flight:
+                self._api.handle_events(EVENT_POLL_MS)
+                if self._stopping.is_set() or self._error is not None:
+                    self._cancel_all()  # again: a callback may have resubmitted while stop() was cancelling
+                if self._stalled and not self._in_flight and not self._stopping.is_set() and self._error is None:
+                    try:
+                        self._recover_stall()
+                    except BaseException as exc:
+                        self._fail(exc)
+        except BaseException as exc:
+            self._fail(exc)
+            while self._in_flight:  # the callbacks must run before the buffers are freed
+                self._api.handle_events(EVENT_POLL_MS)
+        finally:
+            self._free_all()
+            self._on_end(self._error)
+
+    def _free_all(self) -> None:
+        for transfer in self._slots:
+            self._api.free_transfer(transfer)
+        self._slots.clear()
+        self._slot_of.clear()
+

@@ -1,0 +1,248 @@
+"""BulkTransferRing: transfers in flight, order, resubmission, cancel on stop, stall recovery, errors, libusb ABI."""
+
+import ctypes
+import ctypes.util
+import sys
+import threading
+import time
+
+import pytest
+
+from davis_rig.errors import DeviceDisconnectedError, TransportError
+from davis_rig.usb.async_bulk import (
+    LIBUSB_ERROR_NO_DEVICE,
+    LIBUSB_ERROR_NOT_FOUND,
+    LIBUSB_TRANSFER_CANCELLED,
+    LIBUSB_TRANSFER_COMPLETED,
+    LIBUSB_TRANSFER_NO_DEVICE,
+    LIBUSB_TRANSFER_OVERFLOW,
+    LIBUSB_TRANSFER_STALL,
+    LIBUSB_TRANSFER_TYPE_BULK,
+    BulkTransferRing,
+    LibusbAsyncApi,
+    LibusbTransfer,
+)
+
+
+class ScriptedApi:
+    """libusb's asynchronous API completing transfers in submission order from a script.
+
+    Each script item is ``(status, bytes)`` for the oldest transfer in flight; a cancelled transfer comes back with
+    ``CANCELLED`` and ``partial_on_cancel`` bytes. Counts submissions, cancels, frees and the most in flight.
+    """
+
+    dev_handle = 0x1234
+
+    def __init__(self, script, partial_on_cancel=b"", fail_submit_at=None):
+        self.script = list(script)
+        self.partial_on_cancel = partial_on_cancel
+        self.fail_submit_at = fail_submit_at
+        self.queue = []
+        self.cancelled = set()
+        self.submits = self.cancels = self.frees = self.max_in_flight = 0
+        self.fields_seen = []
+        self.lock = threading.Lock()
+
+    def alloc_transfer(self):
+        return ctypes.pointer(LibusbTransfer())
+
+    def free_transfer(self, transfer):
+        self.frees += 1
+
+    def submit_transfer(self, transfer):
+        with self.lock:
+            self.submits += 1
+            if self.fail_submit_at is not None and self.submits == self.fail_submit_at:
+                return LIBUSB_ERROR_NO_DEVICE
+            f = transfer.contents
+            self.fields_seen.append((f.dev_handle, f.endpoint, f.type, f.timeout, f.length, f.num_iso_packets))
+            self.queue.append(transfer)
+            self.max_in_flight = max(self.max_in_flight, len(self.queue))
+        return 0
+
+    def cancel_transfer(self, transfer):
+        with self.lock:
+            key = ctypes.addressof(transfer.contents)
+            if key in self.cancelled or key not in [ctypes.addressof(t.contents) for t in self.queue]:
+                return LIBUSB_ERROR_NOT_FOUND  # libusb: not in flight, or already cancelled
+            self.cancels += 1
+            self.cancelled.add(key)
+        return 0
+
+    def handle_events(self, timeout_ms):
+        with self.lock:
+            head = self.queue[0] if self.queue else None
+            if head is not None and ctypes.addressof(head.contents) in self.cancelled:
+                status, data = LIBUSB_TRANSFER_CANCELLED, self.partial_on_cancel
+            elif head is not None and self.script:
+                status, data = self.script.pop(0)
+            else:
+                head = None
+            if head is not None:
+                self.queue.pop(0)
+                self.cancelled.discard(ctypes.addressof(head.contents))
+        if head is None:
+            time.sleep(0.001)
+            return 0
+        f = head.contents
+        ctypes.memmove(f.buffer, data, len(data))
+        f.status, f.actual_length = status, len(data)
+        f.callback(head)
+        return 0
+
+
+class Collector:
+    def __init__(self):
+        self.data = []
+        self.ends = []
+        self.ended = threading.Event()
+        self.halts = 0
+
+    def on_data(self, data):
+        self.data.append(data)
+
+    def on_end(self, error):
+        self.ends.append(error)
+        self.ended.set()
+
+    def clear_halt(self):
+        self.halts += 1
+
+
+def make_ring(api, sink, **kwargs):
+    kwargs.setdefault("transfers", 4)
+    kwargs.setdefault("transfer_bytes", 64)
+    return BulkTransferRing(api, 0x82, sink.on_data, sink.on_end, sink.clear_halt, describe="DAVIS test", **kwargs)
+
+
+def wait_for(condition, limit_s=5.0):
+    deadline = time.monotonic() + limit_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.002)
+
+
+def ok(data):
+    return (LIBUSB_TRANSFER_COMPLETED, data)
+
+
+@pytest.mark.skipif(ctypes.sizeof(ctypes.c_void_p) != 8 or sys.platform == "win32", reason="offsets are for LP64")
+def test_transfer_struct_matches_libusb_h_on_lp64():
+    # struct libusb_transfer (libusb.h): pointer, 3 × uint8, unsigned int, 3 × int, 3 pointers, int
+    offsets = {name: getattr(LibusbTransfer, name).offset for name, _ in LibusbTransfer._fields_}
+    assert offsets == {
+        "dev_handle": 0, "flags": 8, "endpoint": 9, "type": 10, "timeout": 12, "status": 16, "length": 20,
+        "actual_length": 24, "callback": 32, "user_data": 40, "buffer": 48, "num_iso_packets": 56,
+    }  # fmt: skip
+
+
+def test_keeps_every_transfer_in_flight_and_delivers_in_submission_order():
+    script = [ok(b"%02d" % i) for i in range(20)]
+    api, sink = ScriptedApi(script), Collector()
+    ring = make_ring(api, sink).start()
+    wait_for(lambda: not api.script and len(sink.data) == 20)
+    wait_for(lambda: ring.in_flight == 4)  # every completed transfer was resubmitted
+    assert sink.data == [b"%02d" % i for i in range(20)]
+    assert api.max_in_flight == 4 and api.submits == 4 + 20
+    assert set(api.fields_seen) == {(0x1234, 0x82, LIBUSB_TRANSFER_TYPE_BULK, 0, 64, 0)}
+    ring.stop()
+    assert sink.ends == [None] and not ring.running
+    assert api.cancels == 4 and api.frees == 4 and ring.in_flight == 0
+
+
+def test_empty_completions_are_counted_not_delivered():
+    api, sink = ScriptedApi([ok(b"ab"), ok(b""), ok(b"cd")]), Collector()
+    ring = make_ring(api, sink).start()
+    wait_for(lambda: not api.script and len(sink.data) == 2)
+    ring.stop()
+    assert sink.data == [b"ab", b"cd"] and ring.stats.empty_completions == 1
+
+
+def test_stop_delivers_the_bytes_of_cancelled_transfers():
+    api, sink = ScriptedApi([ok(b"ab")], partial_on_cancel=b"xy"), Collector()
+    ring = make_ring(api, sink, transfers=3).start()
+    wait_for(lambda: sink.data == [b"ab"])
+    ring.stop()
+    assert sink.data == [b"ab"] + [b"xy"] * 3 and sink.ends == [None]
+
+
+def test_unplug_ends_with_disconnected_after_the_data_and_resubmits_nothing():
+    api, sink = ScriptedApi([ok(b"1"), ok(b"2"), (LIBUSB_TRANSFER_NO_DEVICE, b"")]), Collector()
+    ring = make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    assert sink.data == [b"1", b"2"]
+    assert len(sink.ends) == 1 and isinstance(sink.ends[0], DeviceDisconnectedError)
+    assert "disconnected" in str(sink.ends[0])
+    assert api.submits == 4 + 2 and api.cancels == 3 and api.frees == 4 and not ring.running
+
+
+def test_transfer_error_ends_the_stream_with_a_transport_error():
+    api, sink = ScriptedApi([ok(b"1"), (LIBUSB_TRANSFER_OVERFLOW, b"")]), Collector()
+    make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    assert sink.data == [b"1"]
+    assert type(sink.ends[0]) is TransportError and "overflow" in str(sink.ends[0])
+
+
+def test_stall_cancels_the_others_clears_the_halt_and_resubmits_the_ring():
+    api, sink = ScriptedApi([ok(b"a"), (LIBUSB_TRANSFER_STALL, b""), ok(b"b"), ok(b"c")]), Collector()
+    ring = make_ring(api, sink).start()
+    wait_for(lambda: len(sink.data) == 3 and ring.in_flight == 4)
+    assert sink.data == [b"a", b"b", b"c"]
+    assert sink.halts == 1 and ring.stats.stalls == 1 and api.cancels == 3
+    ring.stop()
+    assert sink.ends == [None]
+
+
+def test_stall_on_a_vanished_camera_ends_with_the_clear_halt_error():
+    api, sink = ScriptedApi([(LIBUSB_TRANSFER_STALL, b"")]), Collector()
+    sink.clear_halt = lambda: (_ for _ in ()).throw(DeviceDisconnectedError("gone while clearing"))
+    make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    assert isinstance(sink.ends[0], DeviceDisconnectedError) and "gone while clearing" in str(sink.ends[0])
+
+
+def test_failed_submission_at_start_raises_and_leaves_nothing_in_flight():
+    api, sink = ScriptedApi([], fail_submit_at=3), Collector()
+    ring = make_ring(api, sink)
+    with pytest.raises(DeviceDisconnectedError, match="could not be submitted"):
+        ring.start()
+    assert ring.in_flight == 0 and api.cancels == 2 and api.frees == 4 and not ring.running
+
+
+def test_a_failing_consumer_ends_the_stream_with_its_error():
+    api, sink = ScriptedApi([ok(b"1"), ok(b"2")]), Collector()
+
+    def on_data(data):
+        raise ValueError("consumer broke")
+
+    ring = BulkTransferRing(api, 0x82, on_data, sink.on_end, sink.clear_halt, transfers=2, transfer_bytes=8)
+    ring.start()
+    assert sink.ended.wait(5.0)
+    assert isinstance(sink.ends[0], ValueError) and not ring.running
+
+
+def test_invalid_sizes_are_refused():
+    with pytest.raises(ValueError, match="transfers must be >= 1"):
+        make_ring(ScriptedApi([]), Collector(), transfers=0)
+    with pytest.raises(ValueError, match="transfer_bytes must be >= 1"):
+        make_ring(ScriptedApi([]), Collector(), transfer_bytes=0)
+
+
+LIBUSB = ctypes.util.find_library("usb-1.0")
+
+
+@pytest.mark.skipif(LIBUSB is None, reason="libusb-1.0 is not installed (apt install libusb-1.0-0)")
+def test_libusb_api_binds_the_real_library_on_pyusbs_context():
+    from usb.backend import libusb1
+
+    backend = libusb1.get_backend()
+    api = LibusbAsyncApi(backend.lib._name, backend.ctx.value, 0)
+    transfer = api.alloc_transfer()
+    transfer.contents.length = 8192
+    assert transfer.contents.length == 8192
+    assert api.cancel_transfer(transfer) == LIBUSB_ERROR_NOT_FOUND  # never submitted
+    api.free_transfer(transfer)
+    start = time.monotonic()
+    assert api.handle_events(20) == 0  # nothing in flight: returns after the timeout
+    assert 0.01 < time.monotonic() - start < 2.0
