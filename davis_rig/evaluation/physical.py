@@ -169,8 +169,6 @@ def labels_provenance(attrs: dict) -> dict:
 def _open_checked(path: Path):
     from davis_rig.session import SessionReader
 
-    if path.is_file() and path.stat().st_size == 0:
-        raise SessionError(f"{path}: the file is empty (0 bytes), not a recorded session")
     reader = SessionReader(path).open()
     try:
         if reader.num_events == 0:

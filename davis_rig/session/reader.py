@@ -11,7 +11,15 @@ import numpy as np
 
 from davis_rig.errors import SessionError
 from davis_rig.session import schema
+from davis_rig.session.journal import journal_path
 from davis_rig.types import EVENT_DTYPE
+
+
+def _recover_hint(path: Path) -> str:
+    """``"; <name>.journal exists next to it: run davis-record --recover ..."`` when it does, else ``""``."""
+    if journal_path(path).exists():
+        return f"; {journal_path(path).name} exists next to it: run `davis-record --recover {path}`"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -116,7 +124,8 @@ class SessionReader:
     closed cleanly), ``format_version``, ``recording_start_utc``, ``t_offset_us``, ``num_events``.
 
     Raises (on open):
-        SessionError: the file is missing, truncated, not a session file, or misses a required group.
+        SessionError: the file is missing, empty (0 bytes), truncated, not a session file, or misses a required
+            group.
     """
 
     def __init__(self, path: str | os.PathLike):
@@ -130,6 +139,9 @@ class SessionReader:
         schema.import_hdf5plugin()
         if not self.path.exists():
             raise SessionError(f"{self.path}: no such session file")
+        if self.path.is_file() and self.path.stat().st_size == 0:
+            raise SessionError(f"{self.path}: the file is empty (0 bytes), not a recorded session"
+                               + _recover_hint(self.path))
         try:
             self._file = h5py.File(self.path, "r", locking=False)
         except OSError as exc:

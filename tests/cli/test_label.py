@@ -44,7 +44,7 @@ def test_arguments_map_onto_label_session(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("case, message", [
     ("missing", "no such session file"),
-    ("empty", "cannot open as HDF5"),
+    ("empty", "the file is empty (0 bytes), not a recorded session"),
     ("truncated", "cannot open as HDF5"),
     ("not_session", "not a session file"),
     ("missing_frames_group", "missing group /frames"),

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from davis_rig.errors import FormatError, SessionError
 from davis_rig.session import SessionReader, SessionWriter, schema
+from davis_rig.session.journal import journal_path
 from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, make_events
 
 from session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame, split_chunks
@@ -231,6 +232,20 @@ def test_truncated_file_raises_session_error(tmp_path, rng):
     with pytest.raises(SessionError, match="truncated or corrupt"):
         SessionReader(truncated).open()
     assert _digest(truncated) == before  # reading never modifies the file
+
+
+def test_empty_file_raises_session_error_and_names_the_journal_when_there_is_one(tmp_path):
+    empty = tmp_path / "empty.h5"
+    empty.write_bytes(b"")
+    with pytest.raises(SessionError) as info:
+        SessionReader(empty).open()
+    assert str(info.value) == f"{empty}: the file is empty (0 bytes), not a recorded session"
+    journal_path(empty).write_bytes(b"x")  # e.g. a power cut: the journal was fsync'd, the HDF5 file not
+    with pytest.raises(SessionError) as info:
+        SessionReader(empty).open()
+    assert str(info.value) == (f"{empty}: the file is empty (0 bytes), not a recorded session; empty.h5.journal "
+                               f"exists next to it: run `davis-record --recover {empty}`")
+    assert empty.stat().st_size == 0  # reading never modifies the file
 
 
 def test_missing_group_and_foreign_files(tmp_path):
