@@ -22,39 +22,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from typing import Callable
 
 import numpy as np
-
-
-def greedy_cell_flips(grid: np.ndarray, score: Callable[[np.ndarray], float], passes: int,
-                      rng: np.random.Generator) -> tuple[np.ndarray, float, int]:
-    """Coordinate descent on a black/white grid: flip each cell, keep the flip if ``score`` falls.
-
-    Args:
-        grid: float32 [n, n] of 0 (black) / 1 (white); not modified.
-        score: the value to minimise for a grid (here the detector's mean top pedestrian score).
-        passes: sweeps over all cells, each in a fresh random order; stops early after a sweep with no gain.
-        rng: source of the cell orders.
-
-    Returns:
-        (best grid, its score, number of score evaluations).
-    """
-    best = np.array(grid, dtype=np.float32)
-    best_score = float(score(best))
-    evaluations = 1
-    for _ in range(passes):
-        improved = False
-        for cell in rng.permutation(best.size):
-            candidate = best.copy()
-            candidate.flat[cell] = 1.0 - candidate.flat[cell]
-            value = float(score(candidate))
-            evaluations += 1
-            if value < best_score:
-                best, best_score, improved = candidate, value, True
-        if not improved:
-            break
-    return best, best_score, evaluations
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from davis_rig.attack.optimize import AttackConfig, _validation_clips, attack_loss, load_attack_detector, validate
+    from davis_rig.attack.refine import greedy_cell_flips
     from davis_rig.attack.texture import black_texture, random_texture, white_texture
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask

@@ -16,7 +16,10 @@ Run state lives in ``out_dir``: ``checkpoints/last.pt`` (generator, optimizer, n
 so far, config; written atomically every ``checkpoint_every`` steps and at the end), ``log.jsonl`` (one JSON
 object per step: loss, obj, cls, alpha, lr; validation records with SeqASR), ``snapshots/step_XXXXXX.png``
 (the hard n x n texture), ``best_texture.npy/png`` + ``best.json`` (best validation SeqASR, ties broken by the
-lower mean top pedestrian score), ``texture.npy/png`` (final). Resume (``resume=True``) continues bit-identically:
+lower mean top pedestrian score; ``best_generator.pt`` is the generator of the best gradient-phase texture),
+``texture.npy/png`` (final). With ``refine_passes > 0`` the run ends with greedy cell flips
+(:mod:`davis_rig.attack.refine`): ``refined_texture.npy/png`` + ``refine.json``, and the refined texture becomes
+the best when it validates better. Resume (``resume=True``) continues bit-identically:
 every random choice of a step is derived from ``(seed, step)`` and the pool from its generations (bit-identical
 as far as the kernels are: on CPU with one thread, or with ``torch.use_deterministic_algorithms(True)``;
 multi-threaded CPU reductions already differ by ~1e-7 between two fresh runs).
@@ -66,6 +69,7 @@ __all__ = [
 ]
 
 _VAL_SEED_OFFSET = 1_000_003
+_REFINE_SEED_OFFSET = 2_000_003
 #: Backward rules of the differentiable event counts (:func:`clip_histograms`).
 V2E_GRADIENTS = ("relaxed", "ste")
 
@@ -95,6 +99,9 @@ class AttackConfig:
             anchor per window and clip (:func:`davis_rig.attack.loss.adversarial_loss`).
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the detector's forward and backward; texture, V2E and
             loss stay fp32).
+        refine_passes: after the last step, sweeps of greedy cell flips over the best texture (0 = none, the
+            paper; :mod:`davis_rig.attack.refine`); refine_clips: EoT clips (training distribution, their own
+            seeds) that score the flips.
         seed: seeds the generator init, dropout, pool and sampling.
         eot: the EoT distributions.
     """
@@ -125,6 +132,8 @@ class AttackConfig:
     box_margin_px: float | None = None
     loss_reduction: str = "mean"
     precision: str = "fp32"
+    refine_passes: int = 0
+    refine_clips: int = 8
     seed: int = 0
     eot: EoTConfig = field(default_factory=EoTConfig)
 
@@ -139,6 +148,9 @@ class AttackConfig:
             raise ValueError(f"loss_reduction must be one of {LOSS_REDUCTIONS}, got {self.loss_reduction!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
+        if self.refine_passes < 0 or self.refine_clips < 1:
+            raise ValueError(f"need refine_passes >= 0 and refine_clips >= 1, got {self.refine_passes}, "
+                             f"{self.refine_clips}")
         if self.clips_per_step > self.pool_size:
             raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
 
@@ -321,10 +333,11 @@ def _write_png(path: Path, grid: np.ndarray) -> None:
     cv2.imwrite(str(path), (np.asarray(grid) > 0.5).astype(np.uint8) * 255)
 
 
-def _validation_clips(config: AttackConfig, model, mask, num: int) -> list[PoolClip]:
+def _validation_clips(config: AttackConfig, model, mask, num: int,
+                      seed_offset: int = _VAL_SEED_OFFSET) -> list[PoolClip]:
     clips = []
     for i in range(num):
-        seed = slot_seed(config.seed + _VAL_SEED_OFFSET, i, 0)
+        seed = slot_seed(config.seed + seed_offset, i, 0)
         spec, sensor = draw_scene(config.eot, seed, model.num_shapes)
         clips.append(prepare_clip(spec, sensor, model, config.grid_n, mask, config=config.eot, seed=seed))
     return clips
@@ -386,6 +399,40 @@ def _better(candidate: dict, best: dict | None) -> bool:
     a = -1.0 if not np.isfinite(a) else a
     b = -1.0 if not np.isfinite(b) else b
     return a > b or (a == b and candidate["mean_top_score"] < best["mean_top_score"])
+
+
+def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, best: dict | None,
+                 val_clips: Sequence[PoolClip], start_grid: np.ndarray) -> dict | None:
+    """Greedy cell flips after the gradient phase (:mod:`davis_rig.attack.refine`); returns the new best record.
+
+    Writes ``refined_texture.npy/png`` and ``refine.json`` and logs a ``{"refine": ...}`` record; the refined
+    texture replaces ``best_texture`` when it validates better (SeqASR, then mean top score).
+    """
+    from davis_rig.attack.refine import refine_texture
+
+    clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET)
+
+    def score(grid: np.ndarray) -> float:
+        return validate(grid, clips, detector, config.validation_threshold)["mean_top_score"]
+
+    t0 = time.perf_counter()
+    found = refine_texture(start_grid, clips, score, config.refine_passes, config.seed)
+    res = validate(found["texture"], val_clips, detector, config.validation_threshold)
+    res.update(step=config.iterations, refined=True)
+    summary = {key: value for key, value in found.items() if key != "texture"}
+    summary.update(passes=config.refine_passes, clips=config.refine_clips, validation=res,
+                   seconds=time.perf_counter() - t0, replaced_best=_better(res, best))
+    np.save(out / "refined_texture.npy", found["texture"])
+    _write_png(out / "refined_texture.png", found["texture"])
+    with open(out / "log.jsonl", "a") as log:
+        log.write(json.dumps({"refine": summary}) + "\n")
+    (out / "refine.json").write_text(json.dumps(summary, indent=1))
+    if not summary["replaced_best"]:
+        return best
+    np.save(out / "best_texture.npy", found["texture"])
+    _write_png(out / "best_texture.png", found["texture"])
+    (out / "best.json").write_text(json.dumps(res, indent=1))
+    return res
 
 
 def optimize_texture(
@@ -453,8 +500,9 @@ def optimize_texture(
         defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
                                          default=str))
         saved = {**{k: v for k, v in defaults.items() if k not in state["config"]}, **dict(state["config"])}
-        saved.pop("iterations", None)
-        current.pop("iterations", None)
+        for name in ("iterations", "refine_passes", "refine_clips"):  # free to change on resume
+            saved.pop(name, None)
+            current.pop(name, None)
         if saved != current:
             diff = sorted(k for k in current if saved.get(k) != current.get(k))
             raise CheckpointError(f"{ckpt_path} was written with a different configuration (fields {diff})")
@@ -541,6 +589,13 @@ def optimize_texture(
     if rank == 0:
         np.save(out / "texture.npy", texture)
         _write_png(out / "texture.png", texture)
+        if config.refine_passes > 0 and end == config.iterations and not (out / "refine.json").is_file():
+            if not val_clips:
+                val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips)
+            start_grid = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
+            best = _refine_best(config, detector, body_model, mask, out, best, val_clips, start_grid)
+            if pool is not None:
+                checkpoint(end)
     best_tex = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
     return AttackResult(texture=texture, best_texture=best_tex,
                         best_seq_asr=float(best["SeqASR"]) if best else math.nan,

@@ -159,7 +159,9 @@ def _budget_markdown(attack: AttackConfig, eval_config: EvalConfig, records: dic
              f"alpha schedule {attack.alpha_schedule}, V2E gradient {attack.v2e_gradient}, anchors "
              + ("all (paper)" if attack.box_margin_px is None else f"within {attack.box_margin_px:g} px of the box")
              + f", loss reduction {attack.loss_reduction}"
-             + f", best of validation every {attack.validate_every} steps on {attack.num_validation_clips} clips",
+             + f", best of validation every {attack.validate_every} steps on {attack.num_validation_clips} clips"
+             + (f", then {attack.refine_passes} pass(es) of greedy cell flips scored on {attack.refine_clips} clips"
+                if attack.refine_passes else ""),
              f"- evaluation: scales {list(eval_config.scales)}, {len(eval_config.headings_rad)} heading(s), phases "
              f"{list(eval_config.phases)} s, sequences of {eval_config.seq_len} windows, exact simulator", "",
              "| run | best step | best validation SeqASR | s/step (this call) |", "|---|---|---|---|"]

@@ -88,6 +88,11 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "straight-through floor (ste); the forward counts are the same (docs/attack.md)")
     p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
+    p.add_argument("--refine-passes", type=int, default=0,
+                   help="after the last step, sweeps of greedy cell flips over the best texture, each flip scored "
+                        "with the exact simulator (default 0: none, the paper)")
+    p.add_argument("--refine-clips", type=int, default=8,
+                   help="EoT clips that score the refinement's flips (default 8)")
     p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
 
 
@@ -194,7 +199,8 @@ def _attack_config(args, grid_n: int, parts):
                         alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                         num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
                         loss_reduction=args.loss,
-                        v2e_gradient=args.v2e_gradient, precision=args.precision, seed=args.seed)
+                        v2e_gradient=args.v2e_gradient, precision=args.precision,
+                        refine_passes=args.refine_passes, refine_clips=args.refine_clips, seed=args.seed)
 
 
 def optimize_command(args) -> int:
