@@ -64,6 +64,23 @@ def _column(name: str, values, n: int | None) -> np.ndarray:
     return array
 
 
+def _check_non_decreasing(t_us: np.ndarray, where: str) -> None:
+    """Raise FormatError naming the first event whose timestamp is below its predecessor's (vectorized).
+
+    Args:
+        t_us: timestamps, integer µs, shape [N].
+        where: what ``t_us`` is, for the message (``"within a window"``, ``"in the event stream"``).
+    """
+    backwards = t_us[1:] < t_us[:-1]
+    if backwards.any():
+        i = int(backwards.argmax()) + 1
+        raise FormatError(
+            f"t_us: expected non-decreasing timestamps {where}, but event {i} at {int(t_us[i])} µs comes after "
+            f"{int(t_us[i - 1])} µs (stacked_histograms(..., correct_time=True) applies the official "
+            "running-maximum correction)"
+        )
+
+
 def time_bins(t_us: np.ndarray, num_bins: int = NUM_BINS) -> np.ndarray:
     """Official time-bin index of every event of one window (first/last-event normalization, float32).
 
@@ -142,11 +159,7 @@ def stacked_histogram(
         )
     if int(p.max()) > 1:
         raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
-    if n > 1 and bool(np.any(t_us[1:] < t_us[:-1])):
-        raise FormatError(
-            "t_us: expected non-decreasing timestamps within a window "
-            "(stacked_histograms(..., correct_time=True) applies the official running-maximum correction)"
-        )
+    _check_non_decreasing(t_us, "within a window")
 
     # cell index x + W·y (int32 unless the frame is huge); polarities < 0 count as 0 like the official reader
     plane = height * width
@@ -318,11 +331,18 @@ def stacked_histograms(
         uint8 array [T, 2 * num_bins, H, W].
 
     Raises:
-        ShapeError, FormatError: as :func:`stacked_histogram` (without ``correct_time``, decreasing timestamps
-            inside a window raise FormatError).
+        ShapeError, FormatError: as :func:`stacked_histogram`; without ``correct_time``, a timestamp below its
+            predecessor's anywhere in ``events`` (inside a window, between two windows or outside all of them)
+            raises FormatError.
     """
     x, y, t_us, p = event_columns(events)
-    t_us = monotonic_timestamps(t_us) if correct_time else _column("t_us", t_us, None)
+    if correct_time:
+        t_us = monotonic_timestamps(t_us)
+    else:
+        # the windows are found by binary search over the whole stream: one step back anywhere (between two
+        # windows too, where no window's own check sees it) makes them wrong
+        t_us = _column("t_us", t_us, None)
+        _check_non_decreasing(t_us, "in the event stream")
     ends = np.atleast_1d(np.asarray(window_end_us, dtype=np.int64))
     if ends.ndim != 1:
         raise ShapeError(f"window_end_us: expected a scalar or shape [T], got {ends.shape}")

@@ -234,6 +234,50 @@ def test_stacked_histograms_correct_time_applies_the_official_rule_before_window
     assert int(hist[0].sum()) == 5 and int(hist[1].sum()) == 3
 
 
+_CORRECT_TIME_HINT = "(stacked_histograms(..., correct_time=True) applies the official running-maximum correction)"
+
+
+def test_a_step_back_within_a_window_names_the_event_and_its_times():
+    with pytest.raises(FormatError) as info:
+        stacked_histogram([0, 1, 2], [0, 0, 0], [10, 20, 5], [0, 0, 0], height=1, width=3)
+    assert str(info.value) == ("t_us: expected non-decreasing timestamps within a window, but event 2 at 5 µs comes "
+                               f"after 20 µs {_CORRECT_TIME_HINT}")
+
+
+def test_a_step_back_between_windows_is_detected_and_corrected_across_them():
+    # event 4 steps back from 120 ms (window 3) to 70 ms: no window's own slice holds both, so checking each
+    # window alone missed it (window 3 came out empty; corrected, it holds events 3 and 4)
+    t_us = np.array([50_000, 50_000, 70_000, 120_000, 70_000], np.int64)
+    ends = np.array([50_000, 100_000, 150_000])
+    starts, stops = window_indices(t_us, ends)
+    assert all(np.all(np.diff(t_us[a:b]) >= 0) for a, b in zip(starts, stops))
+    x, y, p = np.arange(5), np.zeros(5, np.int64), np.ones(5, np.int64)
+    with pytest.raises(FormatError) as info:
+        stacked_histograms((x, y, t_us, p), ends, height=1, width=5)
+    assert str(info.value) == ("t_us: expected non-decreasing timestamps in the event stream, but event 4 at 70000 "
+                               f"µs comes after 120000 µs {_CORRECT_TIME_HINT}")
+    # correct_time=True: the running maximum carries across the windows (event 4 -> 120 ms, into window 3)
+    hist = stacked_histograms((x, y, t_us, p), ends, height=1, width=5, num_bins=2, correct_time=True)
+    corrected = np.array([50_000, 50_000, 70_000, 120_000, 120_000])
+    np.testing.assert_array_equal(hist, stacked_histograms((x, y, corrected, p), ends, height=1, width=5,
+                                                           num_bins=2))
+    np.testing.assert_array_equal(hist[:, 2:].sum(1)[:, 0], [[1, 1, 0, 0, 0], [1, 1, 1, 0, 0], [0, 0, 0, 1, 1]])
+    np.testing.assert_array_equal(t_us, [50_000, 50_000, 70_000, 120_000, 70_000])  # caller's array untouched
+
+
+def test_a_step_back_outside_every_window_is_detected():
+    # windows [25, 50] and [125, 150] ms; the step back 160 -> 80 ms lies in neither, yet it misleads the binary
+    # search: unchecked, event 3 (140 ms) landed in window 2, which is empty once the times are corrected (160 ms)
+    t_us = np.array([30_000, 160_000, 80_000, 140_000])
+    columns = (np.arange(4), np.zeros(4, int), t_us, np.ones(4, int))
+    with pytest.raises(FormatError) as info:
+        stacked_histograms(columns, [50_000, 150_000], window_us=25_000, height=1, width=4)
+    assert str(info.value) == ("t_us: expected non-decreasing timestamps in the event stream, but event 2 at 80000 "
+                               f"µs comes after 160000 µs {_CORRECT_TIME_HINT}")
+    hist = stacked_histograms(columns, [50_000, 150_000], window_us=25_000, height=1, width=4, correct_time=True)
+    assert hist.reshape(2, -1).sum(1).tolist() == [1, 0]
+
+
 # --- windows ------------------------------------------------------------------------------------------------
 def test_window_is_inclusive_at_both_ends():
     t_us = np.array([0, 49_999, 50_000, 50_001, 100_000, 100_001])
