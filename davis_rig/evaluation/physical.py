@@ -36,7 +36,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from davis_rig.errors import FormatError, SessionError
-from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
+from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
            "evaluate_sessions", "labels_crop_origin", "labels_provenance", "score_session"]
@@ -105,7 +105,7 @@ class SessionScores:
         detections: ``{threshold: [T entries: float32 [K, 7] or None]}`` (crop px).
         labels: BBOX_DTYPE [L] (crop px, device µs), as stored, sorted by time.
         crop_origin_xy: the crop used.
-        num_events: events read (before the crop).
+        num_events: events read (before the crop), each once.
         timings_s: busy seconds of the stages ``read``, ``histogram``, ``inference``, ``postprocess`` (they
             overlap) and ``wall``, the seconds :func:`score_session` took.
         event_images: int16 [G, 240, 304] ON − OFF counts of the first windows (for the GIF), maybe empty.
@@ -191,28 +191,39 @@ def _open_checked(path: Path):
 
 
 def _event_chunks(reader, ends: np.ndarray, origin, settings: EvalSettings, timings: dict):
-    """Producer: per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images)``.
+    """Producer: per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images, events read)``.
 
-    Reads the chunk's events (plus the window before it), crops them, makes their timestamps non-decreasing
-    across the whole recording (RVT's reader) and builds the stacked histograms; adds its busy seconds to
-    ``timings["read"]`` and ``timings["histogram"]``.
+    Reads the recording once, front to back, in consecutive pieces (each up to its chunk's last window end),
+    crops them and makes their timestamps non-decreasing across the whole recording like RVT's reader (the
+    running maximum carries from piece to piece); the corrected events the next chunk's first window still
+    holds (the boundary events, and events a step back in time lifted past the boundary) are carried over.
+    So every window holds exactly the events of RVT's whole-recording correction, whatever ``chunk_windows``.
+    Adds its busy seconds to ``timings["read"]`` and ``timings["histogram"]``.
     """
     from davis_rig.events.crop import crop_events
     from davis_rig.events.histogram import stacked_histograms
 
     window_us = int(settings.window_us)
     running_max = np.iinfo(np.int64).min
+    carried = np.zeros(0, EVENT_DTYPE)
+    t_read = int(ends[0]) - window_us
     gif_left = settings.gif_windows
     for i0 in range(0, len(ends), settings.chunk_windows):
         chunk_ends = ends[i0 : i0 + settings.chunk_windows]
         tic = time.perf_counter()
-        events = reader.events_between(int(chunk_ends[0]) - window_us, int(chunk_ends[-1]) + 1)
+        t_next = int(chunk_ends[-1]) + 1
+        events = reader.events_between(t_read, t_next)
+        t_read = t_next
         num_read = len(events)
         events = crop_events(events, origin, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
         if len(events):
             t = np.maximum.accumulate(np.maximum(events["t"], running_max))
             running_max = int(t[-1])
             events["t"] = t
+        if len(carried):
+            events = np.concatenate([carried, events])
+        next_start = int(ends[min(i0 + settings.chunk_windows, len(ends) - 1)]) - window_us
+        carried = events[np.searchsorted(events["t"], next_start, side="left"):]
         tac = time.perf_counter()
         hists = stacked_histograms(events, chunk_ends, window_us=window_us)
         gif = hists[:max(gif_left, 0)]

@@ -202,3 +202,66 @@ def test_report_json_round_trip_has_every_number(labelled, tmp_path):
     assert provenance["settings"]["conf_threshold"] == 0.25 and provenance["settings"]["crop_origin_xy"] == [21, 10]
     assert {"labeler_version", "created_utc", "crop_origin_x", "crop_origin_y"} <= set(provenance)
     assert not any(isinstance(v, float) and math.isnan(v) for v in recorded["metrics"]["0.25"].values())
+
+
+class _HistogramRecorder:
+    """Stand-in for the RVT runner: keeps every window's histogram, detects nothing (one anchor, score 0)."""
+
+    def __init__(self):
+        self.hists = []
+
+    def step(self, hist, states):
+        self.hists.append(hist[0].copy())
+        return np.zeros((1, 1, 6), np.float32), states
+
+
+def _session_with_times(path, t_us):
+    """A session whose /events/t holds ``t_us`` as given, in file order (out-of-order times: a file from another
+    tool, davis_rig's writer drops events that go back in time), one event per pixel, one pedestrian label."""
+    import h5py
+
+    from davis_rig.session import SessionWriter, schema
+    from davis_rig.types import make_events
+
+    n = len(t_us)
+    with SessionWriter(path, device_info={"serial": "FOREIGN"}) as writer:
+        writer.append_events(make_events(np.sort(t_us), 100 + np.arange(n), np.full(n, 100), np.ones(n, int)))
+    boxes = np.zeros(1, BBOX_DTYPE)
+    boxes["t"], boxes["w"], boxes["h"], boxes["class_id"] = 25_000, 40, 80, PEDESTRIAN_CLASS_ID
+    with h5py.File(path, "r+") as f:
+        f["events/t"][:] = np.asarray(t_us) - f["events"].attrs[schema.T_OFFSET_ATTR]
+        f.create_group(schema.LABELS_GROUP).create_dataset(schema.LABEL_BOXES, data=boxes)
+    return path
+
+
+@pytest.mark.parametrize("chunk_windows", [1, 2, 3])
+def test_out_of_order_times_are_corrected_across_chunks_like_rvt_over_the_whole_recording(tmp_path, chunk_windows):
+    from davis_rig.events.crop import crop_events
+    from davis_rig.events.histogram import stacked_histograms
+    from davis_rig.session import SessionReader
+
+    # 58 ms is followed by 20 and 50 ms in the file: RVT's running maximum lifts both to 58 ms, into window 2
+    # (50..100 ms), which holds 4 events; with one window per chunk all three are read with chunk 1 (the read
+    # ends at 50 ms by file time) and must be carried into chunk 2 with their corrected times
+    t_us = np.array([500, 10_000, 58_000, 20_000, 50_000, 70_000, 120_000])
+    session = _session_with_times(tmp_path / "foreign.h5", t_us)
+    runner = _HistogramRecorder()
+    scores = score_session(session, runner, EvalSettings(chunk_windows=chunk_windows, thresholds=(0.1,)))
+    np.testing.assert_array_equal(scores.window_end_us, [50_000, 100_000, 150_000])
+    with SessionReader(session) as reader:
+        official = stacked_histograms(crop_events(reader.events()), scores.window_end_us, correct_time=True)
+    np.testing.assert_array_equal(np.stack(runner.hists), official)
+    assert [int(h.sum()) for h in runner.hists] == [2, 4, 1]
+    assert scores.num_events == len(t_us)  # every event read once
+
+
+def test_events_on_chunk_boundaries_are_in_both_windows_and_counted_once(tmp_path):
+    from davis_rig.session import SessionReader
+
+    t_us = np.array([500, 50_000, 50_000, 75_000, 100_000, 120_000])  # ordered, two events on a boundary
+    session = _session_with_times(tmp_path / "ordered.h5", t_us)
+    runner = _HistogramRecorder()
+    scores = score_session(session, runner, EvalSettings(chunk_windows=1, thresholds=(0.1,)))
+    assert [int(h.sum()) for h in runner.hists] == [3, 4, 2]
+    with SessionReader(session) as reader:
+        assert scores.num_events == reader.num_events == 6
