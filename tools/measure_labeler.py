@@ -152,9 +152,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--json", type=Path, default=None, help="write the result here")
     parser.add_argument("--make-synthetic", type=Path, default=None, metavar="OUT_NPZ")
-    parser.add_argument("--num", type=int, default=200)
+    parser.add_argument("--num", type=int, default=200, help="frames made by --make-synthetic (>= 1)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    if args.num < 1:
+        parser.error(f"--num must be >= 1, got {args.num}")
     if args.make_synthetic is not None:
         make_synthetic(args.make_synthetic, args.num, args.seed)
         if args.yolo is None:

@@ -113,3 +113,10 @@ def test_make_synthetic_with_yolo_scores_the_new_file(tool, drawn, tmp_path):
     assert data["frames_file"] == str(out) and data["frames"] == data["labelled_frames"] == NUM
     assert data["median_best_iou"] == pytest.approx(np.median(ious), abs=1e-3)
     assert data["recall_at_0.25_iou_0.5"] == np.mean(ious >= 0.5)
+
+
+def test_zero_frames_is_a_usage_error(tool, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        tool.main(["--make-synthetic", str(tmp_path / "none.npz"), "--num", "0"])
+    assert info.value.code == 2 and "--num must be >= 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "none.npz").exists()
