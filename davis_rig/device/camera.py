@@ -95,7 +95,8 @@ class Davis346:
             libusb's asynchronous API, = a thread of synchronous reads instead (see :mod:`davis_rig.device.reader`).
         read_bytes: bytes per USB transfer (default 32 KiB) or per synchronous read (default 128 KiB).
         read_timeout_ms: per-read timeout of synchronous reads, ms.
-        queue_transfers: reader queue depth (transfers) before transfers are dropped.
+        queue_transfers: reader queue depth (transfers) before transfers are dropped (default: 64 MiB nominal,
+            i.e. 512 synchronous reads or 2048 ring transfers of 32 KiB).
     """
 
     def __init__(
@@ -108,7 +109,7 @@ class Davis346:
         usb_transfers: int = DEFAULT_TRANSFERS,
         read_bytes: int | None = None,
         read_timeout_ms: int = DEFAULT_READ_TIMEOUT_MS,
-        queue_transfers: int = DEFAULT_QUEUE_TRANSFERS,
+        queue_transfers: int | None = None,
     ):
         self.transport = transport
         self.info = info
@@ -392,7 +393,7 @@ class Davis346:
                 self.transport.read_data,
                 read_bytes=self._read_bytes or DEFAULT_READ_BYTES,
                 timeout_ms=self._read_timeout_ms,
-                queue_transfers=self._queue_transfers,
+                queue_transfers=self._queue_transfers or DEFAULT_QUEUE_TRANSFERS,
             )
         return RingReader(
             api,

@@ -36,8 +36,10 @@ from davis_rig.usb.async_bulk import DEFAULT_TRANSFER_BYTES, DEFAULT_TRANSFERS, 
 DEFAULT_READ_BYTES = 16 * 8192
 #: Default read timeout, ms (bounds how long stop() waits for the thread).
 DEFAULT_READ_TIMEOUT_MS = 100
-#: Default queue depth, in transfers (or synchronous reads).
+#: Default queue depth of the synchronous reader, in reads (64 MiB nominal at 128 KiB).
 DEFAULT_QUEUE_TRANSFERS = 512
+#: Default nominal queue capacity of the ring, bytes: the same 64 MiB (2048 transfers of 32 KiB).
+DEFAULT_QUEUE_BYTES = DEFAULT_QUEUE_TRANSFERS * DEFAULT_READ_BYTES
 
 
 @dataclass
@@ -283,7 +285,8 @@ class RingReader(TransferQueue):
         clear_halt: ``clear_halt()`` of the data endpoint, run after a stall.
         transfers: transfers in flight (libcaer: 8).
         transfer_bytes: bytes per transfer.
-        queue_transfers: queue depth in transfers; when full, new transfers are dropped and counted.
+        queue_transfers: queue depth in transfers; when full, new transfers are dropped and counted (default:
+            ``DEFAULT_QUEUE_BYTES // transfer_bytes``).
         describe: device name for messages.
 
     Errors that end the stream (unplug, a failed transfer) are re-raised by :meth:`get` after every transfer
@@ -297,10 +300,10 @@ class RingReader(TransferQueue):
         *,
         transfers: int = DEFAULT_TRANSFERS,
         transfer_bytes: int = DEFAULT_TRANSFER_BYTES,
-        queue_transfers: int = DEFAULT_QUEUE_TRANSFERS,
+        queue_transfers: int | None = None,
         describe: str = "DAVIS",
     ):
-        super().__init__(queue_transfers)
+        super().__init__(queue_transfers or max(1, DEFAULT_QUEUE_BYTES // int(transfer_bytes)))
         self._ring = BulkTransferRing(
             api,
             DATA_ENDPOINT,

@@ -78,3 +78,12 @@ def test_stop_ends_an_idle_reader_and_get_returns_none():
     assert reader.get(None) is None and reader.finished
     with pytest.raises(RuntimeError, match="already started"):
         reader.start()
+
+
+def test_ring_queue_defaults_to_the_same_64_mib_as_the_read_thread():
+    from davis_rig.device.reader import DEFAULT_QUEUE_BYTES, RingReader
+
+    assert DEFAULT_QUEUE_BYTES == 64 * 2**20 == 512 * TransferReader(FakeRead([])).read_bytes
+    assert RingReader(object(), lambda: None, transfer_bytes=32768)._queue.maxsize == 2048
+    assert RingReader(object(), lambda: None, transfer_bytes=8192)._queue.maxsize == 8192
+    assert RingReader(object(), lambda: None, queue_transfers=7)._queue.maxsize == 7
