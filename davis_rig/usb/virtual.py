@@ -58,6 +58,7 @@ from davis_rig.protocol.config import (
     decode_multiple,
 )
 from davis_rig.usb.async_bulk import (
+    LIBUSB_ERROR_NO_DEVICE,
     LIBUSB_ERROR_NOT_FOUND,
     LIBUSB_TRANSFER_CANCELLED,
     LIBUSB_TRANSFER_COMPLETED,
@@ -71,7 +72,6 @@ from davis_rig.usb.sources import DataSource, Faults
 #: libusb-1.0 error codes (what pyusb's libusb1 backend puts in ``backend_error_code``).
 LIBUSB_ERROR_IO = -1
 LIBUSB_ERROR_ACCESS = -3
-LIBUSB_ERROR_NO_DEVICE = -4
 LIBUSB_ERROR_BUSY = -6
 LIBUSB_ERROR_TIMEOUT = -7
 LIBUSB_ERROR_PIPE = -9
