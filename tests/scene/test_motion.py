@@ -1,6 +1,7 @@
 """davis_rig.scene.motion: quaternions, slerp resampling, loops, heading/turning, concatenation, ground contact."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -9,7 +10,10 @@ from davis_rig.errors import ShapeError
 from davis_rig.scene.motion import (
     Motion,
     concatenate,
+    contact_slip,
+    foot_vertex_ids,
     ground_contact,
+    lock_stance_foot,
     lowest_vertex_z,
     loop,
     motion_from_world_rotations,
@@ -221,8 +225,9 @@ def test_concatenate_continues_the_path():
 # ------------------------------------------------------------------ ground contact, world rotations
 def test_ground_contact_modes(asset, model):
     walk = Motion.from_walk_cycle(asset, 0)
-    lifted = Motion(walk.rotations_wxyz[::4], walk.root_translation_m[::4] + [0, 0, 0.3], walk.fps_hz / 4,
-                    cycle_advance_m=walk.cycle_advance_m)  # 10 frames per cycle keeps the test fast
+    bob = 0.3 + 0.02 * np.sin(np.linspace(0, 2 * np.pi, 10, endpoint=False))  # the stored walk is grounded
+    lifted = Motion(walk.rotations_wxyz[::4], walk.root_translation_m[::4] + bob[:, None] * [0, 0, 1],
+                    walk.fps_hz / 4, cycle_advance_m=walk.cycle_advance_m)  # 10 frames per cycle: fast
     per_frame = ground_contact(lifted, model, 0, mode="frame")
     np.testing.assert_allclose(lowest_vertex_z(per_frame, model, 0), 0.0, atol=1e-5)
     per_clip = ground_contact(lifted, model, 0, mode="clip")
@@ -233,6 +238,59 @@ def test_ground_contact_modes(asset, model):
     np.testing.assert_allclose([low2[:10].min(), low2[10:].min()], 0.0, atol=1e-5)
     with pytest.raises(ValueError):
         ground_contact(walk, model, 0, mode="sideways")
+
+
+@pytest.fixture(scope="module")
+def clean_gait(asset):
+    from davis_rig.scene.gait import GaitParams, generate_gait
+
+    walk = generate_gait(GaitParams(speed_m_s=1.2), asset, 0)
+    return resample(walk, 50.0)  # fewer frames keep the skinning cheap
+
+
+def test_foot_vertex_ids_split_the_feet(asset):
+    feet = foot_vertex_ids(asset)
+    assert len(feet["L"]) > 50 and len(feet["L"]) == len(feet["R"])
+    assert (asset.rest_vertices_m[0, feet["L"], 0] > 0).all() and (asset.rest_vertices_m[0, feet["R"], 0] < 0).all()
+    assert (asset.rest_vertices_m[0, np.concatenate([feet["L"], feet["R"]]), 2].max()
+            < asset.rest_vertices_m[0, :, 2].min() + 0.2)  # low on the body
+
+
+def test_lock_stance_foot_removes_injected_skating(clean_gait, model):
+    slip, left = contact_slip(clean_gait, model, 0)
+    assert slip.shape == (clean_gait.num_frames, 2) and left.any() and (~left).any()  # a cycle: T steps
+    speed = np.linalg.norm(slip, axis=1) * clean_gait.fps_hz
+    assert np.median(speed) < 0.01  # the generator's walk does not skate (1.2 m/s walking speed)
+    t = np.arange(clean_gait.num_frames)
+    wobble = np.zeros((clean_gait.num_frames, 3))
+    wobble[:, 1] = 0.015 * np.sin(2 * np.pi * 2 * t / clean_gait.num_frames)  # +-1.5 cm twice a cycle (0.18 m/s)
+    skating = replace(clean_gait, root_translation_m=clean_gait.root_translation_m + wobble)
+    skate_speed = np.linalg.norm(contact_slip(skating, model, 0)[0], axis=1) * clean_gait.fps_hz
+    assert np.median(skate_speed) > 0.05
+    locked = lock_stance_foot(skating, model, 0)
+    assert locked.metadata["stance_locked"] and locked.num_frames == skating.num_frames
+    locked_speed = np.linalg.norm(contact_slip(locked, model, 0)[0], axis=1) * clean_gait.fps_hz
+    assert locked_speed.max() < 1e-3
+    np.testing.assert_array_equal(locked.root_translation_m[:, 2], skating.root_translation_m[:, 2])
+    np.testing.assert_array_equal(locked.rotations_wxyz, skating.rotations_wxyz)
+    np.testing.assert_allclose(locked.cycle_advance_m, clean_gait.cycle_advance_m, atol=0.02)  # ~1 stride kept
+    # a clip (no wrap step) gets T - 1 steps and the same lock
+    clip = replace(skating, cycle_advance_m=None)
+    clip_slip, _ = contact_slip(clip, model, 0)
+    assert clip_slip.shape == (clip.num_frames - 1, 2)
+    clip_locked = lock_stance_foot(clip, model, 0)
+    assert clip_locked.cycle_advance_m is None
+    assert np.abs(contact_slip(clip_locked, model, 0)[0]).max() * clip.fps_hz < 1e-3
+
+
+def test_bundled_walk_is_settled_on_the_ground(asset, model):
+    """The asset's walk (advancing at its speed) keeps the planted foot still and a foot on the floor."""
+    for shape in (0, 17):
+        walk = Motion.from_walk_cycle(asset, shape, advance=True)
+        slip, _ = contact_slip(walk, model, shape)
+        assert (np.linalg.norm(slip, axis=1) * walk.fps_hz).max() < 0.02 * walk.speed_m_s + 0.01
+        np.testing.assert_allclose(lowest_vertex_z(walk, model, shape), 0.0, atol=1e-4)
+    assert asset.metadata["walk_contact"]["planted_foot_slip_m_s"]["after"]["slip_max"] < 0.01
 
 
 def test_world_rotations_give_the_posed_frames(asset, model64):
