@@ -13,8 +13,10 @@ frames + the reference frame, supersampling 2, 10x10 grid on torso/arms/legs), m
 * ``texture step``: :meth:`PoolClip.video` (texel lookup + compose) and backward of a fixed random gradient into
   the grid;
 * ``V2E relaxed`` / ``V2E ste``: :func:`davis_rig.attack.optimize.clip_histograms` on a given video (the
-  attack's exact "dvs" counts with the clip's thresholds and noise; backward by the default relaxed surrogate, or
-  by the paper's straight-through floor), forward and backward of a fixed random gradient into the video;
+  attack's exact "dvs" counts with the clip's thresholds and noise, on the person's box
+  :attr:`~davis_rig.attack.eot.PoolClip.active_box` as a step runs it; backward by the default relaxed
+  surrogate, or by the paper's straight-through floor), forward and backward of a fixed random gradient into the
+  video;
 * ``texture + V2E``: ``clip_histograms`` on the grid, as a step runs it (a check on the sum of the two above);
 * ``RVT-B fwd+bwd``: random-weight RVT-B over the 3-window sequence with recurrent states, backward of
   sum(objectness x max class probability) over all windows into the inputs, divided by 3.
@@ -112,6 +114,10 @@ class _GivenVideo:
     def video(self, grid):
         return self._video.detach().requires_grad_(True)
 
+    def active_video(self, grid):
+        y0, y1, x0, x1 = self._clip.active_box
+        return self.video(grid)[:, y0:y1, x0:x1]
+
     def __getattr__(self, name):
         return getattr(self._clip, name)
 
@@ -181,8 +187,11 @@ def run(device, model_name: str, warmup: int, repeats: int) -> None:
         AMORTISED: clip_timing.scaled(preparations_per_window(schedule)),
         **{name: timing.scaled(1 / eot.seq_len) for name, timing in timings.items()},
     }
+    y0, y1, x0, x1 = clip.active_box
     print(f"  clip: {frames} frames ({frames_per_window} per window), {tuple(clip.raster.hw)} px, "
-          f"{clip.lookup.index.shape[0]} covered samples; preparation amortised over the default pool "
+          f"{clip.lookup.index.shape[0]} covered samples, V2E on the person's {y1 - y0}x{x1 - x0} px box "
+          f"({100 * (y1 - y0) * (x1 - x0) / (clip.raster.hw[0] * clip.raster.hw[1]):.0f} % of the frame); "
+          f"preparation amortised over the default pool "
           f"({clips_prepared_per_step(schedule):.3f} clips per step of {schedule.clips_per_step} clip(s)); "
           f"RVT: {detector.config.name}")
     lines = cost_lines(per_window, rvt, frames_per_window, combined=(AMORTISED, STEP))

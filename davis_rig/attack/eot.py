@@ -181,6 +181,9 @@ class PoolClip:
         threshold: float32 tensor [H, W], per-pixel contrast threshold (log units), ON = OFF.
         noise_cell: int64 tensor [K], distinct flat indices into the [W, 2 * B, H, W] histogram where noise fired.
         noise_count: float32 tensor [K], noise events in each of those cells.
+        active_box: ``(y0, y1, x0, x1)`` (px, end exclusive), the rows and columns of every pixel the person covers
+            in any frame. Outside it the video is the constant background, so no event can fire there and the
+            V2E runs on this crop only (:meth:`active_video`); at least one pixel even when the person is unseen.
     """
 
     seed: int
@@ -195,6 +198,7 @@ class PoolClip:
     threshold: "torch.Tensor"
     noise_cell: "torch.Tensor"
     noise_count: "torch.Tensor"
+    active_box: tuple[int, int, int, int]
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
@@ -204,6 +208,11 @@ class PoolClip:
         """
         person = self.raster.person(self.lookup.sample(grid, fill=1.0))
         return self.backdrop.to(person.dtype) + person
+
+    def active_video(self, grid: "torch.Tensor") -> "torch.Tensor":
+        """:meth:`video` cropped to :attr:`active_box`: float tensor [T, y1 - y0, x1 - x0] (same values)."""
+        y0, y1, x0, x1 = self.active_box
+        return self.video(grid)[:, y0:y1, x0:x1]
 
     def add_noise(self, hist: "torch.Tensor") -> "torch.Tensor":
         """``hist`` plus the clip's noise events (constants: the gradient passes through unchanged).
@@ -317,6 +326,7 @@ def prepare_clip(
     noise_index = rng.integers(0, n_windows * 2 * NUM_BINS * h * w, size=k, dtype=np.int64)
     noise_cell, noise_count = np.unique(noise_index, return_counts=True)
     device = clip.raster.coverage.device
+    active_box = _active_box(clip.raster.coverage)
     background = torch.as_tensor(clip.background, device=device)
     backdrop = clip.raster.backdrop(background)
     # a step needs only sample_pixel and shade (RasterizedMesh.person) once the texel lookup and the backdrop are
@@ -326,8 +336,18 @@ def prepare_clip(
         seed=int(seed), spec=spec, raster=raster, lookup=lookup, background=background, backdrop=backdrop,
         t_us=t_us, window_end_us=ends, boxes=boxes, threshold=torch.as_tensor(theta, device=device),
         noise_cell=torch.as_tensor(noise_cell, device=device),
-        noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device),
+        noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device), active_box=active_box,
     )
+
+
+def _active_box(coverage: "torch.Tensor") -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` bounding the pixels with coverage > 0 in any frame of [T, H, W]; (0, 1, 0, 1) if none."""
+    seen = (coverage > 0).any(dim=0)
+    rows = torch.nonzero(seen.any(dim=1)).flatten()
+    cols = torch.nonzero(seen.any(dim=0)).flatten()
+    if rows.numel() == 0:
+        return 0, 1, 0, 1
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 class ClipPool:

@@ -249,18 +249,26 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
 
     if gradient not in V2E_GRADIENTS:
         raise ValueError(f"gradient must be one of {V2E_GRADIENTS}, got {gradient!r}")
-    log_video = log_intensity(clip.video(grid))
+    # events can only fire where the person is: run the V2E on clip.active_box and pad the counts with zeros
+    y0, y1, x0, x1 = clip.active_box
+    height, width = clip.threshold.shape
+    log_video = log_intensity(clip.active_video(grid))
+    threshold = clip.threshold[y0:y1, x0:x1]
+
+    def full_frame(hist: "torch.Tensor") -> "torch.Tensor":
+        return torch.nn.functional.pad(hist, (x0, width - x1, y0, height - y1))
 
     def exact_counts() -> "torch.Tensor":
         hist = log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
-                              count_cutoff=None, threshold_on=clip.threshold, threshold_off=clip.threshold)
-        return torch.clamp(clip.add_noise(hist), max=float(COUNT_CUTOFF))
+                              count_cutoff=None, threshold_on=threshold, threshold_off=threshold)
+        return torch.clamp(clip.add_noise(full_frame(hist)), max=float(COUNT_CUTOFF))
 
     if gradient == "ste":
         return exact_counts()
     theta = float(clip.threshold.mean())
-    surrogate = log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
-                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+    surrogate = full_frame(log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed",
+                                          binning=binning, count_cutoff=None, threshold_on=theta,
+                                          threshold_off=theta)) / OFFICIAL_RELAXED_SCALE
     with torch.no_grad():
         gap = exact_counts().sub_(surrogate)  # exact - surrogate, a constant
     return surrogate + gap

@@ -256,6 +256,25 @@ def test_pool_clip_video_equals_the_full_raster_composite(body):
         videos[-1].backward(weight)
     assert clip.raster.coverage is None
     assert torch.equal(videos[0], videos[1]) and torch.equal(grids[0].grad, grids[1].grad)
+    # the active box is the tight bounding box of everything the person covers; outside it the video is constant
+    y0, y1, x0, x1 = clip.active_box
+    seen = (full.raster.coverage > 0).any(dim=0)
+    assert seen[y0].any() and seen[y1 - 1].any() and seen[:, x0].any() and seen[:, x1 - 1].any()
+    outside = torch.ones_like(seen)
+    outside[y0:y1, x0:x1] = False
+    assert not seen[outside].any() and 0 < (y1 - y0) * (x1 - x0) < seen.numel()
+    assert torch.equal(videos[0][:, outside], videos[0][:1, outside].expand(len(videos[0]), -1))
+    assert torch.equal(clip.active_video(grids[0]), videos[0][:, y0:y1, x0:x1])
+
+
+def test_active_box_of_an_unseen_person_is_one_pixel():
+    from davis_rig.attack.eot import _active_box
+
+    assert _active_box(torch.zeros(3, 5, 7)) == (0, 1, 0, 1)
+    coverage = torch.zeros(3, 5, 7)
+    coverage[0, 1, 2] = 0.25
+    coverage[2, 3, 5] = 1.0
+    assert _active_box(coverage) == (1, 4, 2, 6)
 
 
 @pytest.mark.parametrize("rule", ["relaxed", "ste"])
