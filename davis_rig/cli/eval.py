@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-plot", action="store_true", help="with --report: no plot")
     parser.add_argument("--gif-seconds", type=float, default=10.0,
                         help="with --report: length of the annotated GIF per recording (0: none; default 10)")
+    parser.add_argument("--gif-threshold", type=float, default=None, metavar="T",
+                        help="with --report: draw the detections of this threshold in the GIFs (one of --threshold; "
+                             "default the highest)")
     parser.add_argument("--coco-backend", default="faster_coco_eval", choices=["faster_coco_eval", "pycocotools"])
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -80,7 +83,8 @@ def _eval(args: argparse.Namespace) -> int:
     results, scores = evaluate_sessions(args.sessions, args.model, settings, names=names, progress=progress)
     print(markdown_table(results), end="")
     if args.report:
-        written = write_report(results, scores, settings, args.report, plot=not args.no_plot, gif=gif_windows > 0)
+        written = write_report(results, scores, settings, args.report, plot=not args.no_plot, gif=gif_windows > 0,
+                               gif_threshold=args.gif_threshold)
         print(f"report: {', '.join(str(p) for p in written.values())}")
     return EXIT_OK
 
@@ -103,6 +107,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.threshold and any(not 0 <= t <= 1 for t in args.threshold):
         print(f"{NAME}: error: thresholds must be in [0, 1], got {args.threshold}", file=sys.stderr)
         return 2
+    if args.gif_threshold is not None:
+        from davis_rig.evaluation.physical import PAPER_THRESHOLDS
+
+        scored = args.threshold or PAPER_THRESHOLDS
+        if args.gif_threshold not in scored:
+            print(f"{NAME}: error: --gif-threshold {args.gif_threshold:g} is not one of the scored thresholds "
+                  f"{', '.join(f'{t:g}' for t in scored)}", file=sys.stderr)
+            return 2
     return run_command(NAME, lambda: _eval(args))
 
 

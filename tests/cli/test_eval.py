@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
+import numpy as np
 import pytest
 
 from davis_rig.cli import eval as cli
@@ -51,9 +52,29 @@ def test_two_recordings_one_table_and_a_full_report(sessions, tmp_path, capsys):
     assert Image.open(rep / "Ours.gif").n_frames == 10
     assert (sha256(a), sha256(b)) == before  # evaluation never writes to the sessions
 
+    # the GIF draws the detections of --gif-threshold (default the highest): a detector scoring 0.1 has none at 0.25
+    weak = person_rvt(tmp_path, score=0.1, name="weak.onnx")
+
+    def gif_pixels(threshold):
+        extra = [] if threshold is None else ["--gif-threshold", str(threshold)]
+        out_dir = tmp_path / f"gif_{threshold}"
+        assert cli.main([str(a), "--model", str(weak), "--threshold", "0.001", "0.25", "--report", str(out_dir),
+                         "--no-plot", "--gif-seconds", "0.5", "--quiet", *extra]) == 0
+        gif = Image.open(next(out_dir.glob("*.gif")))
+        return np.asarray(gif.convert("RGB"))
+
+    default, low = gif_pixels(None), gif_pixels(0.001)
+    assert np.array_equal(default, gif_pixels(0.25)) and not np.array_equal(default, low)
+    capsys.readouterr()
+
     assert cli.main([str(a), "--model", str(blind), "--threshold", "0.25", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "| AP ↓ | 0.25 | 0.0% |" in out and "| SeqASR ↑ | 0.25 | 100.0% |" in out and "0.001" not in out
+
+
+def test_gif_threshold_must_be_scored(capsys):
+    assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1", "0.25", "--gif-threshold", "0.5"]) == 2
+    assert "--gif-threshold 0.5 is not one of the scored thresholds 0.1, 0.25" in capsys.readouterr().err
 
 
 def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
