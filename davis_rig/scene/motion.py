@@ -714,7 +714,11 @@ def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: n
 
 
 def contact_slip(
-    motion: Motion, model: "BodyModel", shape_index: int = 0, foot_vertices: dict[str, np.ndarray] | None = None
+    motion: Motion,
+    model: "BodyModel",
+    shape_index: int = 0,
+    foot_vertices: dict[str, np.ndarray] | None = None,
+    planted_left: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Horizontal slip of the planted foot per frame step.
 
@@ -729,6 +733,7 @@ def contact_slip(
         model: :class:`~davis_rig.scene.body.BodyModel`.
         shape_index: body shape.
         foot_vertices: vertex ids per foot (default :func:`foot_vertex_ids` of the model's asset).
+        planted_left: bool [S], which foot is planted at each step (default: the one that moves less).
 
     Returns:
         ``(slip float64 [S, 2] in m per step — multiply by fps_hz for m/s, planted_left bool [S])``.
@@ -743,24 +748,35 @@ def contact_slip(
         low = np.argmin(v[:steps, :, 2], axis=1)
         t = np.arange(steps)
         moves.append(v[t + 1, low, :2] - v[t, low, :2])
-    left = np.linalg.norm(moves[0], axis=1) <= np.linalg.norm(moves[1], axis=1)
+    if planted_left is None:
+        left = np.linalg.norm(moves[0], axis=1) <= np.linalg.norm(moves[1], axis=1)
+    else:
+        left = np.asarray(planted_left, dtype=bool)
+        if left.shape != (steps,):
+            raise ShapeError(f"planted_left must be [{steps}], got {left.shape}")
     return np.where(left[:, None], moves[0], moves[1]), left
 
 
 def lock_stance_foot(
-    motion: Motion, model: "BodyModel", shape_index: int = 0, foot_vertices: dict[str, np.ndarray] | None = None
+    motion: Motion,
+    model: "BodyModel",
+    shape_index: int = 0,
+    foot_vertices: dict[str, np.ndarray] | None = None,
+    planted_left: np.ndarray | None = None,
 ) -> Motion:
     """Move the root horizontally so that the ground contact does not slide (no foot skating).
 
     The root's X/Y path is rebuilt from :func:`contact_slip`: each step's root displacement loses the slip
     of the planted foot, so its lowest vertex stays put from one frame to the next (a rolling contact:
     heel, then ball, then toe). Heights, rotations and frame 0 are unchanged; for a cycle,
-    ``cycle_advance_m`` becomes the distance the body then covers per period. Meant for walks (one foot always down); flight phases of a run are not contacts.
+    ``cycle_advance_m`` becomes the distance the body then covers per period. Meant for walks (one foot always
+    down); flight phases of a run are not contacts. ``planted_left`` (bool [S]) fixes which foot is planted at
+    each step instead of :func:`contact_slip`'s guess.
 
     Returns:
         The corrected motion (metadata ``stance_locked`` is True).
     """
-    slip, _ = contact_slip(motion, model, shape_index, foot_vertices)
+    slip, _ = contact_slip(motion, model, shape_index, foot_vertices, planted_left)
     root = motion.root_translation_m.astype(np.float64).copy()
     steps = np.diff(root[:, :2], axis=0) - slip[: motion.num_frames - 1]
     root[1:, :2] = root[0, :2] + np.cumsum(steps, axis=0)

@@ -103,9 +103,10 @@ def test_pool_rebuilds_from_generations_and_splits_slots(body):
 @pytest.mark.parametrize("rule", ["relaxed", "ste"])
 def test_loss_decreases_on_tiny_detector(detector, body, tmp_path, rule):
     # the fixture detector has random weights and reacts weakly to the texture: on most clips the loss moves by
-    # ~1 % in 10 steps; the clip of seed 4 (deterministic on one thread) leaves room to fall by > 3 %
+    # ~1-5 % in 10 steps; the clip of seed 6 (deterministic on one thread) leaves room to fall by ~8 % with both
+    # rules (re-pick the seed when the bundled body asset or the EoT draws change)
     cfg = _tiny(iterations=10, pool_size=1, refresh_every=1000, dropout=0.0, alpha_schedule="soft",
-                box_margin_px=0.0, lr=0.1, checkpoint_every=1000, snapshot_every=1000, v2e_gradient=rule, seed=4)
+                box_margin_px=0.0, lr=0.1, checkpoint_every=1000, snapshot_every=1000, v2e_gradient=rule, seed=6)
     optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
     losses = [r["loss"] for r in _log(tmp_path / "log.jsonl")[0]]
     assert len(losses) == 10 and all(math.isfinite(v) for v in losses)

@@ -285,12 +285,21 @@ def test_lock_stance_foot_removes_injected_skating(clean_gait, model):
 
 def test_bundled_walk_is_settled_on_the_ground(asset, model):
     """The asset's walk (advancing at its speed) keeps the planted foot still and a foot on the floor."""
+    feet = foot_vertex_ids(asset)
     for shape in (0, 17):
         walk = Motion.from_walk_cycle(asset, shape, advance=True)
-        slip, _ = contact_slip(walk, model, shape)
+        slip, planted_left = contact_slip(walk, model, shape)
         assert (np.linalg.norm(slip, axis=1) * walk.fps_hz).max() < 0.02 * walk.speed_m_s + 0.01
         np.testing.assert_allclose(lowest_vertex_z(walk, model, shape), 0.0, atol=1e-4)
-    assert asset.metadata["walk_contact"]["planted_foot_slip_m_s"]["after"]["slip_max"] < 0.01
+        with torch.no_grad():
+            verts = model.pose(shape, torch.as_tensor(walk.rotations_wxyz.copy()),
+                               torch.as_tensor(walk.root_translation_m.copy())).numpy()
+        low = {side: verts[:, feet[side], 2].min(axis=1) for side in "LR"}
+        planted = np.where(planted_left, low["L"], low["R"])
+        np.testing.assert_allclose(planted, 0.0, atol=1e-4)  # the planted foot is on the floor, not hovering
+    contact = asset.metadata["walk_contact"]
+    assert contact["planted_foot_slip_m_s"]["after"]["slip_max"] < 0.02
+    assert contact["planted_foot_above_floor_max_m"]["after"] < 1e-4
 
 
 def test_world_rotations_give_the_posed_frames(asset, model64):

@@ -62,9 +62,11 @@ def test_motion_equals_the_walk_cycle_in_place(model):
     spec_motion = SceneSpec(shape_index=2, motion=motion, duration_s=0.1)
     a = scene_vertices(spec_walk, model)
     b = scene_vertices(spec_motion, model)
-    # the Motion path centres the root at mid-clip; compare shapes of the body up to that translation
+    # the Motion path centres the root at mid-clip; compare shapes of the body up to that translation. Between
+    # stored frames the walk path nlerps and the Motion path slerps: where the settled walk's knee flexes by up to
+    # ~50 degrees in one 24 Hz frame (toe-off), the two interpolants differ by up to ~0.6 mm at the foot
     shift = (a - b).mean(dim=1, keepdim=True)
-    np.testing.assert_allclose((a - b - shift).numpy(), 0.0, atol=2e-4)
+    np.testing.assert_allclose((a - b - shift).numpy(), 0.0, atol=1e-3)
     rot, root = sample(motion, np.array([0.0, 1.0 / walk.fps_hz, 100.0]))
     np.testing.assert_allclose(rot[1], walk.rotations_wxyz[1] * np.sign((rot[1] * walk.rotations_wxyz[1]).sum(-1))[:, None], atol=1e-6)
     np.testing.assert_allclose(root[2], walk.root_translation_m[-1], atol=1e-6)  # clamped at the end
