@@ -184,6 +184,8 @@ class PoolClip:
         active_box: ``(y0, y1, x0, x1)`` (px, end exclusive), the rows and columns of every pixel the person covers
             in any frame. Outside it the video is the constant background, so no event can fire there and the
             V2E runs on this crop only (:meth:`active_video`); at least one pixel even when the person is unseen.
+        active_backdrop: float32 tensor [T, y1 - y0, x1 - x0], ``backdrop`` inside the active box.
+        active_pixel: int64 tensor [N], each covered sample's flat pixel index ``t*h*w + row*w + col`` in the box.
     """
 
     seed: int
@@ -199,6 +201,8 @@ class PoolClip:
     noise_cell: "torch.Tensor"
     noise_count: "torch.Tensor"
     active_box: tuple[int, int, int, int]
+    active_backdrop: "torch.Tensor"
+    active_pixel: "torch.Tensor"
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
@@ -210,9 +214,15 @@ class PoolClip:
         return self.backdrop.to(person.dtype) + person
 
     def active_video(self, grid: "torch.Tensor") -> "torch.Tensor":
-        """:meth:`video` cropped to :attr:`active_box`: float tensor [T, y1 - y0, x1 - x0] (same values)."""
-        y0, y1, x0, x1 = self.active_box
-        return self.video(grid)[:, y0:y1, x0:x1]
+        """:meth:`video` inside :attr:`active_box`: float tensor [T, y1 - y0, x1 - x0] (the same bits, computed
+        on the box only: the person's samples are all inside it)."""
+        values = self.lookup.sample(grid, fill=1.0)
+        lit = self.raster.shade.to(values.dtype) * values
+        frames, height, width = self.active_backdrop.shape
+        person = torch.zeros(frames * height * width, dtype=lit.dtype, device=lit.device)
+        person.index_add_(0, self.active_pixel, lit)
+        person = person.view(frames, height, width) / float(self.raster.supersample**2)
+        return self.active_backdrop.to(person.dtype) + person
 
     def add_noise(self, hist: "torch.Tensor") -> "torch.Tensor":
         """``hist`` plus the clip's noise events (constants: the gradient passes through unchanged).
@@ -332,11 +342,16 @@ def prepare_clip(
     # a step needs only sample_pixel and shade (RasterizedMesh.person) once the texel lookup and the backdrop are
     # built: drop the per-sample UVs, faces and sample indices and the coverage (half of a clip's memory)
     raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None, coverage=None)
+    y0, y1, x0, x1 = active_box
+    frame_px = h * w
+    frame, row, col = raster.sample_pixel // frame_px, raster.sample_pixel % frame_px // w, raster.sample_pixel % w
+    active_pixel = (frame * (y1 - y0) + row - y0) * (x1 - x0) + col - x0
     return PoolClip(
         seed=int(seed), spec=spec, raster=raster, lookup=lookup, background=background, backdrop=backdrop,
         t_us=t_us, window_end_us=ends, boxes=boxes, threshold=torch.as_tensor(theta, device=device),
         noise_cell=torch.as_tensor(noise_cell, device=device),
         noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device), active_box=active_box,
+        active_backdrop=backdrop[:, y0:y1, x0:x1].contiguous(), active_pixel=active_pixel,
     )
 
 

@@ -50,7 +50,7 @@ from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prep
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.errors import CheckpointError, MissingDependencyError
-from davis_rig.events.histogram import COUNT_CUTOFF
+from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS
 
 try:
     import torch
@@ -232,9 +232,9 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
       gradient does not reliably lower the loss (the floor's surrogate ignores whether a threshold is crossed).
     - ``"relaxed"``: the gradient of the continuous counts ``relu(±(L_{k+1} - L_k) / theta)`` per frame pair
       (the official code's relaxed simulator in count units, clip-mean threshold theta) through the same binning,
-      used as a straight-through surrogate of the exact counts (``surrogate + (exact - surrogate).detach()``), no
-      clamp. Along its negative gradient the exact-count loss falls monotonically for steps up to 0.3 grid units.
-      The exact counts (no grad) and the surrogate are taken from one lin-log video, computed once.
+      used as a straight-through surrogate of the exact counts (value: the exact counts; gradient: the
+      surrogate's), no clamp. Along its negative gradient the exact-count loss falls monotonically for steps up to
+      0.3 grid units. The exact counts (no grad) and the surrogate are taken from one lin-log video, computed once.
 
     Args:
         grid: float tensor [n, n] texture grid (1 = white), gradients flow to it.
@@ -249,29 +249,34 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
 
     if gradient not in V2E_GRADIENTS:
         raise ValueError(f"gradient must be one of {V2E_GRADIENTS}, got {gradient!r}")
-    # events can only fire where the person is: run the V2E on clip.active_box and pad the counts with zeros
+    # events can only fire where the person is: the V2E runs on clip.active_box; the full-frame tensor is built
+    # once (zeros, the crop's counts, the noise events, the clip at COUNT_CUTOFF), in place
     y0, y1, x0, x1 = clip.active_box
-    height, width = clip.threshold.shape
     log_video = log_intensity(clip.active_video(grid))
     threshold = clip.threshold[y0:y1, x0:x1]
+    shape = (len(clip.window_end_us), 2 * NUM_BINS, *clip.threshold.shape)
 
-    def full_frame(hist: "torch.Tensor") -> "torch.Tensor":
-        return torch.nn.functional.pad(hist, (x0, width - x1, y0, height - y1))
+    def full_frame(crop: "torch.Tensor") -> "torch.Tensor":
+        hist = torch.zeros(shape, dtype=crop.dtype, device=crop.device)
+        hist[..., y0:y1, x0:x1] = crop
+        if clip.noise_cell.numel():
+            hist.view(-1).index_add_(0, clip.noise_cell, clip.noise_count.to(hist.dtype))
+        return torch.clamp(hist, max=float(COUNT_CUTOFF))
 
-    def exact_counts() -> "torch.Tensor":
-        hist = log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
+    def exact_crop() -> "torch.Tensor":
+        return log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
                               count_cutoff=None, threshold_on=threshold, threshold_off=threshold)
-        return torch.clamp(clip.add_noise(full_frame(hist)), max=float(COUNT_CUTOFF))
 
     if gradient == "ste":
-        return exact_counts()
+        return full_frame(exact_crop())
     theta = float(clip.threshold.mean())
-    surrogate = full_frame(log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed",
-                                          binning=binning, count_cutoff=None, threshold_on=theta,
-                                          threshold_off=theta)) / OFFICIAL_RELAXED_SCALE
+    surrogate = log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
+                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
     with torch.no_grad():
-        gap = exact_counts().sub_(surrogate)  # exact - surrogate, a constant
-    return surrogate + gap
+        hist = full_frame(exact_crop())
+    # the value stays the exact counts bit for bit (surrogate - surrogate == 0); the gradient is the surrogate's
+    hist[..., y0:y1, x0:x1] += surrogate - surrogate.detach()
+    return hist
 
 
 def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, config: AttackConfig) -> AdversarialLoss:

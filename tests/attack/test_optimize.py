@@ -313,7 +313,7 @@ def test_clip_histograms_equals_the_two_pass_computation(body, rule):
         theta = float(clip.threshold.mean())
         surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", count_cutoff=None,
                                    threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
-        expected = surrogate + (counts - surrogate).detach()
+        expected = counts + (surrogate - surrogate.detach())  # the exact counts' value, the surrogate's gradient
     expected.backward(weight)
     assert torch.equal(hist, expected) and torch.equal(shared.grad, two_pass.grad)
     assert shared.grad.abs().sum() > 0
