@@ -216,12 +216,8 @@ class PoolClip:
     def active_video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """:meth:`video` inside :attr:`active_box`: float tensor [T, y1 - y0, x1 - x0] (the same bits, computed
         on the box only: the person's samples are all inside it)."""
-        values = self.lookup.sample(grid, fill=1.0)
-        lit = self.raster.shade.to(values.dtype) * values
-        frames, height, width = self.active_backdrop.shape
-        person = torch.zeros(frames * height * width, dtype=lit.dtype, device=lit.device)
-        person.index_add_(0, self.active_pixel, lit)
-        person = person.view(frames, height, width) / float(self.raster.supersample**2)
+        person = self.raster.person(self.lookup.sample(grid, fill=1.0), pixels=self.active_pixel,
+                                    hw=tuple(self.active_backdrop.shape[1:]))
         return self.active_backdrop.to(person.dtype) + person
 
     def add_noise(self, hist: "torch.Tensor") -> "torch.Tensor":

@@ -623,19 +623,24 @@ def concatenate(motions: Sequence[Motion], *, blend_frames: int = 0) -> Motion:
 
 
 # ---------------------------------------------------------------------------------------------- ground contact
-def lowest_vertex_z(motion: Motion, model: "BodyModel", shape_index: int = 0, batch_frames: int = 64) -> np.ndarray:
-    """Height of the lowest skinned vertex per frame, float64 [T] (m), computed with ``model`` (FK + LBS)."""
+def _pose_batches(motion: Motion, model: "BodyModel", shape_index: int, batch_frames: int = 64):
+    """Posed vertices batch by batch (no grad): yields ``(start, stop, vertices tensor [stop - start, V, 3])``."""
     import torch
 
     motion.check_rig(model.asset.bone_names)
-    out = np.empty(motion.num_frames)
     with torch.no_grad():
         for start in range(0, motion.num_frames, batch_frames):
             stop = min(start + batch_frames, motion.num_frames)
             rot = torch.as_tensor(motion.rotations_wxyz[start:stop].copy(), device=model.device)
             root = torch.as_tensor(motion.root_translation_m[start:stop].copy(), device=model.device)
-            verts = model.pose(shape_index, rot, root)
-            out[start:stop] = verts[..., 2].amin(dim=1).double().cpu().numpy()
+            yield start, stop, model.pose(shape_index, rot, root)
+
+
+def lowest_vertex_z(motion: Motion, model: "BodyModel", shape_index: int = 0, batch_frames: int = 64) -> np.ndarray:
+    """Height of the lowest skinned vertex per frame, float64 [T] (m), computed with ``model`` (FK + LBS)."""
+    out = np.empty(motion.num_frames)
+    for start, stop, verts in _pose_batches(motion, model, shape_index, batch_frames):
+        out[start:stop] = verts[..., 2].amin(dim=1).double().cpu().numpy()
     return out
 
 
@@ -698,18 +703,11 @@ def foot_vertex_ids(asset) -> dict[str, np.ndarray]:
     return {"L": feet[x > 0], "R": feet[x < 0]}
 
 
-def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray,
-                    batch_frames: int = 64) -> np.ndarray:
-    import torch
-
-    motion.check_rig(model.asset.bone_names)
+def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray) -> np.ndarray:
+    """Posed positions of the vertices ``ids``, float64 [T, len(ids), 3] (m)."""
     out = np.empty((motion.num_frames, len(ids), 3))
-    with torch.no_grad():
-        for start in range(0, motion.num_frames, batch_frames):
-            stop = min(start + batch_frames, motion.num_frames)
-            rot = torch.as_tensor(motion.rotations_wxyz[start:stop].copy(), device=model.device)
-            root = torch.as_tensor(motion.root_translation_m[start:stop].copy(), device=model.device)
-            out[start:stop] = model.pose(shape_index, rot, root)[:, ids].double().cpu().numpy()
+    for start, stop, verts in _pose_batches(motion, model, shape_index):
+        out[start:stop] = verts[:, ids].double().cpu().numpy()
     return out
 
 
@@ -740,13 +738,13 @@ def contact_slip(
     """
     feet = foot_vertices if foot_vertices is not None else foot_vertex_ids(model.asset)
     steps = motion.num_frames if motion.is_cycle else motion.num_frames - 1
+    both = _posed_vertices(motion, model, shape_index, np.concatenate([feet["L"], feet["R"]]))  # pose once
+    if motion.is_cycle:
+        both = np.concatenate([both, both[:1] + motion.cycle_advance_m])
+    t = np.arange(steps)
     moves = []
-    for side in ("L", "R"):
-        v = _posed_vertices(motion, model, shape_index, feet[side])
-        if motion.is_cycle:
-            v = np.concatenate([v, v[:1] + motion.cycle_advance_m])
+    for v in np.split(both, [len(feet["L"])], axis=1):
         low = np.argmin(v[:steps, :, 2], axis=1)
-        t = np.arange(steps)
         moves.append(v[t + 1, low, :2] - v[t, low, :2])
     if planted_left is None:
         left = np.linalg.norm(moves[0], axis=1) <= np.linalg.norm(moves[1], axis=1)

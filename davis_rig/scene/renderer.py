@@ -112,25 +112,28 @@ class RasterizedMesh:
             raise ShapeError(f"background must be [{h}, {w}] or [{t}, {h}, {w}], got {tuple(bg.shape)}")
         return bg.to(dtype) * (1 - self.coverage.to(dtype))
 
-    def person(self, values):
+    def person(self, values, *, pixels=None, hw=None):
         """The textured body's share of every pixel, ``alpha * mean(shade * T)`` (differentiable in ``values``).
 
         Args:
             values: float tensor [N] (texture value per covered sample), or ``None`` for an all-white texture.
+            pixels, hw: render into a smaller frame of ``hw = (h, w)`` pixels instead, with ``pixels`` (int64 [N])
+                each sample's flat index ``t*h*w + row*w + col`` there (a crop holding every covered sample);
+                default :attr:`sample_pixel` in the full :attr:`hw`.
 
         Returns:
-            float tensor [T, H, W] in the dtype of ``shade * values``.
+            float tensor [T, H, W] (or [T, h, w]) in the dtype of ``shade * values``.
 
         Raises:
             ShapeError: ``values`` is not one value per covered sample.
         """
         torch = _torch()
-        h, w = self.hw
+        h, w = self.hw if hw is None else hw
         if values is not None and tuple(values.shape) != tuple(self.shade.shape):
             raise ShapeError(f"values must be [{self.shade.shape[0]}], got {tuple(values.shape)}")
         lit = self.shade if values is None else self.shade.to(values.dtype) * values
         person = torch.zeros(self.num_frames * h * w, dtype=lit.dtype, device=lit.device)
-        person.index_add_(0, self.sample_pixel, lit)
+        person.index_add_(0, self.sample_pixel if pixels is None else pixels, lit)
         return person.view(self.num_frames, h, w) / float(self.supersample**2)
 
     def render(self, texture=None, background=0.5, mode: str = "nearest", mask=None, size: int = 1024, fill=1.0):
