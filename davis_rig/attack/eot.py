@@ -21,6 +21,8 @@ jitter only), every clip draws:
 - camera: the training scale (middle) with the official jitter (:class:`~davis_rig.scene.camera.EoTJitter`,
   p = 0.4 rotation +-0.1 rad, p = 0.4 distance +-0.25/1.75), a lateral/depth placement offset;
 - light (:meth:`~davis_rig.scene.shading.Light.random`) and background (procedural, or a uniform grey);
+  :meth:`EoTConfig.official` is the official code's distribution instead (white background, its light, walking
+  in place, camera jitter only, ideal sensor);
 - sensor non-idealities for the differentiable V2E: the clip's contrast threshold (uniform range), per-pixel
   threshold mismatch (Gaussian, v2e's ``sigma_thres``) and shot-noise events (Poisson, added to the histogram as
   constants: they carry no gradient, like real noise).
@@ -41,6 +43,7 @@ from davis_rig.errors import MissingDependencyError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
 from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+from davis_rig.scene.shading import Light
 
 try:
     import torch
@@ -103,7 +106,8 @@ class EoTConfig:
         jitter: camera EoT jitter (official p = 0.4 / p = 0.4); ``None`` = none.
         offset_x_m: lateral placement uniform in +-offset_x_m (m).
         offset_depth_m: depth placement uniform in +-offset_depth_m (m).
-        random_light_probability: chance of a random light (else the default light).
+        random_light_probability: chance of a random light (else ``light``).
+        light: the light of the other clips (``None`` = the toolkit's default light).
         random_background_probability: chance of a procedural background (else uniform grey).
         background_level_range: grey level of a uniform background, uniform in this range.
         threshold_range: clip contrast threshold theta (log units), uniform in this range (paper: 0.2).
@@ -125,6 +129,7 @@ class EoTConfig:
     offset_x_m: float = 0.4
     offset_depth_m: float = 0.5
     random_light_probability: float = 0.8
+    light: Light | None = None
     random_background_probability: float = 0.7
     background_level_range: tuple[float, float] = (0.2, 0.8)
     threshold_range: tuple[float, float] = (0.17, 0.23)
@@ -136,6 +141,18 @@ class EoTConfig:
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
+
+    @classmethod
+    def official(cls, **overrides) -> "EoTConfig":
+        """The official code's training distribution: its scene (blank white background, its light
+        (:meth:`Light.official`), the body walking in place at the centre) with the camera jitter as the only
+        EoT, and the ideal sensor (theta = 0.2, no mismatch, no noise). Body shapes and headings are still drawn
+        (the official code's come from its AMASS clips). ``overrides`` set any other field."""
+        return cls(**{"advance_probability": 0.0, "offset_x_m": 0.0, "offset_depth_m": 0.0,
+                      "random_light_probability": 0.0, "light": Light.official(),
+                      "random_background_probability": 0.0, "background_level_range": (1.0, 1.0),
+                      "threshold_range": (0.2, 0.2), "threshold_sigma": 0.0, "shot_noise_rate_hz": (0.0, 0.0),
+                      **overrides})
 
     def __post_init__(self) -> None:
         if int(self.seq_len) < 1:
@@ -261,7 +278,7 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     heading = float(rng.uniform(*config.heading_range_rad))
     offset = (float(rng.uniform(-config.offset_x_m, config.offset_x_m)),
               float(rng.uniform(-config.offset_depth_m, config.offset_depth_m)))
-    light = "random" if rng.random() < config.random_light_probability else None
+    light = "random" if rng.random() < config.random_light_probability else config.light
     if rng.random() < config.random_background_probability:
         background: object = "random"
     else:

@@ -5,8 +5,10 @@ Protocol (paper, Experiments; official code where the paper is silent):
 - **Test scenes**: body shapes of the test split (:func:`davis_rig.attack.eot.split_shapes`, never used in
   training) and their walk cycles (or given test motions, e.g. the AMASS test split of
   :mod:`davis_rig.scene.mocap.splits`), several headings and start phases, each at the three camera scales
-  (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`: large / middle / small); blank grey background and default
-  light like the official renders. Every scene is rasterized once and re-composited per texture.
+  (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`: large / middle / small); the person walks across a blank
+  grey background under the toolkit's default light. :meth:`EvalConfig.official` is the official renders' scene
+  instead: blank white background (PyTorch3D's default), its light, the body walking in place. Every scene is
+  rasterized once and re-composited per texture.
 - **Events**: :func:`davis_rig.events.simulator.simulate_events` (quantized events with interpolated
   timestamps, the ideal sensor unless ``simulator`` says otherwise), then RVT's stacked histograms
   (:func:`davis_rig.events.histogram.stacked_histograms`) of ``seq_len`` (3) 50 ms windows; the detector runs the
@@ -37,6 +39,7 @@ from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
 from davis_rig.scene.camera import PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 try:
@@ -81,7 +84,10 @@ class EvalConfig:
         window_us: window duration (µs).
         warmup_windows: windows run before the scored ones (states warm-up; 0 = the paper's digital clips).
         nms_threshold: class-wise NMS IoU threshold.
-        background: uniform background level (the official renders are blank).
+        background: uniform background level (default 0.5 grey; the official renders are blank white, 1.0).
+        light: the scene light (``None`` = the toolkit's default :class:`~davis_rig.scene.shading.Light`).
+        walk_in_place: the walk cycle stays in place (the official code drops the global translation); False =
+            the person walks forward across the view.
         render_rate_hz, supersample: rendering.
         simulator: the exact simulator's settings (ideal sensor by default).
         seed: seeds the scenes' phases' jitter-free choices (kept for the record).
@@ -98,11 +104,19 @@ class EvalConfig:
     warmup_windows: int = 0
     nms_threshold: float = 0.45
     background: float = 0.5
+    light: Light | None = None
+    walk_in_place: bool = False
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     simulator: SimulatorConfig = field(default_factory=SimulatorConfig)
     seed: int = 0
     camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
+
+    @classmethod
+    def official(cls, **overrides) -> "EvalConfig":
+        """The scene of the official code's renders: blank white background (PyTorch3D's default), its light
+        (:meth:`Light.official`) and the body walking in place; ``overrides`` set any other field."""
+        return cls(**{"background": 1.0, "light": Light.official(), "walk_in_place": True, **overrides})
 
     def __post_init__(self) -> None:
         if int(self.seq_len) < 1 or int(self.warmup_windows) < 0:
@@ -175,9 +189,9 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
                 for heading in config.headings_rad:
                     for phase in config.phases:
                         out.append((scale, SceneSpec(
-                            shape_index=int(shape), motion=motion, motion_start_s=float(phase), advance=True,
-                            heading_rad=float(heading), scale=scale, camera=config.camera,
-                            background=float(config.background), render_rate_hz=config.render_rate_hz,
+                            shape_index=int(shape), motion=motion, motion_start_s=float(phase),
+                            advance=not config.walk_in_place, heading_rad=float(heading), scale=scale,
+                            camera=config.camera, light=config.light, background=float(config.background), render_rate_hz=config.render_rate_hz,
                             duration_s=config.duration_s, supersample=config.supersample, seed=config.seed)))
     return out
 

@@ -96,8 +96,19 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
 
 
+SCENES = ("toolkit", "official")
+
+
+def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", choices=SCENES, default="toolkit",
+                   help="toolkit (default): grey background, walking across, and for training the toolkit's EoT "
+                        "(lights, backgrounds, placement, sensor noise); official: the official code's renders "
+                        "(blank white background, its light, walking in place, camera jitter only)")
+
+
 def _scene_args(p: argparse.ArgumentParser) -> None:
     """The test scenes and thresholds shared by ``evaluate`` and ``reproduce``."""
+    _scene_kind_arg(p)
     p.add_argument("--thresholds", type=float, nargs="+", default=None, help="confidence thresholds")
     p.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
     p.add_argument("--headings", type=int, choices=[1, 2, 4], default=4,
@@ -112,8 +123,9 @@ def _eval_config(args, default_thresholds):
     from davis_rig.attack.evaluate import EvalConfig
 
     scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
-    return EvalConfig(scales=scales, thresholds=tuple(args.thresholds or default_thresholds),
-                      headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases))
+    make = EvalConfig.official if args.scene == "official" else EvalConfig
+    return make(scales=scales, thresholds=tuple(args.thresholds or default_thresholds),
+                headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases))
 
 
 def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
@@ -126,6 +138,7 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
                    help="painted body parts (default: torso arms legs); 'all' = whole body without mask")
     _budget_args(p)
+    _scene_kind_arg(p)
     p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
     p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
     _detector_args(p)
@@ -192,9 +205,11 @@ def _init_distributed(device):
 
 
 def _attack_config(args, grid_n: int, parts):
+    from davis_rig.attack.eot import EoTConfig
     from davis_rig.attack.optimize import AttackConfig
 
-    return AttackConfig(grid_n=grid_n, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
+    eot = EoTConfig.official() if args.scene == "official" else EoTConfig()
+    return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
                         pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
                         alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                         num_validation_clips=args.val_clips, box_margin_px=args.box_margin,

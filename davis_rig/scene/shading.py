@@ -35,6 +35,19 @@ class Light:
     diffuse: float = 0.55
 
     @classmethod
+    def official(cls) -> "Light":
+        """The light of the paper's official renders, as a directional light.
+
+        The official code shades with PyTorch3D's default ``PointLights``: ambient 0.5, diffuse 0.3, specular 0.2,
+        placed at its world point (0, 1, 0). With its camera (rotation rows (0, 0, -1), (1, 0, 0), (0, 1, 0),
+        distance 1.75) and the walk-in-place body at the origin, that point is 1 m to the image left of the
+        pelvis, at the pelvis's depth and height: here world -X (image right is +X). Approximations: a
+        directional light (the point light is 1 m away, so its direction varies over the body) and no specular
+        term (Lambert shading only). A surface facing the camera gets the ambient 0.5 only.
+        """
+        return cls(direction=(-1.0, 0.0, 0.0), ambient=0.5, diffuse=0.3)
+
+    @classmethod
     def random(cls, rng: np.random.Generator) -> "Light":
         """A random light from the camera's hemisphere (-Y side), above the horizon, ambient 0.3-0.6."""
         azimuth = rng.uniform(-0.45 * np.pi, 0.45 * np.pi)

@@ -64,6 +64,16 @@ def test_test_scenes_grid_uses_test_shapes():
     assert all(s.num_frames == 31 for _, s in specs)
 
 
+def test_official_scene_is_white_walking_in_place_under_the_official_light():
+    from davis_rig.scene.shading import Light
+
+    specs = evaluation_scenes(EvalConfig.official(scales=("middle",)), 24)
+    assert len(specs) == 6 * 4 * 2
+    assert all(s.background == 1.0 and s.advance is False and s.light == Light.official() for _, s in specs)
+    default = evaluation_scenes(EvalConfig(scales=("middle",)), 24)
+    assert all(s.background == 0.5 and s.advance is True and s.light is None for _, s in default)
+
+
 def test_table1_and_table2_on_tiny_config(tmp_path):
     detector = load_detector(FIXTURE)
     model = BodyModel()

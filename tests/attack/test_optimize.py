@@ -65,6 +65,18 @@ def test_draw_scene_seeded_and_train_shapes_only():
     assert slot_seed(0, 1, 2) == slot_seed(0, 1, 2) != slot_seed(0, 1, 3)
 
 
+def test_official_eot_draws_the_official_scene_with_camera_jitter_only(body):
+    from davis_rig.scene.shading import Light
+
+    config = replace(EoTConfig.official(), supersample=1)
+    for seed in range(20):
+        spec, sensor = draw_scene(config, seed, 24)
+        assert (spec.advance, spec.offset_m, spec.background, spec.light) == (False, (0.0, 0.0), 1.0, Light.official())
+        assert sensor["threshold"] == 0.2 and sensor["threshold_sigma"] == 0.0 and sensor["noise_rate_hz"] == 0.0
+    clip = prepare_clip(spec, sensor, body, 4, config=config, seed=19)
+    assert torch.all(clip.background == 1.0)
+
+
 def test_training_motions_drawn_and_rendered(body, tmp_path):
     from davis_rig.attack.eot import amass_motions, prepare_clip
     from davis_rig.scene.gait import generate_gait
@@ -147,6 +159,7 @@ def test_resume_accepts_checkpoint_written_before_a_field_existed(detector, body
     path = tmp_path / "checkpoints" / "last.pt"
     state = torch.load(path, weights_only=True)
     del state["config"]["loss_reduction"]  # a run started before --loss existed
+    del state["config"]["eot"]["light"]  # ... and before EoTConfig.light existed
     torch.save(state, path)
     rest = optimize_texture(_tiny(iterations=3), detector, tmp_path, body_model=body, progress=False, resume=True)
     assert rest.steps == 1

@@ -147,3 +147,28 @@ def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
     scenes = kw["eval_config"]
     assert scenes.thresholds == (0.25,) and scenes.headings_rad == (math.pi / 2, -math.pi / 2)
     assert scenes.phases == (0.0,) and kw["detector_name"] == "d.ckpt"
+    assert (scenes.background, scenes.walk_in_place, attack.eot.advance_probability) == (0.5, False, 0.5)
+
+
+def test_scene_official_selects_the_official_renders_for_training_and_test(monkeypatch, tmp_path):
+    import davis_rig.attack.optimize as opt
+    import davis_rig.attack.reproduce as rep
+    from davis_rig.attack.eot import EoTConfig
+    from davis_rig.attack.evaluate import EvalConfig
+
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake(table, detector, out, **kw):
+        seen.update(kw)
+        md = Path(out) / "table1.md"
+        md.parent.mkdir(parents=True, exist_ok=True)
+        md.write_text("| Texture |\n")
+        return {"markdown": md, "json": md, "plot": md, "record": md, "rows": [], "runs": {}}
+
+    monkeypatch.setattr(rep, "reproduce_table", fake)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--grids", "10",
+                                 "--scene", "official", "--headings", "1", "--no-progress"])
+    assert args.func(args) == 0
+    assert seen["attack"].eot == EoTConfig.official()
+    assert seen["eval_config"] == EvalConfig.official(headings_rad=(math.pi / 2,))

@@ -54,6 +54,13 @@ def test_lambert_shade_scales_the_texture():
     assert image[0, 5, 6].item() == pytest.approx(0.2 + 0.8 * math.cos(math.pi / 4))
 
 
+def test_official_light_lights_the_image_left_side_and_leaves_the_front_at_ambient():
+    from davis_rig.scene.shading import lambert
+
+    normals = torch.tensor([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    np.testing.assert_allclose(lambert(normals, Light.official()).numpy(), [0.5, 0.8, 0.5])  # front, left, right
+
+
 def test_image_gradient_is_the_sparse_cell_map():
     texture = torch.rand(2, 2, dtype=torch.float64)
     jac = torch.autograd.functional.jacobian(lambda t: _render_quad(t)[1], texture)  # [1, 12, 16, 2, 2]
