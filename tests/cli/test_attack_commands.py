@@ -120,7 +120,8 @@ def test_main_entry_point_exit_codes(tmp_path, capsys):
     assert "davis-attack optimize: error:" in err and "missing.ckpt" in err
 
 
-def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
+def _patch_reproduce(monkeypatch) -> dict:
+    """Patch the detector loader and ``reproduce_table``; returns the dict the fake fills with its call."""
     import davis_rig.attack.optimize as opt
     import davis_rig.attack.reproduce as rep
 
@@ -129,12 +130,17 @@ def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
 
     def fake(table, detector, out, **kw):
         seen.update(table=table, detector=detector, out=out, kw=kw)
-        md = Path(out) / "table2.md"
+        md = Path(out) / f"table{table}.md"
         md.parent.mkdir(parents=True, exist_ok=True)
-        md.write_text("| Parts |\n")
+        md.write_text("| Texture |\n")
         return {"markdown": md, "json": md, "plot": md, "record": md, "rows": [], "runs": {}}
 
     monkeypatch.setattr(rep, "reproduce_table", fake)
+    return seen
+
+
+def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
     args = _parser().parse_args(["reproduce", "--table", "2", "--out", str(tmp_path), "--combinations", "legs",
                                  "torso+legs", "--iterations", "300", "--lr", "0.01", "--box-margin", "8",
                                  "--headings", "2", "--phases", "0", "--detector", "d.ckpt", "--no-progress"])
@@ -151,24 +157,12 @@ def test_reproduce_maps_budget_and_scenes_onto_one_call(monkeypatch, tmp_path):
 
 
 def test_scene_official_selects_the_official_renders_for_training_and_test(monkeypatch, tmp_path):
-    import davis_rig.attack.optimize as opt
-    import davis_rig.attack.reproduce as rep
     from davis_rig.attack.eot import EoTConfig
     from davis_rig.attack.evaluate import EvalConfig
 
-    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
-    seen = {}
-
-    def fake(table, detector, out, **kw):
-        seen.update(kw)
-        md = Path(out) / "table1.md"
-        md.parent.mkdir(parents=True, exist_ok=True)
-        md.write_text("| Texture |\n")
-        return {"markdown": md, "json": md, "plot": md, "record": md, "rows": [], "runs": {}}
-
-    monkeypatch.setattr(rep, "reproduce_table", fake)
+    seen = _patch_reproduce(monkeypatch)
     args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--grids", "10",
                                  "--scene", "official", "--headings", "1", "--no-progress"])
     assert args.func(args) == 0
-    assert seen["attack"].eot == EoTConfig.official()
-    assert seen["eval_config"] == EvalConfig.official(headings_rad=(math.pi / 2,))
+    assert seen["kw"]["attack"].eot == EoTConfig.official()
+    assert seen["kw"]["eval_config"] == EvalConfig.official(headings_rad=(math.pi / 2,))
