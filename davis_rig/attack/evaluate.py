@@ -191,8 +191,9 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
                         out.append((scale, SceneSpec(
                             shape_index=int(shape), motion=motion, motion_start_s=float(phase),
                             advance=not config.walk_in_place, heading_rad=float(heading), scale=scale,
-                            camera=config.camera, light=config.light, background=float(config.background), render_rate_hz=config.render_rate_hz,
-                            duration_s=config.duration_s, supersample=config.supersample, seed=config.seed)))
+                            camera=config.camera, light=config.light, background=float(config.background),
+                            render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
+                            supersample=config.supersample, seed=config.seed)))
     return out
 
 

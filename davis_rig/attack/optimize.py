@@ -512,9 +512,8 @@ def optimize_texture(
         # a field added after the checkpoint was written (top level or in eot) counts as its default value
         defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
                                          default=str))
-        saved = {**{k: v for k, v in defaults.items() if k not in state["config"]}, **dict(state["config"])}
-        eot_defaults = json.loads(json.dumps(asdict(EoTConfig()), default=str))
-        saved["eot"] = {**{k: v for k, v in eot_defaults.items() if k not in saved["eot"]}, **dict(saved["eot"])}
+        saved = {**defaults, **dict(state["config"])}
+        saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **dict(saved["eot"])}
         for name in ("iterations", "refine_passes", "refine_clips"):  # free to change on resume
             saved.pop(name, None)
             current.pop(name, None)

@@ -209,9 +209,9 @@ def _attack_config(args, grid_n: int, parts):
     from davis_rig.attack.optimize import AttackConfig
 
     eot = EoTConfig.official() if args.scene == "official" else EoTConfig()
-    return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations, clips_per_step=args.clips_per_step,
-                        pool_size=args.pool_size, refresh_every=args.refresh_every, lr=args.lr,
-                        alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
+    return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
+                        clips_per_step=args.clips_per_step, pool_size=args.pool_size,
+                        refresh_every=args.refresh_every, lr=args.lr, alpha_schedule=args.alpha_schedule, validate_every=args.validate_every,
                         num_validation_clips=args.val_clips, box_margin_px=args.box_margin,
                         loss_reduction=args.loss,
                         v2e_gradient=args.v2e_gradient, precision=args.precision,
