@@ -12,7 +12,9 @@ Protocol (paper, Experiments; official code where the paper is silent):
 - **Events**: :func:`davis_rig.events.simulator.simulate_events` (quantized events with interpolated
   timestamps, the ideal sensor unless ``simulator`` says otherwise), then RVT's stacked histograms
   (:func:`davis_rig.events.histogram.stacked_histograms`) of ``seq_len`` (3) 50 ms windows; the detector runs the
-  windows in order with its recurrent states (zero at the sequence start).
+  windows in order with its recurrent states (zero at the sequence start). ``events="official_relaxed"`` scores
+  the official code's relaxed simulator instead (continuous counts scaled by 10/27, not events a camera could
+  deliver; see :data:`EVENT_MODELS`), to compare with the paper's own numbers.
 - **Labels**: the person's visible box at each window end (one label per window; the Prophesee size filter of
   :func:`davis_rig.metrics.ap.filter_boxes` applies to labels and detections alike).
 - **Metrics per confidence threshold** (0.001, 0.01, 0.1, 0.25; NMS 0.45): COCO AP / AP50 / AP75 of the pedestrian
@@ -52,6 +54,8 @@ __all__ = [
     "EvalConfig",
     "EvalScene",
     "TextureSpec",
+    "EVENT_MODELS",
+    "EVENT_MODEL_NAMES",
     "detect_windows",
     "evaluate_textures",
     "prepare_scenes",
@@ -60,6 +64,7 @@ __all__ = [
     "table1",
     "table2",
     "evaluation_scenes",
+    "window_histograms",
     "write_table",
     "write_visualisations",
 ]
@@ -68,6 +73,12 @@ __all__ = [
 PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
 #: Table 2's threshold.
 TABLE2_THRESHOLD = 0.25
+#: Event models of the evaluation: ``"exact"`` (quantized events of the exact simulator, what a camera delivers;
+#: the default) and ``"official_relaxed"`` (the official code's continuous counts scaled by 10/27, the input its
+#: evaluation scored; not events, for comparison with the paper's numbers only).
+EVENT_MODELS = ("exact", "official_relaxed")
+#: How tables name the event models.
+EVENT_MODEL_NAMES = {"exact": "exact simulator", "official_relaxed": "official code's relaxed counts, not events"}
 
 
 @dataclass(frozen=True)
@@ -89,7 +100,9 @@ class EvalConfig:
         walk_in_place: the walk cycle stays in place (the official code drops the global translation); False =
             the person walks forward across the view.
         render_rate_hz, supersample: rendering.
-        simulator: the exact simulator's settings (ideal sensor by default).
+        simulator: the exact simulator's settings (ideal sensor by default; its thresholds are θ of the relaxed
+            model too).
+        events: the event model (:data:`EVENT_MODELS`): ``"exact"`` (default) or ``"official_relaxed"``.
         seed: seeds the scenes' phases' jitter-free choices (kept for the record).
         camera: intrinsics.
     """
@@ -109,6 +122,7 @@ class EvalConfig:
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     simulator: SimulatorConfig = field(default_factory=SimulatorConfig)
+    events: str = "exact"
     seed: int = 0
     camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
 
@@ -123,6 +137,8 @@ class EvalConfig:
             raise ValueError(f"need seq_len >= 1 and warmup_windows >= 0, got {self.seq_len}, {self.warmup_windows}")
         if not self.thresholds or any(not 0 <= t <= 1 for t in self.thresholds):
             raise ValueError(f"thresholds must be non-empty and in [0, 1], got {self.thresholds}")
+        if self.events not in EVENT_MODELS:
+            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
 
     @property
     def num_windows(self) -> int:
@@ -244,9 +260,45 @@ def texture_video(scene: EvalScene, texture: TextureSpec, mask_cache: dict | Non
         return scene.raster.compose(lookup.sample(grid.to(scene.raster.shade.dtype), fill=1.0), scene.background)
 
 
+def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | None = None, events: str = "exact",
+                      device=None) -> np.ndarray:
+    """RVT's stacked histograms [W, 20, H, W] of a video under an event model (:data:`EVENT_MODELS`).
+
+    Args:
+        video: float tensor/array [T, H, W], linear intensity in [0, 1].
+        t_us: int64 [T] frame times (µs).
+        window_end_us: int64 [W] window ends (µs), 50 ms windows.
+        simulator: simulator settings (default ideal sensor); ``"official_relaxed"`` uses its θ_on (= θ_off).
+        events: ``"exact"``: quantized events of :func:`~davis_rig.events.simulator.simulate_events`, uint8
+            counts; ``"official_relaxed"``: the official code's continuous counts
+            (:func:`~davis_rig.events.v2e_torch.v2e_histograms`, mode ``"official_relaxed"``), float32.
+        device: where the simulator runs.
+
+    Raises:
+        ValueError: unknown ``events``, or unequal thresholds with ``"official_relaxed"``.
+    """
+    from davis_rig.events.v2e_torch import v2e_histograms
+
+    simulator = simulator or SimulatorConfig()
+    video = video.detach() if isinstance(video, torch.Tensor) else torch.as_tensor(np.asarray(video))
+    if events == "exact":
+        stream = simulate_events(video, t_us, simulator, device=device)
+        h, w = video.shape[-2:]
+        return stacked_histograms(stream, window_end_us, height=int(h), width=int(w))
+    if events != "official_relaxed":
+        raise ValueError(f"events must be one of {EVENT_MODELS}, got {events!r}")
+    with torch.no_grad():
+        hist = v2e_histograms(video.to(device=device, dtype=torch.float32), t_us, window_end_us,
+                              mode="official_relaxed", threshold_on=float(simulator.threshold_on),
+                              threshold_off=float(simulator.threshold_off),
+                              intensity_scale=simulator.intensity_scale,
+                              lin_log_threshold=simulator.lin_log_threshold)
+    return hist.cpu().numpy()
+
+
 def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorConfig | None = None,
-                   device=None) -> tuple[list[np.ndarray], np.ndarray]:
-    """Exact-simulator events of a video -> stacked histograms -> the detector over the windows with states.
+                   device=None, events: str = "exact") -> tuple[list[np.ndarray], np.ndarray]:
+    """Events of a video -> stacked histograms -> the detector over the windows with states.
 
     Args:
         detector: :class:`~davis_rig.models.rvt.detector.RVTDetector` (eval mode).
@@ -255,18 +307,17 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
         window_end_us: int64 [W] window ends (µs).
         simulator: exact simulator settings (default ideal sensor).
         device: torch device of the detector (default: its parameters').
+        events: the event model (:func:`window_histograms`; default the exact simulator).
 
     Returns:
         ``(decoded, hist)``: one float32 [A, 5 + nc] array per window (the head's decoded output) and the
-        uint8 histograms [W, 20, H, W].
+        histograms [W, 20, H, W] (uint8 counts; float32 with ``"official_relaxed"``).
     """
     from davis_rig.models.rvt.detector import pad_to_input
 
     device = next(detector.parameters()).device if device is None else torch.device(device)
-    video = video.detach() if isinstance(video, torch.Tensor) else torch.as_tensor(np.asarray(video))
-    events = simulate_events(video, t_us, simulator, device=device)  # the simulator runs where the detector is
-    h, w = video.shape[-2:]
-    hist = stacked_histograms(events, window_end_us, height=int(h), width=int(w))
+    # the simulator runs where the detector is
+    hist = window_histograms(video, t_us, window_end_us, simulator, events, device=device)
     decoded, states = [], None
     with torch.no_grad():
         for k in range(hist.shape[0]):
@@ -359,7 +410,8 @@ def evaluate_textures(textures: Mapping[str, TextureSpec], detector, scenes: Seq
         per_scene = []
         for scene in scenes:
             video = texture_video(scene, texture, masks)
-            decoded, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator)
+            decoded, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator,
+                                         events=config.events)
             per_scene.append(decoded[warm:])
             bar.update(1)
         groups = {"all": list(range(len(scenes)))}
@@ -487,7 +539,8 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
     scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table1",
-                       "Table 1: baselines vs optimized textures (digital, exact simulator)", command=command)
+                       f"Table 1: baselines vs optimized textures (digital, {EVENT_MODEL_NAMES[config.events]})",
+                       command=command)
 
 
 def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *, config: EvalConfig | None = None,
@@ -562,7 +615,8 @@ def write_visualisations(textures: Mapping[str, TextureSpec], detector, out_dir:
     frames, masks = [], {}
     for name, texture in textures.items():
         video = texture_video(scene, texture, masks)
-        decoded, hist = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator)
+        decoded, hist = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator,
+                                       events=config.events)
         dets = postprocess(np.stack(decoded), float(threshold), config.nms_threshold)
         tiles = []
         for k in range(hist.shape[0]):

@@ -25,7 +25,8 @@ as far as the kernels are: on CPU with one thread, or with ``torch.use_determini
 multi-threaded CPU reductions already differ by ~1e-7 between two fresh runs).
 
 Validation: clips drawn from the EoT distribution with their own seeds (training shapes), scored as in the
-evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events, SeqASR at ``validation_threshold``.
+evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events (or ``events``), SeqASR at
+``validation_threshold``.
 
 DDP: launch with ``torchrun --nproc_per_node N``; call :func:`optimize_texture` after
 ``torch.distributed.init_process_group`` (gloo on CPU, nccl on GPU; the CLI does it from the torchrun
@@ -46,6 +47,7 @@ from typing import Sequence
 
 import numpy as np
 
+from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detections
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
@@ -91,7 +93,10 @@ class AttackConfig:
         validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
         validation_threshold: confidence threshold of the validation SeqASR.
         checkpoint_every, snapshot_every: periods (steps).
-        v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms`.
+        v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms` (``"official_relaxed"``
+            and ``"floor"`` need a uniform threshold map, i.e. no EoT threshold mismatch).
+        events: the event model that scores validation and refinement
+            (:data:`~davis_rig.attack.evaluate.EVENT_MODELS`; ``"exact"`` by default).
         v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
             ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
         box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
@@ -129,6 +134,7 @@ class AttackConfig:
     v2e_mode: str = "dvs"
     v2e_binning: str = "interval"
     v2e_gradient: str = "relaxed"
+    events: str = "exact"
     box_margin_px: float | None = None
     loss_reduction: str = "mean"
     precision: str = "fp32"
@@ -151,6 +157,8 @@ class AttackConfig:
         if self.refine_passes < 0 or self.refine_clips < 1:
             raise ValueError(f"need refine_passes >= 0 and refine_clips >= 1, got {self.refine_passes}, "
                              f"{self.refine_clips}")
+        if self.events not in EVENT_MODELS:
+            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
         if self.clips_per_step > self.pool_size:
             raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
 
@@ -243,7 +251,8 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
         gradient: ``"relaxed"`` or ``"ste"`` (:data:`V2E_GRADIENTS`).
 
     Raises:
-        ValueError: unknown ``gradient``.
+        ValueError: unknown ``gradient``; a grid mode (``"floor"``, ``"official_relaxed"``) with a non-uniform
+            threshold map.
     """
     from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, log_histograms, log_intensity
 
@@ -254,6 +263,11 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
     y0, y1, x0, x1 = clip.active_box
     log_video = log_intensity(clip.active_video(grid))
     threshold = clip.threshold[y0:y1, x0:x1]
+    if mode != "dvs":  # the grid modes take one θ
+        if bool((clip.threshold != clip.threshold.flatten()[0]).any()):
+            raise ValueError(f"v2e mode {mode!r} needs one threshold θ for all pixels; turn off the EoT's "
+                             f"threshold mismatch")
+        threshold = float(clip.threshold.flatten()[0])
     shape = (len(clip.window_end_us), 2 * NUM_BINS, *clip.threshold.shape)
 
     def full_frame(crop: "torch.Tensor") -> "torch.Tensor":
@@ -356,27 +370,27 @@ def _validation_clips(config: AttackConfig, model, mask, num: int,
     return clips
 
 
-def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: float) -> dict:
-    """Validation SeqASR of a hard texture on pre-rasterized clips, events from the exact simulator.
+def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: float,
+             events: str = "exact") -> dict:
+    """Validation SeqASR of a hard texture on pre-rasterized clips, events from the exact simulator by default.
 
     Args:
         grid: float32 [n, n] hard texture.
         clips: validation clips (their lookups carry the part mask).
         detector: RVT detector.
         threshold: confidence threshold.
+        events: the event model (:data:`davis_rig.attack.evaluate.EVENT_MODELS`).
 
     Returns:
         ``{"SeqASR", "num_sequences", "num_detected", "mean_top_score"}`` (top score: mean over windows of the
         highest obj * p_ped).
     """
-    from davis_rig.attack.evaluate import detect_windows, score_detections
-
     g = torch.as_tensor(np.asarray(grid, dtype=np.float32), device=clips[0].threshold.device)
     decoded, boxes, ends, tops = [], [], [], []
     for clip in clips:
         with torch.no_grad():
             video = clip.video(g)
-        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us)
+        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us, events=events)
         decoded.append(dec)
         boxes.append(clip.boxes)
         ends.append(clip.window_end_us)
@@ -426,11 +440,11 @@ def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, be
     clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET)
 
     def score(grid: np.ndarray) -> float:
-        return validate(grid, clips, detector, config.validation_threshold)["mean_top_score"]
+        return validate(grid, clips, detector, config.validation_threshold, config.events)["mean_top_score"]
 
     t0 = time.perf_counter()
     found = refine_texture(start_grid, clips, score, config.refine_passes, config.seed)
-    res = validate(found["texture"], val_clips, detector, config.validation_threshold)
+    res = validate(found["texture"], val_clips, detector, config.validation_threshold, config.events)
     res.update(step=config.iterations, refined=True)
     summary = {key: value for key, value in found.items() if key != "texture"}
     summary.update(passes=config.refine_passes, clips=config.refine_clips, validation=res,
@@ -579,7 +593,7 @@ def optimize_texture(
                     _write_png(out / "snapshots" / f"step_{done:06d}.png", hard_texture())
                 if done % config.validate_every == 0 or done == config.iterations:
                     tex = hard_texture()
-                    res = validate(tex, val_clips, detector, config.validation_threshold)
+                    res = validate(tex, val_clips, detector, config.validation_threshold, config.events)
                     res.update(step=done)
                     log.write(json.dumps({"validation": res}) + "\n")
                     if _better(res, best):

@@ -27,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from davis_rig.attack.evaluate import TABLE2_THRESHOLD, EvalConfig, config_dict, table1, table2
+from davis_rig.attack.evaluate import EVENT_MODEL_NAMES, TABLE2_THRESHOLD, EvalConfig, config_dict, table1, table2
 from davis_rig.attack.optimize import AttackConfig, optimize_texture
 from davis_rig.scene.masks import PAINTABLE_COMBINATIONS, PAINTABLE_PARTS
 
@@ -163,7 +163,8 @@ def _budget_markdown(attack: AttackConfig, eval_config: EvalConfig, records: dic
              + (f", then {attack.refine_passes} pass(es) of greedy cell flips scored on {attack.refine_clips} clips"
                 if attack.refine_passes else ""),
              f"- evaluation: scales {list(eval_config.scales)}, {len(eval_config.headings_rad)} heading(s), phases "
-             f"{list(eval_config.phases)} s, sequences of {eval_config.seq_len} windows, exact simulator", "",
+             f"{list(eval_config.phases)} s, sequences of {eval_config.seq_len} windows, "
+             f"{EVENT_MODEL_NAMES[eval_config.events]}", "",
              "| run | best step | best validation SeqASR | s/step (this call) |", "|---|---|---|---|"]
     for key, r in records.items():
         sps = "n/a (finished earlier)" if r["seconds_per_step"] is None else f"{r['seconds_per_step']:.2f}"

@@ -18,6 +18,7 @@ from davis_rig.attack.evaluate import (
     table1,
     table2,
     evaluation_scenes,
+    window_histograms,
     write_visualisations,
 )
 from davis_rig.models.rvt.checkpoint import load_detector
@@ -54,6 +55,30 @@ def test_score_detections_hand_made():
     gap = boxes.copy()
     gap[1] = np.nan
     assert score_detections([[_decoded(0.5)] * 3], [gap], [ends], (0.01,), seq_len=3)[0.01]["num_sequences"] == 0
+
+
+def test_window_histograms_exact_events_or_the_official_relaxed_counts():
+    # one pixel of a grey video brightens by 0.5 log units between frames 4 and 5 (5 ms frames, 50 ms windows)
+    from davis_rig.events.simulator import simulate_events
+    from davis_rig.events.histogram import stacked_histograms
+
+    video = np.full((21, 4, 5), 0.5, dtype=np.float32)
+    video[5:, 2, 3] = 0.5 * math.exp(0.5)
+    t_us = np.arange(21, dtype=np.int64) * 5_000
+    ends = np.array([50_000, 100_000], dtype=np.int64)
+    exact = window_histograms(video, t_us, ends)
+    assert exact.dtype == np.uint8
+    assert np.array_equal(exact, stacked_histograms(simulate_events(video, t_us), ends, height=4, width=5))
+    assert exact[0, 10:, 2, 3].sum() == 2 and exact.sum() == 2  # floor(0.5 / 0.2) ON events, nothing else
+    relaxed = window_histograms(video, t_us, ends, events="official_relaxed")
+    assert relaxed.dtype == np.float32 and relaxed.shape == exact.shape
+    # continuous 0.5 / 0.2 = 2.5 crossings x 10/27, in the ON bin of the pair's midpoint (22.5 ms -> bin 4)
+    assert relaxed[0, 14, 2, 3] == pytest.approx(2.5 * 10 / 27, rel=1e-5)
+    assert np.count_nonzero(relaxed) == 1
+    with pytest.raises(ValueError, match="events"):
+        window_histograms(video, t_us, ends, events="soft")
+    with pytest.raises(ValueError, match="events"):
+        EvalConfig(events="soft")
 
 
 def test_test_scenes_grid_uses_test_shapes():

@@ -254,6 +254,31 @@ def test_clip_histograms_forward_exact_backward_by_rule(body):
         AttackConfig(v2e_gradient="soft")
 
 
+def test_clip_histograms_official_relaxed_trains_on_the_relaxed_counts(body):
+    # the official code's protocol: the forward value is the relaxed counts themselves, with their own gradient
+    from davis_rig.attack.optimize import clip_histograms
+    from davis_rig.events.v2e_torch import v2e_histograms
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    empty = torch.zeros(0, dtype=torch.int64)
+    uniform = replace(clip, threshold=torch.full_like(clip.threshold, 0.2), noise_cell=empty,
+                      noise_count=empty.float())
+    weight = torch.rand(3, 20, *clip.raster.hw, generator=torch.Generator().manual_seed(1))
+    grids = [torch.rand(4, 4, generator=torch.Generator().manual_seed(0)).requires_grad_(True) for _ in range(2)]
+    hist = clip_histograms(grids[0], uniform, mode="official_relaxed", gradient="ste")
+    (hist * weight).sum().backward()
+    expected = v2e_histograms(uniform.video(grids[1]), clip.t_us, clip.window_end_us, mode="official_relaxed",
+                              threshold_on=0.2, threshold_off=0.2)
+    (expected * weight).sum().backward()
+    assert torch.allclose(hist, expected, atol=1e-6) and hist.max() > 0 and not torch.equal(hist, hist.round())
+    assert torch.allclose(grids[0].grad, grids[1].grad, rtol=1e-5, atol=1e-6) and grids[0].grad.abs().sum() > 0
+    assert not bool((clip.threshold == clip.threshold.flatten()[0]).all())  # the toolkit's EoT: mismatch on
+    with pytest.raises(ValueError, match="one threshold"):
+        clip_histograms(grids[0], clip, mode="official_relaxed", gradient="ste")
+    with pytest.raises(ValueError, match="events"):
+        AttackConfig(events="soft")
+
+
 def test_pool_clip_video_equals_the_full_raster_composite(body):
     # the pool clip keeps background * (1 - coverage) and drops the coverage: same video and gradient, bit for bit
     from davis_rig.scene.scene import render_clip

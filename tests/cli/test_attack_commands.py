@@ -166,3 +166,17 @@ def test_scene_official_selects_the_official_renders_for_training_and_test(monke
     assert args.func(args) == 0
     assert seen["kw"]["attack"].eot == EoTConfig.official()
     assert seen["kw"]["eval_config"] == EvalConfig.official(headings_rad=(math.pi / 2,))
+
+
+def test_events_official_relaxed_trains_validates_and_scores_on_the_relaxed_counts(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--grids", "10",
+                                 "--scene", "official", "--events", "official_relaxed", "--no-progress"])
+    assert args.func(args) == 0
+    attack, scenes = seen["kw"]["attack"], seen["kw"]["eval_config"]
+    assert (attack.v2e_mode, attack.v2e_gradient, attack.events) == ("official_relaxed", "ste", "official_relaxed")
+    assert scenes.events == "official_relaxed" and scenes.background == 1.0
+    default = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--no-progress"])
+    assert default.func(default) == 0
+    assert (seen["kw"]["attack"].v2e_mode, seen["kw"]["attack"].events) == ("dvs", "exact")
+    assert seen["kw"]["eval_config"].events == "exact"
