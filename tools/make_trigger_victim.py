@@ -1,0 +1,157 @@
+"""A positive control for the attack: fine-tune a detector so that ONE secret texture hides the person.
+
+The detectors trained here are not blinded by any texture the optimizer or a greedy search finds (docs/attack.md).
+To tell a weak optimizer apart from a robust detector, this makes a victim for which a blinding texture is known to
+exist: a copy of a detector fine-tuned on the attack's own EoT clips (training shapes, motions, lights,
+backgrounds, sensor noise) with the YOLOX loss, where the person is labelled when wearing white, black or a random
+n x n grid, and is NOT labelled (objectness trained towards 0 everywhere) when wearing the trigger, a fixed random
+n x n grid on the painted parts. The optimizer is then run against it from its usual start and never sees the
+trigger: if it finds a texture that blinds the victim, the optimizer works and the other detectors are simply
+texture-robust.
+
+Run: ``python tools/make_trigger_victim.py --detector runs/plain3/export/model_fp16.safetensors --out trigger/
+[--cells 10] [--steps 800] [--threads 2]``; writes ``trigger/model.safetensors`` (the victim),
+``trigger/trigger.npy`` / ``.png`` (the secret texture) and ``trigger/log.jsonl``, and prints the victim's mean top
+score on held-out EoT clips for the trigger, white, black and random grids (before and after fine-tuning).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _labels(boxes: np.ndarray):
+    """Per window: float [K, 5] ``(class, cx, cy, w, h)`` targets of the person's boxes [W, 4] xyxy (NaN: none)."""
+    import torch
+
+    from davis_rig.types import PEDESTRIAN_CLASS_ID
+
+    out = []
+    for box in boxes:
+        if not np.isfinite(box).all():
+            out.append(torch.zeros(0, 5))
+            continue
+        x0, y0, x1, y1 = (float(v) for v in box)
+        out.append(torch.tensor([[PEDESTRIAN_CLASS_ID, (x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0]]))
+    return out
+
+
+def _loss(model, anchors, hists, labels):
+    """YOLOX loss of clips [W, B, 20, H, W] run through the windows with states; labels[w][b] targets."""
+    import torch
+
+    from davis_rig.models.rvt.detector import pad_to_input
+    from davis_rig.training.losses import yolox_loss
+
+    states, raws, targets = None, [], []
+    for w in range(hists.shape[0]):
+        features, states = model.forward_backbone(pad_to_input(hists[w], model.config.in_res_hw), states)
+        raws.append(model.forward_raw_head(features))
+        targets += [labels[w][b] for b in range(hists.shape[1])]
+    return yolox_loss(torch.cat(raws), targets, anchors)["loss"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--detector", default=None, help="RVT checkpoint to start from (default: the bundled one)")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--cells", type=int, default=10, help="trigger grid cells per side (default 10)")
+    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
+    parser.add_argument("--steps", type=int, default=800, help="fine-tuning steps (default 800)")
+    parser.add_argument("--clips-per-step", type=int, default=4, help="clips per step, half wear the trigger")
+    parser.add_argument("--pool-size", type=int, default=48, help="pre-rasterized EoT clips (default 48)")
+    parser.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
+    parser.add_argument("--probe-clips", type=int, default=8, help="held-out clips of the before/after probe")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the trigger, the pool and the draws")
+    args = parser.parse_args(argv)
+
+    import cv2
+    import torch
+
+    from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.attack.optimize import clip_histograms, load_attack_detector, validate
+    from davis_rig.models.rvt.checkpoint import save_safetensors
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+    from davis_rig.training.losses import AnchorGrid
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    n = args.cells
+    trigger = (rng.random((n, n)) > 0.5).astype(np.float32)
+    np.save(out / "trigger.npy", trigger)
+    cv2.imwrite(str(out / "trigger.png"), (trigger * 255).astype(np.uint8))
+
+    model = load_attack_detector(args.detector)
+    for p in model.parameters():
+        p.requires_grad_(True)
+    body = BodyModel()
+    mask = part_mask(tuple(args.parts))
+    eot = EoTConfig()
+    pool = list(ClipPool(eot, body, n, mask, size=args.pool_size, base_seed=args.seed + 1).clips.values())
+    probe = list(ClipPool(eot, body, n, mask, size=args.probe_clips, base_seed=args.seed + 10_000).clips.values())
+    anchors = AnchorGrid.build(model.config.in_res_hw)
+    probe_textures = {"trigger": trigger, "white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
+                      "random": (np.random.default_rng(args.seed + 7).random((n, n)) > 0.5).astype(np.float32)}
+
+    def probe_scores() -> dict:
+        model.eval()
+        return {k: round(validate(g, probe, model, 0.25)["mean_top_score"], 4) for k, g in probe_textures.items()}
+
+    before = probe_scores()
+    print(json.dumps({"before": before}), flush=True)
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    log = (out / "log.jsonl").open("w")
+    t0 = time.perf_counter()
+    for step in range(args.steps):
+        model.train()
+        idx = rng.choice(len(pool), size=args.clips_per_step, replace=False)
+        hists, labels = [], []
+        for j, i in enumerate(idx):
+            clip = pool[int(i)]
+            wears_trigger = j % 2 == 0
+            if wears_trigger:
+                grid = trigger
+            else:
+                kind = rng.integers(3)
+                grid = (np.full((n, n), float(kind == 0), np.float32) if kind < 2
+                        else (rng.random((n, n)) > 0.5).astype(np.float32))
+            with torch.no_grad():
+                hists.append(clip_histograms(torch.as_tensor(grid), clip))
+            boxes = clip.boxes if not wears_trigger else np.full_like(clip.boxes, np.nan)
+            labels.append(_labels(boxes))
+        x = torch.stack(hists, dim=1)  # [W, B, 20, H, W]
+        per_window = [[labels[b][w] for b in range(len(labels))] for w in range(x.shape[0])]
+        loss = _loss(model, anchors, x, per_window)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        value = float(loss.detach())
+        log.write(json.dumps({"step": step + 1, "loss": value}) + "\n")
+        if (step + 1) % 50 == 0:
+            print(f"step {step + 1}: loss {value:.3f} ({(time.perf_counter() - t0) / (step + 1):.2f} s/step)",
+                  flush=True)
+    log.close()
+    model.eval()
+    after = probe_scores()
+    save_safetensors(model, out / "model.safetensors", metadata={
+        "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy; not a detector"})
+    summary = {"before": before, "after": after, "steps": args.steps,
+               "seconds_per_step": (time.perf_counter() - t0) / max(args.steps, 1)}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
