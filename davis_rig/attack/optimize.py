@@ -95,10 +95,10 @@ class AttackConfig:
         checkpoint_every, snapshot_every: periods (steps).
         v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms` (``"official_relaxed"``
             and ``"floor"`` need a uniform threshold map, i.e. no EoT threshold mismatch).
-        events: the event model that scores validation and refinement
-            (:data:`~davis_rig.attack.evaluate.EVENT_MODELS`; ``"exact"`` by default).
         v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
             ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
+        events: the event model that scores validation and refinement
+            (:data:`~davis_rig.attack.evaluate.EVENT_MODELS`; ``"exact"`` by default).
         box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
         loss_reduction: ``"mean"`` over the scored anchors (paper) or ``"top"``: the highest-confidence scored
             anchor per window and clip (:func:`davis_rig.attack.loss.adversarial_loss`).
