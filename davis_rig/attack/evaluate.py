@@ -564,7 +564,8 @@ def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *
                 for key, grid in optimized.items()}
     scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
-    return write_table(rows, config.thresholds, out_dir, "table2", "Table 2: body-part combinations (10x10)",
+    return write_table(rows, config.thresholds, out_dir, "table2",
+                       f"Table 2: body-part combinations (10x10, {EVENT_MODEL_NAMES[config.events]})",
                        command=command, label="Parts")
 
 
