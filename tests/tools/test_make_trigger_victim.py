@@ -1,6 +1,5 @@
 """tools/make_trigger_victim.py on the mini RVT fixture: labels, outputs, a fine-tuned loadable victim."""
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,27 +12,25 @@ ROOT = Path(__file__).resolve().parents[2]
 FIXTURE = ROOT / "tests" / "fixtures" / "rvt_mini_fixture.safetensors"
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("trigger", ROOT / "tools" / "make_trigger_victim.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture
+def tool(load_tool):
+    return load_tool("make_trigger_victim")
 
 
-def test_labels_are_pedestrian_cxcywh_and_empty_without_a_person():
+def test_labels_are_pedestrian_cxcywh_and_empty_without_a_person(tool):
     boxes = np.array([[10.0, 20.0, 50.0, 120.0], [np.nan] * 4], dtype=np.float32)
-    first, second = _tool()._labels(boxes)
+    first, second = tool._labels(boxes)
     assert first.tolist() == [[1.0, 30.0, 70.0, 40.0, 100.0]]  # Gen1 class 1, centre and size in px
     assert tuple(second.shape) == (0, 5)
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-def test_writes_the_trigger_and_a_fine_tuned_victim(tmp_path, capsys):
+def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
     from davis_rig.models.rvt.checkpoint import load_detector
 
     out = tmp_path / "victim"
-    assert _tool().main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "2",
-                         "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3"]) == 0
+    assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "2",
+                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3"]) == 0
     trigger = np.load(out / "trigger.npy")
     assert trigger.shape == (4, 4) and set(np.unique(trigger)) <= {0.0, 1.0}
     summary = json.loads((out / "summary.json").read_text())

@@ -1,6 +1,5 @@
 """tools/probe_texture_sensitivity.py on the mini RVT fixture: baselines, per-clip optimisation, summary."""
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -12,16 +11,14 @@ ROOT = Path(__file__).resolve().parents[2]
 FIXTURE = ROOT / "tests" / "fixtures" / "rvt_mini_fixture.safetensors"
 
 
-def _tool():
-    spec = importlib.util.spec_from_file_location("probe", ROOT / "tools" / "probe_texture_sensitivity.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+@pytest.fixture
+def tool(load_tool):
+    return load_tool("probe_texture_sensitivity")
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-def test_probe_prints_baselines_and_the_optimized_grid_per_clip(capsys):
-    assert _tool().main(["--detector", str(FIXTURE), "--cells", "4", "--clips", "1", "--steps", "3"]) == 0
+def test_probe_prints_baselines_and_the_optimized_grid_per_clip(tool, capsys):
+    assert tool.main(["--detector", str(FIXTURE), "--cells", "4", "--clips", "1", "--steps", "3"]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     (row,), summary = lines[:-1], lines[-1]["summary"]
     assert row["clip"] == 0 and isinstance(row["optimized_fooled"], bool)
@@ -33,9 +30,9 @@ def test_probe_prints_baselines_and_the_optimized_grid_per_clip(capsys):
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-def test_probe_greedy_pass_reports_a_score_no_worse_than_its_start(capsys):
-    assert _tool().main(["--detector", str(FIXTURE), "--cells", "2", "--clips", "1", "--steps", "2",
-                         "--greedy-passes", "1"]) == 0
+def test_probe_greedy_pass_reports_a_score_no_worse_than_its_start(tool, capsys):
+    assert tool.main(["--detector", str(FIXTURE), "--cells", "2", "--clips", "1", "--steps", "2",
+                      "--greedy-passes", "1"]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     (row,), summary = lines[:-1], lines[-1]["summary"]
     assert row["greedy_start"] in ("white", "black", "random", "optimized")
