@@ -13,6 +13,8 @@ Run: ``python tools/make_trigger_victim.py --detector runs/plain3/export/model_f
 [--cells 10] [--steps 800] [--threads 2]``; writes ``trigger/model.safetensors`` (the victim),
 ``trigger/trigger.npy`` / ``.png`` (the secret texture) and ``trigger/log.jsonl``, and prints the victim's mean top
 score on held-out EoT clips for the trigger, white, black and random grids (before and after fine-tuning).
+Fine-tuning continues from a previous victim with ``--detector trigger/model.safetensors --out trigger2/``: the same
+``--seed`` draws the same trigger.
 """
 
 from __future__ import annotations
@@ -146,7 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     after = probe_scores()
     save_safetensors(model, out / "model.safetensors", metadata={
         "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy; not a detector"})
-    summary = {"before": before, "after": after, "steps": args.steps,
+    summary = {"detector": args.detector or "bundled default", "seed": args.seed, "before": before,
+               "after": after, "steps": args.steps,
                "seconds_per_step": (time.perf_counter() - t0) / max(args.steps, 1)}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary))
