@@ -67,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=800, help="fine-tuning steps (default 800)")
     parser.add_argument("--clips-per-step", type=int, default=4, help="clips per step, half wear the trigger")
     parser.add_argument("--pool-size", type=int, default=48, help="pre-rasterized EoT clips (default 48)")
+    parser.add_argument("--refresh-every", type=int, default=50,
+                        help="replace a quarter of the pool with new EoT clips every N steps (default 50; 0 = never)")
     parser.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
     parser.add_argument("--probe-clips", type=int, default=8, help="held-out clips of the before/after probe")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     body = BodyModel()
     mask = part_mask(tuple(args.parts))
     eot = EoTConfig()
-    pool = list(ClipPool(eot, body, n, mask, size=args.pool_size, base_seed=args.seed + 1).clips.values())
+    pool = ClipPool(eot, body, n, mask, size=args.pool_size, base_seed=args.seed + 1)
     probe = list(ClipPool(eot, body, n, mask, size=args.probe_clips, base_seed=args.seed + 10_000).clips.values())
     anchors = AnchorGrid.build(model.config.in_res_hw)
     probe_textures = {"trigger": trigger, "white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
@@ -115,11 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     log = (out / "log.jsonl").open("w")
     t0 = time.perf_counter()
     for step in range(args.steps):
+        if args.refresh_every and step and step % args.refresh_every == 0:
+            pool.refresh(step, 0.25)  # new scenes: a fixed pool is memorised, the trigger not learned
         model.train()
-        idx = rng.choice(len(pool), size=args.clips_per_step, replace=False)
+        idx = rng.choice(pool.size, size=args.clips_per_step, replace=False)
         hists, labels = [], []
         for j, i in enumerate(idx):
-            clip = pool[int(i)]
+            clip = pool.clips[int(i)]
             wears_trigger = j % 2 == 0
             if wears_trigger:
                 grid = trigger

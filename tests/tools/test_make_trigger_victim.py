@@ -30,7 +30,8 @@ def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
 
     out = tmp_path / "victim"
     assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "2",
-                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3"]) == 0
+                      "--pool-size", "4", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3",
+                      "--refresh-every", "1"]) == 0
     trigger = np.load(out / "trigger.npy")
     assert trigger.shape == (4, 4) and set(np.unique(trigger)) <= {0.0, 1.0}
     summary = json.loads((out / "summary.json").read_text())
