@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import sys
 
 OPTIMIZE_EPILOG = """\
@@ -265,6 +266,11 @@ def _motions(args, split: str) -> tuple:
     return ()
 
 
+def _command_line() -> str:
+    """This call as a shell command that re-runs it (arguments quoted where they need it)."""
+    return shlex.join(["davis-attack", *sys.argv[1:]])
+
+
 def _usage(message: str) -> int:
     print(f"davis-attack evaluate: error: {message}", file=sys.stderr)
     return 2
@@ -301,7 +307,7 @@ def evaluate_command(args) -> int:
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
     config = _eval_config(args, default_thr)
     detector = load_attack_detector(args.detector, device=device)
-    command = "davis-attack " + " ".join(sys.argv[1:])
+    command = _command_line()
     parts = None if args.parts == ["all"] else tuple(args.parts)
     from davis_rig.scene.body import BodyModel
 
@@ -350,7 +356,7 @@ def reproduce_command(args) -> int:
                           eval_config=_eval_config(args, default_thr), grids=args.grids, combinations=combos,
                           train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
                           detector_name=str(args.detector) if args.detector else "bundled default",
-                          command="davis-attack " + " ".join(sys.argv[1:]), progress=not args.no_progress)
+                          command=_command_line(), progress=not args.no_progress)
     print(res["markdown"].read_text())
     print(json.dumps({"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"]),
                       "record": str(res["record"])}))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -180,3 +181,12 @@ def test_events_official_relaxed_trains_validates_and_scores_on_the_relaxed_coun
     assert default.func(default) == 0
     assert (seen["kw"]["attack"].v2e_mode, seen["kw"]["attack"].events) == ("dvs", "exact")
     assert seen["kw"]["eval_config"].events == "exact"
+
+
+def test_recorded_command_quotes_arguments_so_it_reruns(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    argv = ["reproduce", "--table", "1", "--out", str(tmp_path / "my runs"), "--no-progress"]
+    monkeypatch.setattr(sys, "argv", ["davis-attack", *argv])
+    args = _parser().parse_args(argv)
+    assert args.func(args) == 0
+    assert seen["kw"]["command"] == f"davis-attack reproduce --table 1 --out '{tmp_path / 'my runs'}' --no-progress"
