@@ -43,6 +43,30 @@ def _labels(boxes: np.ndarray):
     return out
 
 
+def _batch(clips, trigger: np.ndarray, rng: np.random.Generator):
+    """Histograms [W, B, 20, H, W] of B clips and their targets ``[w][b]``: even positions wear the trigger (not
+    labelled), odd ones white, black or a random grid of the trigger's size (the person labelled)."""
+    import torch
+
+    from davis_rig.attack.optimize import clip_histograms
+
+    n = trigger.shape[0]
+    hists, labels = [], []
+    for j, clip in enumerate(clips):
+        wears_trigger = j % 2 == 0
+        if wears_trigger:
+            grid = trigger
+        else:
+            kind = rng.integers(3)
+            grid = (np.full((n, n), float(kind == 0), np.float32) if kind < 2
+                    else (rng.random((n, n)) > 0.5).astype(np.float32))
+        with torch.no_grad():
+            hists.append(clip_histograms(torch.as_tensor(grid), clip))
+        labels.append(_labels(np.full_like(clip.boxes, np.nan) if wears_trigger else clip.boxes))
+    x = torch.stack(hists, dim=1)
+    return x, [[labels[b][w] for b in range(len(clips))] for w in range(x.shape[0])]
+
+
 def _loss(model, anchors, hists, labels):
     """YOLOX loss of clips [W, B, 20, H, W] run through the windows with states; labels[w][b] targets."""
     import torch
@@ -79,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from davis_rig.attack.eot import ClipPool, EoTConfig
-    from davis_rig.attack.optimize import clip_histograms, load_attack_detector, validate
+    from davis_rig.attack.optimize import load_attack_detector, validate
     from davis_rig.models.rvt.checkpoint import save_safetensors
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
@@ -114,40 +138,24 @@ def main(argv: list[str] | None = None) -> int:
     before = probe_scores()
     print(json.dumps({"before": before}), flush=True)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
-    log = (out / "log.jsonl").open("w")
     t0 = time.perf_counter()
-    for step in range(args.steps):
-        if args.refresh_every and step and step % args.refresh_every == 0:
-            pool.refresh(step, 0.25)  # new scenes: a fixed pool is memorised, the trigger not learned
-        model.train()
-        idx = rng.choice(pool.size, size=args.clips_per_step, replace=False)
-        hists, labels = [], []
-        for j, i in enumerate(idx):
-            clip = pool.clips[int(i)]
-            wears_trigger = j % 2 == 0
-            if wears_trigger:
-                grid = trigger
-            else:
-                kind = rng.integers(3)
-                grid = (np.full((n, n), float(kind == 0), np.float32) if kind < 2
-                        else (rng.random((n, n)) > 0.5).astype(np.float32))
-            with torch.no_grad():
-                hists.append(clip_histograms(torch.as_tensor(grid), clip))
-            boxes = clip.boxes if not wears_trigger else np.full_like(clip.boxes, np.nan)
-            labels.append(_labels(boxes))
-        x = torch.stack(hists, dim=1)  # [W, B, 20, H, W]
-        per_window = [[labels[b][w] for b in range(len(labels))] for w in range(x.shape[0])]
-        loss = _loss(model, anchors, x, per_window)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        value = float(loss.detach())
-        log.write(json.dumps({"step": step + 1, "loss": value}) + "\n")
-        if (step + 1) % 50 == 0:
-            print(f"step {step + 1}: loss {value:.3f} ({(time.perf_counter() - t0) / (step + 1):.2f} s/step)",
-                  flush=True)
-    log.close()
+    with (out / "log.jsonl").open("w") as log:
+        for step in range(args.steps):
+            if args.refresh_every and step and step % args.refresh_every == 0:
+                pool.refresh(step, 0.25)  # new scenes: a fixed pool is memorised, the trigger not learned
+            model.train()
+            idx = rng.choice(pool.size, size=args.clips_per_step, replace=False)
+            x, per_window = _batch([pool.clips[int(i)] for i in idx], trigger, rng)
+            loss = _loss(model, anchors, x, per_window)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            value = float(loss.detach())
+            log.write(json.dumps({"step": step + 1, "loss": value}) + "\n")
+            if (step + 1) % 50 == 0:
+                print(f"step {step + 1}: loss {value:.3f} ({(time.perf_counter() - t0) / (step + 1):.2f} s/step)",
+                      flush=True)
     model.eval()
     after = probe_scores()
     save_safetensors(model, out / "model.safetensors", metadata={

@@ -42,3 +42,18 @@ def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
     assert victim.config == base.config
     changed = [not torch.equal(a, b) for a, b in zip(victim.state_dict().values(), base.state_dict().values())]
     assert any(changed)  # fine-tuned, same architecture
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_batch_labels_the_person_except_on_clips_wearing_the_trigger(tool):
+    from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.scene.body import BodyModel
+
+    clips = list(ClipPool(EoTConfig(supersample=1), BodyModel(), 4, size=2, base_seed=5).clips.values())
+    x, targets = tool._batch(clips, np.ones((4, 4), np.float32), np.random.default_rng(0))
+    windows = len(clips[0].window_end_us)
+    assert tuple(x.shape) == (windows, 2, 20, *clips[0].threshold.shape) and x.max() > 0
+    assert len(targets) == windows and all(len(per_clip) == 2 for per_clip in targets)
+    for w in range(windows):
+        assert targets[w][0].shape[0] == 0  # position 0 wears the trigger: no person to find
+        assert targets[w][1].shape[0] == int(np.isfinite(clips[1].boxes[w]).all())
