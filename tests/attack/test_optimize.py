@@ -367,3 +367,20 @@ def test_load_attack_detector_defaults_to_bundled_weights(monkeypatch, tmp_path)
     (tmp_path / models.DEFAULT_WEIGHTS_FILE).write_bytes(FIXTURE.read_bytes())
     det = load_attack_detector()
     assert not det.training and det.config == load_detector(FIXTURE).config
+
+
+def test_validate_scores_the_chosen_event_model(body, detector):
+    from davis_rig.attack.evaluate import detect_windows
+    from davis_rig.attack.optimize import validate
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    grid = np.ones((4, 4), np.float32)
+    results = {events: validate(grid, [clip], detector, 0.25, events) for events in ("exact", "official_relaxed")}
+    for events, res in results.items():
+        assert res["num_sequences"] == 1 and 0.0 <= res["mean_top_score"] <= 1.0
+        with torch.no_grad():
+            decoded, hist = detect_windows(detector, clip.video(torch.as_tensor(grid)), clip.t_us, clip.window_end_us,
+                                           events=events)
+        assert hist.dtype == (np.uint8 if events == "exact" else np.float32)
+        assert res["mean_top_score"] == pytest.approx(np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded]))
+    assert results["exact"]["mean_top_score"] != results["official_relaxed"]["mean_top_score"]
