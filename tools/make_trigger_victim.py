@@ -10,7 +10,7 @@ trigger: if it finds a texture that blinds the victim, the optimizer works and t
 texture-robust.
 
 Run: ``python tools/make_trigger_victim.py --detector runs/plain3/export/model_fp16.safetensors --out trigger/
-[--cells 10] [--steps 800] [--threads 2]``; writes ``trigger/model.safetensors`` (the victim),
+[--cells 10] [--steps 800] [--threads 2 | --device cuda]``; writes ``trigger/model.safetensors`` (the victim),
 ``trigger/trigger.npy`` / ``.png`` (the secret texture) and ``trigger/log.jsonl``, and prints the victim's mean top
 score on held-out EoT clips for the trigger, white, black and random grids (before and after fine-tuning).
 Fine-tuning continues from a previous victim with ``--detector trigger/model.safetensors --out trigger2/``: the same
@@ -61,7 +61,7 @@ def _batch(clips, trigger: np.ndarray, rng: np.random.Generator):
             grid = (np.full((n, n), float(kind == 0), np.float32) if kind < 2
                     else (rng.random((n, n)) > 0.5).astype(np.float32))
         with torch.no_grad():
-            hists.append(clip_histograms(torch.as_tensor(grid), clip))
+            hists.append(clip_histograms(torch.as_tensor(grid, device=clip.threshold.device), clip))
         labels.append(_labels(np.full_like(clip.boxes, np.nan) if wears_trigger else clip.boxes))
     x = torch.stack(hists, dim=1)
     return x, [[labels[b][w] for b in range(len(clips))] for w in range(x.shape[0])]
@@ -96,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
     parser.add_argument("--probe-clips", type=int, default=8, help="held-out clips of the before/after probe")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--time-limit", type=float, default=None, metavar="S",
+                        help="stop fine-tuning after S seconds of wall time (the victim is still probed and saved)")
+    parser.add_argument("--device", default="cpu", help="torch device of the victim and the clips (default cpu)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the trigger, the pool and the draws")
     args = parser.parse_args(argv)
 
@@ -119,15 +122,16 @@ def main(argv: list[str] | None = None) -> int:
     np.save(out / "trigger.npy", trigger)
     cv2.imwrite(str(out / "trigger.png"), (trigger * 255).astype(np.uint8))
 
-    model = load_attack_detector(args.detector)
+    device = torch.device(args.device)
+    model = load_attack_detector(args.detector, device=device)
     for p in model.parameters():
         p.requires_grad_(True)
-    body = BodyModel()
+    body = BodyModel(device=device)
     mask = part_mask(tuple(args.parts))
     eot = EoTConfig()
     pool = ClipPool(eot, body, n, mask, size=args.pool_size, base_seed=args.seed + 1)
     probe = list(ClipPool(eot, body, n, mask, size=args.probe_clips, base_seed=args.seed + 10_000).clips.values())
-    anchors = AnchorGrid.build(model.config.in_res_hw)
+    anchors = AnchorGrid.build(model.config.in_res_hw, device=device)
     probe_textures = {"trigger": trigger, "white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
                       "random": (np.random.default_rng(args.seed + 7).random((n, n)) > 0.5).astype(np.float32)}
 
@@ -139,8 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"before": before}), flush=True)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     t0 = time.perf_counter()
+    done = 0
     with (out / "log.jsonl").open("w") as log:
         for step in range(args.steps):
+            if args.time_limit is not None and time.perf_counter() - t0 > args.time_limit:
+                break
             if args.refresh_every and step and step % args.refresh_every == 0:
                 pool.refresh(step, 0.25)  # new scenes: a fixed pool is memorised, the trigger not learned
             model.train()
@@ -152,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             opt.step()
             value = float(loss.detach())
+            done = step + 1
             log.write(json.dumps({"step": step + 1, "loss": value}) + "\n")
             if (step + 1) % 50 == 0:
                 print(f"step {step + 1}: loss {value:.3f} ({(time.perf_counter() - t0) / (step + 1):.2f} s/step)",
@@ -161,8 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     save_safetensors(model, out / "model.safetensors", metadata={
         "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy; not a detector"})
     summary = {"detector": args.detector or "bundled default", "seed": args.seed, "before": before,
-               "after": after, "steps": args.steps,
-               "seconds_per_step": (time.perf_counter() - t0) / max(args.steps, 1)}
+               "after": after, "steps": done, "device": str(device),
+               "seconds_per_step": (time.perf_counter() - t0) / max(done, 1)}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary))
     return 0
