@@ -83,9 +83,10 @@ def run(device: torch.device, detector, clips_per_step: int, warmup: int, repeat
     stages["V2E (incl. compose again)"] = time.perf_counter() - t
     t = time.perf_counter()
     states, outs = None, []
-    for w in range(x.shape[0]):
-        out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
-        outs.append(out)
+    with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+        for w in range(x.shape[0]):
+            out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
+            outs.append(out.float())
     loss = sum(o[..., 4].mean() + o[..., 6].mean() for o in outs)
     sync()
     stages["RVT forward (3 windows)"] = time.perf_counter() - t
