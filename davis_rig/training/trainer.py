@@ -210,6 +210,12 @@ def _boxes_to_bbox(boxes: torch.Tensor, t_us: int) -> np.ndarray:
     return out
 
 
+def _finite_mean(values) -> float:
+    """Mean of the finite values; NaN when there are none (a log window whose steps all had no labelled lane)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
 class Trainer:
     """Train, validate, checkpoint and export an RVT detector.
 
@@ -560,7 +566,7 @@ class Trainer:
                     bar.set_postfix(loss=f"{last_losses.get('loss', float('nan')):.3f}")
                 if cfg.log_every and (self.step % cfg.log_every == 0 or self.step == target):
                     keys = [k for k in window[-1] if k not in ("lr",)]
-                    mean = {k: float(np.nanmean([w.get(k, np.nan) for w in window])) for k in keys}
+                    mean = {k: _finite_mean([w.get(k, np.nan) for w in window]) for k in keys}
                     self._log({"kind": "train", "step": self.step, "lr": last_losses.get("lr"),
                                "elapsed_s": round(self.history_s + time.perf_counter() - start, 3), **mean})
                     window = []

@@ -10,7 +10,7 @@ import torch
 
 from davis_rig.errors import CheckpointError
 from davis_rig.training.augment import AugmentConfig
-from davis_rig.training.trainer import TrainConfig, Trainer, train
+from davis_rig.training.trainer import TrainConfig, Trainer, _finite_mean, train
 
 
 def _config(**overrides) -> TrainConfig:
@@ -120,3 +120,12 @@ def test_cuda_mixed_precision_steps(moving_boxes_dataset, tmp_path, precision):
     resumed = Trainer(moving_boxes_dataset, tmp_path / "run", config)
     resumed.load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
     assert resumed.step == 3
+
+
+def test_log_window_mean_skips_unlabelled_steps_without_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _finite_mean([1.0, float("nan"), 3.0]) == 2.0
+        assert np.isnan(_finite_mean([float("nan"), float("nan")]))  # no "Mean of empty slice"
