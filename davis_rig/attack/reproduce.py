@@ -160,6 +160,7 @@ def _budget_markdown(attack: AttackConfig, eval_config: EvalConfig, records: dic
              + ("all (paper)" if attack.box_margin_px is None else f"within {attack.box_margin_px:g} px of the box")
              + f", loss reduction {attack.loss_reduction}"
              + f", best of validation every {attack.validate_every} steps on {attack.num_validation_clips} clips"
+             + (" (by mean top score)" if attack.select_by == "score" else "")
              + (f", then {attack.refine_passes} pass(es) of greedy cell flips scored on {attack.refine_clips} clips"
                 if attack.refine_passes else ""),
              f"- evaluation: scales {list(eval_config.scales)}, {len(eval_config.headings_rad)} heading(s), phases "

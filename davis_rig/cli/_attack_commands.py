@@ -95,6 +95,9 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "with the exact simulator (default 0: none, the paper)")
     p.add_argument("--refine-clips", type=int, default=8,
                    help="EoT clips that score the refinement's flips (default 8)")
+    p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
+                   help="best texture on validation: seqasr (paper: SeqASR, then mean top score) or score (mean "
+                        "top score alone; finer with few validation clips)")
     p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
 
 
@@ -225,7 +228,8 @@ def _attack_config(args, grid_n: int, parts):
                         v2e_mode="official_relaxed" if relaxed else "dvs",
                         v2e_gradient="ste" if relaxed else args.v2e_gradient, events=args.events,
                         precision=args.precision, refine_passes=args.refine_passes,
-                        refine_clips=args.refine_clips, seed=args.seed)
+                        refine_clips=args.refine_clips, select_by=args.select_by,
+                        seed=args.seed)
 
 
 def optimize_command(args) -> int:

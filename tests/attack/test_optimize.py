@@ -189,6 +189,20 @@ def test_better_rule():
     assert _better({"SeqASR": 0.5, "mean_top_score": 0.2}, {"SeqASR": 0.5, "mean_top_score": 0.3})
     assert not _better({"SeqASR": 0.5, "mean_top_score": 0.3}, {"SeqASR": 0.5, "mean_top_score": 0.3})
     assert not _better({"SeqASR": float("nan"), "mean_top_score": 0.0}, {"SeqASR": 0.0, "mean_top_score": 0.5})
+    # select_by="score": the mean top score alone, so one more missed sequence of 8 no longer outranks it
+    assert _better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37}, "score")
+    assert not _better({"SeqASR": 0.125, "mean_top_score": 0.37}, {"SeqASR": 0.0, "mean_top_score": 0.30}, "score")
+    assert not _better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37})
+    with pytest.raises(ValueError, match="select_by"):
+        AttackConfig(select_by="ap")
+
+
+def test_best_on_validation_by_score_keeps_the_lowest_mean_top_score(detector, body, tmp_path):
+    cfg = _tiny(iterations=3, validate_every=1, lr=0.5, dropout=0.0, select_by="score")
+    result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    vals = _log(tmp_path / "log.jsonl")[1]
+    lowest = min(vals, key=lambda v: (v["mean_top_score"], v["step"]))
+    assert json.loads((tmp_path / "best.json").read_text()) == lowest and result.best_step == lowest["step"]
 
 
 def test_load_attack_detector_frozen_and_onnx_hint(tmp_path):

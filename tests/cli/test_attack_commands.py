@@ -183,6 +183,14 @@ def test_events_official_relaxed_trains_validates_and_scores_on_the_relaxed_coun
     assert seen["kw"]["eval_config"].events == "exact"
 
 
+def test_select_by_reaches_the_attack_config(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    for argv, rule in ((["--select-by", "score"], "score"), ([], "seqasr")):
+        args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--no-progress", *argv])
+        assert args.func(args) == 0
+        assert seen["kw"]["attack"].select_by == rule
+
+
 def test_recorded_command_quotes_arguments_so_it_reruns(monkeypatch, tmp_path):
     seen = _patch_reproduce(monkeypatch)
     argv = ["reproduce", "--table", "1", "--out", str(tmp_path / "my runs"), "--no-progress"]
