@@ -57,3 +57,15 @@ def test_batch_labels_the_person_except_on_clips_wearing_the_trigger(tool):
     for w in range(windows):
         assert targets[w][0].shape[0] == 0  # position 0 wears the trigger: no person to find
         assert targets[w][1].shape[0] == int(np.isfinite(clips[1].boxes[w]).all())
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_time_limit_stops_fine_tuning_and_still_saves_the_probed_victim(tool, tmp_path):
+    out = tmp_path / "victim"
+    assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "50",
+                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--time-limit", "0",
+                      "--device", "cpu"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 0 and summary["device"] == "cpu"  # the budget ran out before the first step
+    assert (out / "log.jsonl").read_text() == "" and (out / "model.safetensors").is_file()
+    assert summary["after"] == summary["before"]  # unchanged weights probe the same
