@@ -40,6 +40,7 @@ BBOX_DTYPE: Final = np.dtype(
 #: Gen1 class ids used by RVT.
 GEN1_CLASSES: Final = {0: "car", 1: "pedestrian"}
 PEDESTRIAN_CLASS_ID: Final = 1
+CAR_CLASS_ID: Final = 0
 
 
 def empty_events(n: int = 0) -> np.ndarray:

@@ -72,15 +72,29 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--clothing", nargs="+", default=None, metavar="KIND",
                         help="clothing kinds of the train/val people (default: all of parts_grey parts_colour "
                              "stripes checks grid white black pattern60); the test subsets are fixed")
+    parser.add_argument("--vehicles", type=int, nargs=2, default=None, metavar=("MIN", "MAX"),
+                        help="labelled side-view cars (Gen1 class 0) per train/val scene, MIN..MAX (default: none, "
+                             "the single-class bundled recipe); the test subsets have none")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     return parser
 
 
-def _make(args: argparse.Namespace, sizes: dict[str, int]) -> int:
-    from davis_rig.training.synthetic import SyntheticSceneConfig, generate_dataset
+def _scene_config(args: argparse.Namespace):
+    """The :class:`~davis_rig.training.synthetic.SyntheticSceneConfig` of the flags (ValueError if invalid)."""
+    from davis_rig.training.synthetic import SyntheticSceneConfig
 
-    config = SyntheticSceneConfig() if args.clothing is None else SyntheticSceneConfig(
-        clothing_kinds=tuple(args.clothing))
+    overrides = {}
+    if args.clothing is not None:
+        overrides["clothing_kinds"] = tuple(args.clothing)
+    if args.vehicles is not None:
+        overrides["vehicle_counts"] = tuple(args.vehicles)
+    return SyntheticSceneConfig(**overrides)
+
+
+def _make(args: argparse.Namespace, sizes: dict[str, int]) -> int:
+    from davis_rig.training.synthetic import generate_dataset
+
+    config = _scene_config(args)
     summary = generate_dataset(args.out_dir, sizes, duration_s=args.seconds, seed=args.seed, device=args.device,
                                workers=args.workers, compression=args.compression, progress=not args.no_progress,
                                threads=args.threads, config=config)
@@ -97,10 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         sizes = parse_split_sizes(args.split_sizes, args.sequences)
-        if args.clothing is not None:
-            from davis_rig.training.synthetic import SyntheticSceneConfig
-
-            SyntheticSceneConfig(clothing_kinds=tuple(args.clothing))
+        _scene_config(args)
     except ValueError as exc:
         print(f"{NAME}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

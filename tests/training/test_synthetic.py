@@ -134,7 +134,61 @@ def test_empty_scene_with_distractors_fires_events_but_has_no_labels(model):
                                 simulator=SimulatorConfig())
     seq = syn.render_sequence(scene, model=model, keep_events=True)
     assert seq.events.shape[0] > 500 and seq.histograms.sum() > 0
-    assert [len(b) for b in seq.labels] == [0, 0, 0] and seq.person_boxes.shape == (3, 0, 4)
+    assert [len(b) for b in seq.labels] == [0, 0, 0] and seq.object_boxes.shape == (3, 0, 4)
+
+
+def _car(length_px: float = 100.0, x: float = 150.0, y: float = 150.0, vx: float = 200.0) -> syn.VehicleSpec:
+    return syn.VehicleSpec(length_px=length_px, start_xy_px=(x, y), velocity_px_s=(vx, 0.0), level=0.9,
+                           contrast=0.0, pattern="flat", period_px=10.0, window_level=0.1)
+
+
+def test_car_silhouette_area_box_and_paint():
+    length = 100.0
+    ((alpha, value),) = syn._vehicle_layers((_car(length, 150.0, 150.0),), np.array([0.0, 0.1]), RVT_HW, 4)
+    # body 1 x 0.26 L, cabin 0.5 x 0.2 L, the lower halves of two wheels of radius 0.11 L below the body
+    area = (0.26 + 0.5 * 0.2 + math.pi * 0.11**2) * length**2
+    np.testing.assert_allclose(alpha.sum(axis=(1, 2)), area, rtol=0.01)
+    rows, cols = np.nonzero(alpha[0] > 0)
+    assert (cols.min(), cols.max()) == (100, 199)  # centre 150 +- L / 2
+    assert (rows.min(), rows.max()) == (122, 178)  # cabin roof at -0.28 L, wheel bottoms at +0.29 L
+    assert np.argwhere(alpha[1] > 0)[:, 1].min() == 120  # 200 px/s for 0.1 s
+    # the windows are dark, the body has its paint, the wheels are 0.05; the cabin sits towards the rear (left)
+    full = alpha[0] == 1.0
+    shade = np.where(full, value[0], np.nan)
+    assert np.nanmax(shade) == pytest.approx(0.9) and np.nanmin(shade) == pytest.approx(0.05)
+    assert np.isclose(shade[150, 150], 0.9) and np.isclose(shade[176, 180], 0.05)
+    window = np.argwhere(np.isclose(shade, 0.1))
+    assert window[:, 1].mean() < 150 and window[:, 0].max() < 142
+    mirrored = syn._vehicle_layers((_car(length, 150.0, 150.0, vx=-200.0),), np.array([0.0]), RVT_HW, 4)
+    np.testing.assert_allclose(mirrored[0][1][0], value[0][:, ::-1][:, np.r_[4:304, 0:4]], atol=1e-6)
+
+
+def test_cars_are_labelled_class_zero_and_hidden_by_people(model):
+    person_scene = _one_person_scene(4, heading_rad=0.0, x_mid_m=0.0, depth_mid_m=5.0)
+    car = _car(180.0, 152.0, 150.0, vx=0.0)
+    alone = syn.render_sequence(dataclasses.replace(person_scene, people=(), vehicles=(car,)), model=model)
+    assert [b["class_id"].tolist() for b in alone.labels] == [[0], [0], [0]]
+    (box,) = alone.labels[0]
+    assert (box["x"], box["w"]) == (62.0, 180.0) and alone.object_classes.tolist() == [0]
+    both = syn.render_sequence(dataclasses.replace(person_scene, vehicles=(car,)), model=model)
+    assert both.object_classes.tolist() == [PEDESTRIAN_CLASS_ID, 0]
+    assert all(sorted(b["class_id"].tolist()) == [0, 1] and b["track_id"].tolist() == [0, 1] for b in both.labels)
+    # the person stands in front of the car: the car loses exactly the coverage the person has over it
+    assert np.all(both.visible_px[:, 1] < alone.visible_px[:, 0] - 1000)
+    np.testing.assert_allclose(both.visible_px[:, 0], syn.render_sequence(person_scene, model=model).visible_px[:, 0])
+
+
+def test_vehicle_counts_add_cars_without_changing_the_rest_of_the_scene():
+    cars = syn.SyntheticSceneConfig(vehicle_counts=(1, 2))
+    for seed in range(6):
+        plain = syn.sample_scene(np.random.default_rng(seed), "train")
+        with_cars = syn.sample_scene(np.random.default_rng(seed), "train", cars)
+        assert plain.vehicles == () and 1 <= len(with_cars.vehicles) <= 2
+        assert dataclasses.replace(with_cars, vehicles=()) == plain
+    for job in syn.dataset_plan({"train": 0, "val": 0, "test": 9}):
+        assert syn.scene_for_job(job, 0, cars).vehicles == ()
+    with pytest.raises(ValueError, match="vehicle_counts"):
+        syn.SyntheticSceneConfig(vehicle_counts=(2, 1))
 
 
 def test_splits_are_disjoint_in_shapes_seeds_and_speeds():
@@ -230,6 +284,10 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert calls[-1][2]["config"].clothing_kinds == ("white", "stripes")
     assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "tartan"]) == 2
     assert "tartan" in capsys.readouterr().err
+    assert cli.main([str(tmp_path), "--sequences", "4", "--vehicles", "0", "2"]) == 0
+    assert calls[-1][2]["config"] == syn.SyntheticSceneConfig(vehicle_counts=(0, 2))
+    assert cli.main([str(tmp_path), "--sequences", "4", "--vehicles", "3", "1"]) == 2
+    assert "vehicle_counts" in capsys.readouterr().err
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
