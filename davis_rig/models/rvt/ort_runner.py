@@ -291,7 +291,11 @@ class RVTOnnxRunner:
             return_states: also return the states after the last window (to continue a long recording
                 chunk by chunk).
             correct_time: make out-of-order timestamps non-decreasing first, as the official reader does
-                (running maximum over the given stream, ``events.histogram.monotonic_timestamps``).
+                (running maximum over the given stream, ``events.histogram.monotonic_timestamps``). To score a
+                long recording chunk by chunk with the whole recording's correction, start each chunk at the
+                first event whose corrected time reaches its first window's start (the events at that instant
+                belong to both chunks): that event is not late, so each chunk's own running maximum equals the
+                whole recording's.
 
         Returns:
             One entry per window: float32 [K, 7] ``(x1, y1, x2, y2, obj, class_conf, class_id)`` by decreasing

@@ -124,6 +124,21 @@ def test_score_stream_correct_time_scores_the_officially_corrected_stream(runner
     assert len(corrected) == len(expected) == 3
     for a, b in zip(corrected, expected):
         np.testing.assert_array_equal(a, b)
+    # chunk by chunk, cut where the corrected time reaches window 2's start (events at that instant lie in both
+    # windows): the chunk's first event is then not late, so correcting each chunk alone equals one pass
+    late_after = int(np.searchsorted(t_us, ends[0], side="right")) + 5
+    t_late[late_after] = t_us[late_after] - 3_000
+    corrected_t = np.maximum.accumulate(t_late)
+    expected = runner.score_stream(x, y, corrected_t, p, ends, conf_threshold=0.1)
+    start_2 = int(np.searchsorted(corrected_t, ends[0], side="left"))
+    end_1 = int(np.searchsorted(corrected_t, ends[0], side="right"))
+    assert np.any(t_late[start_2:] < t_late[:start_2].max())  # late events in the second chunk
+    first, states = runner.score_stream(x[:end_1], y[:end_1], t_late[:end_1], p[:end_1], ends[:1],
+                                        conf_threshold=0.1, return_states=True, correct_time=True)
+    rest = runner.score_stream(x[start_2:], y[start_2:], t_late[start_2:], p[start_2:], ends[1:],
+                               conf_threshold=0.1, states=states, correct_time=True)
+    for a, b in zip(first + rest, expected):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_wrong_histogram_resolution_and_states_raise_shape_error(runner):
