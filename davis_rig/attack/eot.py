@@ -116,6 +116,8 @@ class EoTConfig:
         shot_noise_rate_hz: per-pixel noise event rate (ON + OFF), uniform in this range (Hz).
         seq_len: windows per sequence (paper: 3).
         window_us: window duration (RVT: 50 ms).
+        playback_speed: motion seconds per clip second (official code: 5/3,
+            :data:`~davis_rig.scene.scene.OFFICIAL_PLAYBACK_SPEED`).
         render_rate_hz: frames per second (>= 200).
         supersample: samples per pixel side of the rasterizer.
         camera: intrinsics (default: RVT 304 x 240 crop of the DAVIS346).
@@ -138,6 +140,7 @@ class EoTConfig:
     shot_noise_rate_hz: tuple[float, float] = (0.0, 1.0)
     seq_len: int = 3
     window_us: int = WINDOW_US
+    playback_speed: float = 1.0
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     camera: PinholeCamera = field(default_factory=PinholeCamera.rvt_crop)
@@ -273,7 +276,7 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     if motions and rng.random() < 0.5:
         motion = motions[int(rng.integers(len(motions)))]
         length_s = motion.rotations_wxyz.shape[0] / motion.fps_hz
-        start_s = float(rng.uniform(0.0, max(0.0, length_s - config.duration_s)))
+        start_s = float(rng.uniform(0.0, max(0.0, length_s - config.playback_speed * config.duration_s)))
     advance = bool(rng.random() < config.advance_probability)
     heading = float(rng.uniform(*config.heading_range_rad))
     offset = (float(rng.uniform(-config.offset_x_m, config.offset_x_m)),
@@ -284,8 +287,9 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     else:
         background = float(rng.uniform(*config.background_level_range))
     spec = SceneSpec(
-        shape_index=shape, motion=motion, motion_start_s=start_s, advance=advance, heading_rad=heading,
-        scale=config.scale, offset_m=offset, camera=config.camera, jitter=config.jitter, light=light,
+        shape_index=shape, motion=motion, motion_start_s=start_s, playback_speed=config.playback_speed,
+        advance=advance, heading_rad=heading, scale=config.scale, offset_m=offset, camera=config.camera,
+        jitter=config.jitter, light=light,
         background=background, render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
         supersample=config.supersample, seed=int(rng.integers(2**62)),
     )

@@ -93,6 +93,8 @@ class EvalConfig:
         phases: start phases per shape and heading (times into the walk cycle / motion, s).
         seq_len: windows per sequence (paper: 3).
         window_us: window duration (µs).
+        playback_speed: motion seconds per clip second (official code: 5/3,
+            :data:`~davis_rig.scene.scene.OFFICIAL_PLAYBACK_SPEED`).
         warmup_windows: windows run before the scored ones (states warm-up; 0 = the paper's digital clips).
         nms_threshold: class-wise NMS IoU threshold.
         background: uniform background level (default 0.5 grey; the official renders are blank white, 1.0).
@@ -114,6 +116,7 @@ class EvalConfig:
     phases: tuple[float, ...] = (0.0, 0.5)
     seq_len: int = 3
     window_us: int = WINDOW_US
+    playback_speed: float = 1.0
     warmup_windows: int = 0
     nms_threshold: float = 0.45
     background: float = 0.5
@@ -206,7 +209,8 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
                     for phase in config.phases:
                         out.append((scale, SceneSpec(
                             shape_index=int(shape), motion=motion, motion_start_s=float(phase),
-                            advance=not config.walk_in_place, heading_rad=float(heading), scale=scale,
+                            playback_speed=float(config.playback_speed), advance=not config.walk_in_place,
+                            heading_rad=float(heading), scale=scale,
                             camera=config.camera, light=config.light, background=float(config.background),
                             render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
                             supersample=config.supersample, seed=config.seed)))

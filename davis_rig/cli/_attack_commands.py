@@ -113,6 +113,9 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
                    help="event model of training, validation and evaluation: exact (default; quantized events as a "
                         "camera delivers them) or official_relaxed (the official code's continuous counts x 10/27 "
                         "in training and test, as the paper's numbers were made; not events)")
+    p.add_argument("--playback-speed", type=float, default=1.0,
+                   help="motion seconds per clip second in training and test (default 1: real time; the official "
+                        "code's 10 frames of 120 fps motion per 50 ms window are 1.667)")
 
 
 def _scene_args(p: argparse.ArgumentParser) -> None:
@@ -134,7 +137,8 @@ def _eval_config(args, default_thresholds):
     scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
     make = EvalConfig.official if args.scene == "official" else EvalConfig
     return make(scales=scales, thresholds=tuple(args.thresholds or default_thresholds),
-                headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases), events=args.events)
+                headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases), events=args.events,
+                playback_speed=args.playback_speed)
 
 
 def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
@@ -217,7 +221,8 @@ def _attack_config(args, grid_n: int, parts):
     from davis_rig.attack.eot import EoTConfig
     from davis_rig.attack.optimize import AttackConfig
 
-    eot = EoTConfig.official() if args.scene == "official" else EoTConfig()
+    make = EoTConfig.official if args.scene == "official" else EoTConfig
+    eot = make(playback_speed=args.playback_speed)
     # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed)
     relaxed = args.events == "official_relaxed"
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,

@@ -139,6 +139,7 @@ _LAZY = {
     "davis_rig.scene.texture": ("TexelLookup", "prepare_lookup", "sample_texture", "upsample_grid"),
     "davis_rig.scene.scene": (
         "MIN_RENDER_RATE_HZ",
+        "OFFICIAL_PLAYBACK_SPEED",
         "Clip",
         "RenderBody",
         "SceneSpec",

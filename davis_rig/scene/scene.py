@@ -44,6 +44,7 @@ from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 __all__ = [
     "MIN_RENDER_RATE_HZ",
+    "OFFICIAL_PLAYBACK_SPEED",
     "Clip",
     "RenderBody",
     "SceneSpec",
@@ -54,6 +55,10 @@ __all__ = [
 
 #: Lowest render rate (frames per second): 10 time bins per 50 ms window.
 MIN_RENDER_RATE_HZ = 200.0
+
+#: Motion speed-up of the official code's clips: 10 frames of a 120 fps motion per 50 ms RVT window
+#: (83.3 ms of motion in 50 ms).
+OFFICIAL_PLAYBACK_SPEED = 10 / 120 / 0.05
 
 
 def _torch():
@@ -92,6 +97,9 @@ class SceneSpec:
         shape_index: body shape of the asset.
         motion: a :class:`~davis_rig.scene.motion.Motion`, or ``None`` for the asset's walk cycle of that shape.
         motion_start_s: time into the motion of the first frame (s).
+        playback_speed: motion seconds per clip second (1 = real time). The official code renders 10 frames at
+            120 fps into each 50 ms RVT window, i.e. plays the motion 5/3 times too fast
+            (:data:`OFFICIAL_PLAYBACK_SPEED`).
         advance: walk cycle only: move forward at the cycle's speed (False = walk in place, as the official
             code). A :class:`Motion` always uses its own root translation.
         heading_rad: body rotation about world Z (0 = facing the camera, pi/2 = walking to the image right).
@@ -118,6 +126,7 @@ class SceneSpec:
     shape_index: int = 0
     motion: Motion | None = None
     motion_start_s: float = 0.0
+    playback_speed: float = 1.0
     advance: bool = True
     heading_rad: float = math.pi / 2
     scale: str | float = "middle"
@@ -141,6 +150,8 @@ class SceneSpec:
             raise ValueError(f"render_rate_hz must be >= {MIN_RENDER_RATE_HZ}, got {self.render_rate_hz}")
         if not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0, got {self.duration_s}")
+        if not self.playback_speed > 0:
+            raise ValueError(f"playback_speed must be > 0, got {self.playback_speed}")
         if int(self.supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {self.supersample}")
 
@@ -220,17 +231,18 @@ def scene_vertices(spec: SceneSpec, model: RenderBody) -> "object":
         ValueError: ``spec.motion`` is None and the body has no walk cycle.
     """
     torch = _torch()
-    t_s = (spec.frame_times_us() - spec.t0_us) / 1e6 + spec.motion_start_s
-    t_mid = spec.motion_start_s + 0.5 * (spec.num_frames - 1) / spec.render_rate_hz
+    speed = float(spec.playback_speed)
+    t_s = speed * (spec.frame_times_us() - spec.t0_us) / 1e6 + spec.motion_start_s
+    t_mid = spec.motion_start_s + speed * 0.5 * (spec.num_frames - 1) / spec.render_rate_hz
     if spec.motion is None:
         if not hasattr(model, "sample_walk"):
             raise ValueError(f"{type(model).__name__} has no walk cycle: set SceneSpec.motion "
                              "(e.g. SmplBody.amass_motion(path))")
         rotations, root = model.sample_walk(spec.shape_index, t_s, advance=spec.advance)
         if spec.advance:
-            speed = model.asset.walk_cycle(spec.shape_index).speed_m_s
+            walk_speed = model.asset.walk_cycle(spec.shape_index).speed_m_s
             root = root.clone()
-            root[:, 1] += speed * t_mid  # centre the path: mid-clip position at the placement point
+            root[:, 1] += walk_speed * t_mid  # centre the path: mid-clip position at the placement point
     else:
         rot_np, root_np = sample(spec.motion, t_s)
         _, mid = sample(spec.motion, [t_mid])

@@ -97,6 +97,9 @@ def test_official_scene_is_white_walking_in_place_under_the_official_light():
     assert all(s.background == 1.0 and s.advance is False and s.light == Light.official() for _, s in specs)
     default = evaluation_scenes(EvalConfig(scales=("middle",)), 24)
     assert all(s.background == 0.5 and s.advance is True and s.light is None for _, s in default)
+    assert all(s.playback_speed == 1.0 for _, s in default)
+    fast = evaluation_scenes(EvalConfig.official(scales=("middle",), playback_speed=5 / 3), 24)
+    assert all(s.playback_speed == 5 / 3 for _, s in fast)
 
 
 def test_table1_and_table2_on_tiny_config(tmp_path):

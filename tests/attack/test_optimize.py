@@ -63,6 +63,9 @@ def test_draw_scene_seeded_and_train_shapes_only():
     thetas = [draw_scene(EoTConfig(), s, 24)[1]["threshold"] for s in range(50)]
     assert min(thetas) >= 0.17 and max(thetas) <= 0.23
     assert slot_seed(0, 1, 2) == slot_seed(0, 1, 2) != slot_seed(0, 1, 3)
+    assert a.playback_speed == 1.0
+    fast, _ = draw_scene(EoTConfig(playback_speed=5 / 3), 7, 24)
+    assert fast == replace(a, playback_speed=5 / 3)  # the same draw, the motion played faster
 
 
 def test_official_eot_draws_the_official_scene_with_camera_jitter_only(body):

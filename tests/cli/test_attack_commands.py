@@ -167,6 +167,11 @@ def test_scene_official_selects_the_official_renders_for_training_and_test(monke
     assert args.func(args) == 0
     assert seen["kw"]["attack"].eot == EoTConfig.official()
     assert seen["kw"]["eval_config"] == EvalConfig.official(headings_rad=(math.pi / 2,))
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--grids", "10",
+                                 "--scene", "official", "--playback-speed", "1.667", "--no-progress"])
+    assert args.func(args) == 0
+    assert seen["kw"]["attack"].eot == EoTConfig.official(playback_speed=1.667)
+    assert seen["kw"]["eval_config"].playback_speed == 1.667
 
 
 def test_events_official_relaxed_trains_validates_and_scores_on_the_relaxed_counts(monkeypatch, tmp_path):

@@ -8,7 +8,7 @@ import torch
 
 from davis_rig.scene.camera import EgoMotion, EoTJitter
 from davis_rig.scene.motion import Motion, loop, sample
-from davis_rig.scene.scene import SceneSpec, render_clip, scene_camera, scene_vertices
+from davis_rig.scene.scene import OFFICIAL_PLAYBACK_SPEED, SceneSpec, render_clip, scene_camera, scene_vertices
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 
@@ -83,6 +83,18 @@ def test_cyclic_motion_wraps_around_its_period(asset, model):
     twice = loop(walk, 2)
     c = scene_vertices(SceneSpec(motion=twice, motion_start_s=period_s, duration_s=0.02, render_rate_hz=fps), model)
     np.testing.assert_allclose(b.numpy(), c.numpy(), atol=1e-5)
+
+
+@pytest.mark.parametrize("advance", [False, True])
+def test_playback_speed_samples_the_motion_faster(model, advance):
+    """Speed 2 at 200 fps poses frame k as real time poses frame 2k (same mid-clip centring when walking)."""
+    fast = scene_vertices(SceneSpec(advance=advance, playback_speed=2.0, duration_s=0.05), model)  # 10 frames
+    real = scene_vertices(SceneSpec(advance=advance, duration_s=0.095), model)  # 19 frames
+    assert fast.shape[0] == 10 and real.shape[0] == 19
+    np.testing.assert_allclose(fast.numpy(), real[::2].numpy(), atol=1e-6)
+    assert OFFICIAL_PLAYBACK_SPEED == pytest.approx(5 / 3)  # 10 frames at 120 fps in a 50 ms window
+    with pytest.raises(ValueError, match="playback_speed"):
+        SceneSpec(playback_speed=0.0)
 
 
 def test_jitter_and_ego_motion_cameras():
