@@ -105,3 +105,24 @@ def test_channels_and_errors():
         prepare_lookup(uv, 8, mode="cubic")
     with pytest.raises(ShapeError):
         prepare_lookup(uv, 8, mask=np.ones((4, 4), bool))
+
+
+def test_gradient_bit_reproducible_on_two_threads():
+    """Many samples on few cells: the grid gradient sums the same taps in the same order on every call (the
+    attack's runs repeat bit for bit on several CPU threads)."""
+    rng = np.random.default_rng(3)
+    lookup = prepare_lookup(torch.as_tensor(rng.random((300_000, 2)), dtype=torch.float32), grid_n=10)
+    upstream = torch.as_tensor(rng.standard_normal(300_000), dtype=torch.float32)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = []
+        for _ in range(5):
+            grid = torch.full((10, 10), 0.5, requires_grad=True)
+            (lookup.sample(grid) * upstream).sum().backward()
+            grads.append(grid.grad)
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(grads[0], g) for g in grads[1:])
+    expected = torch.zeros(100, dtype=torch.float64).index_add_(0, lookup.index[:, 0], upstream.double())
+    np.testing.assert_allclose(grads[0].flatten().double().numpy(), expected.numpy(), rtol=1e-4, atol=1e-3)
