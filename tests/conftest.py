@@ -51,8 +51,9 @@ if not any(isinstance(finder, _HelperModuleFinder) for finder in sys.meta_path):
 def one_torch_thread():
     """Run the module's tests on one torch intra-op thread, then restore the previous count.
 
-    Multi-threaded CPU reductions are not bit-reproducible run to run (exact-resume checks need one thread), and
-    on a shared 2-core machine oversubscribed threads make rendering ~20x slower.
+    Float sums split over threads depend on the thread count, so seeds re-picked for a test (and the expected
+    values of exact-resume checks) hold on one known count; and on a shared 2-core machine oversubscribed threads
+    make rendering ~20x slower.
     """
     import torch
 
