@@ -51,3 +51,16 @@ def test_optional_import_returns_the_module_or_names_the_extra():
     message = r"^the widget needs no_such_mod_xyz: pip install 'davis_rig\[extra1\]'$"
     with pytest.raises(MissingDependencyError, match=message):
         optional_import("no_such_mod_xyz", "the widget", "extra1")
+
+
+@pytest.mark.parametrize("package", ["davis_rig.attack", "davis_rig.events", "davis_rig.models.rvt",
+                                     "davis_rig.scene", "davis_rig.session", "davis_rig.training"])
+def test_every_exported_name_of_the_packages_resolves(package):
+    import importlib
+
+    module = importlib.import_module(package)
+    for name in module.__all__:
+        assert getattr(module, name) is not None, name
+        assert name in dir(module), name
+    with pytest.raises(AttributeError, match="no_such_name"):
+        module.no_such_name  # noqa: B018

@@ -13,29 +13,17 @@ Importing this package imports neither torch nor reportlab; the names below are 
 
 from __future__ import annotations
 
-import importlib
+from davis_rig._lazy import lazy_exports
 
 _LAZY = {
-    "TextureGenerator": "davis_rig.attack.texture",
-    "binarize_ste": "davis_rig.attack.texture",
-    "alpha_at": "davis_rig.attack.texture",
-    "upsample_grid": "davis_rig.attack.texture",
-    "apply_part_mask": "davis_rig.attack.texture",
-    "white_texture": "davis_rig.attack.texture",
-    "black_texture": "davis_rig.attack.texture",
-    "random_texture": "davis_rig.attack.texture",
-    "adversarial_loss": "davis_rig.attack.loss",
-    "AdversarialLoss": "davis_rig.attack.loss",
-    "export_texture": "davis_rig.attack.export",
-    "load_texture_grid": "davis_rig.attack.export",
-    "pattern_pieces": "davis_rig.attack.export",
-    "write_pattern_pdf": "davis_rig.attack.export",
-}
+    "davis_rig.attack.texture": (
+        "TextureGenerator", "binarize_ste", "alpha_at", "upsample_grid", "apply_part_mask", "white_texture",
+        "black_texture", "random_texture",
+    ),
+    "davis_rig.attack.loss": ("adversarial_loss", "AdversarialLoss"),
+    "davis_rig.attack.export": ("export_texture", "load_texture_grid", "pattern_pieces", "write_pattern_pdf"),
+}  # fmt: skip
 
-__all__ = sorted(_LAZY)
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = sorted(name for names in _LAZY.values() for name in names)

@@ -9,33 +9,18 @@ classes), ``augment`` (flip / zoom of histogram chunks and boxes), ``losses`` (S
 
 from __future__ import annotations
 
-import importlib
+from davis_rig._lazy import lazy_exports
 
 _LAZY = {
-    "DatasetWriter": "davis_rig.training.dataset",
-    "SequenceData": "davis_rig.training.dataset",
-    "RandomChunkDataset": "davis_rig.training.dataset",
-    "StreamingBatches": "davis_rig.training.dataset",
-    "list_sequences": "davis_rig.training.dataset",
-    "AugmentConfig": "davis_rig.training.augment",
-    "yolox_loss": "davis_rig.training.losses",
-    "simota_assign": "davis_rig.training.losses",
-    "TrainConfig": "davis_rig.training.trainer",
-    "Trainer": "davis_rig.training.trainer",
-    "train": "davis_rig.training.trainer",
-    "write_model_card": "davis_rig.training.cards",
-}
+    "davis_rig.training.dataset": (
+        "DatasetWriter", "SequenceData", "RandomChunkDataset", "StreamingBatches", "list_sequences",
+    ),
+    "davis_rig.training.augment": ("AugmentConfig",),
+    "davis_rig.training.losses": ("yolox_loss", "simota_assign"),
+    "davis_rig.training.trainer": ("TrainConfig", "Trainer", "train"),
+    "davis_rig.training.cards": ("write_model_card",),
+}  # fmt: skip
 
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__():
-    return sorted(list(globals()) + list(_LAZY))
-
-
-__all__ = list(_LAZY)
+__all__ = [name for names in _LAZY.values() for name in names]

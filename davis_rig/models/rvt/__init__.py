@@ -11,32 +11,18 @@ model), ``checkpoint`` (safe checkpoint io), ``postprocess`` (NMS), ``onnx_expor
 
 from __future__ import annotations
 
-import importlib
-
+from davis_rig._lazy import lazy_exports
 from davis_rig.models.rvt.config import RVTConfig
 
+# not "postprocess": the submodule of that name would shadow the function after its first import;
+# use ``from davis_rig.models.rvt.postprocess import postprocess``
 _LAZY = {
-    "RVTDetector": "davis_rig.models.rvt.detector",
-    "pad_to_input": "davis_rig.models.rvt.detector",
-    "load_detector": "davis_rig.models.rvt.checkpoint",
-    "read_state_dict": "davis_rig.models.rvt.checkpoint",
-    "save_safetensors": "davis_rig.models.rvt.checkpoint",
-    # not "postprocess": the submodule of that name would shadow the function after its first import;
-    # use ``from davis_rig.models.rvt.postprocess import postprocess``
-    "export_step_onnx": "davis_rig.models.rvt.onnx_export",
-    "RVTOnnxRunner": "davis_rig.models.rvt.ort_runner",
+    "davis_rig.models.rvt.detector": ("RVTDetector", "pad_to_input"),
+    "davis_rig.models.rvt.checkpoint": ("load_detector", "read_state_dict", "save_safetensors"),
+    "davis_rig.models.rvt.onnx_export": ("export_step_onnx",),
+    "davis_rig.models.rvt.ort_runner": ("RVTOnnxRunner",),
 }
 
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
-def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__():
-    return sorted(list(globals()) + list(_LAZY))
-
-
-__all__ = ["RVTConfig", *_LAZY]
+__all__ = ["RVTConfig", *(name for names in _LAZY.values() for name in names)]
