@@ -75,6 +75,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--vehicles", type=int, nargs=2, default=None, metavar=("MIN", "MAX"),
                         help="labelled side-view cars (Gen1 class 0) per train/val scene, MIN..MAX (default: none, "
                              "the single-class bundled recipe); the test subsets have none")
+    parser.add_argument("--person-height", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+                        help="height range (px) of a 1.75 m train/val person at mid-clip, drawn log-uniformly "
+                             "(default: 50 230); the test subsets stay at the paper's three scales")
+    parser.add_argument("--test-scale-probability", type=float, default=None, metavar="P",
+                        help="chance that a train/val person stands exactly at one of the paper's scales (131, 150, "
+                             "175 px) instead (default: 0.4; 0 with a Gen1-like --person-height keeps the test "
+                             "scales unseen)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     return parser
 
@@ -88,6 +95,10 @@ def _scene_config(args: argparse.Namespace):
         overrides["clothing_kinds"] = tuple(args.clothing)
     if args.vehicles is not None:
         overrides["vehicle_counts"] = tuple(args.vehicles)
+    if args.person_height is not None:
+        overrides["person_height_px"] = tuple(args.person_height)
+    if args.test_scale_probability is not None:
+        overrides["test_scale_probability"] = args.test_scale_probability
     return SyntheticSceneConfig(**overrides)
 
 

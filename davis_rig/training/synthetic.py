@@ -347,6 +347,8 @@ class SyntheticSceneConfig:
                 f"people_probabilities: expected 4 probabilities summing to 1, got {self.people_probabilities}")
         if not 0 < self.person_height_px[0] <= self.person_height_px[1]:
             raise ValueError(f"person_height_px: expected 0 < low <= high, got {self.person_height_px}")
+        if not 0.0 <= self.test_scale_probability <= 1.0:
+            raise ValueError(f"test_scale_probability must be in [0, 1], got {self.test_scale_probability}")
 
 
 def _split_check(split: str) -> None:

@@ -178,6 +178,19 @@ def test_cars_are_labelled_class_zero_and_hidden_by_people(model):
     np.testing.assert_allclose(both.visible_px[:, 0], syn.render_sequence(person_scene, model=model).visible_px[:, 0])
 
 
+def test_person_height_range_without_test_scales_keeps_train_people_small():
+    from davis_rig.scene.camera import PinholeCamera, distance_for_height
+
+    small = syn.SyntheticSceneConfig(person_height_px=(25.0, 125.0), test_scale_probability=0.0)
+    nearest = distance_for_height(125.0, PinholeCamera.rvt_crop())
+    depths = [p.depth_mid_m for seed in range(40) for p in syn.sample_scene(np.random.default_rng(seed), "train", small).people]
+    assert len(depths) > 30 and min(depths) >= nearest - 1e-9
+    for job in syn.dataset_plan({"train": 0, "val": 0, "test": 9}):  # the held-out subsets keep the paper's scales
+        assert syn.scene_for_job(job, 0, small) == syn.scene_for_job(job, 0)
+    with pytest.raises(ValueError, match="test_scale_probability"):
+        syn.SyntheticSceneConfig(test_scale_probability=-0.1)
+
+
 def test_vehicle_counts_add_cars_without_changing_the_rest_of_the_scene():
     cars = syn.SyntheticSceneConfig(vehicle_counts=(1, 2))
     for seed in range(6):
@@ -288,6 +301,11 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert calls[-1][2]["config"] == syn.SyntheticSceneConfig(vehicle_counts=(0, 2))
     assert cli.main([str(tmp_path), "--sequences", "4", "--vehicles", "3", "1"]) == 2
     assert "vehicle_counts" in capsys.readouterr().err
+    assert cli.main([str(tmp_path), "--sequences", "4", "--person-height", "25", "125",
+                     "--test-scale-probability", "0"]) == 0
+    assert calls[-1][2]["config"] == syn.SyntheticSceneConfig(person_height_px=(25.0, 125.0), test_scale_probability=0.0)
+    assert cli.main([str(tmp_path), "--sequences", "4", "--test-scale-probability", "1.5"]) == 2
+    assert "test_scale_probability" in capsys.readouterr().err
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
