@@ -72,7 +72,7 @@ class TexelLookup:
             raise ShapeError(f"texture must be [..., {rows}, {cols}], got {tuple(texture.shape)}")
         flat = texture.reshape(*texture.shape[:-2], -1)
         # index_select, not flat[..., index]: its backward (index_add) sums each texel's taps in a fixed order, so
-        # gradients are bit-reproducible on several CPU threads (advanced indexing's accumulate is not), and faster
+        # gradients are bit-reproducible on several CPU threads (advanced indexing's accumulate is not)
         taps = flat.index_select(-1, self.index.reshape(-1)).view(*flat.shape[:-1], *self.index.shape)  # [..., N, K]
         weight = self.weight.to(taps.dtype)
         painted = self.painted.to(taps.dtype)
