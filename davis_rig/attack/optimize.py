@@ -21,8 +21,8 @@ lower mean top pedestrian score; ``best_generator.pt`` is the generator of the b
 (:mod:`davis_rig.attack.refine`): ``refined_texture.npy/png`` + ``refine.json``, and the refined texture becomes
 the best when it validates better. Resume (``resume=True``) continues bit-identically:
 every random choice of a step is derived from ``(seed, step)`` and the pool from its generations (bit-identical
-as far as the kernels are: on CPU with one thread, or with ``torch.use_deterministic_algorithms(True)``;
-multi-threaded CPU reductions already differ by ~1e-7 between two fresh runs).
+as far as the kernels are: on CPU at any thread count, the texture lookup's backward summing in index order; on
+CUDA, whose scatter-adds are atomic, with ``torch.use_deterministic_algorithms(True)``).
 
 Validation: clips drawn from the EoT distribution with their own seeds (training shapes), scored as in the
 evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events (or ``events``), SeqASR at
