@@ -108,6 +108,23 @@ def _progress_line(progress) -> None:
     )
 
 
+def _out_of_range(args: argparse.Namespace) -> str | None:
+    """Check the recording numbers before the camera is opened; return the usage error, or ``None`` if all fit.
+
+    Limits: ``--duration`` ≥ 0 s, ``--exposure`` 0..4194303 µs, ``--frame-interval`` 0..8388607 µs (the APS
+    registers' ranges, :data:`davis_rig.protocol.config.MAX_EXPOSURE_US` / ``MAX_FRAME_INTERVAL_US``).
+    """
+    from davis_rig.protocol.config import MAX_EXPOSURE_US, MAX_FRAME_INTERVAL_US  # not at import: --help stays fast
+
+    if args.duration is not None and not args.duration >= 0:
+        return f"--duration must be >= 0 seconds, got {args.duration}"
+    for option, value, limit in (("--exposure", args.exposure, MAX_EXPOSURE_US),
+                                 ("--frame-interval", args.frame_interval, MAX_FRAME_INTERVAL_US)):
+        if value is not None and not 0 <= value <= limit:
+            return f"{option} must be 0..{limit} µs, got {value}"
+    return None
+
+
 def _record(args: argparse.Namespace) -> int:
     from davis_rig.session.record import record_session
 
@@ -177,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     if args.fake_fast and args.fake is None:
         print(f"{NAME}: error: --fake-fast needs --fake REPLAY", file=sys.stderr)
+        return EXIT_USAGE
+    if (message := _out_of_range(args)) is not None:
+        parser.print_usage(sys.stderr)
+        print(f"{NAME}: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     return run_command(NAME, lambda: _record(args))
 

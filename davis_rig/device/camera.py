@@ -34,7 +34,7 @@ from davis_rig.device.reader import (
     TransferQueue,
     TransferReader,
 )
-from davis_rig.errors import DeviceDisconnectedError, DeviceError
+from davis_rig.errors import DeviceDisconnectedError, DeviceError, TransportError
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, Bias, BiasEntry, bias_param, check_bias_for, decode_bias
 from davis_rig.protocol.config import DAVIS_FX3_PID, Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
 from davis_rig.protocol.decoder import DecodedChunk, DecoderStats, StreamDecoder
@@ -361,7 +361,8 @@ class Davis346:
 
         Raises:
             DeviceError: already running or closed.
-            TransportError / DeviceDisconnectedError: USB failure (the reader is stopped again).
+            TransportError / DeviceDisconnectedError: USB failure (the stop sequence is sent as far as the device
+                still answers, so the FPGA does not keep streaming, and the reader is stopped again).
         """
         if self._closed:
             raise DeviceError(f"DAVIS {self.info.serial}: camera is closed")
@@ -379,11 +380,26 @@ class Davis346:
                     if self.info.product_id == DAVIS_FX3_PID:  # FX2 boards have no debug endpoint
                         self._debug_reader = DebugReader(self.transport.read_debug).start()
         except BaseException:
+            self._abort_start()
+            raise
+        self._running = True
+
+    def _abort_start(self) -> None:
+        """Undo a failed :meth:`start`: best-effort stop sequence, then stop the readers.
+
+        The failure may come after RUN_CHIP / USB RUN / MUX RUN were switched on; ``_running`` is still false,
+        so a later :meth:`stop` / :meth:`close` would not switch them off. A transport error while stopping is
+        ignored: the caller gets the error of the start.
+        """
+        try:
+            if not self.transport.disconnected:
+                self._steps(stop_sequence())
+        except TransportError:
+            pass  # the device no longer answers: nothing more to switch off from here
+        finally:
             self._reader.stop()
             if self._debug_reader is not None:
                 self._debug_reader.stop()
-            raise
-        self._running = True
 
     def _make_reader(self) -> TransferQueue:
         """A ring of asynchronous transfers where the backend has libusb's asynchronous API, else a read thread."""

@@ -92,7 +92,8 @@ def _frame(dv_frame):
 
 
 def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Aedat4ImportSummary:
-    """Convert an AEDAT4 file into a session.h5 (streams are read in time order, batch by batch).
+    """Convert an AEDAT4 file into a session.h5: one stream after the other (events, frames, triggers, IMU),
+    each in its own time order, batch by batch.
 
     Args:
         src: the ``.aedat4`` file.
@@ -146,6 +147,7 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
             if recording.isFrameStreamAvailable():
                 while (frame := recording.getNextFrame()) is not None:
                     writer.append_frame(_frame(frame))
+                    writer.maybe_flush()  # frames are buffered until a flush: keep at most one interval in RAM
             if recording.isTriggerStreamAvailable():
                 specials = []
                 while (batch := recording.getNextTriggerBatch()) is not None:

@@ -77,21 +77,38 @@ class SessionJournal:
         """Create the file and write the magic and the header record; returns ``self``.
 
         Raises:
-            SessionError: the file cannot be created.
+            SessionError: the file cannot be created or its header cannot be written (the file handle is
+                closed and a file created by this call is removed again: it holds no transfer).
         """
         try:
             self._file = open(self.path, "wb", buffering=1 << 20)
+        except OSError as exc:
+            raise SessionError(f"{self.path}: cannot create the recording journal: {exc}") from exc
+        try:
             self._file.write(MAGIC)
             self._write_record(KIND_HEADER, json.dumps(self.header, default=str).encode())
             self._file.flush()
             os.fsync(self._file.fileno())
         except OSError as exc:
-            raise SessionError(f"{self.path}: cannot create the recording journal: {exc}") from exc
+            self._discard_created_file()
+            raise SessionError(f"{self.path}: cannot write the recording journal's header: {exc}") from exc
         self._last_flush = self._last_fsync = time.monotonic()
         self._closing = threading.Event()
         self._syncer = threading.Thread(target=self._fsync_loop, name="davis-rig-journal-fsync", daemon=True)
         self._syncer.start()
         return self
+
+    def _discard_created_file(self) -> None:
+        """Close the handle and remove the file of an :meth:`open` that failed after creating it (best effort)."""
+        file, self._file = self._file, None
+        try:
+            file.close()
+        except OSError:
+            pass  # the buffered header is worthless; the file is removed below
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError:
+            pass  # nothing recorded in it; a leftover only makes the next recording ask for --overwrite
 
     def _fsync_loop(self) -> None:
         """Background thread: flush and fsync every FSYNC_INTERVAL_S, off the recording thread (fsync blocks)."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from davis_rig.errors import DavisRigError, DeviceDisconnectedError
+from davis_rig.errors import DavisRigError, DeviceDisconnectedError, DeviceError
 from davis_rig.session.writer import SessionWriter, to_jsonable
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
@@ -82,6 +82,41 @@ def _decoder_errors(stats: dict) -> int:
     return int(sum(int(decoder.get(key, 0) or 0) for key in keys))
 
 
+def _aps_setting(camera, name: str, requested: int | None, default_config_sent: bool) -> int | None:
+    """The APS setting ``name`` (µs) in effect: the requested value, else the camera's tracked value after the
+    default configuration (``None`` when neither is known: no default config sent, nothing requested)."""
+    if requested is not None:
+        return int(requested)
+    if not default_config_sent:
+        return None
+    value = getattr(camera, name, None)
+    return int(value) if value is not None else None
+
+
+def _remove_listener(camera, listener) -> None:
+    remove = getattr(camera, "remove_raw_listener", None)
+    if remove is not None:
+        remove(listener)
+
+
+def _start_or_discard(camera, writer: SessionWriter) -> None:
+    """Start the camera; if that fails nothing was recorded: unhook the writer, delete its file and journal.
+
+    Raises:
+        DeviceError: the camera did not start (the original error is chained).
+    """
+    try:
+        camera.start()
+    except BaseException as exc:
+        _remove_listener(camera, writer.append_raw)
+        writer.discard()
+        if isinstance(exc, DeviceError):
+            raise DeviceError(
+                f"the camera did not start ({exc}); nothing was recorded and {writer.path} was not kept"
+            ) from exc
+        raise
+
+
 def record_session(
     camera,
     path: str | os.PathLike,
@@ -107,11 +142,12 @@ def record_session(
     Args:
         camera: an open ``davis_rig.device.camera.Davis346`` (or an object with the same methods: ``info``,
             ``send_default_config``, ``set_exposure``, ``set_frame_interval``, ``biases``, ``start``, ``stop``,
-            ``read(timeout_s)``, ``running``, ``stats``, ``add_raw_listener``).
+            ``read(timeout_s)``, ``running``, ``stats``, ``add_raw_listener``; optionally ``exposure_us`` /
+            ``frame_interval_us``, the settings in effect, stored in the file's config).
         path: session.h5 to create.
         duration_s: stop after this wall-clock time, s (``None``: until ``stop_event`` or the stream ends).
-        exposure_us: APS exposure, µs (``None``: the camera default).
-        frame_interval_us: APS frame interval, µs (``None``: the camera default).
+        exposure_us: APS exposure, µs (``None``: the camera default; the value in effect is stored either way).
+        frame_interval_us: APS frame interval, µs (``None``: the camera default; stored like ``exposure_us``).
         overwrite: replace an existing file.
         journal: keep the raw-transfer journal (crash recovery).
         send_default_config: send libcaer's default configuration before the settings above.
@@ -125,7 +161,7 @@ def record_session(
     Raises:
         SessionError: the file exists (without ``overwrite``) or cannot be written (disk full: the file is
             closed cleanly with the data written so far, see :class:`SessionWriter`).
-        DeviceError: the camera failed before or while starting.
+        DeviceError: the camera failed before or while starting (then no file and no journal are left).
     """
     if duration_s is not None and duration_s < 0:
         raise ValueError(f"duration_s must be >= 0, got {duration_s}")
@@ -136,8 +172,8 @@ def record_session(
     if frame_interval_us is not None:
         camera.set_frame_interval(int(frame_interval_us))
     config = {
-        "exposure_us": exposure_us,
-        "frame_interval_us": frame_interval_us,
+        "exposure_us": _aps_setting(camera, "exposure_us", exposure_us, send_default_config),
+        "frame_interval_us": _aps_setting(camera, "frame_interval_us", frame_interval_us, send_default_config),
         "default_config_sent": send_default_config,
         "biases": to_jsonable(getattr(camera, "biases", None)) or {},
     }
@@ -147,9 +183,9 @@ def record_session(
     with SessionWriter(path, device_info=camera.info, config=config, overwrite=overwrite,
                        journal=journal) as writer:
         camera.add_raw_listener(writer.append_raw)
+        _start_or_discard(camera, writer)
         t_start = time.monotonic()
         last_progress, last_events = t_start, 0
-        camera.start()
         try:
             while True:
                 chunk = camera.read(POLL_TIMEOUT_S)
@@ -197,9 +233,7 @@ def record_session(
                 pass
             raise
         finally:
-            remove = getattr(camera, "remove_raw_listener", None)
-            if remove is not None:
-                remove(writer.append_raw)
+            _remove_listener(camera, writer.append_raw)
         duration = time.monotonic() - t_start
         stats = _camera_stats(camera)
         writer.set_stats({"camera": stats, "stopped_by": stopped_by})

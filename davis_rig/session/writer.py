@@ -116,7 +116,8 @@ class SessionWriter:
         """Create the file, its groups and root attributes (and the journal); returns ``self``.
 
         Raises:
-            SessionError: the file exists and ``overwrite`` is false, or it cannot be created.
+            SessionError: the file exists and ``overwrite`` is false, or it (or its journal) cannot be created;
+                then a file created by this call is removed again (it holds no data).
         """
         import h5py
 
@@ -138,6 +139,9 @@ class SessionWriter:
         try:
             # Default libver: no superblock "open for write" flag that would block reading after a crash.
             self._file = h5py.File(self.path, "w")
+        except OSError as exc:
+            raise SessionError(f"{self.path}: cannot create the session file: {exc}") from exc
+        try:
             f = self._file
             f.attrs[schema.ATTR_FORMAT] = schema.FORMAT_NAME
             f.attrs[schema.ATTR_FORMAT_VERSION] = schema.FORMAT_VERSION
@@ -178,7 +182,7 @@ class SessionWriter:
             f.create_group(schema.SPECIALS_GROUP)
             f.flush()
         except OSError as exc:
-            self._abort_open()
+            self._discard_new_file()
             raise SessionError(f"{self.path}: cannot create the session file: {exc}") from exc
         if self.use_journal:
             header = {
@@ -192,7 +196,7 @@ class SessionWriter:
             try:
                 self.journal = SessionJournal(journal_path(self.path), header).open()
             except SessionError:
-                self._abort_open()
+                self._discard_new_file()  # the journal removed its own partial file
                 raise
         self._t_offset: int | None = None
         self._buffers: dict[str, list] = {"events": [], "frames": [], "specials": [], "imu": []}
@@ -209,15 +213,43 @@ class SessionWriter:
         self._dropped_non_monotonic = 0
         self._last_flush = time.monotonic()
         self._failed: Exception | None = None
+        self._aborting = False
         return self
 
-    def _abort_open(self) -> None:
-        if self._file is not None:
+    def _discard_new_file(self) -> None:
+        """Close and delete the session file :meth:`open` has just created (no data in it yet; best effort)."""
+        f, self._file = self._file, None
+        try:
+            f.close()
+        except (OSError, RuntimeError):
+            pass  # the file is deleted below either way
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError:
+            pass  # an empty complete=False file: a later recording needs --overwrite, no data is lost
+
+    def discard(self) -> None:
+        """Close and delete the file and its journal of a recording that never received data (e.g. the camera
+        did not start).
+
+        Raises:
+            SessionError: data was already appended (nothing is deleted then; use :meth:`abort`).
+        """
+        if self._file is None:
+            return
+        journaled = self.journal.transfers if self.journal is not None else 0
+        if any(self._counts.values()) or journaled:
+            raise SessionError(
+                f"{self.path}: refusing to discard a recording that holds data ({self._counts}, {journaled} "
+                "journaled transfers)"
+            )
+        self._discard_new_file()
+        if self.journal is not None:
+            self._close_journal(delete=False)
             try:
-                self._file.close()
+                self.journal.path.unlink(missing_ok=True)
             except OSError:
-                pass
-            self._file = None
+                pass  # header only: recover_session turns it into an empty session
 
     def __enter__(self) -> "SessionWriter":
         return self.open()
@@ -375,7 +407,8 @@ class SessionWriter:
             self.journal.sync()
 
     def flush(self) -> None:
-        """Write all buffered data, update the stats attribute and flush the HDF5 file (and fsync the journal).
+        """Write all buffered data, update the stats attribute and flush the HDF5 file; check the journal for
+        write errors (it fsyncs in its own thread every :data:`~davis_rig.session.journal.FSYNC_INTERVAL_S`).
 
         Raises:
             SessionError: the write failed (disk full, ...); the file keeps the data of the last good flush.
@@ -485,7 +518,9 @@ class SessionWriter:
 
         The buffered data's uncompressed size plus :data:`METADATA_MARGIN_BYTES` plus ``min_free_bytes`` must
         be free; otherwise the buffered data (≤ one flush interval) is discarded, the file is finalized with
-        what it already holds, and :class:`SessionError` reports what was kept.
+        what it already holds, and :class:`SessionError` reports what was kept. While :meth:`abort` runs the
+        file is not finalized (an aborted recording is never marked complete): the buffered data is left
+        unwritten (a journal, which ``abort`` keeps, still holds it) and :class:`SessionError` is raised.
         """
         height, width = self._frame_hw
         needed = (
@@ -497,6 +532,11 @@ class SessionWriter:
         free = self._free_bytes()
         if free >= needed + self.min_free_bytes:
             return
+        if self._aborting:
+            raise SessionError(
+                f"{self.path}: disk nearly full while aborting ({free} bytes free): the buffered data was not "
+                "written; the file stays marked incomplete"
+            )
         lost_events = self._buffered_events
         lost_frames = len(self._buffers["frames"])
         for kind in self._buffers:
@@ -564,17 +604,23 @@ class SessionWriter:
                     raise
 
     def abort(self) -> None:
-        """Close after an error elsewhere: write what is buffered, keep ``complete=False`` and the journal."""
+        """Close after an error elsewhere: write what is buffered (if the disk has room), keep
+        ``complete=False`` and the journal."""
         if self._file is None:
             return
+        self._aborting = True
         try:
             if self._failed is None:
                 self._write_out()
                 self._flush_file()
-            self._file.close()
         except (OSError, RuntimeError, SessionError):
-            pass
+            pass  # the error that made us abort is the one to report; the journal is kept for recovery
         finally:
+            if self._file is not None:  # _guarded has closed it after a failed write
+                try:
+                    self._file.close()
+                except (OSError, RuntimeError, ValueError):
+                    pass
             self._file = None
             self._close_journal(delete=False)
 

@@ -111,6 +111,34 @@ def test_usage_errors(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "argv, message",
+    [(["--duration", "-1"], "--duration must be >= 0"), (["--duration", "nan"], "--duration must be >= 0"),
+     (["--exposure", "-1"], "--exposure must be 0..4194303"), (["--exposure", "4194304"], "--exposure must be"),
+     (["--frame-interval", "-5"], "--frame-interval must be 0..8388607"),
+     (["--frame-interval", "8388608"], "--frame-interval must be")],
+)
+def test_out_of_range_numbers_are_usage_errors_before_the_camera_is_opened(monkeypatch, capsys, argv, message):
+    def must_not_open(*args, **kwargs):
+        raise AssertionError("the camera was opened")
+
+    monkeypatch.setattr(cli, "open_camera", must_not_open)
+    assert cli.main(["--out", "a.h5", "--quiet", *argv]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"davis-record: error: {message}" in err and "Traceback" not in err
+
+
+def test_limits_of_the_numbers_are_accepted(monkeypatch, tmp_path):
+    seen = {}
+    monkeypatch.setattr(cli, "open_camera", FakeOpen())
+    monkeypatch.setattr("davis_rig.session.record.record_session",
+                        lambda camera, path, **kwargs: seen.update(kwargs) or _summary(path))
+    argv = ["--out", str(tmp_path / "a.h5"), "--quiet", "--duration", "0", "--exposure", "4194303",
+            "--frame-interval", "0"]
+    assert cli.main(argv) == 0
+    assert (seen["duration_s"], seen["exposure_us"], seen["frame_interval_us"]) == (0.0, 4194303, 0)
+
+
 def test_bad_number_is_a_usage_error(capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(["--out", "a.h5", "--duration", "soon"])

@@ -1,18 +1,19 @@
 """Davis346 over the virtual backend: §5 read-out, §6/§7 sequences on the wire, data path, faults, clean stop."""
 
+import errno
 import threading
 
 import pytest
 
 from davis_rig.device.camera import Davis346
 from davis_rig.device.info import DEVICE_INFO_READS
-from davis_rig.errors import DeviceDisconnectedError, DeviceError, ProtocolError
+from davis_rig.errors import DeviceDisconnectedError, DeviceError, ProtocolError, TransportError
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, CoarseFineBias, VdacBias
-from davis_rig.protocol.config import Clocks, ConfigWrite, DeviceFeatures
+from davis_rig.protocol.config import Aps, Clocks, ConfigWrite, DeviceFeatures, Module, Mux
 from davis_rig.protocol.decoder import DecodedChunk
 from davis_rig.protocol.sequences import Sleep, config_writes, default_config_sequence, start_sequence, stop_sequence
 from davis_rig.usb.sources import Faults, TransferListSource
-from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend, usb_error
 
 from camera_reads import read_until_drained
 from davis346_vectors import VECTOR_IDS, VECTORS, assert_matches_expected, vector_transfers
@@ -233,6 +234,45 @@ def test_stop_ends_chunks_from_another_thread_and_joins_the_reader(usb_transfers
         assert cam.reader_kind == ("ring" if usb_transfers else "sync")
     assert threading.active_count() == before
     assert all(t.name not in ("davis-usb-reader", "davis-usb-ring") for t in threading.enumerate())
+
+
+class _FailingWriteDevice(VirtualDavis346):
+    """A camera that stalls the first write of one register value (later writes succeed)."""
+
+    def __init__(self, fail_write: tuple[int, int, int], **kwargs):
+        super().__init__(**kwargs)
+        self.fail_write = fail_write
+        self.failed = False
+
+    def _write(self, module, param, value):
+        if not self.failed and (int(module), int(param), int(value)) == self.fail_write:
+            self.failed = True
+            raise usb_error(errno.EPIPE)
+        super()._write(module, param, value)
+
+
+@READERS
+def test_a_start_that_fails_after_run_is_on_sends_the_stop_sequence(usb_transfers):
+    # APS RUN comes after RUN_CHIP, USB RUN, MUX RUN and DVS RUN: the FPGA already streams events when it fails.
+    dev = _FailingWriteDevice((int(Module.APS), int(Aps.RUN), 1))
+    cam, _ = open_camera(dev, usb_transfers=usb_transfers)
+    with cam:
+        with pytest.raises(TransportError):
+            cam.start()
+        assert not cam.running
+        assert not dev.streaming and dev.register(Module.MUX, Mux.RUN_CHIP) == 0
+        assert dev.writes[-len(config_writes(stop_sequence())):] == config_writes(stop_sequence())
+    assert all(t.name not in ("davis-usb-reader", "davis-usb-ring") for t in threading.enumerate())
+
+
+def test_a_start_that_fails_on_an_unplugged_camera_raises_the_start_error():
+    dev = VirtualDavis346()
+    cam, _ = open_camera(dev)
+    with cam:
+        dev.unplug()
+        with pytest.raises(DeviceDisconnectedError):
+            cam.start()
+        assert not cam.running
 
 
 @READERS

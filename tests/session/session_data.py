@@ -75,9 +75,14 @@ class FakeCamera:
         transfers: raw transfers (bytes) served in order, one per chunk.
         disconnect_after: raise DeviceDisconnectedError after serving this many transfers.
         delay_s: sleep per transfer (to make recordings last in wall-clock time).
+        start_error: raised by ``start()`` (a camera that fails to start).
     """
 
-    def __init__(self, transfers, disconnect_after=None, delay_s=0.0):
+    #: What ``send_default_config`` sets, µs (the Davis346 defaults).
+    DEFAULT_EXPOSURE_US = 4000
+    DEFAULT_FRAME_INTERVAL_US = 40000
+
+    def __init__(self, transfers, disconnect_after=None, delay_s=0.0, start_error=None):
         from davis_rig.protocol.decoder import StreamDecoder
         from davis_rig.protocol.layout import SensorLayout
 
@@ -88,6 +93,9 @@ class FakeCamera:
         self.transfers = list(transfers)
         self.disconnect_after = disconnect_after
         self.delay_s = delay_s
+        self.start_error = start_error
+        self.exposure_us = None
+        self.frame_interval_us = None
         self.decoder = StreamDecoder(self.layout)
         self.listeners = []
         self.calls = []
@@ -97,12 +105,16 @@ class FakeCamera:
 
     def send_default_config(self):
         self.calls.append("send_default_config")
+        self.exposure_us = self.DEFAULT_EXPOSURE_US
+        self.frame_interval_us = self.DEFAULT_FRAME_INTERVAL_US
 
     def set_exposure(self, us):
         self.calls.append(("set_exposure", us))
+        self.exposure_us = us
 
     def set_frame_interval(self, us):
         self.calls.append(("set_frame_interval", us))
+        self.frame_interval_us = us
 
     def add_raw_listener(self, listener):
         self.listeners.append(listener)
@@ -113,6 +125,8 @@ class FakeCamera:
 
     def start(self):
         self.calls.append("start")
+        if self.start_error is not None:
+            raise self.start_error
         self.running = True
         self._pending = iter(self.transfers)
 

@@ -104,3 +104,23 @@ def test_truncated_aedat4_file(tmp_path, aedat4_file):
     cut.write_bytes(data[: len(data) // 2])
     with pytest.raises(FormatError, match="AEDAT4"):
         import_aedat4(cut, tmp_path / "s.h5")
+
+
+def test_frames_are_flushed_while_importing_not_held_until_the_end(tmp_path, rng, monkeypatch):
+    from davis_rig.session.writer import SessionWriter
+
+    image = rng.integers(0, 256, (260, 346)).astype(np.uint8)
+    frames = [(1_000_000 + 50_000 * i, 4000, image) for i in range(4)]
+    path = tmp_path / "frames.aedat4"
+    write_aedat4(path, random_events(rng, 100, t0_us=1_000_000, span_us=200_000), frames, [], [])
+    frames_at_flush_checks = []
+    real_maybe_flush = SessionWriter.maybe_flush
+
+    def spy(self):
+        frames_at_flush_checks.append(self.counts["frames"])
+        real_maybe_flush(self)
+
+    monkeypatch.setattr(SessionWriter, "maybe_flush", spy)
+    summary = import_aedat4(path, tmp_path / "s.h5")
+    assert summary.frames == len(frames)
+    assert [1, 2, 3, 4] == [n for n in frames_at_flush_checks if n > 0][:4]  # checked after every frame

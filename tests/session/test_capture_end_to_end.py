@@ -71,6 +71,7 @@ def test_encoder_virtual_camera_record_session_round_trip(tmp_path, rng):
         assert reader.device_info["serial"] == "VIRT0001"
         assert reader.device_info["layout"]["dvs_size_columns"] == 346
         assert reader.config["exposure_us"] == 4000
+        assert reader.config["frame_interval_us"] == 40000  # the camera default in effect, not null
         assert reader.stats["camera"]["decoder"]["unknown_words"] == 0
         specials = reader.specials()
         assert 14 in specials["type"] and 15 in specials["type"]  # APS frame start / end

@@ -192,3 +192,28 @@ def test_a_leftover_journal_is_not_overwritten_by_a_new_recording(tmp_path):
     with pytest.raises(SessionError, match="--recover"):
         SessionWriter(path, journal=True).open()
     assert journal_path(path).read_bytes() == b"journal of a crashed recording"
+
+
+def test_a_journal_that_cannot_be_written_leaves_no_files_and_no_open_handle(tmp_path, monkeypatch):
+    import davis_rig.session.journal as journal_module
+
+    opened = []
+
+    def tracking_open(*args, **kwargs):
+        opened.append(open(*args, **kwargs))
+        return opened[-1]
+
+    def failing_fsync(fileno):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(journal_module, "open", tracking_open, raising=False)
+    monkeypatch.setattr(journal_module.os, "fsync", failing_fsync)
+    path = tmp_path / "s.h5"
+    with pytest.raises(SessionError, match="journal.*No space left"):
+        SessionWriter(path, journal=True).open()
+    assert len(opened) == 1 and opened[0].closed
+    assert not path.exists() and not journal_path(path).exists()
+    monkeypatch.undo()
+    with SessionWriter(path, journal=True) as writer:  # the same recording again is not refused
+        writer.append_raw(b"\x00\x01")
+    assert path.exists() and not journal_path(path).exists()

@@ -106,3 +106,39 @@ def test_a_writer_error_stops_the_camera_and_propagates(tmp_path, rng, monkeypat
         record_session(camera, tmp_path / "s.h5")
     assert camera.calls[-1] == "stop" and not camera.running
     assert camera.listeners == []
+
+
+def test_a_camera_that_fails_to_start_leaves_no_file_and_no_listener(tmp_path, rng):
+    from davis_rig.errors import DeviceError, TransportError
+
+    path = tmp_path / "s.h5"
+    camera = FakeCamera([], start_error=TransportError("write config (0, 1) = 1 failed: pipe error"))
+    with pytest.raises(DeviceError, match="did not start.*pipe error.*nothing was recorded") as info:
+        record_session(camera, path)
+    assert isinstance(info.value.__cause__, TransportError)
+    assert not path.exists() and not journal_path(path).exists()
+    assert camera.listeners == []
+    # The same command again is not refused with "file exists".
+    summary = record_session(FakeCamera(cut(synth_stream(random_events(rng, 1000)))), path)
+    assert summary.events == 1000
+
+
+def test_a_start_interrupted_by_ctrl_c_leaves_no_file(tmp_path):
+    path = tmp_path / "s.h5"
+    camera = FakeCamera([], start_error=KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        record_session(camera, path, journal=False)
+    assert not path.exists() and not journal_path(path).exists() and camera.listeners == []
+
+
+def test_camera_default_aps_settings_are_stored_not_null(tmp_path, rng):
+    transfers = cut(synth_stream(random_events(rng, 1000)))
+    record_session(FakeCamera(transfers), tmp_path / "a.h5")
+    record_session(FakeCamera(transfers), tmp_path / "b.h5", exposure_us=8000)
+    record_session(FakeCamera(transfers), tmp_path / "c.h5", send_default_config=False)
+    with SessionReader(tmp_path / "a.h5") as reader:
+        assert (reader.config["exposure_us"], reader.config["frame_interval_us"]) == (4000, 40000)
+    with SessionReader(tmp_path / "b.h5") as reader:
+        assert (reader.config["exposure_us"], reader.config["frame_interval_us"]) == (8000, 40000)
+    with SessionReader(tmp_path / "c.h5") as reader:  # nothing sent: the device's values are unknown
+        assert (reader.config["exposure_us"], reader.config["frame_interval_us"]) == (None, None)

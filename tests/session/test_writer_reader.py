@@ -320,6 +320,24 @@ def test_disk_full_simulated_free_space_probe(tmp_path, rng, monkeypatch):
         writer.append(Chunk(sent[:1]))
 
 
+def test_abort_on_a_nearly_full_disk_never_marks_the_file_complete(tmp_path, rng, monkeypatch):
+    path = tmp_path / "s.h5"
+    free = {"bytes": 1 << 40}
+    monkeypatch.setattr(SessionWriter, "_free_bytes", lambda self: free["bytes"])
+    first = random_events(rng, 1000, t0_us=0, span_us=100_000)
+    with pytest.raises(RuntimeError, match="camera bug"):
+        with SessionWriter(path, journal=True) as writer:
+            writer.append(Chunk(first))
+            writer.flush()
+            writer.append(Chunk(random_events(rng, 1000, t0_us=200_000, span_us=100_000)))
+            free["bytes"] = 0  # the disk fills up before the error makes the writer abort
+            raise RuntimeError("camera bug")
+    with SessionReader(path) as reader:
+        assert not reader.complete
+        np.testing.assert_array_equal(reader.events(), first)
+    assert journal_path(path).exists()  # kept for recovery: it holds the unwritten tail
+
+
 def test_disk_full_on_a_real_tiny_filesystem(tmp_path, rng):
     """A 12 MiB tmpfs mounted in the test (needs root; skipped otherwise)."""
     mount_point = tmp_path / "tiny"
