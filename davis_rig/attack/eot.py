@@ -206,6 +206,7 @@ class PoolClip:
             V2E runs on this crop only (:meth:`active_video`); at least one pixel even when the person is unseen.
         active_backdrop: float32 tensor [T, y1 - y0, x1 - x0], ``backdrop`` inside the active box.
         active_pixel: int64 tensor [N], each covered sample's flat pixel index ``t*h*w + row*w + col`` in the box.
+        window_us: window duration (µs): each window is ``[end - window_us, end]``.
     """
 
     seed: int
@@ -223,6 +224,7 @@ class PoolClip:
     active_box: tuple[int, int, int, int]
     active_backdrop: "torch.Tensor"
     active_pixel: "torch.Tensor"
+    window_us: int = WINDOW_US
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
@@ -369,6 +371,7 @@ def prepare_clip(
         noise_cell=torch.as_tensor(noise_cell, device=device),
         noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device), active_box=active_box,
         active_backdrop=backdrop[:, y0:y1, x0:x1].contiguous(), active_pixel=active_pixel,
+        window_us=int(config.window_us),
     )
 
 

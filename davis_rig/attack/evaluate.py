@@ -265,18 +265,19 @@ def texture_video(scene: EvalScene, texture: TextureSpec, mask_cache: dict | Non
 
 
 def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | None = None, events: str = "exact",
-                      device=None) -> np.ndarray:
+                      device=None, window_us: int = WINDOW_US) -> np.ndarray:
     """RVT's stacked histograms [W, 20, H, W] of a video under an event model (:data:`EVENT_MODELS`).
 
     Args:
         video: float tensor/array [T, H, W], linear intensity in [0, 1].
         t_us: int64 [T] frame times (µs).
-        window_end_us: int64 [W] window ends (µs), 50 ms windows.
+        window_end_us: int64 [W] window ends (µs); window k is ``[window_end_us[k] - window_us, window_end_us[k]]``.
         simulator: simulator settings (default ideal sensor); ``"official_relaxed"`` uses its θ_on (= θ_off).
         events: ``"exact"``: quantized events of :func:`~davis_rig.events.simulator.simulate_events`, uint8
             counts; ``"official_relaxed"``: the official code's continuous counts
             (:func:`~davis_rig.events.v2e_torch.v2e_histograms`, mode ``"official_relaxed"``), float32.
         device: where the simulator runs.
+        window_us: window duration (µs; RVT: 50 ms).
 
     Raises:
         ValueError: unknown ``events``, or unequal thresholds with ``"official_relaxed"``.
@@ -288,12 +289,13 @@ def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | N
     if events == "exact":
         stream = simulate_events(video, t_us, simulator, device=device)
         h, w = video.shape[-2:]
-        return stacked_histograms(stream, window_end_us, height=int(h), width=int(w))
+        return stacked_histograms(stream, window_end_us, window_us=int(window_us), height=int(h), width=int(w))
     if events != "official_relaxed":
         raise ValueError(f"events must be one of {EVENT_MODELS}, got {events!r}")
     with torch.no_grad():
         hist = v2e_histograms(video.to(device=device, dtype=torch.float32), t_us, window_end_us,
-                              mode="official_relaxed", threshold_on=float(simulator.threshold_on),
+                              mode="official_relaxed", window_us=int(window_us),
+                              threshold_on=float(simulator.threshold_on),
                               threshold_off=float(simulator.threshold_off),
                               intensity_scale=simulator.intensity_scale,
                               lin_log_threshold=simulator.lin_log_threshold)
@@ -301,7 +303,8 @@ def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | N
 
 
 def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorConfig | None = None,
-                   device=None, events: str = "exact") -> tuple[list[np.ndarray], np.ndarray]:
+                   device=None, events: str = "exact",
+                   window_us: int = WINDOW_US) -> tuple[list[np.ndarray], np.ndarray]:
     """Events of a video -> stacked histograms -> the detector over the windows with states.
 
     Args:
@@ -312,6 +315,7 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
         simulator: exact simulator settings (default ideal sensor).
         device: torch device of the detector (default: its parameters').
         events: the event model (:func:`window_histograms`; default the exact simulator).
+        window_us: window duration (µs).
 
     Returns:
         ``(decoded, hist)``: one float32 [A, 5 + nc] array per window (the head's decoded output) and the
@@ -321,7 +325,7 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
 
     device = next(detector.parameters()).device if device is None else torch.device(device)
     # the simulator runs where the detector is
-    hist = window_histograms(video, t_us, window_end_us, simulator, events, device=device)
+    hist = window_histograms(video, t_us, window_end_us, simulator, events, device=device, window_us=window_us)
     decoded, states = [], None
     with torch.no_grad():
         for k in range(hist.shape[0]):
@@ -415,7 +419,7 @@ def evaluate_textures(textures: Mapping[str, TextureSpec], detector, scenes: Seq
         for scene in scenes:
             video = texture_video(scene, texture, masks)
             decoded, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator,
-                                         events=config.events)
+                                         events=config.events, window_us=config.window_us)
             per_scene.append(decoded[warm:])
             bar.update(1)
         groups = {"all": list(range(len(scenes)))}
@@ -621,7 +625,7 @@ def write_visualisations(textures: Mapping[str, TextureSpec], detector, out_dir:
     for name, texture in textures.items():
         video = texture_video(scene, texture, masks)
         decoded, hist = detect_windows(detector, video, scene.t_us, scene.window_end_us, config.simulator,
-                                       events=config.events)
+                                       events=config.events, window_us=config.window_us)
         dets = postprocess(np.stack(decoded), float(threshold), config.nms_threshold)
         tiles = []
         for k in range(hist.shape[0]):

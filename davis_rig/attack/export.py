@@ -183,7 +183,7 @@ def load_texture_grid(path: str | Path, n_cells: int | None = None) -> np.ndarra
         if np.array_equal(upsample(grid, size), binary):
             return grid
     raise FormatError(f"{path}: a {size}^2 map that is not a nearest-upsampled grid of <= {MAX_GRID_CELLS} "
-                      "cells (e.g. masked); pass n_cells (--cells)")
+                      "cells (e.g. masked); give its grid size (n_cells; --cells of davis-attack export and evaluate)")
 
 
 def write_png(path: str | Path, image01: np.ndarray) -> Path:
@@ -599,7 +599,20 @@ def _cell_rects_mm(piece: PatternPiece, rects: np.ndarray, n: int) -> np.ndarray
     return np.stack([np.minimum(xa, xb), ya, np.maximum(xa, xb), yb], axis=1)
 
 
-def _draw_tile(c, layout: _Layout, tile: Tile, page_no: int, num_pages: int, rects_mm: list[np.ndarray]):
+def _joined_neighbours(tile: Tile, kept: set[tuple[int, int, int]]) -> dict[str, tuple[int, int]]:
+    """Edge (``"top"``, ``"bottom"``, ``"left"``, ``"right"``) -> ``(row, col)`` of each neighbouring tile that is
+    printed: ``kept`` holds ``(piece, row, col)`` of the printed tiles (:func:`plan_tiles` drops empty ones)."""
+    neighbours = {
+        "top": (tile.row - 1, tile.col), "bottom": (tile.row + 1, tile.col),
+        "left": (tile.row, tile.col - 1), "right": (tile.row, tile.col + 1),
+    }  # fmt: skip
+    return {edge: rc for edge, rc in neighbours.items() if (tile.piece, *rc) in kept}
+
+
+def _draw_tile(c, layout: _Layout, tile: Tile, page_no: int, num_pages: int, rects_mm: list[np.ndarray],
+               kept: set[tuple[int, int, int]]):
+    """One tile page; registration marks and "joins" labels only towards the printed tiles in ``kept``
+    (``(piece, row, col)``)."""
     from reportlab.pdfgen.canvas import FILL_EVEN_ODD
 
     piece = layout.pieces[tile.piece]
@@ -644,15 +657,9 @@ def _draw_tile(c, layout: _Layout, tile: Tile, page_no: int, num_pages: int, rec
     c.rect(tx0, ty0, tx1 - tx0, ty1 - ty0, stroke=1, fill=0)
     c.restoreState()
     _draw_cut_marks(c, tx0, ty0, tx1, ty1)
-    neighbours = {  # edge -> (row, col) of the neighbour
-        "top": (tile.row - 1, tile.col), "bottom": (tile.row + 1, tile.col),
-        "left": (tile.row, tile.col - 1), "right": (tile.row, tile.col + 1),
-    }  # fmt: skip
     c.setFont("Helvetica", 7)
     c.setFillColorRGB(0, 0, 0)
-    for edge, (r, col) in neighbours.items():
-        if not (0 <= r < tile.rows and 0 <= col < tile.cols):
-            continue
+    for edge, (r, col) in _joined_neighbours(tile, kept).items():
         text = f"joins {piece.name} {_tile_label(r, col)}"
         if edge in ("top", "bottom"):
             y = ty1 if edge == "top" else ty0
@@ -682,6 +689,8 @@ def _draw_tile(c, layout: _Layout, tile: Tile, page_no: int, num_pages: int, rec
 
 
 def _draw_overview(c, layout: _Layout, num_pages: int, title: str):
+    from reportlab.pdfgen.canvas import FILL_EVEN_ODD
+
     page_w, page_h = c._pagesize
     m = _mm(layout.margin_mm)
     n = layout.grid.shape[0]
@@ -728,7 +737,7 @@ def _draw_overview(c, layout: _Layout, num_pages: int, title: str):
                              top - k * _mm(max_h) + k * _mm(xy_mm[..., 1] - ext[2])], axis=-1)
 
         c.saveState()
-        c.clipPath(_outline_path(c, piece, to_page), stroke=0, fill=0, fillMode=1)
+        c.clipPath(_outline_path(c, piece, to_page), stroke=0, fill=0, fillMode=FILL_EVEN_ODD)
         c.setFillColorRGB(0.15, 0.15, 0.15)
         for x0, y0, x1, y1 in _cell_rects_mm(piece, rects, n):
             (a, b), (d, e) = to_page([[x0, y0], [x1, y1]])
@@ -797,9 +806,10 @@ def write_pattern_pdf(
     c.setCreator("davis_rig.attack.export")
     _draw_overview(c, layout, num_pages, title)
     c.showPage()
+    kept = {(tile.piece, tile.row, tile.col) for tile in layout.tiles}
     for page_no, tile in enumerate(layout.tiles, start=2):
         c.setPageSize(portrait[::-1] if tile.landscape else portrait)
-        _draw_tile(c, layout, tile, page_no, num_pages, rects_mm)
+        _draw_tile(c, layout, tile, page_no, num_pages, rects_mm, kept)
         c.showPage()
     c.save()
     return layout.tiles

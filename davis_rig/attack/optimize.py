@@ -24,9 +24,9 @@ every random choice of a step is derived from ``(seed, step)`` and the pool from
 as far as the kernels are: on CPU at any thread count, the texture lookup's backward summing in index order; on
 CUDA, whose scatter-adds are atomic, with ``torch.use_deterministic_algorithms(True)``).
 
-Validation: clips drawn from the EoT distribution with their own seeds (training shapes), scored as in the
-evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events (or ``events``), SeqASR at
-``validation_threshold``.
+Validation: clips drawn from the EoT distribution with their own seeds (training shapes, and the training motions
+as in the pool), scored as in the evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events (or
+``events``), SeqASR at ``validation_threshold``.
 
 DDP: launch with ``torchrun --nproc_per_node N``; call :func:`optimize_texture` after
 ``torch.distributed.init_process_group`` (gloo on CPU, nccl on GPU; the CLI does it from the torchrun
@@ -98,7 +98,7 @@ class AttackConfig:
         validation_threshold: confidence threshold of the validation SeqASR.
         checkpoint_every, snapshot_every: periods (steps).
         v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms` (``"official_relaxed"``
-            and ``"floor"`` need a uniform threshold map, i.e. no EoT threshold mismatch).
+            and ``"floor"`` need a uniform threshold map, i.e. ``eot.threshold_sigma == 0``; checked here).
         v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
             ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
         events: the event model that scores validation and refinement
@@ -170,6 +170,9 @@ class AttackConfig:
             raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
         if self.clips_per_step > self.pool_size:
             raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
+        if self.v2e_mode != "dvs" and self.eot.threshold_sigma > 0:
+            raise ValueError(f"v2e_mode {self.v2e_mode!r} needs one threshold per clip: set eot.threshold_sigma to 0 "
+                             f"(got {self.eot.threshold_sigma})")
 
     def to_dict(self) -> dict:
         """JSON-ready dict (nested dataclasses as dicts)."""
@@ -288,13 +291,15 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
 
     def exact_crop() -> "torch.Tensor":
         return log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
-                              count_cutoff=None, threshold_on=threshold, threshold_off=threshold)
+                              window_us=clip.window_us, count_cutoff=None, threshold_on=threshold,
+                              threshold_off=threshold)
 
     if gradient == "ste":
         return full_frame(exact_crop())
     theta = float(clip.threshold.mean())
     surrogate = log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
-                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+                               window_us=clip.window_us, count_cutoff=None, threshold_on=theta,
+                               threshold_off=theta) / OFFICIAL_RELAXED_SCALE
     with torch.no_grad():
         hist = full_frame(exact_crop())
     # the value stays the exact counts bit for bit (surrogate - surrogate == 0); the gradient is the surrogate's
@@ -369,12 +374,14 @@ def _write_png(path: Path, grid: np.ndarray) -> None:
     cv2.imwrite(str(path), (np.asarray(grid) > 0.5).astype(np.uint8) * 255)
 
 
-def _validation_clips(config: AttackConfig, model, mask, num: int,
-                      seed_offset: int = _VAL_SEED_OFFSET) -> list[PoolClip]:
+def _validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: int = _VAL_SEED_OFFSET,
+                      motions: Sequence = ()) -> list[PoolClip]:
+    """``num`` clips of the training distribution (``motions`` included) with their own seeds (validation or
+    refinement, by ``seed_offset``)."""
     clips = []
     for i in range(num):
         seed = slot_seed(config.seed + seed_offset, i, 0)
-        spec, sensor = draw_scene(config.eot, seed, model.num_shapes)
+        spec, sensor = draw_scene(config.eot, seed, model.num_shapes, motions)
         clips.append(prepare_clip(spec, sensor, model, config.grid_n, mask, config=config.eot, seed=seed))
     return clips
 
@@ -399,7 +406,8 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
     for clip in clips:
         with torch.no_grad():
             video = clip.video(g)
-        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us, events=events)
+        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us, events=events,
+                                window_us=clip.window_us)
         decoded.append(dec)
         boxes.append(clip.boxes)
         ends.append(clip.window_end_us)
@@ -428,6 +436,32 @@ def _truncate_log(path: Path, last_step: int) -> None:
     path.write_text("".join(k + "\n" for k in kept))
 
 
+#: Outputs of a run (besides ``checkpoints/``): removed when a run starts from step 0 (:func:`_clear_outputs`).
+_RUN_OUTPUTS = ("log.jsonl", "best_texture.npy", "best_texture.png", "best.json", "best_generator.pt", "refine.json",
+                "refined_texture.npy", "refined_texture.png", "texture.npy", "texture.png")
+
+
+def _check_new_run(out: Path, resume: bool) -> None:
+    """Refuse a new run (``resume=False``) in a folder that holds one (``checkpoints/last.pt`` or ``log.jsonl``).
+
+    Raises:
+        CheckpointError: ``out`` holds a run; the message names ``--resume`` and a new ``--out``.
+    """
+    held = [p for p in (out / "checkpoints" / "last.pt", out / "log.jsonl") if p.is_file()]
+    if held and not resume:
+        raise CheckpointError(f"{out} already holds a run ({held[0]}); continue it with --resume (resume=True) or "
+                              f"write the new run to another --out folder")
+
+
+def _clear_outputs(out: Path) -> None:
+    """Remove the outputs of an earlier run that left no checkpoint (:data:`_RUN_OUTPUTS`, ``snapshots/step_*.png``),
+    so a run starting from step 0 neither appends to its log nor finds its best, refined or final texture."""
+    for name in _RUN_OUTPUTS:
+        (out / name).unlink(missing_ok=True)
+    for snapshot in (out / "snapshots").glob("step_*.png"):
+        snapshot.unlink()
+
+
 def _better(candidate: dict, best: dict | None, select_by: str = "seqasr") -> bool:
     """Whether a validation record beats the best so far under ``select_by`` (:data:`SELECTION_RULES`)."""
     if best is None:
@@ -441,7 +475,7 @@ def _better(candidate: dict, best: dict | None, select_by: str = "seqasr") -> bo
 
 
 def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, best: dict | None,
-                 val_clips: Sequence[PoolClip], start_grid: np.ndarray) -> dict | None:
+                 val_clips: Sequence[PoolClip], start_grid: np.ndarray, motions: Sequence = ()) -> dict | None:
     """Greedy cell flips after the gradient phase (:mod:`davis_rig.attack.refine`); returns the new best record.
 
     Writes ``refined_texture.npy/png`` and ``refine.json`` and logs a ``{"refine": ...}`` record; the refined
@@ -449,7 +483,7 @@ def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, be
     """
     from davis_rig.attack.refine import refine_texture
 
-    clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET)
+    clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET, motions)
 
     def score(grid: np.ndarray) -> float:
         return validate(grid, clips, detector, config.validation_threshold, config.events)["mean_top_score"]
@@ -492,9 +526,13 @@ def optimize_texture(
         config: the attack settings.
         detector: frozen RVT detector (:func:`load_attack_detector`); put in eval mode, parameters frozen here.
         out_dir: run folder (created).
-        resume: continue from ``out_dir/checkpoints/last.pt`` if it exists (a new run otherwise).
+        resume: continue from ``out_dir/checkpoints/last.pt``; without that checkpoint, a new run that first
+            removes the outputs of an earlier, unfinished run (log, best, refined and final textures, snapshots).
+            With ``resume=False`` ``out_dir`` must not hold a run. ``iterations`` may change on resume (as may
+            ``refine_passes`` and ``refine_clips``); the alpha schedule then runs over the new total, so extending
+            a finished run lowers alpha again (e.g. 300 -> 11,500 steps: from 1 back to about 0.03 at step 300).
         body_model: :class:`~davis_rig.scene.body.BodyModel` (default: bundled asset on ``device``).
-        motions: training motions for the EoT (default: the shapes' walk cycles).
+        motions: training motions for the EoT, validation and refinement clips (default: the shapes' walk cycles).
         device: torch device of the generator and clips (default: the detector's).
         progress: tqdm bar on rank 0.
         max_steps: stop after this many steps in this call (the run can be resumed); ``None`` = to the end.
@@ -503,7 +541,8 @@ def optimize_texture(
         :class:`AttackResult`.
 
     Raises:
-        CheckpointError: the checkpoint belongs to a different configuration or is unreadable.
+        CheckpointError: the checkpoint belongs to a different configuration or is unreadable; ``resume=False``
+            and ``out_dir`` already holds a run.
     """
     from tqdm import tqdm
 
@@ -514,6 +553,7 @@ def optimize_texture(
     if config.clips_per_step % world:
         raise ValueError(f"clips_per_step {config.clips_per_step} must be divisible by the world size {world}")
     out = Path(out_dir)
+    _check_new_run(out, resume)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     device = torch.device(device) if device is not None else next(detector.parameters()).device
@@ -527,7 +567,7 @@ def optimize_texture(
     generator = TextureGenerator(config.grid_n, hidden=config.hidden, dropout=config.dropout).to(device)
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
                                  weight_decay=config.weight_decay)
-    start, best, generations = 0, None, None
+    start, best, generations, saved_pool = 0, None, None, None
     ckpt_path = out / "checkpoints" / "last.pt"
     if resume and ckpt_path.is_file():
         try:
@@ -549,7 +589,8 @@ def optimize_texture(
         generator.load_state_dict(state["generator"])
         optimizer.load_state_dict(state["optimizer"])
         start = int(state["step"])
-        generations = state["pool"]["generations"]
+        saved_pool = dict(state["pool"])
+        generations = saved_pool["generations"]
         best = json.loads(state["best"]) if state["best"] else None
 
     per_rank = config.clips_per_step // world
@@ -559,16 +600,22 @@ def optimize_texture(
         pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size, base_seed=config.seed,
                         motions=motions, rank=rank, world_size=world, generations=generations)
         if rank == 0:
-            val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips)
+            val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips, motions=motions)
+    if world > 1:  # every rank has read the folder before rank 0 changes it
+        torch.distributed.barrier()
     if rank == 0 and start > 0:
         _truncate_log(out / "log.jsonl", start)
+    elif rank == 0:
+        _clear_outputs(out)
     log = open(out / "log.jsonl", "a") if rank == 0 else None
     bar = tqdm(total=end - start, disable=not progress or rank != 0, desc=f"attack {config.grid_n}x{config.grid_n}")
     t_start = time.perf_counter()
 
     def checkpoint(next_step: int) -> None:
+        # a finished run that is only refined builds no pool: its generations are the loaded ones
+        pool_state = pool.state_dict() if pool is not None else saved_pool
         _atomic_save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": next_step,
-                      "pool": pool.state_dict(), "best": json.dumps(best) if best else "",
+                      "pool": pool_state, "best": json.dumps(best) if best else "",
                       "config": config.to_dict()}, ckpt_path)
 
     def hard_texture() -> np.ndarray:
@@ -631,11 +678,11 @@ def optimize_texture(
         _write_png(out / "texture.png", texture)
         if config.refine_passes > 0 and end == config.iterations and not (out / "refine.json").is_file():
             if not val_clips:
-                val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips)
+                val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips,
+                                              motions=motions)
             start_grid = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
-            best = _refine_best(config, detector, body_model, mask, out, best, val_clips, start_grid)
-            if pool is not None:
-                checkpoint(end)
+            best = _refine_best(config, detector, body_model, mask, out, best, val_clips, start_grid, motions)
+            checkpoint(end)  # its best now agrees with best_texture.npy / best.json
     best_tex = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
     return AttackResult(texture=texture, best_texture=best_tex,
                         best_seq_asr=float(best["SeqASR"]) if best else math.nan,

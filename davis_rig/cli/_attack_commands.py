@@ -19,7 +19,7 @@ examples:
   davis-attack optimize --out runs/n10 --cells 10               # paper: 11,500 steps, full body, bundled detector
   davis-attack optimize --out runs/n10 --cells 10 --resume                # continue runs/n10/checkpoints/last.pt
   davis-attack optimize --out runs/torso --cells 10 --parts torso --detector rvt-b.ckpt
-  torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10 --clips-per-step 8   # DDP
+  torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10_ddp --clips-per-step 8   # DDP
 
 RUN_DIR gets log.jsonl (loss, obj, cls, alpha per step; validation SeqASR), snapshots/step_*.png, checkpoints/
 last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Under torchrun
@@ -28,13 +28,16 @@ last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.n
 
 REPRODUCE_EPILOG = """\
 examples:
-  davis-attack reproduce --table 1 --out repro/ --grids 10 --iterations 300 --lr 1e-2     # CPU-sized budget
-  davis-attack reproduce --table 2 --out repro/ --iterations 11500                          # paper budget
+  davis-attack reproduce --table 1 --out repro_cpu/ --grids 10 --iterations 300 --lr 1e-2   # CPU-sized budget
+  davis-attack reproduce --table 1 --out repro/ --iterations 11500                            # paper budget
+  davis-attack reproduce --table 2 --out repro/ --iterations 11500      # reuses Table 1's 10x10 full-body run
   davis-attack reproduce --table 2 --out repro/ --combinations legs torso+legs --headings 2 --phases 0
 
-Runs go to DIR/runs/<n>x<n>_<parts>/ (resumed when present, so Table 2's full-body run is Table 1's 10x10 run and
-a second call continues where one stopped); then DIR/table<k>.md/json/png and DIR/reproduce_table<k>.json (budget,
-detector, seconds per step, best validation per run).
+Runs go to DIR/runs/<n>x<n>_<parts>/ and are resumed when present: a second call continues where one stopped, and
+Table 2's full-body run is Table 1's 10x10 run when both tables use the same DIR and the same budget flags (a run
+resumes only with the settings it was started with: --iterations and --refine-passes/--refine-clips may change,
+--lr and the others may not; use another DIR for another budget). Then DIR/table<k>.md/json/png and
+DIR/reproduce_table<k>.json (budget, detector, seconds per step, best validation per run).
 """
 
 EVALUATE_EPILOG = """\
@@ -71,7 +74,10 @@ def _detector_args(parser: argparse.ArgumentParser) -> None:
 
 def _budget_args(p: argparse.ArgumentParser) -> None:
     """The optimisation budget and settings shared by ``optimize`` and ``reproduce``."""
-    p.add_argument("--iterations", type=int, default=11_500, help="optimisation steps (default: 11500)")
+    p.add_argument("--iterations", type=int, default=11_500,
+                   help="optimisation steps (default: 11500); may change on resume, but the alpha schedule then runs "
+                        "over the new total: extending a finished 300-step run to 11500 drops alpha from 1 back "
+                        "to about 0.03")
     p.add_argument("--clips-per-step", type=int, default=1, help="EoT clips per step over all ranks (default: 1)")
     p.add_argument("--pool-size", type=int, default=32, help="pre-rasterized clips in the pool (default: 32)")
     p.add_argument("--refresh-every", type=int, default=50, help="pool refresh period in steps (default: 50)")
@@ -91,8 +97,9 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
     p.add_argument("--refine-passes", type=int, default=0,
-                   help="after the last step, sweeps of greedy cell flips over the best texture, each flip scored "
-                        "with the exact simulator (default 0: none, the paper)")
+                   help="after the last step, sweeps of greedy cell flips starting from the better of the best "
+                        "texture and plain white, each flip scored with the exact simulator (default 0: none, the "
+                        "paper)")
     p.add_argument("--refine-clips", type=int, default=8,
                    help="EoT clips that score the refinement's flips (default 8)")
     p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
@@ -112,7 +119,9 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--events", choices=["exact", "official_relaxed"], default="exact",
                    help="event model of training, validation and evaluation: exact (default; quantized events as a "
                         "camera delivers them) or official_relaxed (the official code's continuous counts x 10/27 "
-                        "in training and test, as the paper's numbers were made; not events)")
+                        "in training and test, as the paper's numbers were made; not events; training takes the "
+                        "straight-through gradient of the relaxed counts, replacing --v2e-gradient, and one "
+                        "threshold per clip: no per-pixel threshold mismatch)")
     p.add_argument("--playback-speed", type=float, default=1.0,
                    help="motion seconds per clip second in training and test (default 1: real time; the official "
                         "code's 10 frames of 120 fps motion per 50 ms window are 1.667)")
@@ -153,7 +162,9 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     _budget_args(p)
     _scene_kind_arg(p)
     p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
-    p.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue RUN_DIR/checkpoints/last.pt (a clean new run when there is none); without it "
+                        "RUN_DIR must not hold a run")
     _detector_args(p)
     p.set_defaults(func=optimize_command)
     return p
@@ -168,6 +179,8 @@ def add_evaluate_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--table", type=int, choices=[1, 2], default=None, help="reproduce Table 1 or Table 2")
     p.add_argument("--texture", action="append", default=[], metavar="KEY=PATH",
                    help="texture file (.npy/.png, n x n or upsampled map); repeatable")
+    p.add_argument("--cells", type=int, default=None, metavar="N",
+                   help="grid cells per side of every --texture that is an upsampled map (default: detected)")
     p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts (Table 1 / named)")
     _scene_args(p)
     p.add_argument("--visualise", action="store_true", help="also write event frames with boxes and a GIF")
@@ -222,9 +235,10 @@ def _attack_config(args, grid_n: int, parts):
     from davis_rig.attack.optimize import AttackConfig
 
     make = EoTConfig.official if args.scene == "official" else EoTConfig
-    eot = make(playback_speed=args.playback_speed)
-    # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed)
+    # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed); they take
+    # one threshold per clip, so the EoT's per-pixel threshold mismatch is off
     relaxed = args.events == "official_relaxed"
+    eot = make(playback_speed=args.playback_speed, **({"threshold_sigma": 0.0} if relaxed else {}))
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, alpha_schedule=args.alpha_schedule,
@@ -323,17 +337,17 @@ def evaluate_command(args) -> int:
     model = BodyModel()
     motions = _motions(args, "test")
     if args.table == 1:
-        grids = {int(k): load_texture_grid(p) for k, p in textures.items()}
+        grids = {int(k): load_texture_grid(p, args.cells) for k, p in textures.items()}
         res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
                         motions=motions, progress=not args.no_progress)
         specs = {**ev.baseline_textures(parts), **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
     elif args.table == 2:
-        grids = {k: load_texture_grid(p) for k, p in textures.items()}
+        grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
         res = ev.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
                         progress=not args.no_progress)
         specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
     else:
-        specs = {k: ev.TextureSpec(load_texture_grid(p), parts) for k, p in textures.items()}
+        specs = {k: ev.TextureSpec(load_texture_grid(p, args.cells), parts) for k, p in textures.items()}
         scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config)
         rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.no_progress)
         res = ev.write_table(rows, config.thresholds, args.out, "evaluation",

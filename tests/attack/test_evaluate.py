@@ -155,3 +155,25 @@ def test_visualisations_written(tmp_path):
 
     strip = cv2.imread(str(out["frames"][0]))
     assert strip.shape == (240, 3 * 304, 3)
+
+
+def test_window_histograms_cover_a_non_default_window():
+    # 25 ms windows [0, 25] and [25, 50] ms: pixel (1, 1) brightens between frames 2 and 3 (10 -> 15 ms), pixel
+    # (2, 3) between frames 6 and 7 (30 -> 35 ms); a 50 ms second window [0, 50] would hold both
+    from davis_rig.events.simulator import simulate_events
+    from davis_rig.events.histogram import stacked_histograms
+
+    video = np.full((11, 4, 5), 0.5, dtype=np.float32)
+    video[3:, 1, 1] = 0.5 * math.exp(0.5)
+    video[7:, 2, 3] = 0.5 * math.exp(0.5)
+    t_us = np.arange(11, dtype=np.int64) * 5_000
+    ends = np.array([25_000, 50_000], dtype=np.int64)
+    exact = window_histograms(video, t_us, ends, window_us=25_000)
+    expected = stacked_histograms(simulate_events(video, t_us), ends, window_us=25_000, height=4, width=5)
+    assert np.array_equal(exact, expected)
+    assert exact[0, 10:, 1, 1].sum() == 2 and exact[1, 10:, 2, 3].sum() == 2 and exact.sum() == 4
+    assert window_histograms(video, t_us, ends)[1].sum() == 4  # the 50 ms default reaches back into window 1
+    relaxed = window_histograms(video, t_us, ends, events="official_relaxed", window_us=25_000)
+    # midpoints 12.5 ms and 32.5 ms lie 12.5 ms and 7.5 ms into their 25 ms windows: ON bins 5 and 3 of 10
+    assert relaxed[0, 15, 1, 1] == pytest.approx(2.5 * 10 / 27, rel=1e-5)
+    assert relaxed[1, 13, 2, 3] == pytest.approx(2.5 * 10 / 27, rel=1e-5) and np.count_nonzero(relaxed) == 2

@@ -99,3 +99,38 @@ def test_cli_export(tmp_path):
                  "--size-mm", "400", "--no-preview"])
     assert code == 0 and (tmp_path / "o" / "pattern_A4.pdf").is_file()
     assert main(["export", str(tmp_path / "g.npy"), "--out", str(tmp_path / "o"), "--cell-mm", "-1"]) == 2
+
+
+def test_tiles_join_only_printed_neighbours(tmp_path):
+    # plan_tiles drops empty tiles (legs at 150 mm cells: 11 of 3 x 4 on A4); a tile page must not put
+    # registration marks and a "joins" label on an edge whose neighbour was dropped
+    import re
+
+    from davis_rig.attack.export import Tile, _joined_neighbours
+
+    tile = Tile(0, 1, 1, 3, 3, 0.0, 0.0, 100.0, 100.0, False)
+    kept = {(0, 0, 1), (0, 1, 1), (0, 1, 2), (1, 2, 1)}  # (1, 2, 1) belongs to another piece
+    assert _joined_neighbours(tile, kept) == {"top": (0, 1), "right": (1, 2)}
+    written = export_texture(np.ones((10, 10), np.float32), tmp_path, parts=("legs",), paper="A4", cell_mm=150.0,
+                             preview=False)
+    info = json.loads(written["json"].read_text())
+    printed = {t["label"] for t in info["pieces"][0]["tiles"]}
+    reader = pypdf.PdfReader(str(written["pdf"]))
+    joins = set()
+    for page in reader.pages[1:]:
+        joins |= set(re.findall(r"joins legs ([A-Z]+\d+)", page.extract_text()))
+    assert joins and joins <= printed
+    assert len(printed) < 12  # the layout does drop a tile (else the test shows nothing)
+
+
+def test_overview_clips_pieces_even_odd(tmp_path):
+    # the module promises even-odd clipping (holes stay white) on every page: the overview used the non-zero rule
+    from pypdf.generic import ContentStream
+
+    written = export_texture(np.ones((10, 10), np.float32), tmp_path, parts=("arms",), preview=False)
+    reader = pypdf.PdfReader(str(written["pdf"]))
+    for page in reader.pages:
+        ops = [op for _, op in ContentStream(page.get_contents(), page.pdf).operations]
+        assert b"W*" in ops
+    overview = [op for _, op in ContentStream(reader.pages[0].get_contents(), reader.pages[0].pdf).operations]
+    assert b"W" not in overview  # every clip of the overview is a piece outline

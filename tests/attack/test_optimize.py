@@ -401,3 +401,105 @@ def test_validate_scores_the_chosen_event_model(body, detector):
         assert hist.dtype == (np.uint8 if events == "exact" else np.float32)
         assert res["mean_top_score"] == pytest.approx(np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded]))
     assert results["exact"]["mean_top_score"] != results["official_relaxed"]["mean_top_score"]
+
+
+def test_grid_v2e_mode_with_threshold_mismatch_is_refused_up_front(detector, body, tmp_path):
+    # "official_relaxed" takes one θ per clip: a per-pixel mismatch used to fail only at the first training step
+    with pytest.raises(ValueError, match="threshold_sigma"):
+        AttackConfig(v2e_mode="official_relaxed", eot=EoTConfig())
+    cfg = _tiny(iterations=1, pool_size=1, v2e_mode="official_relaxed", v2e_gradient="ste",
+                events="official_relaxed", eot=replace(TINY_EOT, threshold_sigma=0.0))
+    result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    assert result.steps == 1 and math.isfinite(_log(tmp_path / "log.jsonl")[0][0]["loss"])
+
+
+def test_a_new_run_refuses_a_folder_that_holds_a_run(detector, body, tmp_path):
+    optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False)
+    log = (tmp_path / "log.jsonl").read_text()
+    with pytest.raises(CheckpointError, match="--resume"):
+        optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False)
+    assert (tmp_path / "log.jsonl").read_text() == log  # nothing of the earlier run was touched
+
+
+def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
+    # an earlier run that stopped before its first checkpoint left a log, a best texture and a refinement record
+    records = [{"step": 1, "loss": -1.0}, {"refine": {}}]
+    (tmp_path / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    np.save(tmp_path / "best_texture.npy", np.full((4, 4), 7.0, np.float32))
+    (tmp_path / "best.json").write_text(json.dumps({"SeqASR": 1.0, "mean_top_score": 0.0, "step": 1}))
+    (tmp_path / "refine.json").write_text("{}")
+    (tmp_path / "snapshots").mkdir()
+    (tmp_path / "snapshots" / "step_000500.png").write_bytes(b"old")
+    result = optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False,
+                              resume=True)
+    steps, vals = _log(tmp_path / "log.jsonl")
+    assert [s["step"] for s in steps] == [1] and steps[0]["loss"] != -1.0 and [v["step"] for v in vals] == [1]
+    assert "refine" not in (tmp_path / "log.jsonl").read_text() and not (tmp_path / "refine.json").exists()
+    assert not (tmp_path / "snapshots" / "step_000500.png").exists()
+    assert set(np.unique(result.best_texture)) <= {0.0, 1.0}
+    assert json.loads((tmp_path / "best.json").read_text()) == vals[0]
+
+
+def test_pool_clip_histograms_and_validation_use_the_clip_window(body, detector):
+    # EoTConfig.window_us spaces the window ends; the histograms must cover the same span (not the 50 ms default)
+    from davis_rig.attack.evaluate import detect_windows
+    from davis_rig.attack.optimize import clip_histograms, validate
+    from davis_rig.events.v2e_torch import v2e_histograms
+
+    config = replace(TINY_EOT, window_us=25_000)
+    spec, sensor = draw_scene(config, 7, body.num_shapes)
+    clip = prepare_clip(spec, sensor, body, 4, config=config)
+    empty = torch.zeros(0, dtype=torch.int64)
+    clip = replace(clip, noise_cell=empty, noise_count=empty.float())
+    assert clip.window_us == 25_000 and np.array_equal(np.diff(clip.window_end_us), [25_000, 25_000])
+    grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
+    expected = torch.clamp(v2e_histograms(clip.video(grid), clip.t_us, clip.window_end_us, window_us=25_000,
+                                          count_cutoff=None, threshold_on=clip.threshold,
+                                          threshold_off=clip.threshold), max=10.0)
+    hist = clip_histograms(grid, clip, gradient="ste")
+    assert torch.equal(hist, expected) and hist.sum() > 0
+    hard = (grid > 0.5).float().numpy()
+    with torch.no_grad():
+        decoded, _ = detect_windows(detector, clip.video(torch.as_tensor(hard)), clip.t_us, clip.window_end_us,
+                                    window_us=25_000)
+    top = np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded])
+    assert validate(hard, [clip], detector, 0.25)["mean_top_score"] == pytest.approx(top)
+
+
+def test_validation_and_refinement_clips_draw_the_training_motions(body, monkeypatch):
+    # with --amass/--bvh the pool uses a training motion in half of its clips; validation and the refinement's
+    # clips must come from the same distribution (they used to be walk cycles only); without motions they are
+    # the same draws as before
+    import davis_rig.attack.optimize as opt
+    from davis_rig.scene.gait import generate_gait
+
+    motion = generate_gait()
+    drawn = []
+    monkeypatch.setattr(opt, "prepare_clip", lambda spec, *a, **kw: drawn.append(spec) or spec)
+    cfg = _tiny()
+    opt._validation_clips(cfg, body, None, 8, motions=(motion,))
+    assert any(spec.motion is motion for spec in drawn)
+    seeds = [slot_seed(cfg.seed + opt._VAL_SEED_OFFSET, i, 0) for i in range(8)]
+    assert drawn == [draw_scene(cfg.eot, s, body.num_shapes, (motion,))[0] for s in seeds]
+    drawn.clear()
+    opt._validation_clips(cfg, body, None, 8)
+    assert drawn == [draw_scene(cfg.eot, s, body.num_shapes)[0] for s in seeds]
+    assert all(spec.motion is None for spec in drawn)
+
+
+def test_optimize_passes_the_training_motions_to_validation_and_refinement(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+    from davis_rig.scene.gait import generate_gait
+
+    motions = (generate_gait(),)
+    seen = []
+    original = opt._validation_clips
+
+    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=()):
+        seen.append((seed_offset, motions))
+        return original(config, model, mask, num, seed_offset, motions)
+
+    monkeypatch.setattr(opt, "_validation_clips", recording)
+    cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)
+    optimize_texture(cfg, detector, tmp_path, body_model=body, motions=motions, progress=False)
+    assert seen == [(opt._VAL_SEED_OFFSET, motions), (opt._REFINE_SEED_OFFSET, motions)]

@@ -114,3 +114,28 @@ def test_a_finished_run_can_be_refined_later(tmp_path):
     again = optimize_texture(AttackConfig(**base, refine_passes=1, refine_clips=1), detector, tmp_path,
                              body_model=body, progress=False, resume=True)
     assert again.steps == 0 and (tmp_path / "refine.json").is_file()
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_refining_a_finished_run_later_saves_the_new_best_in_the_checkpoint(tmp_path):
+    detector = load_detector(FIXTURE)
+    body = BodyModel()
+    base = dict(grid_n=3, iterations=2, pool_size=2, refresh_every=2, num_validation_clips=1, validate_every=1000,
+                checkpoint_every=2, snapshot_every=2, lr=0.05, eot=EoTConfig(supersample=1))
+    optimize_texture(AttackConfig(**base), detector, tmp_path, body_model=body, progress=False)
+    path = tmp_path / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    worst = {"SeqASR": float("nan"), "num_sequences": 1, "num_detected": 1, "mean_top_score": 2.0, "step": 2}
+    state["best"] = json.dumps(worst)  # any refined texture beats it, so the refinement replaces the best
+    torch.save(state, path)
+    again = optimize_texture(AttackConfig(**base, refine_passes=1, refine_clips=1), detector, tmp_path,
+                             body_model=body, progress=False, resume=True)
+    assert json.loads((tmp_path / "refine.json").read_text())["replaced_best"]
+    saved = torch.load(path, weights_only=True)
+    best = json.loads((tmp_path / "best.json").read_text())
+    assert json.loads(saved["best"]) == best and best["refined"] is True
+    assert saved["pool"] == state["pool"] and saved["step"] == 2
+    assert again.best_seq_asr == best["SeqASR"]
+    later = optimize_texture(AttackConfig(**base, refine_passes=1, refine_clips=1), detector, tmp_path,
+                             body_model=body, progress=False, resume=True)
+    assert later.best_seq_asr == best["SeqASR"] and np.array_equal(later.best_texture, again.best_texture)

@@ -203,3 +203,75 @@ def test_recorded_command_quotes_arguments_so_it_reruns(monkeypatch, tmp_path):
     args = _parser().parse_args(argv)
     assert args.func(args) == 0
     assert seen["kw"]["command"] == f"davis-attack reproduce --table 1 --out '{tmp_path / 'my runs'}' --no-progress"
+
+
+def test_events_official_relaxed_on_the_toolkit_scene_turns_off_the_threshold_mismatch(monkeypatch, tmp_path):
+    # the relaxed counts take one threshold per clip: the toolkit EoT's per-pixel mismatch (sigma 0.02) would make
+    # the first training step raise after the whole pool was rendered
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--grids", "10",
+                                 "--events", "official_relaxed", "--v2e-gradient", "relaxed", "--no-progress"])
+    assert args.func(args) == 0
+    attack = seen["kw"]["attack"]
+    assert (attack.v2e_mode, attack.v2e_gradient, attack.eot.threshold_sigma) == ("official_relaxed", "ste", 0.0)
+    assert attack.eot.background_level_range == (0.2, 0.8)  # still the toolkit's scene
+    exact = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--no-progress"])
+    assert exact.func(exact) == 0 and seen["kw"]["attack"].eot.threshold_sigma == 0.02
+
+
+def test_reproduce_examples_share_a_folder_only_with_the_same_budget():
+    # runs under one --out are resumed, and a resumed run refuses other settings (only iterations and the
+    # refinement's may change): two examples writing to one folder with different --lr made the second one fail
+    import shlex
+
+    free = ("iterations", "refine_passes", "refine_clips")
+    configs: dict[str, list[dict]] = {}
+    for line in cmd.REPRODUCE_EPILOG.splitlines():
+        if not line.strip().startswith("davis-attack reproduce"):
+            continue
+        argv = shlex.split(line.split("#")[0])[1:]
+        args = _parser().parse_args(argv)
+        config = {k: v for k, v in cmd._attack_config(args, 10, None).to_dict().items() if k not in free}
+        configs.setdefault(args.out, []).append(config)
+    assert len(configs) >= 2 and any(len(v) > 1 for v in configs.values())
+    for out, group in configs.items():
+        assert all(c == group[0] for c in group), out
+
+
+def test_evaluate_cells_sets_the_grid_size_of_every_texture_map(monkeypatch, tmp_path):
+    import cv2
+
+    import davis_rig.attack.evaluate as ev
+    import davis_rig.attack.optimize as opt
+    from davis_rig.attack.export import upsample
+
+    coarse = (np.random.default_rng(0).random((5, 5)) > 0.5).astype(np.float32)
+    grid = np.kron(coarse, np.ones((2, 2), np.float32))  # a 10 x 10 grid that is also a 5 x 5 one
+    cv2.imwrite(str(tmp_path / "map.png"), (upsample(grid, 400) * 255).astype(np.uint8))
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake_table2(grids, detector, out, **kw):
+        seen.update(grids)
+        md = Path(out) / "table2.md"
+        md.parent.mkdir(parents=True, exist_ok=True)
+        md.write_text("| Texture |\n")
+        return {"markdown": md, "json": md, "plot": md, "rows": []}
+
+    monkeypatch.setattr(ev, "table2", fake_table2)
+    base = ["evaluate", "--table", "2", "--out", str(tmp_path / "o"), "--texture", f"torso={tmp_path / 'map.png'}",
+            "--texture", f"legs={tmp_path / 'map.png'}", "--no-progress"]
+    args = _parser().parse_args(base)
+    assert args.func(args) == 0 and np.array_equal(seen["torso"], coarse)  # detected: the smallest grid
+    args = _parser().parse_args([*base, "--cells", "10"])
+    assert args.func(args) == 0
+    assert np.array_equal(seen["torso"], grid) and np.array_equal(seen["legs"], grid)
+
+
+def test_help_documents_resume_schedule_refine_start_and_relaxed_gradient():
+    # behaviour the flags' help used to leave out: the alpha schedule runs over a changed --iterations total, the
+    # refinement may start from plain white, official_relaxed replaces --v2e-gradient
+    text = " ".join(_parser()._subparsers._group_actions[0].choices["optimize"].format_help().split())
+    assert "alpha schedule then runs over the new total" in text
+    assert "better of the best texture and plain white" in text
+    assert "replacing --v2e-gradient" in text
