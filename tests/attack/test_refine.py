@@ -103,13 +103,19 @@ def test_refine_settings_are_validated():
         AttackConfig(refine_clips=0)
 
 
-@pytest.mark.usefixtures("one_torch_thread")
-def test_a_finished_run_can_be_refined_later(tmp_path):
+def _finished_run(run_dir):
+    """A finished 2-step run without refinement in ``run_dir``: returns ``(detector, body, base settings)``."""
     detector = load_detector(FIXTURE)
     body = BodyModel()
     base = dict(grid_n=3, iterations=2, pool_size=2, refresh_every=2, num_validation_clips=1, validate_every=1000,
                 checkpoint_every=2, snapshot_every=2, lr=0.05, eot=EoTConfig(supersample=1))
-    optimize_texture(AttackConfig(**base), detector, tmp_path, body_model=body, progress=False)
+    optimize_texture(AttackConfig(**base), detector, run_dir, body_model=body, progress=False)
+    return detector, body, base
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_finished_run_can_be_refined_later(tmp_path):
+    detector, body, base = _finished_run(tmp_path)
     assert not (tmp_path / "refine.json").exists()
     again = optimize_texture(AttackConfig(**base, refine_passes=1, refine_clips=1), detector, tmp_path,
                              body_model=body, progress=False, resume=True)
@@ -118,11 +124,7 @@ def test_a_finished_run_can_be_refined_later(tmp_path):
 
 @pytest.mark.usefixtures("one_torch_thread")
 def test_refining_a_finished_run_later_saves_the_new_best_in_the_checkpoint(tmp_path):
-    detector = load_detector(FIXTURE)
-    body = BodyModel()
-    base = dict(grid_n=3, iterations=2, pool_size=2, refresh_every=2, num_validation_clips=1, validate_every=1000,
-                checkpoint_every=2, snapshot_every=2, lr=0.05, eot=EoTConfig(supersample=1))
-    optimize_texture(AttackConfig(**base), detector, tmp_path, body_model=body, progress=False)
+    detector, body, base = _finished_run(tmp_path)
     path = tmp_path / "checkpoints" / "last.pt"
     state = torch.load(path, weights_only=True)
     worst = {"SeqASR": float("nan"), "num_sequences": 1, "num_detected": 1, "mean_top_score": 2.0, "step": 2}
