@@ -153,7 +153,8 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
                 while (batch := recording.getNextTriggerBatch()) is not None:
                     specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
                 if specials:
-                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)))
+                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)),
+                                  device_clock=False)
             if recording.isImuStreamAvailable():
                 samples = []
                 while (batch := recording.getNextImuBatch()) is not None:

@@ -137,7 +137,10 @@ def record_session(
     :mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild
     the file after a crash; the journal is deleted when the recording ends cleanly. An unplug
     (:class:`DeviceDisconnectedError`) ends the recording normally: everything decoded before it is written and
-    the file is closed (``stopped_by="disconnected"``).
+    the file is closed (``stopped_by="disconnected"``). A device timestamp reset during the recording
+    (``Davis346.timestamp_reset`` or a sync master) loses nothing: the data after it is stored after the data before
+    it, offset so the file's time stays monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]``
+    (see :meth:`SessionWriter.append`).
 
     Args:
         camera: an open ``davis_rig.device.camera.Davis346`` (or an object with the same methods: ``info``,

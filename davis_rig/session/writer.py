@@ -21,6 +21,9 @@ from davis_rig.session import schema
 from davis_rig.session.journal import SessionJournal, journal_path
 from davis_rig.types import EVENT_DTYPE
 
+#: libcaer special type id of TIMESTAMP_RESET (``davis_rig.protocol.words.SpecialType.TIMESTAMP_RESET``; the
+#: session package does not import the protocol package).
+TIMESTAMP_RESET_TYPE = 1
 #: Buffered events that trigger a write to HDF5 before the flush interval is up.
 WRITE_BATCH_EVENTS = 1 << 20
 #: Free space kept for HDF5 metadata on top of the data of each write, bytes.
@@ -52,6 +55,16 @@ def to_jsonable(obj):
     if hasattr(obj, "_asdict"):
         return to_jsonable(obj._asdict())
     return str(obj)
+
+
+def _reset_positions(specials) -> np.ndarray:
+    """Indices of the TIMESTAMP_RESET specials in a chunk's specials table (int64 [R]; empty without a type field)."""
+    if specials is None or not len(specials):
+        return np.zeros(0, np.int64)
+    names = np.asarray(specials).dtype.names or ()
+    if "type" not in names:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.asarray(specials)["type"] == TIMESTAMP_RESET_TYPE)
 
 
 def frame_hw_from_device_info(info: Mapping | None) -> tuple[int, int]:
@@ -206,7 +219,12 @@ class SessionWriter:
         self._n_frames_written = 0
         self._n_table_written = {"specials": 0, "imu": 0}
         self._last_t_written = None
-        self._last_t = None  # device µs of the last accepted event
+        self._last_t = None  # recording µs (device µs + reset offset) of the last accepted event
+        self._t_max: int | None = None  # latest recording µs accepted on any stream (events, frames, tables)
+        self._reset_offset_us = 0  # added to device µs since the last TIMESTAMP_RESET (0 before any)
+        self._resets: list[dict] = []  # {"t_us": recording µs of the reset special, "offset_us": offset from then}
+        # device µs of each stream's last item in the current reset epoch (None: nothing since the last reset)
+        self._epoch_last_device_t: dict[str, int | None] = {"events": None, "frames": None, "imu": None}
         self._counts = {"events": 0, "frames": 0, "specials": 0, "imu": 0}
         self._committed = dict(self._counts)  # counts as of the last successful HDF5 flush
         self._committed_t_us = None
@@ -272,7 +290,8 @@ class SessionWriter:
 
     @property
     def last_t_us(self) -> int | None:
-        """Device time of the last accepted event, µs (``None`` before the first event)."""
+        """Recording time of the last accepted event, µs: device time plus the offset of the timestamp resets
+        before it (see :meth:`append`); ``None`` before the first event."""
         return self._last_t
 
     def set_stats(self, stats: Mapping) -> None:
@@ -293,6 +312,8 @@ class SessionWriter:
                 "specials": self._counts["specials"],
                 "imu": self._counts["imu"],
                 "events_dropped_non_monotonic": self._dropped_non_monotonic,
+                "timestamp_resets": len(self._resets),
+                "timestamp_reset_offsets": [dict(reset) for reset in self._resets],
                 "journal_transfers": self.journal.transfers if self.journal else 0,
             },
         }
@@ -303,12 +324,34 @@ class SessionWriter:
         if self.journal is not None:
             self.journal.append_transfer(data)
 
-    def append(self, chunk) -> None:
+    def append(self, chunk, *, device_clock: bool = True) -> None:
         """Append one decoded chunk (anything with ``events``, ``frames``, ``specials`` and optional ``imu``).
 
+        Timestamp resets: the device clock restarts at 0 after a TIMESTAMP_RESET special (``Davis346.timestamp_reset``
+        or a sync master), and the decoder reports the stream faithfully. The file keeps one monotonic *recording
+        time* instead: every item after the n-th reset is stored at ``t_device + offset_n`` with
+        ``offset_n = T_before + 1 - t_reset`` (all µs), where ``t_reset`` is the reset special's device time (0 from
+        the decoder) and ``T_before`` the latest recording time written before it on any stream (event times, the
+        four frame times, specials, IMU); the reset special itself is kept, stored at ``T_before + 1``. Before the
+        first reset the offset is 0 (recording time = device time); a reset before any data keeps the offset. The
+        resets and offsets are in ``stats["writer"]["timestamp_resets"]`` and
+        ``stats["writer"]["timestamp_reset_offsets"]`` (``[{"t_us": reset special's recording time, "offset_us":
+        offset_n}, ...]``): the device time of an item at recording time ``t`` is ``t - offset_us`` of the last
+        entry with ``t_us <= t``.
+
+        A chunk may hold data from before and after a reset (the decoder does not split at resets; each array is
+        in stream order). The specials are split exactly at the reset specials; events, frames (by end-of-frame
+        time) and IMU samples are split where their device time goes back (the restart), at most once per reset in
+        the chunk. If the data after a reset is not earlier than the data before it (a reset within about one
+        chunk's span of the previous epoch's start), no split is visible and it stays in the old epoch: nothing is
+        lost and time stays monotonic, but those items' offset is 0 (relative to the true one).
+
         Args:
-            chunk: a ``DecodedChunk``: ``events`` EVENT_DTYPE [N] time-sorted (device µs); ``frames`` list of
-                ``ApsFrame``; ``specials`` structured [M] with a ``t`` field; ``imu`` structured [K] or None.
+            chunk: a ``DecodedChunk``: ``events`` EVENT_DTYPE [N] time-sorted per reset epoch (device µs);
+                ``frames`` list of ``ApsFrame``; ``specials`` structured [M] with a ``t`` (and ``type``) field;
+                ``imu`` structured [K] or None.
+            device_clock: the times are the device clock (reset handling above); False for times that are
+                already continuous (e.g. an AEDAT4 import): TIMESTAMP_RESET specials are then stored as they are.
 
         Raises:
             SessionError: the writer is not open or an earlier write failed (disk full, ...).
@@ -316,23 +359,93 @@ class SessionWriter:
         """
         self._check_usable()
         events = getattr(chunk, "events", None)
-        if events is not None and len(events):
-            self.append_events(events)
-        for frame in getattr(chunk, "frames", None) or ():
-            self.append_frame(frame)
+        frames = list(getattr(chunk, "frames", None) or ())
         specials = getattr(chunk, "specials", None)
-        if specials is not None and len(specials):
-            self._append_table("specials", specials)
         imu = getattr(chunk, "imu", None)
-        if imu is not None and len(imu):
-            self._append_table("imu", imu)
+        reset_at = _reset_positions(specials) if device_clock else np.zeros(0, np.int64)
+        if not reset_at.shape[0]:
+            for kind, t in (("events", None if events is None else np.asarray(events)["t"]),
+                            ("frames", [frame.t_end_of_frame_us for frame in frames]),
+                            ("imu", None if imu is None else np.asarray(imu)["t"])):
+                if t is not None and len(t):
+                    self._epoch_last_device_t[kind] = int(t[-1])
+            self._append_epoch(events, frames, specials, imu)
+            self.maybe_flush()
+            return
+        n_resets = reset_at.shape[0]
+        event_epoch = self._epochs("events", None if events is None else np.asarray(events)["t"], n_resets)
+        frame_t = np.array([int(frame.t_end_of_frame_us) for frame in frames], dtype=np.int64)
+        frame_epoch = self._epochs("frames", frame_t, n_resets)
+        imu_epoch = self._epochs("imu", None if imu is None else np.asarray(imu)["t"], n_resets)
+        bounds = [0, *reset_at.tolist(), len(specials)]
+        for k in range(n_resets + 1):
+            if k:
+                self._start_reset_epoch(int(specials["t"][bounds[k]]))
+            self._append_epoch(
+                None if event_epoch is None else events[event_epoch == k],
+                [frame for frame, epoch in zip(frames, frame_epoch.tolist()) if epoch == k],
+                specials[bounds[k] : bounds[k + 1]],
+                None if imu_epoch is None else imu[imu_epoch == k],
+            )
         self.maybe_flush()
 
-    def append_events(self, events: np.ndarray) -> None:
-        """Append events (EVENT_DTYPE [N], non-decreasing ``t`` in device µs).
+    def _append_epoch(self, events, frames, specials, imu) -> None:
+        """Append the data of one chunk that lies in the current reset epoch (device µs)."""
+        if events is not None and len(events):
+            self.append_events(events)
+        for frame in frames:
+            self.append_frame(frame)
+        if specials is not None and len(specials):
+            self._append_table("specials", specials)
+        if imu is not None and len(imu):
+            self._append_table("imu", imu)
 
-        Events older than the last accepted one cannot be indexed by ``ms_to_idx``: they are dropped, counted
-        in ``stats["writer"]["events_dropped_non_monotonic"]`` and warned about once.
+    def _epochs(self, kind: str, t: np.ndarray | None, n_resets: int) -> np.ndarray | None:
+        """Reset epoch (0..n_resets) of each item of one stream of a chunk holding ``n_resets`` resets.
+
+        An item starts a new epoch where its device time is earlier than the previous item's (the previous chunk's
+        last one in the current epoch for the first item); at most ``n_resets`` such restarts are counted.
+        """
+        if t is None:
+            self._epoch_last_device_t[kind] = None
+            return None
+        t = np.asarray(t, dtype=np.int64)
+        if not t.shape[0]:
+            self._epoch_last_device_t[kind] = None
+            return np.zeros(0, np.int64)
+        prev = self._epoch_last_device_t[kind]
+        restart = np.empty(t.shape[0], bool)
+        restart[0] = prev is not None and int(t[0]) < prev
+        np.less(t[1:], t[:-1], out=restart[1:])
+        epoch = np.minimum(np.cumsum(restart), n_resets)
+        self._epoch_last_device_t[kind] = int(t[-1]) if int(epoch[-1]) == n_resets else None
+        return epoch
+
+    def _start_reset_epoch(self, t_reset_device_us: int) -> None:
+        """A TIMESTAMP_RESET special at device time ``t_reset_device_us``: continue after the latest time written."""
+        if self._t_max is not None:
+            self._reset_offset_us = self._t_max + 1 - t_reset_device_us
+        self._resets.append({"t_us": t_reset_device_us + self._reset_offset_us, "offset_us": self._reset_offset_us})
+        for kind in self._epoch_last_device_t:
+            self._epoch_last_device_t[kind] = None
+        if len(self._resets) == 1:
+            warnings.warn(
+                f"{self.path}: the device timestamp was reset; later data is stored after the earlier data "
+                "(offsets in stats['writer']['timestamp_reset_offsets'])",
+                stacklevel=3,
+            )
+
+    def _note_time(self, t_us: int) -> None:
+        if self._t_max is None or t_us > self._t_max:
+            self._t_max = t_us
+
+    def append_events(self, events: np.ndarray) -> None:
+        """Append events (EVENT_DTYPE [N], non-decreasing ``t`` in device µs of the current reset epoch).
+
+        The current timestamp-reset offset (see :meth:`append`, which detects the resets; 0 before any) is added
+        to ``t`` (the caller's array is not modified). Events still older than the last accepted one cannot be
+        indexed by ``ms_to_idx``: they are dropped, counted in ``stats["writer"]["events_dropped_non_monotonic"]``
+        and warned about once.
 
         Raises:
             FormatError: ``events`` is not an EVENT_DTYPE array.
@@ -345,6 +458,9 @@ class SessionWriter:
             raise ShapeError(f"events: expected shape (N,), got {events.shape}")
         if not len(events):
             return
+        if self._reset_offset_us:
+            events = events.copy()
+            events["t"] += self._reset_offset_us
         t = events["t"]
         floor = self._last_t if self._last_t is not None else t[0]
         ordered = t[0] >= floor and (len(t) < 2 or bool(np.all(t[1:] >= t[:-1])))
@@ -369,11 +485,13 @@ class SessionWriter:
         self._buffered_events += len(events)
         self._counts["events"] += len(events)
         self._last_t = int(events["t"][-1])
+        self._note_time(self._last_t)
         if self._buffered_events >= WRITE_BATCH_EVENTS:
             self._write_out()
 
     def append_frame(self, frame) -> None:
-        """Append one APS frame (``ApsFrame``: ``pixels`` uint16 [h, w] at ``position_x/y`` plus four times, µs).
+        """Append one APS frame (``ApsFrame``: ``pixels`` uint16 [h, w] at ``position_x/y`` plus four times, device
+        µs; the current timestamp-reset offset is added when written, see :meth:`append`).
 
         Raises:
             ShapeError: the frame's region does not fit the sensor.
@@ -388,15 +506,22 @@ class SessionWriter:
             raise ShapeError(
                 f"frame ROI {pixels.shape} at (x={x0}, y={y0}) does not fit the sensor ({height}, {width})"
             )
-        self._buffers["frames"].append(frame)
+        self._buffers["frames"].append((frame, self._reset_offset_us))
         self._counts["frames"] += 1
+        self._note_time(max(int(getattr(frame, name)) for name in schema.FRAME_TIME_COLUMNS) + self._reset_offset_us)
 
     def _append_table(self, kind: str, table: np.ndarray) -> None:
         table = np.asarray(table)
         if table.dtype.names is None or "t" not in table.dtype.names:
             raise FormatError(f"{kind}: expected a structured array with a 't' field, got dtype {table.dtype}")
+        if not len(table):
+            return
+        if self._reset_offset_us:
+            table = table.copy()
+            table["t"] += self._reset_offset_us
         self._buffers[kind].append(table)
         self._counts[kind] += len(table)
+        self._note_time(int(table["t"].max()))
 
     # --- writing ------------------------------------------------------------------------------
     def maybe_flush(self) -> None:
@@ -460,13 +585,13 @@ class SessionWriter:
             data = np.zeros((len(frames), height, width), dtype=schema.FRAME_DTYPE)
             roi = np.empty((len(frames), 4), dtype="<i4")
             times = {name: np.empty(len(frames), dtype="<i8") for name in schema.FRAME_TIME_COLUMNS}
-            for i, frame in enumerate(frames):
+            for i, (frame, offset_us) in enumerate(frames):
                 pixels = np.asarray(frame.pixels)
                 x0, y0 = int(frame.position_x), int(frame.position_y)
                 data[i, y0 : y0 + pixels.shape[0], x0 : x0 + pixels.shape[1]] = pixels
                 roi[i] = (x0, y0, pixels.shape[1], pixels.shape[0])
                 for name in schema.FRAME_TIME_COLUMNS:
-                    times[name][i] = int(getattr(frame, name))
+                    times[name][i] = int(getattr(frame, name)) + offset_us
             group = f[schema.FRAMES_GROUP]
             _extend(group[schema.FRAME_DATA], data)
             _extend(group[schema.FRAME_ROI], roi)

@@ -43,7 +43,7 @@ def test_round_trip_all_streams(tmp_path, rng):
     parts = split_chunks(events, rng.integers(1, 1000, 200))
     frames = [random_frame(rng, 7_700_000 + 40_000 * i) for i in range(3)]
     roi_frame = random_frame(rng, 8_000_000, roi=(10, 20, 100, 50))
-    specials = np.array([(7_654_400, 1), (8_000_000, 9)], dtype=SPECIAL_DTYPE)
+    specials = np.array([(7_654_400, 2), (8_000_000, 9)], dtype=SPECIAL_DTYPE)
     imu = np.zeros(4, IMU_DTYPE)
     imu["t"] = [7_700_000, 7_701_000, 7_702_000, 7_703_000]
     imu["accel_x_g"] = [0.5, -1.0, 0.25, 2.0]
