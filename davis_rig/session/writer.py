@@ -362,13 +362,14 @@ class SessionWriter:
         frames = list(getattr(chunk, "frames", None) or ())
         specials = getattr(chunk, "specials", None)
         imu = getattr(chunk, "imu", None)
-        reset_at = _reset_positions(specials) if device_clock else np.zeros(0, np.int64)
-        if not reset_at.shape[0]:
-            for kind, t in (("events", None if events is None else np.asarray(events)["t"]),
-                            ("frames", [frame.t_end_of_frame_us for frame in frames]),
-                            ("imu", None if imu is None else np.asarray(imu)["t"])):
-                if t is not None and len(t):
-                    self._epoch_last_device_t[kind] = int(t[-1])
+        reset_at = _reset_positions(specials) if device_clock and specials is not None and len(specials) else None
+        if reset_at is None or not reset_at.shape[0]:  # the common case: one epoch, remember each stream's last time
+            if events is not None and len(events):
+                self._epoch_last_device_t["events"] = int(events["t"][-1])
+            if frames:
+                self._epoch_last_device_t["frames"] = int(frames[-1].t_end_of_frame_us)
+            if imu is not None and len(imu):
+                self._epoch_last_device_t["imu"] = int(imu["t"][-1])
             self._append_epoch(events, frames, specials, imu)
             self.maybe_flush()
             return
