@@ -19,7 +19,7 @@ examples:
   davis-eval walk.h5 --model rvt_b.onnx                          # the paper's thresholds 0.001 0.01 0.1 0.25
   davis-eval case1.h5 case2.h5 ours.h5 --model rvt_b.onnx --names "Case1,Case2,Ours" --report out/
   davis-eval walk.h5 --model rvt_b.onnx --threshold 0.25 --seq-len 10 --skip-first-ms 0
-  davis-eval walk.h5 --time-tol-ms 50                            # RVT's +-50 ms label-time tolerance
+  davis-eval walk.h5 --skip-first-ms 0 --seq-len 5              # short recording: keep all labels, shorter sequences
 
 The sessions need /labels (davis-label). Prints the Table-3 style markdown table; --report DIR also writes
 report.json (every number and setting), table.md, ap_seqasr.png and an annotated GIF per recording.
@@ -40,11 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seq-len", type=int, default=10, help="windows per SeqASR sequence (default 10)")
     parser.add_argument("--seq-stride", type=int, default=None,
                         help="windows between sequence starts (default: --seq-len, non-overlapping)")
-    parser.add_argument("--skip-first-ms", type=float, default=500.0,
-                        help="AP ignores labels/detections of the first MS ms (RVT protocol: 500; 0 keeps all)")
+    parser.add_argument("--skip-first-ms", type=float, default=500.0, metavar="MS",
+                        help="drop the labels/detections of the first MS ms, like the too small boxes: for AP and "
+                             "for the SeqASR sequences, which are cut from the remaining labels (RVT: 500; 0 keeps "
+                             "all)")
     parser.add_argument("--time-tol-ms", type=float, default=0.0, metavar="MS",
-                        help="AP matches a label with the detections stamped within +-MS ms of it (default 0: its "
-                             "own window only; RVT protocol: 50)")
+                        help="AP matches a label with the detections stamped within +-MS ms of it (default 0, the "
+                             "right setting here: each window's own detections; > 0 pools the detections of "
+                             "neighbouring windows, whose copies then count as false positives; Prophesee "
+                             "matching, meant for detections at sparse times)")
     parser.add_argument("--crop-origin", type=int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred)")
     parser.add_argument("--names", default=None, help="comma-separated column names (default: file names)")
@@ -61,6 +65,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _warn_no_sequences(results, args: argparse.Namespace) -> None:
+    """On stderr: why a recording's SeqASR is n/a (no labelled run of --seq-len windows) and how to get one."""
+    for result in results:
+        metrics = next(iter(result.metrics.values()), {})
+        if metrics.get("num_sequences", 1) != 0:
+            continue
+        longest = metrics.get("longest_labelled_run", 0)
+        filters = f"--skip-first-ms {args.skip_first_ms:g} and the box size filter"
+        if longest:
+            why = (f"the longest run of consecutive labelled 50 ms windows left after {filters} is {longest} "
+                   f"windows, shorter than --seq-len {args.seq_len}; lower --seq-len (<= {longest}) or "
+                   "--skip-first-ms")
+        else:
+            why = f"no labelled window is left after {filters}; lower --skip-first-ms"
+        print(f"{NAME}: warning: {result.name}: SeqASR n/a (0 sequences): {why}", file=sys.stderr)
+
+
 def _eval(args: argparse.Namespace) -> int:
     from davis_rig.evaluation.physical import PAPER_THRESHOLDS, EvalSettings, evaluate_sessions
     from davis_rig.evaluation.report import markdown_table, write_report
@@ -69,7 +90,7 @@ def _eval(args: argparse.Namespace) -> int:
     settings = EvalSettings(
         thresholds=tuple(args.threshold) if args.threshold else PAPER_THRESHOLDS, seq_len=args.seq_len,
         seq_stride=args.seq_stride, crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
-        skip_first_us=int(args.skip_first_ms * 1000) if args.skip_first_ms > 0 else None,
+        skip_first_us=int(round(args.skip_first_ms * 1000)) if args.skip_first_ms > 0 else None,
         time_tol_us=int(round(args.time_tol_ms * 1000)),
         coco_backend=args.coco_backend, intra_op_threads=args.threads, gif_windows=gif_windows)
     names = [n.strip() for n in args.names.split(",")] if args.names else None
@@ -81,6 +102,7 @@ def _eval(args: argparse.Namespace) -> int:
             return tqdm(total=total, desc=desc, unit="window", file=sys.stderr)
 
     results, scores = evaluate_sessions(args.sessions, args.model, settings, names=names, progress=progress)
+    _warn_no_sequences(results, args)
     print(markdown_table(results), end="")
     if args.report:
         written = write_report(results, scores, settings, args.report, plot=not args.no_plot, gif=gif_windows > 0,
@@ -100,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.seq_len < 1 or (args.seq_stride is not None and args.seq_stride < 1):
         print(f"{NAME}: error: --seq-len and --seq-stride must be >= 1", file=sys.stderr)
+        return 2
+    if args.skip_first_ms < 0:
+        print(f"{NAME}: error: --skip-first-ms must be >= 0, got {args.skip_first_ms:g}", file=sys.stderr)
         return 2
     if args.time_tol_ms < 0:
         print(f"{NAME}: error: --time-tol-ms must be >= 0, got {args.time_tol_ms:g}", file=sys.stderr)

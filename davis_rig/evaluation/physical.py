@@ -14,9 +14,10 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
    exact). Reading + histograms, inference and post-processing run in three overlapping threads.
 4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
    ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
-   the label time, and label-time matching is exact by default (``time_tol_us = 0``: APS labels are 40 ms apart,
-   RVT's ±50 ms would give one label image the detections of its neighbours too); ``time_tol_us`` sets RVT's
-   tolerance (:data:`davis_rig.metrics.ap.TIME_TOL_US`) when wanted.
+   the label time, and label-time matching is exact by default (``time_tol_us = 0``, the right setting for these
+   per-window detections: APS labels are 40 ms apart). A tolerance > 0 (Prophesee matching,
+   :data:`davis_rig.metrics.ap.TIME_TOL_US`, meant for detections at sparse times) pools the copies stamped on
+   neighbouring label times, which count as false positives (a perfect detector: AP 1.0 at 0, ≈ 0.37 at 50 ms).
 5. **AP** (:mod:`davis_rig.metrics.ap`): Prophesee filter on labels and detections (``t > t0 + skip_first_us``
    with 0.5 s by default like RVT, diagonal ≥ 30 px, sides ≥ 10 px), one COCO image per label time, pedestrian
    COCO mAP@[.5:.95] with the class probability as ranking score.
@@ -35,7 +36,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import FormatError, SessionError
+from davis_rig.errors import FormatError, SessionError, ShapeError
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
@@ -55,9 +56,11 @@ class EvalSettings:
         seq_stride: windows between sequence starts; ``None`` = ``seq_len`` (non-overlapping).
         window_us: window duration, µs (RVT Gen1: 50 000).
         crop_origin_xy: crop origin on the sensor; ``None`` = the labels' stored origin, else centred.
-        skip_first_us: AP filter: ignore labels/detections with ``t <= t0 + skip_first_us``; ``None`` = keep all.
+        skip_first_us: ignore labels/detections with ``t <= t0 + skip_first_us`` for AP and for the SeqASR
+            sequences; ``None`` = keep all.
         time_tol_us: AP label-time matching tolerance, µs: a label image gets the detections stamped within
-            ``±time_tol_us`` of its time (0 = only its own window's; RVT's protocol: 50 000).
+            ``±time_tol_us`` of its time. 0 (default, the right setting for per-window detections) = only its own
+            window's; > 0 pools the detections of neighbouring windows, which count as false positives.
         min_diag_px, min_side_px: Prophesee box filter.
         nms_threshold: RVT NMS IoU threshold.
         strict_iou: IoU of the strict SeqASR variant.
@@ -190,6 +193,29 @@ def _open_checked(path: Path):
     return reader, np.sort(labels, order="t", kind="stable")
 
 
+def _crop_origin(path: Path, settings: EvalSettings, labels_attrs: dict) -> tuple[int, int]:
+    """The crop origin to score ``path`` with: ``settings.crop_origin_xy``, else the labels' stored one, else centred.
+
+    Raises:
+        SessionError: ``settings.crop_origin_xy`` differs from the origin the labels were made for.
+        ShapeError: the 304x240 crop at that origin does not fit the DAVIS346 sensor.
+    """
+    from davis_rig.events.crop import center_crop_origin
+
+    stored = labels_crop_origin(labels_attrs)
+    if settings.crop_origin_xy is not None and stored is not None and tuple(settings.crop_origin_xy) != stored:
+        raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
+                           f"{tuple(settings.crop_origin_xy)}; re-label with davis-label --crop-origin or drop "
+                           "the crop origin")
+    x0, y0 = (int(v) for v in (settings.crop_origin_xy or stored or center_crop_origin()))
+    (height, width), (sensor_h, sensor_w) = RVT_HW, DAVIS346_HW
+    if x0 < 0 or y0 < 0 or x0 + width > sensor_w or y0 + height > sensor_h:
+        raise ShapeError(f"{path}: crop origin ({x0}, {y0}): the {width}x{height} crop (x in [{x0}, {x0 + width}), "
+                         f"y in [{y0}, {y0 + height})) does not fit the sensor {sensor_w}x{sensor_h} (w x h); the "
+                         f"origin must lie in [0, {sensor_w - width}] x [0, {sensor_h - height}]")
+    return x0, y0
+
+
 def _event_chunks(reader, ends: np.ndarray, origin, settings: EvalSettings, timings: dict):
     """Producer: per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images, events read)``.
 
@@ -255,14 +281,15 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         ``inference``, ``postprocess``) and ``wall`` (the stages overlap, so their sum exceeds it).
 
     Raises:
-        SessionError: unreadable or empty (0-byte) session file, no events, no labels, not a DAVIS346 recording.
+        SessionError: unreadable or empty (0-byte) session file, no events, no labels, not a DAVIS346 recording,
+            ``settings.crop_origin_xy`` not the labels' crop origin.
+        ShapeError: the crop at the origin does not fit the sensor.
     """
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
     from contextlib import closing
 
     from davis_rig.evaluation.prefetch import prefetch
-    from davis_rig.events.crop import center_crop_origin
     from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
     path = Path(path)
@@ -271,12 +298,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
     try:
         labels_attrs = reader.labels_attrs()
-        stored = labels_crop_origin(labels_attrs)
-        if settings.crop_origin_xy is not None and stored is not None and tuple(settings.crop_origin_xy) != stored:
-            raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
-                               f"{tuple(settings.crop_origin_xy)}; re-label with davis-label --crop-origin or drop "
-                               "the crop origin")
-        origin = settings.crop_origin_xy or stored or center_crop_origin()
+        origin = _crop_origin(path, settings, labels_attrs)
         window_us = int(settings.window_us)
         t0 = int(reader.t_offset_us)
         t_events_end = t0 + 1000 * len(reader.ms_to_idx)
@@ -342,10 +364,13 @@ def compute_metrics(scores: SessionScores, settings: EvalSettings) -> dict:
 
     Returns:
         ``{threshold: {"AP", "AP_50", …, "seq_asr", "seq_asr_strict", "num_sequences", "num_detected",
-        "num_detected_strict", "num_images", "num_labels", "num_detections"}}``.
+        "num_detected_strict", "num_images", "num_labels", "num_detections", "windows_with_pedestrian_boxes",
+        "longest_labelled_run"}}``; ``longest_labelled_run`` is the longest run of consecutive windows with a
+        (filtered) label, in windows: with ``num_sequences == 0`` it is shorter than ``seq_len`` (SeqASR NaN).
     """
     from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
-    from davis_rig.metrics.seqasr import label_sequences, seq_asr, windows_detected, windows_with_labels
+    from davis_rig.metrics.seqasr import (label_sequences, longest_run, seq_asr, windows_detected,
+                                          windows_with_labels)
 
     ends = scores.window_end_us
     skip = None if settings.skip_first_us is None else scores.t0_us + int(settings.skip_first_us)
@@ -376,6 +401,7 @@ def compute_metrics(scores: SessionScores, settings: EvalSettings) -> dict:
             "num_detected": paper.num_detected, "num_detected_strict": strict.num_detected,
             "num_images": len(gts), "num_labels": int(len(labels)), "num_detections": int(sum(len(d) for d in dts)),
             "windows_with_pedestrian_boxes": int(windows_detected(dets, mode="paper").sum()),
+            "longest_labelled_run": longest_run(labelled),
         }
     return results
 
@@ -402,6 +428,8 @@ def evaluate_sessions(
 
     Raises:
         SessionError, ModelFormatError, MissingDependencyError: see :func:`score_session` and the runner.
+        ShapeError: the crop at a recording's origin does not fit the sensor. Every session, its crop origin and
+            the model are checked before the first recording is scored.
     """
     from davis_rig.models import default_detector_path
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
@@ -411,9 +439,12 @@ def evaluate_sessions(
         raise ValueError("evaluate_sessions: no session given")
     if names is not None and len(names) != len(paths):
         raise ValueError(f"names: {len(names)} names for {len(paths)} recordings")
-    for p in paths:  # validate every file before the (slow) scoring starts
+    for p in paths:  # validate every file and its crop origin before the (slow) scoring starts
         reader, _ = _open_checked(p)
-        reader.close()
+        try:
+            _crop_origin(p, settings, reader.labels_attrs())
+        finally:
+            reader.close()
     model_path = Path(model) if model is not None else default_detector_path()
     if not model_path.is_file():
         raise FormatError(f"{model_path}: no such RVT ONNX model")

@@ -24,7 +24,8 @@ import numpy as np
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.types import PEDESTRIAN_CLASS_ID
 
-__all__ = ["SeqAsrResult", "box_iou", "label_sequences", "seq_asr", "windows_detected", "windows_with_labels"]
+__all__ = ["SeqAsrResult", "box_iou", "label_sequences", "longest_run", "seq_asr", "windows_detected",
+           "windows_with_labels"]
 
 MODES = ("paper", "strict")
 
@@ -97,6 +98,17 @@ def label_sequences(labelled, seq_len: int, stride: int | None = None) -> np.nda
         return np.zeros((0, seq_len), dtype=np.int64)
     first = np.concatenate(firsts).astype(np.int64)
     return first[:, None] + np.arange(seq_len, dtype=np.int64)[None, :]
+
+
+def longest_run(labelled) -> int:
+    """Length, in windows, of the longest run of consecutive labelled windows (0 when none is labelled).
+
+    A run shorter than ``seq_len`` gives no sequence in :func:`label_sequences`; this says how long it may be.
+    """
+    labelled = np.asarray(labelled, dtype=bool)
+    padded = np.concatenate([[False], labelled, [False]])
+    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    return int((edges[1::2] - edges[0::2]).max()) if len(edges) else 0
 
 
 def box_iou(a, b) -> np.ndarray:

@@ -104,10 +104,38 @@ def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
     (["--seq-len", "0"], "--seq-len"),
     (["--threshold", "2"], "thresholds must be in [0, 1]"),
     (["--time-tol-ms", "-1"], "--time-tol-ms must be >= 0"),
+    (["--skip-first-ms", "-1"], "--skip-first-ms must be >= 0, got -1"),
 ])
 def test_bad_arguments_exit_2(argv_tail, message, capsys):
     assert cli.main(["x.h5", *argv_tail]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_zero_sequences_warn_with_seq_len_skip_first_and_the_longest_labelled_run(sessions, tmp_path, capsys):
+    import re
+
+    _, a, _ = sessions
+    model = person_rvt(tmp_path)
+    assert cli.main([str(a), "--model", str(model), "--threshold", "0.25", "--seq-len", "100000", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "| SeqASR ↑ | 0.25 | n/a |" in captured.out
+    found = re.search(r"davis-eval: warning: a: SeqASR n/a \(0 sequences\): the longest run of consecutive labelled "
+                      r"50 ms windows left after --skip-first-ms 500 and the box size filter is (\d+) windows, "
+                      r"shorter than --seq-len 100000; lower --seq-len \(<= (\d+)\) or --skip-first-ms", captured.err)
+    assert found, captured.err
+    longest = int(found.group(1))
+    assert longest == int(found.group(2)) and longest >= 5  # --seq-len 5 gives sequences on this recording
+    assert cli.main([str(a), "--model", str(model), "--threshold", "0.25", "--seq-len", str(longest),
+                     "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "warning" not in captured.err and "| SeqASR ↑ | 0.25 | 0.0% |" in captured.out
+
+
+def test_skip_first_ms_help_names_ap_and_seqasr_and_tolerance_help_recommends_zero():
+    text = " ".join(cli.build_parser().format_help().split())
+    assert "for AP and for the SeqASR sequences" in text
+    assert "default 0, the right setting here" in text and "pools the detections of neighbouring windows" in text
+    assert "RVT protocol: 50" not in text and "RVT's tolerance" not in text
 
 
 def test_bad_inputs_exit_nonzero_with_a_message(sessions, tmp_path, capsys):

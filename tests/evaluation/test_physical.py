@@ -55,6 +55,15 @@ def test_perfect_detector_ap_one_seqasr_zero(labelled, tmp_path):
     assert metrics[0.25]["num_sequences"] == 5 and metrics[0.25]["num_detected"] == 5
 
 
+def test_perfect_detector_ap_is_one_at_tolerance_zero_and_a_tolerance_pools_neighbouring_windows(labelled, tmp_path):
+    model = person_rvt(tmp_path)
+    exact, _ = evaluate(labelled, model, EvalSettings(seq_len=5, thresholds=(0.25,), time_tol_us=0))
+    assert exact[0.25]["AP"] == 1.0 and exact[0.25]["num_detections"] == exact[0.25]["num_labels"] == 36
+    # 50 ms pools the copies of the neighbouring windows' detections (stamped on their label times): false positives
+    pooled, _ = evaluate(labelled, model, EvalSettings(seq_len=5, thresholds=(0.25,), time_tol_us=50_000))
+    assert pooled[0.25]["AP"] < 0.5 and pooled[0.25]["num_detections"] > exact[0.25]["num_detections"]
+
+
 def test_no_detections_ap_zero_seqasr_one(labelled, tmp_path):
     metrics, _ = evaluate(labelled, person_rvt(tmp_path, score=0.0))
     for m in metrics.values():
@@ -170,6 +179,35 @@ def test_bad_inputs_raise_before_scoring_and_leave_files_untouched(labelled, tmp
         EvalSettings(thresholds=(1.5,))
     with pytest.raises(SessionError, match=r"crop origin \(21, 10\), not \(0, 0\)"):
         evaluate_sessions([labelled], person_rvt(tmp_path), EvalSettings(crop_origin_xy=(0, 0)))
+
+
+def test_crop_origin_conflict_and_bounds_are_checked_for_every_session_before_any_scoring(labelled, tmp_path,
+                                                                                           monkeypatch):
+    import h5py
+
+    from davis_rig.errors import ShapeError
+    from davis_rig.evaluation import physical
+
+    scored = []
+    monkeypatch.setattr(physical, "score_session", lambda path, *a, **k: scored.append(path))
+    other, outside = tmp_path / "other_origin.h5", tmp_path / "outside.h5"
+    for path, origin in ((other, (0, 0)), (outside, (100, 10))):
+        path.write_bytes(labelled.read_bytes())
+        with h5py.File(path, "r+") as f:
+            f["labels"].attrs["crop_origin_x"], f["labels"].attrs["crop_origin_y"] = origin
+    model = person_rvt(tmp_path)
+    with pytest.raises(SessionError, match=r"other_origin.h5: the labels were made for crop origin \(0, 0\), not "
+                                           r"\(21, 10\)"):
+        evaluate_sessions([labelled, other], model, EvalSettings(seq_len=5, crop_origin_xy=(21, 10)))
+    with pytest.raises(ShapeError, match=r"outside.h5: crop origin \(100, 10\): .* does not fit the sensor 346x260"):
+        evaluate_sessions([labelled, outside], model, SETTINGS)
+    unset = tmp_path / "no_stored_origin.h5"
+    unset.write_bytes(labelled.read_bytes())
+    with h5py.File(unset, "r+") as f:
+        del f["labels"].attrs["crop_origin_x"], f["labels"].attrs["crop_origin_y"]
+    with pytest.raises(ShapeError, match=r"no_stored_origin.h5: crop origin \(50, 0\)"):
+        evaluate_sessions([unset, unset], model, EvalSettings(seq_len=5, crop_origin_xy=(50, 0)))
+    assert scored == []
 
 
 def test_empty_labels_are_refused(tmp_path):

@@ -87,3 +87,11 @@ def test_seqasr_never_decreases_with_the_threshold():
 def test_box_iou_known_values():
     iou = box_iou([[0, 0, 10, 10]], [[0, 0, 10, 10], [5, 0, 15, 10], [20, 20, 30, 30], [0, 0, 0, 0]])
     assert iou.tolist() == [[1.0, pytest.approx(1 / 3), 0.0, 0.0]]
+
+
+def test_longest_run_is_the_longest_stretch_of_labelled_windows():
+    from davis_rig.metrics.seqasr import longest_run
+
+    labelled = np.array([1, 1, 0, 1, 1, 1, 0, 1], bool)
+    assert longest_run(labelled) == 3 and len(label_sequences(labelled, 4)) == 0
+    assert longest_run(np.zeros(4, bool)) == 0 and longest_run(np.zeros(0, bool)) == 0

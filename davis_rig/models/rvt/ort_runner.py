@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatError, ShapeError
-from davis_rig.events.histogram import WINDOW_US, stacked_histograms
+from davis_rig.events.histogram import NUM_BINS, WINDOW_US, stacked_histograms
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.postprocess import postprocess
 from davis_rig.types import RVT_HW
@@ -31,6 +31,7 @@ _INPUT_NAME = "histogram"
 _OUTPUT_NAME = "detections"
 _STATE_NAMES = tuple(f"{kind}{stage}" for stage in range(1, 5) for kind in ("h", "c"))
 _STATE_OUT_NAMES = tuple(f"{name}_out" for name in _STATE_NAMES)
+_INPUT_CHANNELS = 2 * NUM_BINS
 
 #: One recurrent state: 4 × (h, c), float32 numpy arrays [B, C_s, H_s, W_s].
 States = list[tuple[np.ndarray, np.ndarray]]
@@ -105,6 +106,12 @@ def _read_signature(session, path: Path) -> GraphSignature:
     expected_hist = [channels, height, width]
     if [d for d in hist_shape[1:]] != expected_hist:
         problems.append(f"histogram: expected [B, {channels}, {height}, {width}], got {inputs[_INPUT_NAME].shape}")
+    if channels != _INPUT_CHANNELS:  # what stacked_histograms makes: 2 polarities x NUM_BINS bins
+        problems.append(f"histogram: {channels} input channels, expected {_INPUT_CHANNELS} (2 polarities x "
+                        f"{NUM_BINS} time bins, the stacked histogram)")
+    if height < RVT_HW[0] or width < RVT_HW[1]:
+        problems.append(f"histogram: input {height}x{width} (h x w) is smaller than the {RVT_HW[0]}x{RVT_HW[1]} "
+                        "event frame (RVT pads it up, e.g. to 256x320)")
     strides = (4, 8, 16, 32)
     state_channels, state_hw = [], []
     for stage, stride in enumerate(strides, start=1):

@@ -177,15 +177,17 @@ def test_bogus_graph_raises_model_format_error(tmp_path):
         RVTOnnxRunner(_save(graph, tmp_path / "bogus.onnx"))
 
 
-def _identity_step_graph(hist_hw, state_hw_scale=1, detections_shape=("B", 1680, 7)):
+def _identity_step_graph(hist_hw, state_hw_scale=1, detections_shape=("B", 1680, 7), hist_channels=20,
+                         state_base_hw=(256, 320)):
     """A graph with the RVT step names whose shapes can be made wrong on purpose (identity-like ops)."""
     height, width = hist_hw
-    inputs = [helper.make_tensor_value_info("histogram", TensorProto.FLOAT, ["B", 20, height, width])]
+    inputs = [helper.make_tensor_value_info("histogram", TensorProto.FLOAT, ["B", hist_channels, height, width])]
     outputs = [helper.make_tensor_value_info("detections", TensorProto.FLOAT, list(detections_shape))]
     nodes = [helper.make_node("Reshape", ["histogram", "detections_shape"], ["detections"])]  # never run
     target = helper.make_tensor("detections_shape", TensorProto.INT64, [3], [0, *detections_shape[1:]])
     for stage, (stride, channels) in enumerate(zip((4, 8, 16, 32), (8, 8, 16, 32)), start=1):
-        shape = ["B", channels, 256 // stride * state_hw_scale, 320 // stride * state_hw_scale]
+        state_h, state_w = (size // stride * state_hw_scale for size in state_base_hw)
+        shape = ["B", channels, state_h, state_w]
         for kind in ("h", "c"):
             inputs.append(helper.make_tensor_value_info(f"{kind}{stage}", TensorProto.FLOAT, shape))
             outputs.append(helper.make_tensor_value_info(f"{kind}{stage}_out", TensorProto.FLOAT, shape))
@@ -207,6 +209,17 @@ def test_wrong_shapes_raise_model_format_error(tmp_path):
     bad_meta = _save(_identity_step_graph((256, 320)), tmp_path / "bad_meta.onnx", {"config": config})
     with pytest.raises(ModelFormatError, match=r"h1: expected \[B, 16, 64, 80\]"):
         RVTOnnxRunner(bad_meta)
+
+
+def test_self_consistent_graph_with_wrong_channels_or_too_small_input_raises_model_format_error(tmp_path):
+    # consistent states and output, so only the channel count / input size can reject them, at load (not at step)
+    channels = _save(_identity_step_graph((256, 320), hist_channels=10), tmp_path / "channels.onnx")
+    with pytest.raises(ModelFormatError, match=r"10 input channels, expected 20 \(2 polarities x 10 time bins"):
+        RVTOnnxRunner(channels)
+    small_graph = _identity_step_graph((128, 160), detections_shape=("B", 420, 7), state_base_hw=(128, 160))
+    small = _save(small_graph, tmp_path / "small.onnx")
+    with pytest.raises(ModelFormatError, match=r"input 128x160 \(h x w\) is smaller than the 240x304 event frame"):
+        RVTOnnxRunner(small)
 
 
 def test_graph_with_consistent_fake_shapes_is_accepted(tmp_path):
