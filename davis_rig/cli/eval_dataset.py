@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (train/ val/ test/)")
     parser.add_argument("--weights", default=None,
-                        help="RVT checkpoint (.safetensors, .ckpt, .pt); default: the bundled detector")
+                        help="RVT checkpoint (.safetensors, .ckpt, .pt, incl. a davis-train checkpoints/last.pt); "
+                             "default: the bundled detector")
     parser.add_argument("--split", default="test", help="split to score (default: test)")
     parser.add_argument("--threshold", type=float, nargs="+", default=[0.25], metavar="T",
                         help="SeqASR confidence threshold(s) (default: 0.25)")

@@ -21,8 +21,9 @@ examples:
   davis-make-dataset data/synth --sequences 1000 --device cuda          # same command again = resume
 
 OUT_DIR gets train/ val/ test/ sequences (event_representations_v2/stacked_histogram_dt=50_nbins=10 + labels_v2,
-Gen1 class 1 = pedestrian), generation.json (the settings; a resumed run must use the same --seed/--seconds) and
-dataset_card.json (counts, sizes, seeds). Finished sequences are skipped, so rerunning the command resumes.
+Gen1 class 1 = pedestrian), generation.json (the settings) and dataset_card.json (counts, sizes, seeds).
+Finished sequences are skipped, so rerunning the command resumes; a resumed run must use all the same settings
+(--seed, --seconds, --compression and every scene option), else it is refused and the differing keys are named.
 Splits are disjoint in body shapes (0-17 / 18-20 / 21-23), seeds and gait speeds; test sequence i is the
 held-out subset (white, black, random 60x60 pattern) x (large, middle, small) number i mod 9.
 Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file problem, 5 missing dependency.
@@ -117,8 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-make-dataset``; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.sequences < 1 or args.workers < 1 or not args.seconds >= 0.05 or (args.threads or 1) < 1:
-        print(f"{NAME}: error: need --sequences >= 1, --workers >= 1 and --seconds >= 0.05", file=sys.stderr)
+    if args.sequences < 1 or args.workers < 1 or not args.seconds >= 0.05 or (
+            args.threads is not None and args.threads < 1):
+        print(f"{NAME}: error: need --sequences >= 1, --workers >= 1, --seconds >= 0.05 and --threads >= 1 (when "
+              "given)", file=sys.stderr)
         return EXIT_USAGE
     try:
         sizes = parse_split_sizes(args.split_sizes, args.sequences)

@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from davis_rig.cli._common import EXIT_OK, run_command
+from davis_rig.cli._common import EXIT_OK, EXIT_USAGE, run_command
 from davis_rig.models.rvt.config import RVTConfig  # pure Python: keeps --help fast
 
 NAME = "davis-train"
@@ -27,7 +27,8 @@ stacked_histogram_dt=50_nbins=10 + labels_v2), e.g. a preprocessed Gen1 folder o
 RUN_DIR gets log.jsonl (train losses, validation AP/AP50), checkpoints/last.pt (full state), checkpoints/
 best.safetensors (best validation AP) and, when the run reaches --steps, export/model_fp16.safetensors and
 export/model.onnx. With --resume the saved training settings are used (only --device, --workers and the
-progress bar may change). Prints a JSON summary. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or
+progress bar may change); without it an earlier run in RUN_DIR is replaced (last.pt overwritten, log.jsonl and
+best.safetensors removed). Prints a JSON summary. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or
 checkpoint problem, 5 missing dependency.
 """
 
@@ -73,19 +74,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _train(args: argparse.Namespace) -> int:
-    from davis_rig.training.augment import AugmentConfig
-    from davis_rig.training.trainer import TrainConfig, train
+#: TrainConfig field -> the option that sets it (names the option in argument errors).
+_OPTION_OF_FIELD = {"steps": "--steps", "batch_size": "--batch", "seq_len": "--seq-len", "lr": "--lr",
+                    "ema_decay": "--ema", "val_every": "--val-every", "val_batch_size": "--val-batch",
+                    "val_max_sequences": "--val-max-sequences", "val_skip_first_us": "--val-skip-first-ms",
+                    "min_box_side_px": "--min-box-side", "ckpt_every": "--ckpt-every", "log_every": "--log-every",
+                    "num_workers": "--workers", "sampling": "--sampling"}
 
-    config = TrainConfig(
-        model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
-        precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
-        val_max_sequences=args.val_max_sequences, val_skip_first_us=int(round(args.val_skip_first_ms * 1000)),
-        min_box_side_px=args.min_box_side, ckpt_every=args.ckpt_every, log_every=args.log_every,
-        sampling=args.sampling, augment=AugmentConfig.off() if args.no_augment else AugmentConfig(),
-        stream_augment=AugmentConfig.off() if args.no_augment else AugmentConfig.rvt_stream(), seed=args.seed,
-        device=args.device,
-        num_workers=args.workers, progress=not args.no_progress)
+
+def _train(args: argparse.Namespace) -> int:
+    from davis_rig.errors import FormatError
+    from davis_rig.training.trainer import train
+
+    try:
+        config = _config(args)
+    except FormatError as exc:  # every value here comes from an option: an argument error, not a file problem
+        field_name, _, reason = str(exc).partition(": ")
+        option = _OPTION_OF_FIELD.get(field_name)
+        message = f"{option}: {reason}" if option and reason else str(exc)
+        print(f"{NAME}: error: {message}", file=sys.stderr)
+        return EXIT_USAGE
     summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
                     time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
                     export=not args.no_export)
@@ -94,6 +102,22 @@ def _train(args: argparse.Namespace) -> int:
         print(f"{NAME}: stopped at step {summary['step']}; continue with: {NAME} {args.data_dir} --out {args.out} "
               "--resume", file=sys.stderr)
     return EXIT_OK
+
+
+def _config(args: argparse.Namespace):
+    """The :class:`TrainConfig` of the options (raises its ``FormatError`` for a bad value)."""
+    from davis_rig.training.augment import AugmentConfig
+    from davis_rig.training.trainer import TrainConfig
+
+    return TrainConfig(
+        model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
+        precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
+        val_max_sequences=args.val_max_sequences, val_skip_first_us=int(round(args.val_skip_first_ms * 1000)),
+        min_box_side_px=args.min_box_side, ckpt_every=args.ckpt_every, log_every=args.log_every,
+        sampling=args.sampling, augment=AugmentConfig.off() if args.no_augment else AugmentConfig(),
+        stream_augment=AugmentConfig.off() if args.no_augment else AugmentConfig.rvt_stream(), seed=args.seed,
+        device=args.device,
+        num_workers=args.workers, progress=not args.no_progress)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     if args.chunk_steps is not None and args.chunk_steps < 1:
         print(f"{NAME}: error: --chunk-steps must be >= 1", file=sys.stderr)
+        return 2
+    if args.time_budget_min is not None and not args.time_budget_min > 0:
+        print(f"{NAME}: error: --time-budget-min must be > 0", file=sys.stderr)
         return 2
     return run_command(NAME, lambda: _train(args))
 

@@ -82,8 +82,7 @@ def render_model_card(
     lines += [f"- {k}: `{train_config.get(k)}`" for k in keys if k in train_config]
     if "augment" in train_config:
         lines.append(f"- augmentation: `{json.dumps(train_config['augment'])}`")
-    lines.append("- losses: YOLOX (SimOTA dynamic-k assignment, 5·IoU + objectness BCE + class BCE, no L1), "
-                 "truncated BPTT over chunks, states reset per chunk")
+    lines += _recipe_lines(train_config)
     lines += ["", "## Compute", ""]
     lines += [f"- {k}: {_fmt(v)}" for k, v in (compute or {}).items()] or ["- not recorded"]
     lines += ["", "## Metrics", "", "COCO mAP@[.5:.95] with the RVT/Prophesee Gen1 protocol (davis_rig.metrics.ap).", ""]
@@ -103,6 +102,26 @@ def render_model_card(
         lines += ["", "## Reproduce", "", "```"] + list(commands) + ["```"]
     lines += ["", "## Limits", "", _LIMITS, ""]
     return "\n".join(lines)
+
+
+def _recipe_lines(train_config: Mapping[str, Any]) -> list[str]:
+    """Losses, sampling and stream augmentation as the run's ``train_config`` set them (nothing assumed)."""
+    use_l1 = train_config.get("use_l1")
+    l1 = {True: " + L1", False: ", no L1"}.get(use_l1, ", L1 not recorded")
+    lines = [f"- losses: YOLOX (SimOTA dynamic-k assignment, 5·IoU + objectness BCE + class BCE{l1})"]
+    sampling = train_config.get("sampling")
+    if sampling == "mixed":
+        lines.append("- sampling: truncated BPTT over chunks; half of each batch streams whole sequences with the "
+                     "recurrent states carried from chunk to chunk (reset at each sequence start), half are random "
+                     "chunks with states reset per chunk (RVT mixed)")
+        if "stream_augment" in train_config:
+            lines.append(f"- stream augmentation (drawn once per sequence): "
+                         f"`{json.dumps(train_config['stream_augment'])}`")
+    elif sampling == "random":
+        lines.append("- sampling: truncated BPTT over random chunks, states reset per chunk")
+    else:
+        lines.append(f"- sampling: `{sampling}`" if sampling is not None else "- sampling: not recorded")
+    return lines
 
 
 def write_model_card(path: str | Path, **kwargs: Any) -> Path:

@@ -60,7 +60,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -1118,6 +1118,19 @@ def _records_from_disk(root: Path, jobs: list[SequenceJob]) -> list[dict[str, An
     return records
 
 
+def _settings_diff(stored: Mapping[str, Any], current: Mapping[str, Any],
+                   prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """``(dotted key, stored value, current value)`` of every key whose value differs (nested dicts walked)."""
+    out = []
+    for key in sorted(set(stored) | set(current), key=str):
+        old, new = stored.get(key, "<missing>"), current.get(key, "<missing>")
+        if isinstance(old, Mapping) and isinstance(new, Mapping):
+            out += _settings_diff(old, new, f"{prefix}{key}.")
+        elif old != new:
+            out.append((f"{prefix}{key}", old, new))
+    return out
+
+
 def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2.0, seed: int = 0,
                      device: str = "cpu", workers: int = 1, compression: str = "blosc-zstd",
                      config: SyntheticSceneConfig | None = None, progress: bool = False,
@@ -1169,10 +1182,12 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
             defaults = json.loads(json.dumps(dataclasses.asdict(SyntheticSceneConfig())))
             stored["config"] = {**{k: v for k, v in defaults.items() if k not in stored["config"]},
                                 **stored["config"]}
-        if stored != json.loads(json.dumps(settings)):
-            raise FormatError(f"{root}: generated with other settings ({gen_path}); use a new folder or the same "
-                              f"--seed/--seconds (stored: seed={previous.get('settings', {}).get('seed')}, "
-                              f"seconds={previous.get('settings', {}).get('duration_s')})")
+        current = json.loads(json.dumps(settings))
+        if stored != current:
+            diff = ", ".join(f"{key} (stored {old!r}, now {new!r})"
+                             for key, old, new in _settings_diff(stored, current))
+            raise FormatError(f"{root}: generated with other settings ({gen_path}); use a new folder or all the "
+                              f"same settings; differing: {diff}")
     root.mkdir(parents=True, exist_ok=True)
     with open(gen_path, "w", encoding="utf-8") as handle:
         json.dump({"settings": settings, "split_sizes": dict(split_sizes)}, handle, indent=1)

@@ -46,7 +46,7 @@ from davis_rig.training.dataset import (
 from davis_rig.training.losses import AnchorGrid, init_head_biases, yolox_loss
 from davis_rig.types import BBOX_DTYPE, RVT_HW
 
-__all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT"]
+__all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT", "read_train_checkpoint"]
 
 CHECKPOINT_FORMAT = "davis_rig-train-checkpoint/1"
 
@@ -125,6 +125,16 @@ class TrainConfig:
             raise FormatError("sampling 'mixed' needs batch_size ≥ 2 (half streaming, half random); use 'random'")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
             raise FormatError(f"ema_decay: expected in (0, 1), got {self.ema_decay}")
+        if not float(self.lr) > 0:  # also rejects NaN
+            raise FormatError(f"lr: expected > 0, got {self.lr}")
+        for name in ("val_every", "ckpt_every", "log_every", "num_workers", "val_skip_first_us"):
+            if int(getattr(self, name)) < 0:
+                raise FormatError(f"{name}: expected ≥ 0, got {getattr(self, name)}")
+        for name in ("weight_decay", "grad_clip", "min_box_side_px"):
+            if not float(getattr(self, name)) >= 0:
+                raise FormatError(f"{name}: expected ≥ 0, got {getattr(self, name)}")
+        if self.val_max_sequences is not None and int(self.val_max_sequences) < 1:
+            raise FormatError(f"val_max_sequences: expected ≥ 1 or None, got {self.val_max_sequences}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (``from_dict`` reads it back)."""
@@ -193,6 +203,34 @@ def _amp_dtype(precision: str, device: torch.device):
     if precision == "bf16" or torch.cuda.is_bf16_supported():
         return torch.bfloat16
     return torch.float16
+
+
+def _restore_scaler(scaler, state: Mapping[str, Any] | None) -> bool:
+    """Load a saved gradient-scaler state only where it applies; return whether it was loaded.
+
+    A CPU or bf16 run saves ``{}`` (disabled scaler); resuming it with fp16 on a GPU starts a fresh scaler, and an
+    fp16 state resumed without fp16 is dropped (``--device`` may change on resume).
+    """
+    if not scaler.is_enabled() or not state:
+        return False
+    scaler.load_state_dict(state)
+    return True
+
+
+def read_train_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read a :data:`CHECKPOINT_FORMAT` file (``checkpoints/last.pt``).
+
+    Raises:
+        CheckpointError: unreadable (truncated, corrupt) or not a training checkpoint; the message names ``path``.
+    """
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise CheckpointError(f"{path}: unreadable training checkpoint ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+    return state
 
 
 def _to_cxcywh(boxes: torch.Tensor) -> torch.Tensor:
@@ -482,12 +520,7 @@ class Trainer:
             CheckpointError: unreadable, another format, or another architecture.
         """
         path = Path(path)
-        try:
-            state = torch.load(path, map_location=self.device, weights_only=True)
-        except Exception as exc:  # torch raises several types for corrupt files
-            raise CheckpointError(f"{path}: unreadable training checkpoint ({type(exc).__name__}: {exc})") from exc
-        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-            raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+        state = read_train_checkpoint(path, map_location=self.device)
         saved_model = RVTConfig.from_dict(state["model_config"])
         if saved_model != self.model_config:
             raise CheckpointError(f"{path}: checkpoint is {saved_model.name} ({saved_model.to_json()}), this run "
@@ -495,7 +528,7 @@ class Trainer:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
-        self.scaler.load_state_dict(state["scaler"])
+        _restore_scaler(self.scaler, state.get("scaler"))
         if self.ema is not None and state.get("ema") is not None:
             self.ema.load_state_dict(state["ema"])
         self.aug_generator.set_state(state["aug_generator"].cpu())
@@ -593,7 +626,8 @@ class Trainer:
 
         Args:
             out_dir: default ``run_dir/export``.
-            use_best: export ``checkpoints/best.safetensors`` if it exists, else the current eval weights.
+            use_best: export ``checkpoints/best.safetensors`` if this run recorded a best validation (``best["step"]``
+                set), else the current eval weights (a stale file of an earlier run is never exported).
             onnx: also write ``model.onnx`` (one recurrent step, ``export_step_onnx``).
 
         Returns:
@@ -606,7 +640,7 @@ class Trainer:
         out_dir = Path(out_dir) if out_dir is not None else self.run_dir / "export"
         out_dir.mkdir(parents=True, exist_ok=True)
         best_path = self.run_dir / "checkpoints" / "best.safetensors"
-        if use_best and best_path.is_file():
+        if use_best and self.best.get("step") is not None and best_path.is_file():
             model = load_detector(best_path)
             source = f"best (step {self.best.get('step')})"
         else:
@@ -641,7 +675,8 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
     Args:
         data_dir, run_dir, config: see :class:`Trainer`.
         resume: continue from the last checkpoint (its training config wins over ``config`` except
-            ``device``, ``num_workers`` and ``progress``).
+            ``device``, ``num_workers`` and ``progress``). Without it, an earlier run's ``last.pt`` is overwritten
+            and its ``log.jsonl`` and ``best.safetensors`` are removed (with a warning).
         max_steps, time_budget_s: stop this call early (resumable chunks).
         export: export the final model when ``config.steps`` is reached.
 
@@ -649,20 +684,29 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
         The :meth:`Trainer.fit` summary plus ``export`` paths (as strings) when exported.
 
     Raises:
-        CheckpointError: ``resume`` without a checkpoint, or an incompatible one.
+        CheckpointError: ``resume`` without a checkpoint, or an unreadable, foreign or incompatible one.
     """
     run_dir = Path(run_dir)
     last = run_dir / "checkpoints" / "last.pt"
     if resume:
         if not last.is_file():
             raise CheckpointError(f"{last}: no checkpoint to resume from")
-        saved = torch.load(last, map_location="cpu", weights_only=True)
-        saved_cfg = TrainConfig.from_dict(saved.get("train_config", {}))
+        saved = read_train_checkpoint(last)
+        try:
+            saved_cfg = TrainConfig.from_dict(saved.get("train_config", {}))
+        except (TypeError, ValueError, FormatError) as exc:
+            raise CheckpointError(f"{last}: bad training settings in the checkpoint ({exc})") from exc
         config = replace(saved_cfg, device=config.device, num_workers=config.num_workers, progress=config.progress)
         del saved
-    elif last.is_file():
-        warnings.warn(f"{last} exists and will be overwritten (pass resume=True to continue it)", stacklevel=2)
+    else:  # a fresh run: nothing of an earlier run in RUN_DIR may be mistaken for this one's
+        stale = [p for p in (last, run_dir / "checkpoints" / "best.safetensors", run_dir / "log.jsonl") if p.is_file()]
+        if stale:
+            warnings.warn(f"{', '.join(map(str, stale))} of an earlier run will be overwritten or removed (pass "
+                          "resume=True to continue it)", stacklevel=2)
     trainer = Trainer(data_dir, run_dir, config)
+    if not resume:  # removed only once the run could start (a bad DATA_DIR keeps the earlier run intact)
+        (run_dir / "checkpoints" / "best.safetensors").unlink(missing_ok=True)
+        (run_dir / "log.jsonl").unlink(missing_ok=True)
     if resume:
         trainer.load_checkpoint(last)
     summary = trainer.fit(max_steps=max_steps, time_budget_s=time_budget_s)

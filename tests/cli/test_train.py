@@ -70,3 +70,14 @@ def test_missing_dataset_is_a_data_error(tmp_path, capsys):
                      "--no-progress"])
     assert code == 4
     assert "no such split folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "option"), [(["--lr", "-1"], "--lr"), (["--val-every", "-5"], "--val-every"),
+                                              (["--ema", "2"], "--ema"), (["--workers", "-1"], "--workers"),
+                                              (["--batch", "1"], "sampling 'mixed' needs"),
+                                              (["--time-budget-min", "0"], "")])
+def test_bad_values_are_argument_errors_not_file_errors(monkeypatch, tmp_path, capsys, argv, option):
+    monkeypatch.setattr("davis_rig.training.trainer.train", lambda *a, **k: pytest.fail("must not train"))
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"davis-train: error: {option or argv[0]}") and "Traceback" not in err

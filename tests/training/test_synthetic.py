@@ -78,6 +78,17 @@ def test_generation_resumes_and_refuses_other_settings(tiny_dataset):
         syn.generate_dataset(root, SIZES, duration_s=0.15, seed=6, compression="gzip")
 
 
+def test_refused_resume_names_every_setting_that_differs(tiny_dataset):
+    root, _ = tiny_dataset
+    with pytest.raises(FormatError) as info:
+        syn.generate_dataset(root, SIZES, duration_s=0.15, seed=5, compression="lzf",
+                             config=syn.SyntheticSceneConfig(vehicle_counts=(0, 2)))
+    message = str(info.value)
+    assert "compression (stored 'gzip', now 'lzf')" in message and "config.vehicle_counts" in message
+    assert "seed" not in message.split("differing:")[1] and "duration_s" not in message
+    assert "all the same settings" in message and "all the same settings" in " ".join(cli.EPILOG.split())
+
+
 def test_generation_is_deterministic_per_seed(tiny_dataset, model):
     root, _ = tiny_dataset
     (job,) = [j for j in syn.dataset_plan(SIZES) if j.split == "train"]
@@ -309,6 +320,8 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
+    assert cli.main([str(tmp_path), "--sequences", "4", "--threads", "0"]) == 2  # torch.set_num_threads(0) crashes
+    assert "--threads >= 1" in capsys.readouterr().err
 
 
 def test_held_out_evaluation_scores_each_subset(tiny_dataset, tmp_path):

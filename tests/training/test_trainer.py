@@ -129,3 +129,68 @@ def test_log_window_mean_skips_unlabelled_steps_without_warning():
         warnings.simplefilter("error")
         assert _finite_mean([1.0, float("nan"), 3.0]) == 2.0
         assert np.isnan(_finite_mean([float("nan"), float("nan")]))  # no "Mean of empty slice"
+
+
+def test_scaler_state_is_restored_only_into_an_enabled_scaler():
+    from davis_rig.training.trainer import _restore_scaler
+
+    class FakeScaler:  # an fp16 GPU scaler, without needing a GPU
+        def __init__(self, enabled):
+            self.enabled, self.loaded = enabled, None
+
+        def is_enabled(self):
+            return self.enabled
+
+        def load_state_dict(self, state):
+            if not state:
+                raise RuntimeError("The source state dict is empty, possibly because it was saved from a disabled "
+                                   "instance of GradScaler.")
+            self.loaded = state
+
+    gpu = FakeScaler(enabled=True)
+    assert not _restore_scaler(gpu, {}) and gpu.loaded is None  # a CPU checkpoint resumed with fp16 on a GPU
+    assert not _restore_scaler(FakeScaler(enabled=False), {"scale": 1024.0})  # fp16 state resumed on a CPU
+    assert _restore_scaler(gpu, {"scale": 1024.0}) and gpu.loaded == {"scale": 1024.0}
+
+
+def test_fresh_run_in_a_reused_run_dir_forgets_the_earlier_run(moving_boxes_dataset, tmp_path):
+    from safetensors.torch import load_file
+
+    torch.set_num_threads(2)
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "best.safetensors").write_bytes(b"weights of an earlier run")
+    (run / "log.jsonl").write_text('{"kind": "train", "step": 99}\n')
+    with pytest.warns(UserWarning, match="earlier run"):
+        summary = train(moving_boxes_dataset, run, _config(steps=1, val_every=0, val_max_sequences=1), export=False)
+    assert summary["finished"] and [r["step"] for r in _log(run)] == [1, 1]  # a new log: train + final val
+    assert summary["best"]["step"] is None or (run / "checkpoints" / "best.safetensors").stat().st_size > 100
+    # a trainer whose run recorded no best exports its own weights, never a best.safetensors left in RUN_DIR
+    trainer = Trainer(moving_boxes_dataset, run, _config(steps=1))
+    (run / "checkpoints" / "best.safetensors").write_bytes(b"weights of an earlier run")
+    paths = trainer.export(tmp_path / "export", onnx=False)
+    exported = load_file(paths["safetensors"])
+    for key, value in trainer.model.state_dict().items():
+        if value.dtype.is_floating_point:
+            assert torch.equal(exported[key].float(), value.half().float()), key
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint", "foreign"])
+def test_resume_from_a_bad_last_pt_is_a_checkpoint_error(moving_boxes_dataset, tmp_path, content):
+    last = tmp_path / "run" / "checkpoints" / "last.pt"
+    last.parent.mkdir(parents=True)
+    if content == "foreign":
+        torch.save({"model": {}, "step": 1}, last)  # a torch file of another program
+    else:
+        last.write_bytes(content)  # empty = truncated
+    with pytest.raises(CheckpointError, match=str(last).replace("\\", "\\\\")):
+        train(moving_boxes_dataset, tmp_path / "run", _config(), resume=True)
+
+
+@pytest.mark.parametrize(("field", "value"), [("lr", -1e-3), ("lr", 0.0), ("val_every", -5), ("ckpt_every", -1),
+                                              ("log_every", -1), ("num_workers", -1), ("val_max_sequences", 0)])
+def test_config_rejects_negative_rates_and_intervals(field, value):
+    from davis_rig.errors import FormatError
+
+    with pytest.raises(FormatError, match=f"^{field}: "):
+        _config(**{field: value})

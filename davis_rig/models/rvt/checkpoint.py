@@ -32,6 +32,9 @@ LIGHTNING_PREFIX = "mdl."
 FIXTURE_PREFIX = "state_dict.mdl."
 #: ``format`` written by :func:`save_safetensors` into the safetensors metadata.
 SAFETENSORS_FORMAT = "davis_rig-rvt-state-dict/1"
+#: ``format`` of davis-train's ``checkpoints/last.pt`` (``davis_rig.training.trainer.CHECKPOINT_FORMAT``): the
+#: full training state, network weights under ``"model"``.
+TRAIN_CHECKPOINT_FORMAT = "davis_rig-train-checkpoint/1"
 
 _TORCH_SUFFIXES = (".ckpt", ".pt", ".pth")
 _REPORT_MAX_LINES = 20
@@ -139,6 +142,10 @@ def _read_torch_file(path: Path, inert_unknown_globals: bool = False) -> dict[st
         ) from exc
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
+    elif isinstance(obj, Mapping) and obj.get("format") == TRAIN_CHECKPOINT_FORMAT:
+        if not isinstance(obj.get("model"), Mapping):
+            raise CheckpointError(f"{path}: {TRAIN_CHECKPOINT_FORMAT} file without model weights")
+        obj = obj["model"]  # the raw training weights (an EMA, if any, is in best.safetensors / the export)
     if not isinstance(obj, Mapping):
         raise CheckpointError(f"{path}: expected a state dict (mapping of name → tensor), got {type(obj).__name__}")
     return _strip_prefix(obj)
@@ -163,7 +170,8 @@ def read_state_dict(path: str | Path, *, inert_unknown_globals: bool = False) ->
     """Read the detector weights of a checkpoint, without the ``mdl.`` prefix.
 
     Args:
-        path: ``.ckpt`` (Lightning), ``.pt``/``.pth`` (plain state dict) or ``.safetensors`` file.
+        path: ``.ckpt`` (Lightning), ``.pt``/``.pth`` (plain state dict, or davis-train's ``checkpoints/last.pt``:
+            its raw training weights) or ``.safetensors`` file.
         inert_unknown_globals: for ``.ckpt``/``.pt``/``.pth``: instead of refusing a pickle that references
             classes or functions outside torch's weights-only allow-list (e.g. a Lightning checkpoint whose
             scheduler state holds a bound method), load it with every such global replaced by an inert
@@ -211,8 +219,8 @@ def infer_config(state_dict: Mapping[str, torch.Tensor], metadata: Mapping[str, 
     """Infer the architecture of a checkpoint.
 
     A ``config`` JSON in ``metadata`` wins. Otherwise the shapes give embed_dim, stage dims, input channels,
-    classes and FPN depth, and the result must equal one of the presets (T/S/B/mini), which fix ``dim_head``
-    (it has no shape of its own).
+    classes and FPN depth, and the result must equal one of the :meth:`RVTConfig.presets` (tiny, small, base,
+    mini, nano), which fix ``dim_head`` (it has no shape of its own).
 
     Args:
         state_dict: weights without the ``mdl.`` prefix.
@@ -308,7 +316,7 @@ def load_detector(
     Args:
         path: ``.ckpt`` / ``.pt`` / ``.pth`` / ``.safetensors`` (see :func:`read_state_dict`).
         config: the architecture; default: the metadata ``config`` if present, else inferred from the
-            shapes (T/S/B/mini presets, see :func:`infer_config`).
+            shapes (the tiny/small/base/mini/nano presets, see :func:`infer_config`).
         inert_unknown_globals: see :func:`read_state_dict` (off: such pickles are refused).
 
     Returns:

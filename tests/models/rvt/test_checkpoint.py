@@ -157,6 +157,28 @@ def test_missing_and_unknown_files(tmp_path):
         read_state_dict(other)
 
 
+def test_train_checkpoint_last_pt_is_read_as_its_model_weights(tmp_path, mini_weights):
+    from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
+    from davis_rig.training.trainer import CHECKPOINT_FORMAT
+
+    assert TRAIN_CHECKPOINT_FORMAT == CHECKPOINT_FORMAT
+    path = tmp_path / "last.pt"  # the layout of davis-train's runs/*/checkpoints/last.pt
+    torch.save({"format": CHECKPOINT_FORMAT, "step": 3, "model_config": RVTConfig.mini().to_json(),
+                "model": dict(mini_weights), "optimizer": {"state": {}, "param_groups": [{"lr": 1e-3}]},
+                "scaler": {}, "best": {"AP": None, "step": None}}, path)
+    model = load_detector(path)
+    assert model.config.name == "RVT-mini"
+    _assert_same_weights(model, mini_weights)
+    torch.save({"format": CHECKPOINT_FORMAT, "step": 3}, path)
+    with pytest.raises(CheckpointError, match="without model weights"):
+        read_state_dict(path)
+
+
+def test_presets_named_in_the_docstrings_are_all_the_presets():
+    for name in RVTConfig.presets():
+        assert name in " ".join(infer_config.__doc__.split()) and name in load_detector.__doc__
+
+
 def test_not_a_state_dict(tmp_path):
     path = tmp_path / "list.pt"
     torch.save([torch.zeros(1)], path)
