@@ -31,6 +31,7 @@ import numpy as np
 
 from davis_rig.errors import CheckpointError, FormatError
 from davis_rig.models.rvt._torch import nn, torch
+from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 from davis_rig.training.augment import AugmentConfig, AugmentParams, apply_augment, sample_params
@@ -48,7 +49,8 @@ from davis_rig.types import BBOX_DTYPE, RVT_HW
 
 __all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT", "read_train_checkpoint"]
 
-CHECKPOINT_FORMAT = "davis_rig-train-checkpoint/1"
+#: ``format`` of ``checkpoints/last.pt`` (one string with the weights reader: ``models.rvt.checkpoint``).
+CHECKPOINT_FORMAT = TRAIN_CHECKPOINT_FORMAT
 
 
 @dataclass(frozen=True)

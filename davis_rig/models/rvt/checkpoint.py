@@ -32,8 +32,8 @@ LIGHTNING_PREFIX = "mdl."
 FIXTURE_PREFIX = "state_dict.mdl."
 #: ``format`` written by :func:`save_safetensors` into the safetensors metadata.
 SAFETENSORS_FORMAT = "davis_rig-rvt-state-dict/1"
-#: ``format`` of davis-train's ``checkpoints/last.pt`` (``davis_rig.training.trainer.CHECKPOINT_FORMAT``): the
-#: full training state, network weights under ``"model"``.
+#: ``format`` of davis-train's ``checkpoints/last.pt`` (the trainer writes this constant): the full training
+#: state, network weights under ``"model"``.
 TRAIN_CHECKPOINT_FORMAT = "davis_rig-train-checkpoint/1"
 
 _TORCH_SUFFIXES = (".ckpt", ".pt", ".pth")
