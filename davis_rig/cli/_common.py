@@ -167,6 +167,19 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def int_in(low: int, high: int) -> Callable[[str], int]:
+    """A ``type=`` validator for an integer in ``[low, high]``; the message names the interval."""
+
+    def check(text: str) -> int:
+        value = _number(text, int)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}], got {text!r}")
+        return value
+
+    check.__name__ = f"integer in [{low}, {high}]"
+    return check
+
+
 def finite_float(text: str) -> float:
     """A finite float: no NaN, no ±inf (``type=`` validator)."""
     value = _number(text, float)
