@@ -101,7 +101,7 @@ def test_refused_resume_names_every_setting_that_differs(tiny_dataset):
     message = str(info.value)
     assert "compression (stored 'gzip', now 'lzf')" in message and "config.vehicle_counts" in message
     assert "seed" not in message.split("differing:")[1] and "duration_s" not in message
-    assert "all the same settings" in message and "all the same settings" in " ".join(cli.EPILOG.split())
+    assert "all the same settings" in message and "all the same settings" in " ".join(cli.EXAMPLES.split())
 
 
 def test_generation_is_deterministic_per_seed(tiny_dataset, model):
