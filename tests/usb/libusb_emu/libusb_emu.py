@@ -1,0 +1,338 @@
+"""Test helper: an emulated libusb-1.0 below pyusb, playing ``VirtualDavis346`` cameras (``libusb_emu.c``).
+
+The C part (built here with the system C compiler, cached by source hash) owns libusb's semantics: transfer
+lifetimes, per-endpoint device threads that complete transfers, completions delivered in whichever thread handles
+events (the ring's, another ring's, or a synchronous transfer's, as libusb does), cancels racing with completions,
+late completions, and counters of misuse (use after free, double free, free or close with transfers in flight).
+The device model stays the Python :class:`~davis_rig.usb.virtual.VirtualDavis346`, reached through one ctypes
+callback and :class:`~davis_rig.usb.virtual.VirtualDavis346Backend`'s request handling, so every register, RUN flag,
+data source and fault (``Faults``: stall, timeout, disconnect, short/odd transfers, garbage, EACCES/EBUSY) is the
+same model the virtual backend serves, and tests can assert on ``dev.writes`` / ``dev.clear_halts`` either way.
+
+pyusb's ``libusb1`` backend module is loaded as a separate module instance for the emulation (same file, unmodified
+code, its own module-level library), so the real libusb-1.0 backend of the process is never replaced.
+
+Registered as module ``libusb_emu`` by ``tests/conftest.py``. Typical use::
+
+    emu = EmulatedLibusb.load()               # or the `emulated_libusb` fixture
+    dev = VirtualDavis346(source=...)
+    backend = emu.plug(dev, EmuFaults(completion_delay_us=2000))
+    with Davis346.open(backend=backend) as cam: ...
+    assert emu.misuse() == {}
+    emu.close()
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import importlib.util
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import usb.core
+
+from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+
+SOURCE = Path(__file__).with_name("libusb_emu.c")
+#: Compiler flags of the emulated library.
+CFLAGS = ("-O2", "-g", "-Wall", "-Wextra", "-shared", "-fPIC", "-pthread")
+#: Counters that are misuse of libusb's API (each must stay 0).
+MISUSE_COUNTERS = (
+    "use_after_free",
+    "unknown_transfer",
+    "double_free",
+    "free_in_flight",
+    "submit_in_flight",
+    "close_in_flight",
+    "bad_handle",
+    "dropped_completions",
+)
+LIBUSB_ERROR_NO_DEVICE = -4
+LIBUSB_ERROR_OTHER = -99
+
+# host operations (EMU_OP_* in libusb_emu.c)
+OP_PRESENT, OP_OPEN, OP_CLOSE, OP_GET_CONFIG, OP_SET_CONFIG, OP_CLAIM, OP_RELEASE = range(7)
+OP_CONTROL, OP_BULK_IN, OP_INTR_IN, OP_CLEAR_HALT = range(7, 11)
+
+HostFunction = ctypes.CFUNCTYPE(
+    ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+    ctypes.c_void_p, ctypes.c_int, ctypes.c_uint,
+)  # fmt: skip
+
+
+class EmulatorUnavailable(RuntimeError):
+    """The emulated libusb cannot be built or loaded here (the message says why; tests skip with it)."""
+
+
+@dataclass(frozen=True)
+class EmuFaults:
+    """libusb-level faults of one emulated device (device-model faults stay in ``VirtualDavis346.faults``).
+
+    Attributes:
+        completion_delay_us: a transfer the device has finished is reaped only this much later, µs (late
+            completion: a cancel in that window gets ``LIBUSB_ERROR_NOT_FOUND`` and the transfer comes back COMPLETED).
+        cancel_delay_us: a cancelled transfer comes back this much later, µs.
+        cancel_race_every: every n-th cancel races with a completion: the device gets one last look for data and
+            the transfer comes back COMPLETED with it (0 = never).
+        poll_ms: how long one device-model call may wait for data, ms (bounds how late a cancel takes effect).
+    """
+
+    completion_delay_us: int = 0
+    cancel_delay_us: int = 0
+    cancel_race_every: int = 0
+    poll_ms: int = 10
+
+
+def build_library(cache_dir: Path | None = None) -> Path:
+    """Compile ``libusb_emu.c`` into a shared library, or reuse the one already built from the same source.
+
+    Args:
+        cache_dir: where built libraries are kept (default: ``<tempdir>/davis_rig_libusb_emu``); the file name
+            carries a hash of the source, the compiler and the flags.
+
+    Returns:
+        Path of the shared library.
+
+    Raises:
+        EmulatorUnavailable: no C compiler, or the build failed (with the compiler's message).
+    """
+    compiler = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc") or shutil.which("clang")
+    if compiler is None:
+        raise EmulatorUnavailable("no C compiler (cc/gcc/clang) to build the emulated libusb-1.0")
+    source = SOURCE.read_bytes()
+    digest = hashlib.sha256(source + compiler.encode() + " ".join(CFLAGS).encode()).hexdigest()[:16]
+    cache_dir = Path(cache_dir or Path(tempfile.gettempdir()) / "davis_rig_libusb_emu")
+    target = cache_dir / f"libusb-1.0-emu-{digest}.so"
+    if target.exists():
+        return target
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    partial = cache_dir / f".{target.name}.{os.getpid()}.{threading.get_ident()}"
+    result = subprocess.run([compiler, *CFLAGS, "-o", str(partial), str(SOURCE)], capture_output=True, text=True)
+    if result.returncode != 0:
+        partial.unlink(missing_ok=True)
+        raise EmulatorUnavailable(f"building the emulated libusb-1.0 with {compiler} failed: {result.stderr.strip()}")
+    os.replace(partial, target)  # atomic: a concurrent build of the same source writes the same bytes
+    return target
+
+
+def _fresh_libusb1_module():
+    """pyusb's ``usb.backend.libusb1`` executed as a separate module object (its own cached library and context)."""
+    import usb.backend.libusb1 as installed
+
+    spec = importlib.util.spec_from_file_location("_davis_rig_emulated_libusb1", installed.__file__)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _error_code(exc: usb.core.USBError) -> int:
+    code = getattr(exc, "backend_error_code", None)
+    return int(code) if isinstance(code, int) and code < 0 else LIBUSB_ERROR_OTHER
+
+
+class EmulatedLibusb:
+    """The emulated libusb-1.0, loaded once per process; :meth:`plug` cameras into it.
+
+    Use :meth:`load`. Only one instance at a time drives the library (it has one host callback).
+
+    Attributes:
+        path: the shared library.
+        host_errors: exceptions raised by the device model other than USB errors (each is a test failure: the
+            callback answered ``LIBUSB_ERROR_OTHER``).
+    """
+
+    _lock = threading.Lock()
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        lib = ctypes.CDLL(str(self.path))
+        lib.emu_set_host.argtypes = [HostFunction]
+        lib.emu_set_host.restype = None
+        lib.emu_add_device.argtypes = [ctypes.c_int] * 6
+        lib.emu_add_device.restype = ctypes.c_int
+        lib.emu_set_faults.argtypes = [ctypes.c_int, ctypes.c_long, ctypes.c_long, ctypes.c_int, ctypes.c_int]
+        lib.emu_set_faults.restype = ctypes.c_int
+        lib.emu_unplug.argtypes = [ctypes.c_int]
+        lib.emu_unplug.restype = None
+        lib.emu_remove_all.argtypes = []
+        lib.emu_remove_all.restype = ctypes.c_int
+        lib.emu_in_flight.argtypes = []
+        lib.emu_in_flight.restype = ctypes.c_int
+        lib.emu_counter_count.restype = ctypes.c_int
+        lib.emu_counter_name.argtypes = [ctypes.c_int]
+        lib.emu_counter_name.restype = ctypes.c_char_p
+        lib.emu_counter.argtypes = [ctypes.c_int]
+        lib.emu_counter.restype = ctypes.c_longlong
+        lib.emu_reset_counters.restype = None
+        lib.emu_set_sync_event_handling.argtypes = [ctypes.c_int]
+        lib.emu_set_sync_event_handling.restype = None
+        self._lib = lib
+        self._names = [lib.emu_counter_name(i).decode() for i in range(lib.emu_counter_count())]
+        self._host = HostFunction(self._request)  # kept alive while the library may call it
+        self._devices: dict[int, VirtualDavis346] = {}
+        self._models: dict[int, VirtualDavis346Backend] = {}
+        self._handles: dict[int, object] = {}
+        self.host_errors: list[BaseException] = []
+        self._libusb1 = _fresh_libusb1_module()
+        self._backend = None
+        lib.emu_set_host(self._host)
+        lib.emu_reset_counters()
+
+    @classmethod
+    def load(cls, cache_dir: Path | None = None) -> "EmulatedLibusb":
+        """Build (or reuse) and load the library.
+
+        Raises:
+            EmulatorUnavailable: it cannot be built or pyusb cannot load it.
+        """
+        instance = cls(build_library(cache_dir))
+        instance.backend()
+        return instance
+
+    def backend(self):
+        """pyusb's libusb1 backend (``_LibUSB``) on the emulated library."""
+        if self._backend is None:
+            self._backend = self._libusb1.get_backend(find_library=lambda _name: str(self.path))
+            if self._backend is None:
+                raise EmulatorUnavailable(f"pyusb's libusb1 backend could not load {self.path}")
+        return self._backend
+
+    # --- devices ------------------------------------------------------------------------------------
+    def plug(self, device: VirtualDavis346, faults: EmuFaults = EmuFaults()):
+        """Plug a camera model in; returns the pyusb backend to pass as ``backend=``.
+
+        Args:
+            device: the device model (registers, data source, device faults).
+            faults: libusb-level faults of this device.
+        """
+        descriptor = device.device_descriptor()
+        number = self._lib.emu_add_device(
+            descriptor.idVendor, descriptor.idProduct, descriptor.bcdDevice, descriptor.bus, descriptor.address,
+            descriptor.iSerialNumber,
+        )  # fmt: skip
+        if number < 0:
+            raise RuntimeError("the emulated libusb has no device numbers left in this process")
+        self._devices[number] = device
+        self._models[number] = VirtualDavis346Backend(device)
+        self.set_faults(device, faults)
+        return self.backend()
+
+    def _number(self, device: VirtualDavis346) -> int:
+        return next(n for n, d in self._devices.items() if d is device)
+
+    def set_faults(self, device: VirtualDavis346, faults: EmuFaults) -> None:
+        """Change the libusb-level faults of a plugged camera (takes effect for the next transfers)."""
+        self._lib.emu_set_faults(
+            self._number(device), faults.completion_delay_us, faults.cancel_delay_us, faults.cancel_race_every,
+            faults.poll_ms,
+        )  # fmt: skip
+
+    def unplug(self, device: VirtualDavis346) -> None:
+        """Pull the cable now: the model answers ENODEV, queued transfers come back ``NO_DEVICE``."""
+        device.unplug()
+        self._lib.emu_unplug(self._number(device))
+
+    def set_sync_event_handling(self, enabled: bool) -> None:
+        """Whether synchronous transfers reap other transfers' completions when the event lock is free (libusb
+        does; on by default)."""
+        self._lib.emu_set_sync_event_handling(int(bool(enabled)))
+
+    # --- observation --------------------------------------------------------------------------------
+    def counters(self) -> dict[str, int]:
+        """Every counter of the emulation (misuse, submissions, cancels, callbacks, ...)."""
+        return {name: int(self._lib.emu_counter(i)) for i, name in enumerate(self._names)}
+
+    def misuse(self) -> dict[str, int]:
+        """The misuse counters that are not zero (``{}`` when the API was used correctly)."""
+        counters = self.counters()
+        return {name: counters[name] for name in MISUSE_COUNTERS if counters[name]}
+
+    @property
+    def in_flight(self) -> int:
+        """Transfers submitted and not yet reaped."""
+        return int(self._lib.emu_in_flight())
+
+    def reset_counters(self) -> None:
+        self._lib.emu_reset_counters()
+
+    def remove_devices(self) -> int:
+        """Unplug every camera and stop the device threads; returns the transfers left in flight."""
+        left = int(self._lib.emu_remove_all())
+        self._devices.clear()
+        self._models.clear()
+        self._handles.clear()
+        return left
+
+    def close(self) -> None:
+        """Remove the cameras and detach the host callback (the library stays loaded in the process)."""
+        self.remove_devices()
+        self._lib.emu_set_sync_event_handling(1)
+
+    # --- the host callback (any thread: device threads, event handlers, the caller's) -----------------
+    def _request(self, number, op, a, b, c, d, buffer, length, timeout_ms):
+        model = self._models.get(number)
+        if model is None:
+            return LIBUSB_ERROR_NO_DEVICE
+        device = model.devices[0]
+        try:
+            if op == OP_PRESENT:
+                return 0 if device.unplugged else 1
+            if op == OP_OPEN:
+                self._handles[a] = model.open_device(device)
+                return 0
+            handle = self._handles.get(a)
+            if handle is None:
+                return LIBUSB_ERROR_NO_DEVICE
+            if op == OP_CLOSE:
+                model.close_device(self._handles.pop(a))
+                return 0
+            if op == OP_GET_CONFIG:
+                return model.get_configuration(handle)
+            if op == OP_SET_CONFIG:
+                model.set_configuration(handle, b)
+                return 0
+            if op == OP_CLAIM:
+                model.claim_interface(handle, b)
+                return 0
+            if op == OP_RELEASE:
+                model.release_interface(handle, b)
+                return 0
+            if op == OP_CLEAR_HALT:
+                model.clear_halt(handle, b)
+                return 0
+            data = (ctypes.c_ubyte * length).from_address(buffer) if length > 0 else (ctypes.c_ubyte * 0)()
+            if op == OP_CONTROL:
+                return int(model.ctrl_transfer(handle, b & 0xFF, b >> 8, c, d, data, timeout_ms))
+            if op == OP_BULK_IN:
+                return int(model.bulk_read(handle, b, 0, data, timeout_ms))
+            if op == OP_INTR_IN:
+                return int(model.intr_read(handle, b, 0, data, timeout_ms))
+        except usb.core.USBError as exc:
+            return _error_code(exc)
+        except BaseException as exc:  # a model bug must not unwind into C
+            self.host_errors.append(exc)
+            return LIBUSB_ERROR_OTHER
+        self.host_errors.append(ValueError(f"unknown emulator operation {op}"))
+        return LIBUSB_ERROR_OTHER
+
+
+_loaded: EmulatedLibusb | None = None
+
+
+def emulated_libusb_or_skip():
+    """The process's :class:`EmulatedLibusb` (loaded on first use), or ``pytest.skip`` with the reason."""
+    import pytest
+
+    global _loaded
+    if _loaded is None:
+        try:
+            _loaded = EmulatedLibusb.load()
+        except EmulatorUnavailable as exc:
+            pytest.skip(str(exc))
+    return _loaded
