@@ -208,6 +208,7 @@ class BulkTransferRing:
         transfer_bytes: bytes per transfer (a multiple of the endpoint's packet size).
         describe: device name for messages.
         transfer_type: ``LIBUSB_TRANSFER_TYPE_BULK`` or ``LIBUSB_TRANSFER_TYPE_INTERRUPT``.
+        thread_name: name of the ring's thread.
     """
 
     def __init__(
@@ -222,6 +223,7 @@ class BulkTransferRing:
         transfer_bytes: int = DEFAULT_TRANSFER_BYTES,
         describe: str = "DAVIS",
         transfer_type: int = LIBUSB_TRANSFER_TYPE_BULK,
+        thread_name: str = "davis-usb-ring",
     ):
         if transfers < 1:
             raise ValueError(f"transfers must be >= 1, got {transfers}")
@@ -238,6 +240,7 @@ class BulkTransferRing:
         self.transfer_bytes = int(transfer_bytes)
         self.transfer_type = int(transfer_type)
         self._describe = describe
+        self._thread_name = thread_name
         self._kind = "bulk" if transfer_type == LIBUSB_TRANSFER_TYPE_BULK else "interrupt"
         self.stats = RingStats()
         self._c_callback = TransferCallback(self._completed)  # kept alive as long as the ring
@@ -271,7 +274,7 @@ class BulkTransferRing:
                 self._stopping = True
             self._drain_and_free()  # no thread yet: the caller is the owner
             raise
-        self._thread = threading.Thread(target=self._run, name="davis-usb-ring", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
         self._thread.start()
         return self
 

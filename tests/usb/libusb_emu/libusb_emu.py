@@ -32,11 +32,15 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
 import usb.core
 
+from davis_rig.usb.sources import DataSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
 SOURCE = Path(__file__).with_name("libusb_emu.c")
@@ -325,10 +329,8 @@ class EmulatedLibusb:
 _loaded: EmulatedLibusb | None = None
 
 
-def emulated_libusb_or_skip():
+def emulated_libusb_or_skip() -> EmulatedLibusb:
     """The process's :class:`EmulatedLibusb` (loaded on first use), or ``pytest.skip`` with the reason."""
-    import pytest
-
     global _loaded
     if _loaded is None:
         try:
@@ -336,3 +338,173 @@ def emulated_libusb_or_skip():
         except EmulatorUnavailable as exc:
             pytest.skip(str(exc))
     return _loaded
+
+
+class UsbBackends:
+    """What the ``usb_backend`` fixture gives a test: ``plug(device)`` → a pyusb backend serving that camera model.
+
+    Attributes:
+        kind: ``"virtual"`` (:class:`VirtualDavis346Backend`) or ``"libusb-emu"`` (pyusb's libusb1 backend on the
+            emulated libusb-1.0).
+        emu: the :class:`EmulatedLibusb` (``None`` for ``"virtual"``).
+    """
+
+    def __init__(self, kind: str, emu: EmulatedLibusb | None):
+        self.kind = kind
+        self.emu = emu
+        self.left_in_flight = 0
+
+    def plug(self, device: VirtualDavis346, faults: EmuFaults = EmuFaults()):
+        """A backend with only ``device`` on its bus (cameras plugged before are removed; ``faults`` apply to the
+        emulated libusb only)."""
+        if self.emu is None:
+            return VirtualDavis346Backend(device)
+        self.left_in_flight += self.emu.remove_devices()
+        return self.emu.plug(device, faults)
+
+
+@pytest.fixture(params=["virtual", "libusb-emu"])
+def usb_backend(request):
+    """Fixture (import it into a test module): the test runs on the virtual backend and on the emulated libusb-1.0;
+    on the latter it fails if libusb's API was misused or transfers were left in flight."""
+    if request.param == "virtual":
+        yield UsbBackends("virtual", None)
+        return
+    emu = emulated_libusb_or_skip()
+    emu.reset_counters()
+    errors_before = len(emu.host_errors)
+    backends = UsbBackends("libusb-emu", emu)
+    yield backends
+    left = backends.left_in_flight + emu.remove_devices()
+    assert emu.host_errors[errors_before:] == [], "the device model raised inside the emulated libusb"
+    assert emu.misuse() == {}, f"libusb API misuse: {emu.misuse()}"
+    assert left == 0, f"{left} transfers were still in flight after the test"
+
+
+# --- start/read/stop stress (tests/usb/test_libusb_emulation.py, tools/usb_stop_stress.py) ---------------------------
+class EndlessSource(DataSource):
+    """A device data source that never runs dry: the same transfer again and again, one per ``interval_us`` of
+    device streaming time (0 = all at once).
+
+    Args:
+        transfer: the bytes of every device transfer.
+        interval_us: device time between two transfers, µs.
+    """
+
+    def __init__(self, transfer: bytes, interval_us: float = 0.0):
+        super().__init__()
+        self._transfer = bytes(transfer)
+        self._interval_us = float(interval_us)
+        self._served = 0
+
+    def peek_release_us(self) -> float:
+        return self._served * self._interval_us
+
+    def pop(self) -> bytes:
+        self._served += 1
+        return self._transfer
+
+    def __len__(self) -> int:
+        return 1
+
+
+#: One 8 KiB device transfer of DVS events (timestamp word, row, column+polarity words) for the stress runs.
+STRESS_TRANSFER = bytes.fromhex("64800a101430") * 1365 + bytes.fromhex("6480")
+#: Device time between two stress transfers, µs: 8 KiB per 250 µs = 33 MB/s, about the DAVIS346's peak data rate.
+STRESS_INTERVAL_US = 250.0
+
+
+@dataclass
+class StressResult:
+    """What :func:`start_stop_cycles` saw.
+
+    Attributes:
+        cycles: start/read/stop cycles run.
+        exceptions: ``"Type: message"`` → how many cycles raised it.
+        misuse: the emulation's misuse counters that are not zero.
+        counters: every counter of the emulation after the run.
+        in_flight_after: transfers still in flight after the camera was closed.
+        bytes: bytes the consumer received.
+        seconds: wall-clock time of the cycles, s.
+    """
+
+    cycles: int
+    exceptions: Counter
+    misuse: dict
+    counters: dict
+    in_flight_after: int
+    bytes: int
+    seconds: float
+
+    @property
+    def failed_cycles(self) -> int:
+        return sum(self.exceptions.values())
+
+
+def start_stop_cycles(
+    emu: EmulatedLibusb,
+    cycles: int,
+    *,
+    level: str = "camera",
+    faults: EmuFaults = EmuFaults(),
+    reads_per_cycle: int = 3,
+) -> StressResult:
+    """Run ``cycles`` start / read / stop cycles on one emulated camera with data flowing, counting what goes wrong.
+
+    Args:
+        emu: the emulated libusb (counters are reset first).
+        cycles: number of cycles.
+        level: ``"camera"``: ``Davis346.start()`` / ``read()`` / ``stop()`` (the stop sequence runs before the ring
+            stops, as libcaer does); ``"ring"``: ``RingReader.start()`` / ``get()`` / ``stop()`` on a device that keeps
+            streaming, so transfers complete with data while the ring stops.
+        faults: libusb-level faults of the device.
+        reads_per_cycle: transfers (ring) or chunks (camera) read before each stop.
+    """
+    from davis_rig.device.camera import Davis346
+    from davis_rig.device.reader import RingReader
+    from davis_rig.protocol.config import Dvs, Module, Mux, Usb
+    from davis_rig.usb.transport import UsbTransport
+
+    if level not in ("camera", "ring"):
+        raise ValueError(f"level must be 'camera' or 'ring', got {level!r}")
+    emu.reset_counters()
+    device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, STRESS_INTERVAL_US))
+    backend = emu.plug(device, faults)
+    exceptions: Counter = Counter()
+    received = 0
+    start = time.monotonic()
+    if level == "camera":
+        with Davis346.open(backend=backend, sleep=lambda seconds: None) as camera:
+            camera.send_default_config()
+            for _ in range(cycles):
+                try:
+                    camera.start()
+                    for _ in range(reads_per_cycle):
+                        camera.read(5.0)
+                    camera.stop()
+                    while camera.read(1.0) is not None:  # what arrived while stopping
+                        pass
+                except Exception as exc:  # counted: the point of the run
+                    exceptions[f"{type(exc).__name__}: {exc}"] += 1
+                    camera.stop()
+                received += camera.stats.bytes
+    else:
+        with UsbTransport.open(backend=backend) as transport:
+            for module, param in ((Module.USB, Usb.RUN), (Module.MUX, Mux.RUN), (Module.DVS, Dvs.RUN)):
+                transport.config_write(module, param, 1)
+            for _ in range(cycles):
+                reader = RingReader(transport.async_transfers(), transport.clear_halt)
+                try:
+                    reader.start()
+                    for _ in range(reads_per_cycle):
+                        received += len(reader.get(5.0) or b"")
+                    reader.stop()
+                    while (data := reader.get(1.0)) is not None:  # what arrived while stopping
+                        received += len(data)
+                except Exception as exc:
+                    exceptions[f"{type(exc).__name__}: {exc}"] += 1
+                    reader.stop()
+    seconds = time.monotonic() - start
+    in_flight = emu.in_flight
+    emu.remove_devices()
+    return StressResult(cycles, exceptions, emu.misuse(), emu.counters(), in_flight, received, seconds)
