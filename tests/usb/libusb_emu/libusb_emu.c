@@ -222,6 +222,8 @@ static int g_handler_active;
 static int g_interrupt;
 static int g_sync_reaps = 1;
 
+static int present(struct emu_device *dev);
+
 __attribute__((constructor)) static void emu_init(void) {
     pthread_condattr_t attr;
     pthread_condattr_init(&attr);
@@ -585,6 +587,11 @@ static struct emu_endpoint *endpoint_of(struct emu_device *dev, uint8_t address,
 
 EXPORT int libusb_submit_transfer(struct libusb_transfer *transfer) {
     int rc = LIBUSB_SUCCESS;
+    pthread_mutex_lock(&g_lock);
+    struct itransfer *known = reg_lookup(transfer);
+    struct emu_handle *target = known && known->state != ST_FREED ? handle_of(transfer->dev_handle) : NULL;
+    pthread_mutex_unlock(&g_lock);
+    if (target && target->dev->used) present(target->dev); /* an unplugged device refuses submissions at once */
     pthread_mutex_lock(&g_lock);
     struct itransfer *t = reg_lookup(transfer);
     if (!t) {

@@ -371,6 +371,7 @@ def usb_backend(request):
         yield UsbBackends("virtual", None)
         return
     emu = emulated_libusb_or_skip()
+    emu.remove_devices()
     emu.reset_counters()
     errors_before = len(emu.host_errors)
     backends = UsbBackends("libusb-emu", emu)
@@ -467,6 +468,7 @@ def start_stop_cycles(
 
     if level not in ("camera", "ring"):
         raise ValueError(f"level must be 'camera' or 'ring', got {level!r}")
+    emu.remove_devices()
     emu.reset_counters()
     device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, STRESS_INTERVAL_US))
     backend = emu.plug(device, faults)
