@@ -363,11 +363,9 @@ class UsbBackends:
         return self.emu.plug(device, faults)
 
 
-@pytest.fixture(params=["virtual", "libusb-emu"])
-def usb_backend(request):
-    """Fixture (import it into a test module): the test runs on the virtual backend and on the emulated libusb-1.0;
-    on the latter it fails if libusb's API was misused or transfers were left in flight."""
-    if request.param == "virtual":
+def _backends(kind: str):
+    """Set-up and teardown of the ``usb_backend`` fixtures (a generator yielding :class:`UsbBackends`)."""
+    if kind == "virtual":
         yield UsbBackends("virtual", None)
         return
     emu = emulated_libusb_or_skip()
@@ -380,6 +378,20 @@ def usb_backend(request):
     assert emu.host_errors[errors_before:] == [], "the device model raised inside the emulated libusb"
     assert emu.misuse() == {}, f"libusb API misuse: {emu.misuse()}"
     assert left == 0, f"{left} transfers were still in flight after the test"
+
+
+@pytest.fixture(params=["virtual", "libusb-emu"])
+def usb_backend(request):
+    """Fixture (import it into a test module): the test runs on the virtual backend and on the emulated libusb-1.0;
+    on the latter it fails if libusb's API was misused or transfers were left in flight."""
+    yield from _backends(request.param)
+
+
+@pytest.fixture
+def emulated_usb_backend():
+    """Fixture: like ``usb_backend``, on the emulated libusb-1.0 only (skipped, with the reason, where it cannot be
+    built)."""
+    yield from _backends("libusb-emu")
 
 
 # --- start/read/stop stress (tests/usb/test_libusb_emulation.py, tools/usb_stop_stress.py) ---------------------------
