@@ -1,6 +1,7 @@
 """Stress the capture path's start/read/stop on an emulated libusb-1.0 with data flowing; count what goes wrong.
 
-Run: ``python tools/usb_stop_stress.py [--cycles 500] [--level camera ring] [--faults plain late race all]``
+Run: ``python tools/usb_stop_stress.py [--cycles 500] [--level camera ring] [--faults plain late race all]
+[--interval-us 250]``
 
 Each run plugs one emulated DAVIS346 (``tests/usb/libusb_emu``: a C libusb-1.0 built with the system compiler,
 below pyusb's unmodified libusb1 backend; the device model is ``VirtualDavis346`` streaming without end) and runs
@@ -52,10 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--level", nargs="+", default=["camera", "ring"], choices=["camera", "ring"])
     parser.add_argument("--faults", nargs="+", default=["plain", "late", "race", "all"],
                         choices=["plain", "late", "race", "all"])
+    parser.add_argument("--interval-us", type=float, default=None, metavar="US",
+                        help="device time between two 8 KiB device transfers, µs (default 250 = 33 MB/s; "
+                             "0 = as fast as the host takes them)")
     args = parser.parse_args(argv)
     if args.cycles < 1:
         parser.error(f"--cycles must be >= 1, got {args.cycles}")
+    if args.interval_us is not None and args.interval_us < 0:
+        parser.error(f"--interval-us must be >= 0, got {args.interval_us}")
     emu_module = load_helper()
+    interval_us = emu_module.STRESS_INTERVAL_US if args.interval_us is None else args.interval_us
     try:
         emu = emu_module.EmulatedLibusb.load()
     except emu_module.EmulatorUnavailable as exc:
@@ -63,14 +70,16 @@ def main(argv: list[str] | None = None) -> int:
         return 5
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=REPO_ROOT).stdout.strip()
-    print(f"# tools/usb_stop_stress.py --cycles {args.cycles}  {platform.node()}  {dt.date.today()}  commit {commit}")
+    print(f"# tools/usb_stop_stress.py --cycles {args.cycles} --interval-us {interval_us:g}  {platform.node()}  "
+          f"{dt.date.today()}  commit {commit or 'unknown'}")
     print(f"{'level':7s} {'faults':6s} {'cycles':>6s} {'raised':>6s} {'misuse':>6s} {'left':>4s} {'cancels':>7s} "
           f"{'races':>5s} {'sync_cb':>7s} {'MB':>7s} {'s':>6s}")
     bad = False
     sets = fault_sets(emu_module)
     for level in args.level:
         for name in args.faults:
-            result = emu_module.start_stop_cycles(emu, args.cycles, level=level, faults=sets[name])
+            result = emu_module.start_stop_cycles(emu, args.cycles, level=level, faults=sets[name],
+                                                  interval_us=interval_us)
             c = result.counters
             misuse = sum(result.misuse.values())
             print(f"{level:7s} {name:6s} {result.cycles:6d} {result.failed_cycles:6d} {misuse:6d} "

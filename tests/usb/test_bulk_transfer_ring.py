@@ -33,7 +33,13 @@ from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.transport import UsbTransport
 from davis_rig.usb.virtual import VirtualDavis346, usb_error
 
-from libusb_emu import STRESS_TRANSFER, EmuFaults, EndlessSource, usb_backend  # noqa: F401  (usb_backend: fixture)
+from libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
+    STRESS_TRANSFER,
+    EmuFaults,
+    EndlessSource,
+    emulated_usb_backend,
+    usb_backend,
+)
 
 
 class ScriptedApi:
@@ -451,9 +457,8 @@ class _SlowEventHandling:
         return self._api.handle_events(1)
 
 
-def test_callbacks_run_by_a_synchronous_transfer_keep_order_and_lose_nothing(usb_backend):
-    if usb_backend.emu is None:
-        pytest.skip("the virtual backend runs callbacks in the ring's thread only")
+def test_callbacks_run_by_a_synchronous_transfer_keep_order_and_lose_nothing(emulated_usb_backend):
+    usb_backend = emulated_usb_backend  # the virtual backend runs callbacks in the ring's thread only
     transfers = numbered(400)
     device = VirtualDavis346(source=TransferListSource(transfers))
     sink = Collector()

@@ -461,6 +461,7 @@ def start_stop_cycles(
     level: str = "camera",
     faults: EmuFaults = EmuFaults(),
     reads_per_cycle: int = 3,
+    interval_us: float = STRESS_INTERVAL_US,
 ) -> StressResult:
     """Run ``cycles`` start / read / stop cycles on one emulated camera with data flowing, counting what goes wrong.
 
@@ -472,6 +473,7 @@ def start_stop_cycles(
             streaming, so transfers complete with data while the ring stops.
         faults: libusb-level faults of the device.
         reads_per_cycle: transfers (ring) or chunks (camera) read before each stop.
+        interval_us: device time between two 8 KiB device transfers, µs (0: as fast as they are taken).
     """
     from davis_rig.device.camera import Davis346
     from davis_rig.device.reader import RingReader
@@ -482,7 +484,7 @@ def start_stop_cycles(
         raise ValueError(f"level must be 'camera' or 'ring', got {level!r}")
     emu.remove_devices()
     emu.reset_counters()
-    device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, STRESS_INTERVAL_US))
+    device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, interval_us))
     backend = emu.plug(device, faults)
     exceptions: Counter = Counter()
     received = 0
