@@ -13,8 +13,9 @@ Typical use (libcaer's client flow, PROTOCOL.md §7.3)::
 
 The camera object owns a :class:`~davis_rig.usb.transport.UsbTransport` (control + bulk), a
 :class:`~davis_rig.device.reader.RingReader` (asynchronous transfers in flight; a
-:class:`~davis_rig.device.reader.TransferReader` thread on backends without them) while started, and a fresh
-:class:`~davis_rig.protocol.decoder.StreamDecoder` per start (libcaer resets its parsers at ``dataStart``).
+:class:`~davis_rig.device.reader.TransferReader` thread on backends without them) while started, a fresh
+:class:`~davis_rig.protocol.decoder.StreamDecoder` per start (libcaer resets its parsers at ``dataStart``), and on
+FX3 boards a :class:`~davis_rig.device.debug.DebugReader` on the debug endpoint from open to close.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""A ring of asynchronous bulk transfers on 0x82: several transfers in flight, like libcaer's 8 × 8 KiB.
+"""A ring of asynchronous transfers: several in flight, like libcaer's 8 × 8 KiB bulk on 0x82 (and 4 × 64 B interrupt
+on 0x81).
 
 pyusb only exposes synchronous reads, so between two reads nothing is queued on the endpoint. libcaer instead keeps
 a ring of asynchronous transfers submitted and resubmits each one from its completion callback (PROTOCOL.md §2),
@@ -11,8 +12,9 @@ The ring only talks to an :class:`AsyncTransferApi`: the real one above, or the 
 (:class:`davis_rig.usb.virtual.VirtualAsyncTransfers`), which completes the same ctypes transfer structures
 through their C callback pointers — so every fake-device recording runs the ring's code unchanged.
 
-Completion order is submission order for one endpoint, and all callbacks run in the ring's single event thread,
-so the bytes reach ``on_data`` in stream order. Policies (libcaer's, PROTOCOL.md §2 and §9.10):
+Completion order is submission order for one endpoint, and libusb runs callbacks one at a time (in whichever thread
+holds its event lock), so the bytes reach ``on_data`` in stream order. Teardown has one owner, the ring's thread
+(see :class:`BulkTransferRing`). Policies (libcaer's, PROTOCOL.md §2 and §9.10):
 
 * a transfer that completes (or is cancelled) with ``actual_length > 0`` delivers its bytes; a completed transfer is
   resubmitted at once, before its bytes are handed on;

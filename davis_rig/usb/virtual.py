@@ -577,7 +577,8 @@ class VirtualAsyncTransfers:
     order like a host controller: :meth:`handle_events` serves the oldest transfer in flight with one
     :meth:`VirtualDavis346.bulk_read` (:meth:`~VirtualDavis346.intr_read` for interrupt transfers) into its buffer
     (waiting up to the poll timeout, faults included) and maps the outcome to a transfer status (ETIMEDOUT → still
-    in flight, EPIPE → ``STALL``, ENODEV → ``NO_DEVICE``). Cancelled transfers come back with ``CANCELLED`` and no data.
+    in flight, EPIPE → ``STALL``, ENODEV → ``NO_DEVICE``). Cancelled transfers come back with ``CANCELLED`` and no
+    data.
 
     Args:
         device: the virtual camera (its interface claimed by the caller).

@@ -90,7 +90,8 @@ def test_start_and_stop_sequences_on_the_wire_are_libcaers_imu_included(usb_back
 
 
 def test_open_default_config_start_stop_is_register_for_register_libcaers_client_flow(usb_backend):
-    """PROTOCOL.md §7.3: open → sendDefaultConfig → dataStart → dataStop, every register write in libcaer's order."""
+    """PROTOCOL.md §7.3: open → sendDefaultConfig → dataStart → dataStop, every register write in libcaer's
+    order."""
     dev = VirtualDavis346(clocks=CLOCKS, features=FEATURES)
     cam, _ = open_camera(usb_backend, dev)
     with cam:

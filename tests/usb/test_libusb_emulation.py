@@ -108,7 +108,10 @@ def test_a_cancel_of_a_completed_but_unreaped_transfer_is_not_found_and_it_comes
     t = Transfers(emu, device, EmuFaults(completion_delay_us=300_000))
     transfer = t.new()
     t.api.submit_transfer(transfer)
-    time.sleep(0.1)  # the device has answered; the completion is not reapable before 300 ms
+    deadline = time.monotonic() + 5
+    while emu.counters()["completions"] < 1:  # the device has answered; not reapable before 300 ms
+        assert time.monotonic() < deadline
+        time.sleep(0.001)
     assert t.api.cancel_transfer(transfer) == LIBUSB_ERROR_NOT_FOUND
     t.handle_until(1)
     assert [(status, data) for _, status, data, _ in t.completed] == [(LIBUSB_TRANSFER_COMPLETED, b"late data")]
@@ -126,12 +129,12 @@ def test_cancel_completes_cancelled_or_loses_the_race_to_data(emu):
     assert t.completed[0][1:3] == (LIBUSB_TRANSFER_CANCELLED, b"")
     t.close()
     racing = VirtualDavis346(source=TransferListSource([b"raced"]))
-    t = Transfers(emu, racing, EmuFaults(cancel_race_every=1), stream=False)
+    t = Transfers(emu, racing, EmuFaults(cancel_race_every=1, poll_ms=2000), stream=False)
     transfer = t.new()
     t.api.submit_transfer(transfer)
+    assert t.api.cancel_transfer(transfer) == 0  # loses the race: the device polls once more for data...
     for module, param in ((Module.USB, Usb.RUN), (Module.MUX, Mux.RUN), (Module.DVS, Dvs.RUN)):
-        t.transport.config_write(module, param, 1)
-    assert t.api.cancel_transfer(transfer) == 0
+        t.transport.config_write(module, param, 1)  # ...which now comes
     t.handle_until(1)
     assert t.completed[0][1:3] == (LIBUSB_TRANSFER_COMPLETED, b"raced")
     assert emu.counters()["cancel_races"] == 1

@@ -21,6 +21,8 @@
  *     cancellations completed after a delay, every n-th cancel losing the race against a completion (the device
  *     gets one last look for data and the transfer comes back COMPLETED with it), the device poll period;
  *     emu_unplug() for a disconnect at any moment.
+ *   - a racing cancel (every n-th, by emu_set_faults) leaves the transfer with the device for one more poll: if data
+ *     comes in that poll, the transfer comes back COMPLETED with it, as when a URB completes while being cancelled.
  *
  * It never releases a transfer's memory (freed transfers are kept, marked freed), so it can COUNT misuse instead of
  * crashing on it: a submit / cancel of a freed transfer (use after free), a double free, a free of a transfer still
@@ -389,7 +391,7 @@ static void *endpoint_main(void *arg) {
             ep->staging = staging;
             ep->staging_size = length;
         }
-        unsigned timeout = t->cancel_requested ? 1u : (unsigned)dev->poll_ms; /* a racing cancel: one last look */
+        unsigned timeout = (unsigned)dev->poll_ms; /* for a racing cancel: the device's last look for data */
         int handle_id = t->handle->id;
         t->state = ST_FILLING;
         pthread_mutex_unlock(&g_lock);
@@ -785,7 +787,8 @@ EXPORT int libusb_get_config_descriptor(void *p, uint8_t index, struct libusb_co
         d->wMaxPacketSize = dev->ep[e].type == LIBUSB_TRANSFER_TYPE_BULK ? 1024 : 64;
         d->bInterval = dev->ep[e].type == LIBUSB_TRANSFER_TYPE_BULK ? 0 : 4;
     }
-    b->altsetting = (struct libusb_interface_descriptor){9, 4, 0, 0, EMU_ENDPOINTS, 0xFF, 0, 0, 0, b->endpoints, NULL, 0};
+    b->altsetting =
+        (struct libusb_interface_descriptor){9, 4, 0, 0, EMU_ENDPOINTS, 0xFF, 0, 0, 0, b->endpoints, NULL, 0};
     b->interface = (struct libusb_interface){&b->altsetting, 1};
     b->config = (struct libusb_config_descriptor){9, 2, 9 + 9 + 7 * EMU_ENDPOINTS, 1, 1, 0, 0x80, 112,
                                                   &b->interface, NULL, 0};

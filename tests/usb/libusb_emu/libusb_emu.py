@@ -82,8 +82,8 @@ class EmuFaults:
         completion_delay_us: a transfer the device has finished is reaped only this much later, µs (late
             completion: a cancel in that window gets ``LIBUSB_ERROR_NOT_FOUND`` and the transfer comes back COMPLETED).
         cancel_delay_us: a cancelled transfer comes back this much later, µs.
-        cancel_race_every: every n-th cancel races with a completion: the device gets one last look for data and
-            the transfer comes back COMPLETED with it (0 = never).
+        cancel_race_every: every n-th cancel races with a completion: the transfer stays with the device for one
+            more poll, and if data comes in it, it comes back COMPLETED with that data (0 = never).
         poll_ms: how long one device-model call may wait for data, ms (bounds how late a cancel takes effect).
     """
 
