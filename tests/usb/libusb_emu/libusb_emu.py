@@ -329,13 +329,20 @@ class EmulatedLibusb:
 _loaded: EmulatedLibusb | None = None
 
 
+#: Set (to anything but "" or "0") where the emulation must run, e.g. in CI: then it failing to build fails the test.
+REQUIRE_VARIABLE = "DAVIS_RIG_REQUIRE_LIBUSB_EMU"
+
+
 def emulated_libusb_or_skip() -> EmulatedLibusb:
-    """The process's :class:`EmulatedLibusb` (loaded on first use), or ``pytest.skip`` with the reason."""
+    """The process's :class:`EmulatedLibusb` (loaded on first use), or ``pytest.skip`` with the reason
+    (``pytest.fail`` when :data:`REQUIRE_VARIABLE` is set)."""
     global _loaded
     if _loaded is None:
         try:
             _loaded = EmulatedLibusb.load()
         except EmulatorUnavailable as exc:
+            if os.environ.get(REQUIRE_VARIABLE, "") not in ("", "0"):
+                pytest.fail(f"{exc} ({REQUIRE_VARIABLE} is set)")
             pytest.skip(str(exc))
     return _loaded
 
