@@ -23,6 +23,9 @@ TESTS = REPO_ROOT / "tests"
 HELPER_MODULES = {
     # read a camera over the virtual DAVIS346 until drained (tests/usb, tests/device)
     "camera_reads": TESTS / "camera_reads.py",
+    # an emulated libusb-1.0 below pyusb playing VirtualDavis346 models; the `usb_backend` fixture (tests/usb,
+    # tests/device, tests/session)
+    "libusb_emu": TESTS / "usb" / "libusb_emu" / "libusb_emu.py",
     # the committed DAVIS346 test vectors and the full decode-vs-vector comparison (tests/protocol, tests/device)
     "davis346_vectors": TESTS / "davis346_vectors.py",
     # tiny ONNX graphs with known outputs, sessions recorded through the virtual camera (evaluation, labelers, cli)

@@ -82,10 +82,7 @@ def fake_backend(replay: str, fast: bool = False):
 
     device = VirtualDavis346.from_replay(replay, paced=not fast)
 
-    def exhausted() -> bool:
-        return len(device.source) == 0 and getattr(device, "_pending", None) is None
-
-    return VirtualDavis346Backend(device), exhausted
+    return VirtualDavis346Backend(device), lambda: device.drained
 
 
 def open_camera(serial: str | None, backend=None, usb_transfers: int = DEFAULT_TRANSFERS):

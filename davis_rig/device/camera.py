@@ -13,8 +13,9 @@ Typical use (libcaer's client flow, PROTOCOL.md §7.3)::
 
 The camera object owns a :class:`~davis_rig.usb.transport.UsbTransport` (control + bulk), a
 :class:`~davis_rig.device.reader.RingReader` (asynchronous transfers in flight; a
-:class:`~davis_rig.device.reader.TransferReader` thread on backends without them) while started, and a fresh
-:class:`~davis_rig.protocol.decoder.StreamDecoder` per start (libcaer resets its parsers at ``dataStart``).
+:class:`~davis_rig.device.reader.TransferReader` thread on backends without them) while started, a fresh
+:class:`~davis_rig.protocol.decoder.StreamDecoder` per start (libcaer resets its parsers at ``dataStart``), and on
+FX3 boards a :class:`~davis_rig.device.debug.DebugReader` on the debug endpoint from open to close.
 """
 
 from __future__ import annotations
@@ -36,7 +37,17 @@ from davis_rig.device.reader import (
 )
 from davis_rig.errors import DeviceDisconnectedError, DeviceError, TransportError
 from davis_rig.protocol.biases import DAVIS346_DEFAULT_BIASES, Bias, BiasEntry, bias_param, check_bias_for, decode_bias
-from davis_rig.protocol.config import DAVIS_FX3_PID, Aps, Dvs, Imu, Module, Mux, exposure_write, frame_interval_write
+from davis_rig.protocol.config import (
+    DAVIS_FX3_PID,
+    DEBUG_ENDPOINT,
+    Aps,
+    Dvs,
+    Imu,
+    Module,
+    Mux,
+    exposure_write,
+    frame_interval_write,
+)
 from davis_rig.protocol.decoder import DecodedChunk, DecoderStats, StreamDecoder
 from davis_rig.protocol.sequences import (
     DEFAULT_EXPOSURE_US,
@@ -123,7 +134,7 @@ class Davis346:
         self._exposure_us = DEFAULT_EXPOSURE_US
         self._frame_interval_us = DEFAULT_FRAME_INTERVAL_US
         self._global_shutter = info.features.aps_has_global_shutter
-        self._producers = {"dvs": True, "aps": True, "imu": False, "extinput": True}
+        self._producers = {"dvs": True, "aps": True, "imu": True, "extinput": True}  # libcaer's (and DV's) default
         self._listeners: list[Callable[[bytes], Any]] = []
         self._reader: TransferQueue | None = None
         self._debug_reader: DebugReader | None = None
@@ -165,16 +176,37 @@ class Davis346:
         except BaseException:
             transport.close()
             raise
-        return cls(transport, info, sleep=sleep, **reader_options)
+        camera = cls(transport, info, sleep=sleep, **reader_options)
+        try:
+            camera._listen_to_debug_endpoint()
+        except BaseException:
+            transport.close()
+            raise
+        return camera
+
+    def _listen_to_debug_endpoint(self) -> None:
+        """Read the FX3 debug endpoint from open to close, as libcaer does (FX2 boards have none)."""
+        if self.info.product_id != DAVIS_FX3_PID:
+            return
+        api = self.transport.async_transfers() if self._usb_transfers > 0 else None
+        self._debug_reader = DebugReader(
+            self.transport.read_debug,
+            api=api,
+            clear_halt=lambda: self.transport.clear_halt(DEBUG_ENDPOINT),
+            describe=f"DAVIS {self.info.serial}",
+        ).start()
 
     def close(self) -> None:
-        """Stop acquisition if running and release the USB device (idempotent, safe after an unplug)."""
+        """Stop acquisition if running, stop reading the debug endpoint and release the USB device (idempotent,
+        safe after an unplug)."""
         if self._closed:
             return
         try:
             self.stop()
         finally:
             self._closed = True
+            if self._debug_reader is not None:
+                self._debug_reader.stop()
             self.transport.close()
 
     def __enter__(self) -> "Davis346":
@@ -302,7 +334,8 @@ class Davis346:
         self._set_producer("aps", enabled, [(Module.APS, Aps.RUN)])
 
     def set_imu_enabled(self, enabled: bool) -> None:
-        """Enable/disable the IMU (off by default for recording; applied now if running, else at start)."""
+        """Enable/disable the IMU: accelerometer, gyroscope, temperature (on by default, like libcaer and DV; applied
+        now if running, else at start)."""
         self._set_producer(
             "imu", enabled, [(Module.IMU, Imu.RUN_ACCELEROMETER), (Module.IMU, Imu.RUN_GYROSCOPE), (Module.IMU, Imu.RUN_TEMPERATURE)]
         )
@@ -377,8 +410,6 @@ class Davis346:
                 self._steps([step])
                 if isinstance(step, ClearHalt):
                     self._reader.start()
-                    if self.info.product_id == DAVIS_FX3_PID:  # FX2 boards have no debug endpoint
-                        self._debug_reader = DebugReader(self.transport.read_debug).start()
         except BaseException:
             self._abort_start()
             raise
@@ -398,8 +429,6 @@ class Davis346:
             pass  # the device no longer answers: nothing more to switch off from here
         finally:
             self._reader.stop()
-            if self._debug_reader is not None:
-                self._debug_reader.stop()
 
     def _make_reader(self) -> TransferQueue:
         """A ring of asynchronous transfers where the backend has libusb's asynchronous API, else a read thread."""
@@ -435,8 +464,6 @@ class Davis346:
         if not self._running:
             if self._reader is not None:
                 self._reader.stop()
-            if self._debug_reader is not None:
-                self._debug_reader.stop()
             return
         self._running = False
         try:
@@ -447,12 +474,11 @@ class Davis346:
         finally:
             if self._reader is not None:
                 self._reader.stop()
-            if self._debug_reader is not None:
-                self._debug_reader.stop()
 
     @property
     def debug_messages(self) -> list[DebugMessage]:
-        """Messages from the FX3 debug endpoint (firmware error reports) since the last start, oldest first."""
+        """Messages from the FX3 debug endpoint (firmware error reports) since open, in or outside a run, oldest
+        first."""
         return self._debug_reader.messages if self._debug_reader is not None else []
 
     def add_raw_listener(self, listener: Callable[[bytes], Any]) -> None:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from davis_rig.errors import DavisRigError, DeviceDisconnectedError, DeviceError
+from davis_rig.errors import DavisRigError, DeviceDisconnectedError, DeviceError, TransportError
 from davis_rig.session.writer import SessionWriter, to_jsonable
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
@@ -115,6 +115,25 @@ def _start_or_discard(camera, writer: SessionWriter) -> None:
                 f"the camera did not start ({exc}); nothing was recorded and {writer.path} was not kept"
             ) from exc
         raise
+
+
+def _stop_and_drain(camera, writer: SessionWriter) -> None:
+    """Stop the camera, then write every transfer it read before the stop (its reader keeps them queued;
+    ``read`` returns ``None`` once the reader has ended and the queue is empty).
+
+    Raises:
+        TransportError: the stop sequence failed (the camera stopped answering); raised after the data read before
+            it has been written. ``DeviceDisconnectedError`` (unplugged while stopping) likewise.
+    """
+    try:
+        camera.stop()
+        stop_error = None
+    except TransportError as exc:
+        stop_error = exc
+    while (chunk := camera.read(POLL_TIMEOUT_S)) is not None:
+        writer.append(chunk)
+    if stop_error is not None:
+        raise stop_error
 
 
 def record_session(
@@ -221,10 +240,7 @@ def record_session(
                 if duration_s is not None and now - t_start >= duration_s:
                     stopped_by = "duration"
                     break
-            camera.stop()
-            # Transfers read before the stop are still queued: write them too.
-            while (chunk := camera.read(0)) is not None:
-                writer.append(chunk)
+            _stop_and_drain(camera, writer)
         except DeviceDisconnectedError:
             stopped_by = "disconnected"
             camera.stop()  # safe after an unplug: only stops the reader thread

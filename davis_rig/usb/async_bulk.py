@@ -1,4 +1,5 @@
-"""A ring of asynchronous bulk transfers on 0x82: several transfers in flight, like libcaer's 8 × 8 KiB.
+"""A ring of asynchronous transfers: several in flight, like libcaer's 8 × 8 KiB bulk on 0x82 (and 4 × 64 B interrupt
+on 0x81).
 
 pyusb only exposes synchronous reads, so between two reads nothing is queued on the endpoint. libcaer instead keeps
 a ring of asynchronous transfers submitted and resubmits each one from its completion callback (PROTOCOL.md §2),
@@ -11,8 +12,9 @@ The ring only talks to an :class:`AsyncTransferApi`: the real one above, or the 
 (:class:`davis_rig.usb.virtual.VirtualAsyncTransfers`), which completes the same ctypes transfer structures
 through their C callback pointers — so every fake-device recording runs the ring's code unchanged.
 
-Completion order is submission order for one endpoint, and all callbacks run in the ring's single event thread,
-so the bytes reach ``on_data`` in stream order. Policies (libcaer's, PROTOCOL.md §2 and §9.10):
+Completion order is submission order for one endpoint, and libusb runs callbacks one at a time (in whichever thread
+holds its event lock), so the bytes reach ``on_data`` in stream order. Teardown has one owner, the ring's thread
+(see :class:`BulkTransferRing`). Policies (libcaer's, PROTOCOL.md §2 and §9.10):
 
 * a transfer that completes (or is cancelled) with ``actual_length > 0`` delivers its bytes; a completed transfer is
   resubmitted at once, before its bytes are handed on;
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import ctypes
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
@@ -34,6 +37,7 @@ from davis_rig.errors import DeviceDisconnectedError, TransportError
 
 # libusb-1.0 constants (libusb.h)
 LIBUSB_TRANSFER_TYPE_BULK = 2
+LIBUSB_TRANSFER_TYPE_INTERRUPT = 3
 LIBUSB_TRANSFER_COMPLETED = 0
 LIBUSB_TRANSFER_ERROR = 1
 LIBUSB_TRANSFER_TIMED_OUT = 2
@@ -60,7 +64,9 @@ DEFAULT_TRANSFERS = 8
 #: Default bytes per transfer: 4 × libcaer's 8 KiB, so one Python callback covers more data at the peak rate.
 DEFAULT_TRANSFER_BYTES = 32 * 1024
 #: How long one event-handling call waits, ms (bounds how late a stop is noticed).
-EVENT_POLL_MS = 50
+EVENT_POLL_MS = 10
+#: How long the ring keeps trying to collect its transfers when libusb's event handling fails, s.
+DRAIN_LIMIT_S = 5.0
 
 
 class LibusbTransfer(ctypes.Structure):
@@ -182,19 +188,29 @@ class RingStats:
 
 
 class BulkTransferRing:
-    """Keep ``transfers`` bulk IN transfers of ``transfer_bytes`` in flight on one endpoint.
+    """Keep ``transfers`` bulk (or interrupt) IN transfers of ``transfer_bytes`` in flight on one endpoint.
+
+    Ownership (PROTOCOL.md §7.2: libcaer cancels, waits for every completion and frees in one thread): the ring's
+    own thread allocates nothing after :meth:`start`, and is the only one that cancels and frees. The completion
+    callback may run in any thread that handles libusb events — the ring's, or another one: libusb runs every due
+    callback in whichever thread holds its event lock, e.g. a synchronous control transfer of the caller's — so it
+    only records the completion and resubmits, under the ring's lock. A transfer counts as outstanding from its
+    submission until its callback has returned; the transfers are freed only when none is outstanding. :meth:`stop`
+    only signals and waits for the thread.
 
     Args:
         api: the asynchronous transfer API of the open device.
-        endpoint: bulk IN endpoint (0x82).
-        on_data: ``on_data(bytes)``, called in stream order from the ring's thread for every transfer that brought
-            data; it must not block for long (hand the bytes to a queue).
-        on_end: ``on_end(error)``, called once from the ring's thread when the last transfer is back (``None`` after
-            :meth:`stop`, else the error that ended the stream).
+        endpoint: IN endpoint (0x82 bulk data, 0x81 interrupt debug).
+        on_data: ``on_data(bytes)``, called in stream order for every transfer that brought data, from the thread
+            that runs the completion callback; it must not block for long (hand the bytes to a queue).
+        on_end: ``on_end(error)``, called once from the ring's thread after every transfer is back and freed
+            (``None`` after :meth:`stop`, else the error that ended the stream).
         clear_halt: ``clear_halt()`` after a stall (a synchronous control request; raises if the device is gone).
         transfers: transfers in flight.
-        transfer_bytes: bytes per transfer (a multiple of the 1024-byte packet size).
+        transfer_bytes: bytes per transfer (a multiple of the endpoint's packet size).
         describe: device name for messages.
+        transfer_type: ``LIBUSB_TRANSFER_TYPE_BULK`` or ``LIBUSB_TRANSFER_TYPE_INTERRUPT``.
+        thread_name: name of the ring's thread.
     """
 
     def __init__(
@@ -208,11 +224,15 @@ class BulkTransferRing:
         transfers: int = DEFAULT_TRANSFERS,
         transfer_bytes: int = DEFAULT_TRANSFER_BYTES,
         describe: str = "DAVIS",
+        transfer_type: int = LIBUSB_TRANSFER_TYPE_BULK,
+        thread_name: str = "davis-usb-ring",
     ):
         if transfers < 1:
             raise ValueError(f"transfers must be >= 1, got {transfers}")
         if transfer_bytes < 1:
             raise ValueError(f"transfer_bytes must be >= 1, got {transfer_bytes}")
+        if transfer_type not in (LIBUSB_TRANSFER_TYPE_BULK, LIBUSB_TRANSFER_TYPE_INTERRUPT):
+            raise ValueError(f"transfer_type must be bulk (2) or interrupt (3), got {transfer_type}")
         self._api = api
         self.endpoint = int(endpoint)
         self._on_data = on_data
@@ -220,34 +240,79 @@ class BulkTransferRing:
         self._clear_halt = clear_halt
         self.transfers = int(transfers)
         self.transfer_bytes = int(transfer_bytes)
+        self.transfer_type = int(transfer_type)
         self._describe = describe
+        self._thread_name = thread_name
+        self._kind = "bulk" if transfer_type == LIBUSB_TRANSFER_TYPE_BULK else "interrupt"
         self.stats = RingStats()
         self._c_callback = TransferCallback(self._completed)  # kept alive as long as the ring
         self._buffers = [(ctypes.c_ubyte * self.transfer_bytes)() for _ in range(self.transfers)]
         self._slots: list[Any] = []
         self._slot_of: dict[int, int] = {}
-        self._in_flight: set[int] = set()
-        self._stopping = threading.Event()
+        self._lock = threading.Lock()
+        self._outstanding: set[int] = set()  # submitted, callback not yet returned
+        self._cancelled: set[int] = set()  # cancel requested since the last submission
+        self._stopping = False
         self._stalled = False
         self._error: BaseException | None = None
+        self._started = False
         self._thread: threading.Thread | None = None
 
     # --- control ----------------------------------------------------------------------------------
     def start(self) -> "BulkTransferRing":
-        """Allocate and submit the transfers, then start the event thread.
+        """Allocate and submit the transfers, then start the ring's thread.
 
         Raises:
-            DeviceDisconnectedError / TransportError: the first submission failed (nothing is left in flight).
+            DeviceDisconnectedError / TransportError: the first submission failed (every transfer submitted before
+                it was cancelled, waited for and freed).
         """
-        if self._thread is not None:
-            raise RuntimeError("BulkTransferRing already started")
+        if self._started:
+            raise RuntimeError("BulkTransferRing already started (a ring runs once)")
+        self._started = True
+        try:
+            self._allocate_and_submit()
+        except BaseException:
+            with self._lock:
+                self._stopping = True
+            self._drain_and_free()  # no thread yet: the caller is the owner
+            raise
+        self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, join_timeout_s: float = 5.0) -> None:
+        """Ask the ring's thread to cancel the transfers in flight (their bytes are still delivered), wait for every
+        completion and free them; wait up to ``join_timeout_s`` for it to finish.
+
+        Safe from any thread, any number of times; a call from the ring's own thread (e.g. from ``on_data``) only
+        signals.
+        """
+        with self._lock:
+            self._stopping = True
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(join_timeout_s)
+
+    @property
+    def running(self) -> bool:
+        """Whether the ring's thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def in_flight(self) -> int:
+        """Transfers submitted whose completion callback has not returned yet."""
+        with self._lock:
+            return len(self._outstanding)
+
+    # --- internals (the _locked methods run with self._lock held) ----------------------------------
+    def _allocate_and_submit(self) -> None:
         for index, buffer in enumerate(self._buffers):
             transfer = self._api.alloc_transfer()
             fields = transfer.contents
             fields.dev_handle = self._api.dev_handle
             fields.flags = 0
             fields.endpoint = self.endpoint
-            fields.type = LIBUSB_TRANSFER_TYPE_BULK
+            fields.type = self.transfer_type
             fields.timeout = 0  # infinite, like libcaer: a stop cancels them
             fields.length = self.transfer_bytes
             fields.actual_length = 0
@@ -257,132 +322,154 @@ class BulkTransferRing:
             fields.num_iso_packets = 0
             self._slots.append(transfer)
             self._slot_of[ctypes.addressof(fields)] = index
-        try:
+        with self._lock:
             for index in range(self.transfers):
-                self._submit(index)
-        except BaseException:
-            self._cancel_all()
-            while self._in_flight:
-                self._api.handle_events(EVENT_POLL_MS)
-            self._free_all()
-            raise
-        self._thread = threading.Thread(target=self._run, name="davis-usb-ring", daemon=True)
-        self._thread.start()
-        return self
+                self._submit_locked(index)
 
-    def stop(self, join_timeout_s: float = 5.0) -> None:
-        """Cancel the transfers in flight (their bytes are still delivered) and wait for the event thread."""
-        self._stopping.set()
-        self._cancel_all()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(join_timeout_s)
-
-    @property
-    def running(self) -> bool:
-        """Whether the event thread is alive."""
-        return self._thread is not None and self._thread.is_alive()
-
-    @property
-    def in_flight(self) -> int:
-        """Transfers currently submitted."""
-        return len(self._in_flight)
-
-    # --- internals --------------------------------------------------------------------------------
-    def _submit(self, index: int) -> None:
+    def _submit_locked(self, index: int) -> None:
         code = self._api.submit_transfer(self._slots[index])
         if code != 0:
             raise self._submit_error(code)
-        self._in_flight.add(index)
+        self._outstanding.add(index)
+        self._cancelled.discard(index)
 
     def _submit_error(self, code: int) -> BaseException:
         if code == LIBUSB_ERROR_NO_DEVICE:
             return DeviceDisconnectedError(
-                f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} could not be submitted: "
+                f"{self._describe}: {self._kind} transfer on 0x{self.endpoint:02x} could not be submitted: "
                 "the camera was disconnected",
                 code,
             )
         return TransportError(
-            f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} could not be submitted (libusb error {code})",
+            f"{self._describe}: {self._kind} transfer on 0x{self.endpoint:02x} could not be submitted "
+            f"(libusb error {code})",
             code,
         )
 
-    def _cancel_all(self) -> None:
-        for index in list(self._in_flight):
+    def _cancel_outstanding_locked(self) -> None:
+        """Cancel every outstanding transfer not cancelled since its submission (ring thread / owner only)."""
+        for index in self._outstanding - self._cancelled:
+            self._cancelled.add(index)
             self._api.cancel_transfer(self._slots[index])  # NOT_FOUND if it just came back: harmless
 
-    def _fail(self, error: BaseException) -> None:
+    def _fail_locked(self, error: BaseException) -> None:
         if self._error is None:
             self._error = error
-        self._cancel_all()
 
     def _completed(self, transfer_pointer: Any) -> None:
-        """libusb completion callback (event thread). Exceptions must not escape into C."""
+        """libusb completion callback (any event-handling thread). Exceptions must not escape into C."""
+        index = None
+        resubmitted = False
         try:
             fields = transfer_pointer.contents
-            index = self._slot_of[ctypes.addressof(fields)]
-            self._in_flight.discard(index)
+            index = self._slot_of.get(ctypes.addressof(fields))
+            if index is None:
+                return  # not one of ours (cannot happen with a correct libusb)
             status = fields.status
             count = fields.actual_length
-            self.stats.completions += 1
             data = ctypes.string_at(fields.buffer, count) if count > 0 else None
-            if status == LIBUSB_TRANSFER_COMPLETED:
-                if not (self._stopping.is_set() or self._stalled or self._error is not None):
-                    try:
-                        self._submit(index)
-                    except (DeviceDisconnectedError, TransportError) as exc:
-                        self._fail(exc)
-                if data is None:
-                    self.stats.empty_completions += 1
-            elif status == LIBUSB_TRANSFER_STALL:
-                self._stalled = True
-                self._cancel_all()
-            elif status == LIBUSB_TRANSFER_NO_DEVICE:
-                self._fail(
-                    DeviceDisconnectedError(
-                        f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} failed: "
-                        "the camera was disconnected"
+            with self._lock:
+                self.stats.completions += 1
+                if status == LIBUSB_TRANSFER_COMPLETED:
+                    if data is None:
+                        self.stats.empty_completions += 1
+                    if not (self._stopping or self._stalled or self._error is not None):
+                        try:
+                            self._submit_locked(index)  # before the bytes are handed on, as libcaer does
+                            resubmitted = True
+                        except (DeviceDisconnectedError, TransportError) as exc:
+                            self._fail_locked(exc)
+                elif status == LIBUSB_TRANSFER_STALL:
+                    self._stalled = True
+                elif status == LIBUSB_TRANSFER_NO_DEVICE:
+                    self._fail_locked(
+                        DeviceDisconnectedError(
+                            f"{self._describe}: {self._kind} transfer on 0x{self.endpoint:02x} failed: "
+                            "the camera was disconnected"
+                        )
                     )
-                )
-            elif status != LIBUSB_TRANSFER_CANCELLED:
-                name = TRANSFER_STATUS_NAMES.get(status, f"status {status}")
-                self._fail(
-                    TransportError(f"{self._describe}: bulk transfer on 0x{self.endpoint:02x} failed ({name})")
-                )
+                elif status != LIBUSB_TRANSFER_CANCELLED:
+                    name = TRANSFER_STATUS_NAMES.get(status, f"status {status}")
+                    self._fail_locked(
+                        TransportError(
+                            f"{self._describe}: {self._kind} transfer on 0x{self.endpoint:02x} failed ({name})"
+                        )
+                    )
             if data is not None:
                 self._on_data(data)
         except BaseException as exc:  # a bug or a failing on_data: end the stream with it
-            self._fail(exc)
+            with self._lock:
+                self._fail_locked(exc)
+        finally:
+            if index is not None and not resubmitted:
+                with self._lock:
+                    self._outstanding.discard(index)
+                    self._cancelled.discard(index)
 
     def _recover_stall(self) -> None:
-        """All transfers are back after a stall: clear the halt and resubmit the ring."""
-        self._stalled = False
+        """Every transfer is back after a stall: clear the halt (no lock held: a synchronous request may run other
+        callbacks in this thread) and resubmit the ring."""
         self._clear_halt()
-        self.stats.stalls += 1
-        for index in range(self.transfers):
-            self._submit(index)
+        with self._lock:
+            self._stalled = False
+            self.stats.stalls += 1
+            if self._stopping or self._error is not None:
+                return
+            for index in range(self.transfers):
+                self._submit_locked(index)
 
     def _run(self) -> None:
+        """The ring's thread: handle events; when stopping, stalled or failed, cancel what is outstanding; once
+        nothing is outstanding, recover a stall or end."""
         try:
-            while self._in_flight:
-                self._api.handle_events(EVENT_POLL_MS)
-                if self._stopping.is_set() or self._error is not None:
-                    self._cancel_all()  # again: a callback may have resubmitted while stop() was cancelling
-                if self._stalled and not self._in_flight and not self._stopping.is_set() and self._error is None:
+            while True:
+                with self._lock:
+                    ending = self._stopping or self._error is not None
+                    if not self._outstanding:
+                        if not self._stalled or ending:
+                            break
+                        recover = True
+                    else:
+                        recover = False
+                        if ending or self._stalled:
+                            self._cancel_outstanding_locked()
+                if recover:
                     try:
                         self._recover_stall()
-                    except BaseException as exc:
-                        self._fail(exc)
-        except BaseException as exc:
-            self._fail(exc)
-            while self._in_flight:  # the callbacks must run before the buffers are freed
+                    except BaseException as exc:  # the halt could not be cleared (unplugged), or resubmission failed
+                        with self._lock:
+                            self._fail_locked(exc)
+                    continue
                 self._api.handle_events(EVENT_POLL_MS)
+        except BaseException as exc:  # handle_events itself failed
+            with self._lock:
+                self._fail_locked(exc)
         finally:
-            self._free_all()
+            self._drain_and_free()
             self._on_end(self._error)
 
-    def _free_all(self) -> None:
+    def _drain_and_free(self) -> None:
+        """Cancel what is outstanding, handle events until every callback has returned, then free the transfers.
+
+        If libusb stops handing back completions (handle_events keeps failing for :data:`DRAIN_LIMIT_S`), the
+        transfers are left allocated rather than freed while in flight.
+        """
+        deadline = None
+        while True:
+            with self._lock:
+                if not self._outstanding:
+                    break
+                self._cancel_outstanding_locked()
+            try:
+                self._api.handle_events(EVENT_POLL_MS)
+                deadline = None
+            except BaseException as exc:
+                with self._lock:
+                    self._fail_locked(exc)
+                deadline = deadline or time.monotonic() + DRAIN_LIMIT_S
+                if time.monotonic() > deadline:
+                    return  # leak, never free a transfer libusb may still complete
         for transfer in self._slots:
             self._api.free_transfer(transfer)
         self._slots.clear()
         self._slot_of.clear()
-

@@ -480,12 +480,13 @@ class UsbTransport:
         virtual_api = getattr(backend, "async_transfers", None)
         if callable(virtual_api):
             return virtual_api(handle)
-        from usb.backend import libusb1
-
-        library_path = getattr(getattr(backend, "lib", None), "_name", None)
-        if not isinstance(backend, libusb1._LibUSB) or handle is None or not library_path:
+        # pyusb's libusb1 backend (``usb.backend.libusb1._LibUSB``): the libusb-1.0 library it loaded, its context
+        lib = getattr(backend, "lib", None)
+        library_path = getattr(lib, "_name", None)
+        context = getattr(backend, "ctx", None)
+        if handle is None or not library_path or context is None or not hasattr(lib, "libusb_submit_transfer"):
             return None
-        return LibusbAsyncApi(library_path, backend.ctx.value, handle.handle.value)
+        return LibusbAsyncApi(library_path, context.value, handle.handle.value)
 
     def read_debug(self, timeout_ms: int) -> bytes | None:
         """One interrupt read on the FX3 debug endpoint 0x81 (≤ 64 bytes).

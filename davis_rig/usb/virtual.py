@@ -65,6 +65,7 @@ from davis_rig.usb.async_bulk import (
     LIBUSB_TRANSFER_ERROR,
     LIBUSB_TRANSFER_NO_DEVICE,
     LIBUSB_TRANSFER_STALL,
+    LIBUSB_TRANSFER_TYPE_INTERRUPT,
     LibusbTransfer,
 )
 from davis_rig.usb.sources import DataSource, Faults
@@ -574,9 +575,10 @@ class VirtualAsyncTransfers:
 
     Transfers are real ``LibusbTransfer`` structures completed through their C callback pointers, in submission
     order like a host controller: :meth:`handle_events` serves the oldest transfer in flight with one
-    :meth:`VirtualDavis346.bulk_read` into its buffer (waiting up to the poll timeout, faults included) and maps the
-    outcome to a transfer status (ETIMEDOUT → still in flight, EPIPE → ``STALL``, ENODEV → ``NO_DEVICE``).
-    Cancelled transfers come back with ``CANCELLED`` and no data.
+    :meth:`VirtualDavis346.bulk_read` (:meth:`~VirtualDavis346.intr_read` for interrupt transfers) into its buffer
+    (waiting up to the poll timeout, faults included) and maps the outcome to a transfer status (ETIMEDOUT → still
+    in flight, EPIPE → ``STALL``, ENODEV → ``NO_DEVICE``). Cancelled transfers come back with ``CANCELLED`` and no
+    data.
 
     Args:
         device: the virtual camera (its interface claimed by the caller).
@@ -628,7 +630,9 @@ class VirtualAsyncTransfers:
         else:
             buffer = (ctypes.c_ubyte * fields.length).from_address(fields.buffer)
             try:
-                count = self._device.bulk_read(fields.endpoint, buffer, timeout_ms)
+                interrupt = fields.type == LIBUSB_TRANSFER_TYPE_INTERRUPT
+                read = self._device.intr_read if interrupt else self._device.bulk_read
+                count = read(fields.endpoint, buffer, timeout_ms)
                 status = LIBUSB_TRANSFER_COMPLETED
             except usb.core.USBTimeoutError:
                 return 0  # nothing yet: the transfer stays in flight

@@ -1,6 +1,7 @@
 """The issue's round trip: random events and frames -> StreamEncoder -> virtual DAVIS346 -> davis-record ->
-session.h5 -> identical data; plus unplug and garbage on the real Davis346 driver over the virtual backend, and
-kill -9 / Ctrl-C of a `davis-record` subprocess."""
+session.h5 -> identical data; plus unplug and garbage on the real Davis346 driver, and kill -9 / Ctrl-C of a
+`davis-record` subprocess. The in-process recordings run twice (``usb_backend``): on the virtual backend and on
+pyusb's libusb1 backend over the emulated libusb-1.0, the code path of a real camera (transfer ring over ctypes)."""
 
 from __future__ import annotations
 
@@ -21,8 +22,9 @@ from davis_rig.session.journal import journal_path
 from davis_rig.session.record import record_session
 from davis_rig.usb.replay import ReplayHeader, ReplayWriter
 from davis_rig.usb.sources import EncodedSource, Faults, TransferListSource
-from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
+from davis_rig.usb.virtual import VirtualDavis346
 
+from libusb_emu import EmuFaults, emulated_usb_backend, usb_backend  # noqa: F401  (fixtures)
 from session_data import random_events
 
 LAYOUT = SensorLayout.davis346()
@@ -59,11 +61,11 @@ def assert_same(path, events, frames):
         assert reader.complete
 
 
-def test_encoder_virtual_camera_record_session_round_trip(tmp_path, rng):
+def test_encoder_virtual_camera_record_session_round_trip(tmp_path, rng, usb_backend):
     events, frames = scene(rng)
     # Paced: served in device real time (1.5 s), like the camera; unpaced would outrun any consumer.
     device = VirtualDavis346(source=EncodedSource(events, frames, layout=LAYOUT, paced=True))
-    with Davis346.open(backend=VirtualDavis346Backend(device)) as camera:
+    with Davis346.open(backend=usb_backend.plug(device)) as camera:
         summary = record_until(camera, tmp_path / "s.h5", len(events), len(frames), exposure_us=4000)
     assert summary.events == len(events) and summary.frames == len(frames) and summary.dropped_transfers == 0
     assert_same(tmp_path / "s.h5", events, frames)
@@ -101,13 +103,13 @@ def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
     assert again.returncode == 4 and "file exists" in again.stderr
 
 
-def test_unplug_mid_recording_keeps_the_data_before_it(tmp_path, rng):
+def test_unplug_mid_recording_keeps_the_data_before_it(tmp_path, rng, usb_backend):
     events, _ = scene(rng, n_frames=0)
     transfers = split_transfers(StreamEncoder(LAYOUT).encode(events), 4096)
     device = VirtualDavis346(source=TransferListSource(transfers),
                              faults=Faults(disconnect_after_transfers=len(transfers) // 2))
     # One transfer per read; unpaced source: a queue deep enough for the whole stream keeps it free of drops.
-    with Davis346.open(backend=VirtualDavis346Backend(device), read_bytes=4096, queue_transfers=4096) as camera:
+    with Davis346.open(backend=usb_backend.plug(device), read_bytes=4096, queue_transfers=4096) as camera:
         summary = record_session(camera, tmp_path / "s.h5", duration_s=60)
     assert summary.stopped_by == "disconnected"
     received = summary.camera_stats["bytes"]
@@ -118,12 +120,83 @@ def test_unplug_mid_recording_keeps_the_data_before_it(tmp_path, rng):
         np.testing.assert_array_equal(reader.events(), expected)
 
 
+#: libusb-level faults of the emulated camera, one recording each (the virtual backend ignores them).
+STOP_FAULTS = {
+    "prompt": EmuFaults(),
+    "late-and-racing": EmuFaults(completion_delay_us=2000, cancel_delay_us=1000, cancel_race_every=2, poll_ms=2),
+}
+
+
+def test_record_session_stopped_while_data_flows_keeps_every_byte_and_no_journal(tmp_path, rng, usb_backend):
+    """Stopped by duration mid-stream (the camera still sends): clean end, nothing lost, in order, no journal."""
+    events, _ = scene(rng, n_events=40_000, n_frames=0)
+    for run, faults in enumerate(STOP_FAULTS.values()):
+        device = VirtualDavis346(source=EncodedSource(events, layout=LAYOUT, paced=True))
+        path = tmp_path / f"s{run}.h5"
+        with Davis346.open(backend=usb_backend.plug(device, faults)) as camera:
+            summary = record_session(camera, path, duration_s=0.4)
+        stats = summary.camera_stats
+        assert summary.stopped_by == "duration" and not journal_path(path).exists()
+        assert stats["bytes"] == device.bytes_served and stats["dropped_transfers"] == 0
+        assert stats["decoded_transfers"] == stats["transfers"]  # the post-stop drain wrote what arrived late
+        with SessionReader(path) as reader:
+            assert reader.complete and reader.stats["stopped_by"] == "duration"
+            recorded = reader.events()
+        assert 0 < len(recorded) < len(events)
+        np.testing.assert_array_equal(recorded, events[: len(recorded)])
+
+
+def test_davis_record_on_the_emulated_camera_ends_cleanly(tmp_path, rng, monkeypatch, capsys, emulated_usb_backend):
+    """The README's `davis-record --out session.h5 --duration S` on a camera reached through libusb-1.0: exit 0, a
+    complete file, no journal, every time."""
+    from davis_rig.cli import record as cli
+
+    events, _ = scene(rng, n_events=40_000, n_frames=0)
+    faults = EmuFaults(completion_delay_us=1000, cancel_race_every=3)
+    for run in range(3):
+        device = VirtualDavis346(source=EncodedSource(events, layout=LAYOUT, paced=True))
+        backend = emulated_usb_backend.plug(device, faults)
+        monkeypatch.setattr(cli, "open_camera", lambda serial, _backend, usb_transfers: Davis346.open(
+            serial=serial, backend=backend, usb_transfers=usb_transfers))
+        out = tmp_path / f"session{run}.h5"
+        assert cli.main(["--out", str(out), "--duration", "0.5", "--quiet"]) == 0
+        assert "stopped by duration" in capsys.readouterr().out
+        assert not journal_path(out).exists()
+        with SessionReader(out) as reader:
+            assert reader.complete
+            np.testing.assert_array_equal(reader.events(), events[: reader.num_events])
+
+
+def test_davis_record_fake_replay_over_the_emulated_libusb(tmp_path, rng, monkeypatch, capsys, emulated_usb_backend):
+    from davis_rig.cli import record as cli
+
+    events, frames = scene(rng, n_events=20_000, n_frames=2)
+    data = StreamEncoder(LAYOUT).encode(events, frames)
+    replay = tmp_path / "scene.replay"
+    with ReplayWriter(replay, ReplayHeader(device_info=LAYOUT.to_dict(), serial="RPLY0001", firmware_version=6,
+                                           logic_version=18, logic_patch=1)) as writer:
+        for i, transfer in enumerate(split_transfers(data, 8192)):
+            writer.write(transfer, host_time_ns=i * 1_000_000)
+
+    def fake_backend(path, fast=False):
+        device = VirtualDavis346.from_replay(path, paced=not fast)
+        return emulated_usb_backend.plug(device), lambda: device.drained
+
+    monkeypatch.setattr(cli, "fake_backend", fake_backend)
+    out = tmp_path / "s.h5"
+    assert cli.main(["--out", str(out), "--fake", str(replay), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{len(events)} events" in printed and "stopped by end of replay" in printed
+    assert_same(out, events, frames)
+    assert not journal_path(out).exists()
+
+
 @pytest.mark.filterwarnings("ignore:.*go back in time")
-def test_garbage_bytes_are_counted(tmp_path, rng):
+def test_garbage_bytes_are_counted(tmp_path, rng, usb_backend):
     events, _ = scene(rng, n_events=20_000, n_frames=0)
     transfers = split_transfers(StreamEncoder(LAYOUT).encode(events), 4096)
     device = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(garbage_rate=0.002, seed=5))
-    with Davis346.open(backend=VirtualDavis346Backend(device), read_bytes=4096, queue_transfers=4096) as camera:
+    with Davis346.open(backend=usb_backend.plug(device), read_bytes=4096, queue_transfers=4096) as camera:
         stop = threading.Event()
 
         def progress(p):

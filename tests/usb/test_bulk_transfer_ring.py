@@ -1,7 +1,13 @@
-"""BulkTransferRing: transfers in flight, order, resubmission, cancel on stop, stall recovery, errors, libusb ABI."""
+"""BulkTransferRing: transfers in flight, order, resubmission, cancel on stop, stall recovery, errors, libusb ABI.
+
+The same behaviours twice: on a scripted API (exact statuses), and on a device — the virtual backend's API and
+pyusb's libusb1 backend on the emulated libusb-1.0 (``usb_backend`` fixture, which also fails a test that misuses
+libusb's transfer API or leaves transfers in flight).
+"""
 
 import ctypes
 import ctypes.util
+import errno
 import sys
 import threading
 import time
@@ -9,6 +15,7 @@ import time
 import pytest
 
 from davis_rig.errors import DeviceDisconnectedError, TransportError
+from davis_rig.protocol.config import Dvs, Module, Mux, Usb
 from davis_rig.usb.async_bulk import (
     LIBUSB_ERROR_NO_DEVICE,
     LIBUSB_ERROR_NOT_FOUND,
@@ -21,6 +28,17 @@ from davis_rig.usb.async_bulk import (
     BulkTransferRing,
     LibusbAsyncApi,
     LibusbTransfer,
+)
+from davis_rig.usb.sources import Faults, TransferListSource
+from davis_rig.usb.transport import UsbTransport
+from davis_rig.usb.virtual import VirtualDavis346, usb_error
+
+from libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
+    STRESS_TRANSFER,
+    EmuFaults,
+    EndlessSource,
+    emulated_usb_backend,
+    usb_backend,
 )
 
 
@@ -246,3 +264,209 @@ def test_libusb_api_binds_the_real_library_on_pyusbs_context():
     start = time.monotonic()
     assert api.handle_events(20) == 0  # nothing in flight: returns after the timeout
     assert 0.01 < time.monotonic() - start < 2.0
+
+
+# --- on a device: the virtual backend's API and the emulated libusb-1.0 ---------------------------------------------
+def streaming_transport(usb_backend, device, faults=EmuFaults()):
+    """Open ``device`` and switch its data on (USB RUN, MUX RUN, DVS RUN) without a ring."""
+    transport = UsbTransport.open(backend=usb_backend.plug(device, faults))
+    for module, param in ((Module.USB, Usb.RUN), (Module.MUX, Mux.RUN), (Module.DVS, Dvs.RUN)):
+        transport.config_write(module, param, 1)
+    return transport
+
+
+def device_ring(transport, sink, api=None, **kwargs):
+    kwargs.setdefault("transfers", 4)
+    kwargs.setdefault("transfer_bytes", 1024)
+    return BulkTransferRing(api or transport.async_transfers(), 0x82, sink.on_data, sink.on_end,
+                            transport.clear_halt, describe="DAVIS test", **kwargs)
+
+
+def numbered(n, size=100):
+    """``n`` distinct short transfers (< 1024 bytes: each ends a bulk read)."""
+    return [bytes([i % 256]) * (size + i % 7) for i in range(n)]
+
+
+def test_device_keeps_transfers_in_flight_and_delivers_in_order(usb_backend):
+    transfers = numbered(60)
+    device = VirtualDavis346(source=TransferListSource(transfers))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        ring = device_ring(transport, sink).start()
+        wait_for(lambda: len(sink.data) == 60)
+        wait_for(lambda: ring.in_flight == 4)
+        ring.stop()
+    assert sink.data == transfers and sink.ends == [None] and not ring.running and ring.in_flight == 0
+    if usb_backend.emu is not None:
+        counters = usb_backend.emu.counters()
+        assert counters["allocated"] == counters["freed"] == 4
+        assert counters["submits"] == 4 + 60 and counters["callbacks"] == counters["submits"]
+
+
+def test_device_empty_transfers_are_counted_not_delivered(usb_backend):
+    device = VirtualDavis346(source=TransferListSource([b"ab", b"", b"cd"]))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        ring = device_ring(transport, sink).start()
+        wait_for(lambda: len(sink.data) == 2 and device.drained)
+        ring.stop()
+    assert sink.data == [b"ab", b"cd"] and ring.stats.empty_completions == 1
+
+
+def test_device_unplug_ends_with_disconnected_after_the_data(usb_backend):
+    transfers = numbered(3)
+    device = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(disconnect_after_transfers=2))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        ring = device_ring(transport, sink).start()
+        assert sink.ended.wait(5.0)
+        ring.stop()
+    assert sink.data == transfers[:2]
+    assert len(sink.ends) == 1 and isinstance(sink.ends[0], DeviceDisconnectedError) and not ring.running
+
+
+class _FailingDevice(VirtualDavis346):
+    """Serves ``good`` bulk reads, then fails every read with EIO (a USB error other than stall or unplug)."""
+
+    def __init__(self, good, **kwargs):
+        super().__init__(**kwargs)
+        self.good = good
+
+    def bulk_read(self, endpoint, buff, timeout_ms):
+        if self.transfers_served >= self.good:
+            raise usb_error(errno.EIO)
+        return super().bulk_read(endpoint, buff, timeout_ms)
+
+
+def test_device_transfer_error_ends_the_stream_with_a_transport_error(usb_backend):
+    device = _FailingDevice(1, source=TransferListSource(numbered(3)))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        device_ring(transport, sink).start()
+        assert sink.ended.wait(5.0)
+    assert sink.data == numbered(1)
+    assert type(sink.ends[0]) is TransportError and "failed (error)" in str(sink.ends[0])
+
+
+def test_device_stalls_are_cleared_and_lose_nothing(usb_backend):
+    transfers = numbered(12)
+    device = VirtualDavis346(source=TransferListSource(transfers), faults=Faults(stall_every=3))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        ring = device_ring(transport, sink).start()
+        wait_for(lambda: len(sink.data) == 12)
+        ring.stop()
+    assert sink.data == transfers and sink.ends == [None]
+    assert ring.stats.stalls >= 1 and device.clear_halts == [0x82] * ring.stats.stalls
+
+
+class _VanishOnClearHalt(VirtualDavis346):
+    def clear_halt(self, endpoint):
+        self.unplug()
+        super().clear_halt(endpoint)
+
+
+def test_device_stall_on_a_vanished_camera_ends_with_disconnected(usb_backend):
+    device = _VanishOnClearHalt(source=TransferListSource(numbered(2)), faults=Faults(stall_every=1))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        device_ring(transport, sink).start()
+        assert sink.ended.wait(5.0)
+    assert isinstance(sink.ends[0], DeviceDisconnectedError) and sink.data == []
+
+
+def test_device_submission_to_an_unplugged_camera_raises_and_leaves_nothing(usb_backend):
+    device = VirtualDavis346()
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        api = transport.async_transfers()
+        device.unplug()
+        ring = device_ring(transport, sink, api=api)
+        with pytest.raises(DeviceDisconnectedError, match="could not be submitted"):
+            ring.start()
+    assert ring.in_flight == 0 and not ring.running and sink.ends == []
+    if usb_backend.emu is not None:
+        counters = usb_backend.emu.counters()
+        assert counters["allocated"] == counters["freed"] == 4 and counters["submits"] == 0
+
+
+def test_device_failing_consumer_ends_the_stream_with_its_error(usb_backend):
+    device = VirtualDavis346(source=TransferListSource(numbered(5)))
+    sink = Collector()
+
+    def on_data(data):
+        raise ValueError("consumer broke")
+
+    with streaming_transport(usb_backend, device) as transport:
+        ring = BulkTransferRing(transport.async_transfers(), 0x82, on_data, sink.on_end, transport.clear_halt,
+                                transfers=2, transfer_bytes=1024)
+        ring.start()
+        assert sink.ended.wait(5.0)
+    assert isinstance(sink.ends[0], ValueError) and not ring.running
+
+
+STOP_FAULTS = {
+    "prompt": EmuFaults(),
+    "late-completions": EmuFaults(completion_delay_us=3000, cancel_delay_us=2000),
+    "cancel-races": EmuFaults(cancel_race_every=1, poll_ms=1),
+}
+
+
+@pytest.mark.parametrize("faults", STOP_FAULTS.values(), ids=STOP_FAULTS.keys())
+def test_device_stop_while_data_flows_loses_no_byte_the_device_sent(usb_backend, faults):
+    device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, interval_us=250))
+    with streaming_transport(usb_backend, device, faults) as transport:
+        for _ in range(20):
+            sink = Collector()
+            ring = device_ring(transport, sink, transfers=8, transfer_bytes=32768).start()
+            wait_for(lambda: len(sink.data) >= 2)
+            ring.stop()  # the device keeps streaming: transfers complete (with data) while the ring stops
+            assert sink.ends == [None] and not ring.running and ring.in_flight == 0
+    assert sum(len(d) for d in sink.data) > 0
+    if usb_backend.emu is not None and faults.cancel_race_every:
+        assert usb_backend.emu.counters()["cancel_races"] > 0  # some cancels lost the race: data came back
+
+
+def test_device_bytes_received_equal_bytes_served_across_stops(usb_backend):
+    device = VirtualDavis346(source=EndlessSource(STRESS_TRANSFER, interval_us=250))
+    received = 0
+    with streaming_transport(usb_backend, device, EmuFaults(completion_delay_us=1000, cancel_race_every=2)) as tr:
+        for _ in range(10):
+            sink = Collector()
+            ring = device_ring(tr, sink, transfers=8, transfer_bytes=32768).start()
+            wait_for(lambda: len(sink.data) >= 3)
+            ring.stop()
+            received += sum(len(d) for d in sink.data)
+        tr.config_write(Module.DVS, Dvs.RUN, 0)
+    assert received == device.bytes_served
+
+
+class _SlowEventHandling:
+    """The emulated libusb's API with the ring's own event handling slowed down, so that other threads (here a
+    synchronous control transfer) usually find libusb's event lock free and run the ring's callbacks."""
+
+    def __init__(self, api):
+        self._api = api
+        self.dev_handle = api.dev_handle
+
+    def __getattr__(self, name):
+        return getattr(self._api, name)
+
+    def handle_events(self, timeout_ms):
+        time.sleep(0.005)
+        return self._api.handle_events(1)
+
+
+def test_callbacks_run_by_a_synchronous_transfer_keep_order_and_lose_nothing(emulated_usb_backend):
+    usb_backend = emulated_usb_backend  # the virtual backend runs callbacks in the ring's thread only
+    transfers = numbered(400)
+    device = VirtualDavis346(source=TransferListSource(transfers))
+    sink = Collector()
+    with streaming_transport(usb_backend, device) as transport:
+        ring = device_ring(transport, sink, api=_SlowEventHandling(transport.async_transfers())).start()
+        deadline = time.monotonic() + 20
+        while len(sink.data) < 400 and time.monotonic() < deadline:
+            transport.config_read(6, 0)  # libusb_control_transfer handles events when the event lock is free
+        ring.stop()
+    assert sink.data == transfers and sink.ends == [None]
+    assert usb_backend.emu.counters()["sync_callbacks"] > 0
