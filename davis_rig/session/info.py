@@ -32,7 +32,7 @@ from davis_rig.session.reader import SessionReader
 from davis_rig.session.writer import frame_hw_from_device_info
 from davis_rig.types import GEN1_CLASSES
 
-__all__ = ["PEAK_WINDOW_MS", "LabelsInfo", "SessionInfo", "describe_session", "dvs_hw_from_device_info"]
+__all__ = ["PEAK_WINDOW_MS", "LabelsInfo", "SessionInfo", "describe_session", "dvs_hw_from_device_info", "sensor_layout"]
 
 #: Window of the peak event rate, ms: the most events in one window of this many milliseconds of ``ms_to_idx``.
 PEAK_WINDOW_MS = 100
@@ -282,3 +282,10 @@ def dvs_hw_from_device_info(info: dict) -> tuple[int, int]:
     if height and width:
         return int(height), int(width)
     return frame_hw_from_device_info(info)
+
+
+def sensor_layout(width: int, height: int) -> dict:
+    """A device-info ``layout`` for a sensor of ``width`` x ``height`` px (DVS and APS), as imports store it."""
+    width, height = int(width), int(height)
+    return {"dvs_size_columns": width, "dvs_size_rows": height, "dvs_width": width, "dvs_height": height,
+            "aps_size_columns": width, "aps_size_rows": height, "aps_width": width, "aps_height": height}

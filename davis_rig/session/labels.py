@@ -17,7 +17,7 @@ from davis_rig.errors import FormatError, SessionError
 from davis_rig.session import schema
 from davis_rig.types import BBOX_DTYPE
 
-__all__ = ["labels_crop_origin", "write_labels"]
+__all__ = ["labels_crop_origin", "shift_boxes", "write_labels"]
 
 
 def write_labels(path: str | os.PathLike, labels: np.ndarray, attrs: dict, *, overwrite: bool = False) -> None:
@@ -73,3 +73,21 @@ def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
     except (TypeError, ValueError) as exc:
         raise SessionError(f"/labels: unreadable crop origin attribute ({exc})") from exc
     return None
+
+
+def shift_boxes(boxes: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
+    """Move boxes by ``(dx_px, dy_px)`` into another pixel frame (a new array; sums in float64, stored float32).
+
+    A shift by whole pixels is exact for box coordinates whose float32 value keeps its last bits at the new
+    magnitude; in general it rounds to the float32 spacing of the result (≤ 6.1e-5 px below 512 px), so a shift
+    and the opposite shift give the coordinates back to within that.
+
+    Args:
+        boxes: BBOX_DTYPE [B].
+        dx_px, dy_px: added to ``x`` and ``y``, px.
+    """
+    out = boxes.copy()
+    for axis, shift in (("x", dx_px), ("y", dy_px)):
+        if shift:
+            out[axis] = (out[axis].astype(np.float64) + shift).astype(np.float32)
+    return out
