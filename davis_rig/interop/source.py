@@ -111,13 +111,15 @@ class ExportSource:
         """Events in the session (before any crop)."""
         return self.reader.num_events
 
-    def event_chunks(self, max_events: int = CHUNK_EVENTS) -> Iterator[tuple[np.ndarray, int]]:
+    def event_chunks(self, max_events: int | None = None) -> Iterator[tuple[np.ndarray, int]]:
         """Yield ``(events, events_read)``: EVENT_DTYPE pieces in the output's pixels, in time order, and how many
         session events each piece was cut from (the crop drops some).
 
         Args:
-            max_events: about how many session events to read per piece (module docstring).
+            max_events: about how many session events to read per piece (module docstring); default
+                :data:`CHUNK_EVENTS`.
         """
+        max_events = CHUNK_EVENTS if max_events is None else int(max_events)
         reader = self.reader
         n = reader.num_events
         if n == 0:

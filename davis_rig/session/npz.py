@@ -107,8 +107,10 @@ def import_npz(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: boo
         raise FormatError(f"{src}: no such .npz file")
     try:
         npz = np.load(src, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise FormatError(f"{src}: not a readable .npz file ({exc})") from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise FormatError(f"{src}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise FormatError(f"{src}: a single .npy array, not an .npz of named arrays")
     with npz:
         members = set(npz.files)
         if not {"events", "sensor_size"} <= members:
