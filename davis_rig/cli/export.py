@@ -38,7 +38,8 @@ def build_parser():
     parser = new_parser(NAME, "Export a session.h5 for other tools: DV, Prophesee / Gen1, RVT, tonic.", EXAMPLES)
     parser.add_argument("session", metavar="SESSION_H5", help="the session file")
     parser.add_argument("--to", required=True, choices=FORMATS, help="the output format")
-    add_out(parser, required=True, help="the output file (aedat4, prophesee-dat: the .dat, npz) or dataset folder (rvt)")
+    add_out(parser, required=True,
+            help="the output file (aedat4, prophesee-dat: the .dat, npz) or dataset folder (rvt)")
     parser.add_argument("--crop", action="store_true",
                         help="write only the 304x240 RVT window (rvt always does)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),

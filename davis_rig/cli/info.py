@@ -168,7 +168,8 @@ def _replay_text(info) -> list[str]:
             f"one), {_size(info.file_size_bytes)}",
             f"  camera        serial {info.serial or '?'}, firmware {info.firmware_version}, logic "
             f"{info.logic_version}, {info.sensor_hw[1]}x{info.sensor_hw[0]} px",
-            f"  transfers     {info.transfers:,} ({_size(info.transfer_bytes)}) over {info.host_duration_us / 1e6:.3f} s "
+            f"  transfers     {info.transfers:,} ({_size(info.transfer_bytes)}) over "
+            f"{info.host_duration_us / 1e6:.3f} s "
             f"of host time{cut}",
             f"  duration      {_span(info.t_first_event_us, info.t_last_event_us, info.duration_us)}",
             f"  events        {info.events:,}  mean {_rate(info.event_rate_mean_hz)}ev/s",

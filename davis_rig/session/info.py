@@ -32,7 +32,8 @@ from davis_rig.session.reader import SessionReader
 from davis_rig.session.writer import frame_hw_from_device_info
 from davis_rig.types import GEN1_CLASSES
 
-__all__ = ["PEAK_WINDOW_MS", "LabelsInfo", "SessionInfo", "describe_session", "dvs_hw_from_device_info", "sensor_layout"]
+__all__ = ["PEAK_WINDOW_MS", "LabelsInfo", "SessionInfo", "describe_session", "dvs_hw_from_device_info",
+           "sensor_layout"]
 
 #: Window of the peak event rate, ms: the most events in one window of this many milliseconds of ``ms_to_idx``.
 PEAK_WINDOW_MS = 100

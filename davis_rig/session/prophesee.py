@@ -286,16 +286,16 @@ def import_prophesee_dat(src: str | os.PathLike, dst: str | os.PathLike, *, labe
 
     data_bytes = src.stat().st_size - header.data_offset
     n_events, truncated = divmod(data_bytes, DAT_EVENT_SIZE)
-    records = (np.memmap(src, dtype=DAT_RECORD, mode="r", offset=header.data_offset, shape=(n_events,))
-               if n_events else np.zeros(0, DAT_RECORD))
     device_info = {"serial": fields.get(DAT_KEYS["serial"], ""), "imported_from": str(src),
                    "layout": sensor_layout(sensor_w, sensor_h)}
     config = {"source": "prophesee-dat", "dat_header": fields}
     boxes = _load_bbox(labels_path) if labels_path.is_file() else None
-    with staged_outputs(dst, overwrite=overwrite) as (tmp,):
+    with staged_outputs(dst, overwrite=overwrite) as (tmp,), open(src, "rb") as file:
+        file.seek(header.data_offset)
         with SessionWriter(tmp, device_info=device_info, config=config, overwrite=True) as writer:
             for start in range(0, n_events, IMPORT_CHUNK_EVENTS):
-                t, x, y, p = unpack_dat(np.asarray(records[start:start + IMPORT_CHUNK_EVENTS]))
+                count = min(IMPORT_CHUNK_EVENTS, n_events - start)
+                t, x, y, p = unpack_dat(np.fromfile(file, dtype=DAT_RECORD, count=count))
                 x += np.uint16(origin_x)
                 y += np.uint16(origin_y)
                 if len(x) and (int(x.max()) >= sensor_w or int(y.max()) >= sensor_h):

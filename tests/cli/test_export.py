@@ -55,7 +55,8 @@ def test_real_exports_of_the_bundled_sample(tmp_path, capsys):
     (["--to", "npz", "--out", "o.npz", "--split", "val"], 2, "argument --split: applies to --to rvt only"),
     (["--to", "npz", "--out", "o.npz", "--crop-origin", "0", "0"], 2,
      "argument --crop-origin: the labels were made for the crop at (21, 10), not (0, 0)"),
-    (["--to", "npz", "--out", "o.npz", "--crop-origin", "-1", "0"], 2, "argument --crop-origin: expected an integer >= 0"),
+    (["--to", "npz", "--out", "o.npz", "--crop-origin", "-1", "0"], 2,
+     "argument --crop-origin: expected an integer >= 0"),
     (["--to", "tiff", "--out", "o"], 2, "argument --to: invalid choice"),
     (["--to", "npz", "--out", "missing/o.npz"], 4, "the folder missing does not exist"),
 ])

@@ -113,7 +113,8 @@ def test_dat_and_npz_files_read_by_the_reference_layouts(tmp_path, rich_session,
         ev_type, ev_size = np.frombuffer(f.read(2), np.uint8)
         records = np.fromfile(f, dtype=[("t", "u4"), ("_", "i4")])
     assert (ev_type, ev_size) == (12, 8)
-    assert "% Width 346\n" in header and "% Height 260\n" in header and header[0] == "% Data file containing CD events\n"
+    assert "% Width 346\n" in header and "% Height 260\n" in header
+    assert header[0] == "% Data file containing CD events\n"
     x = records["_"] & 16383
     y = (records["_"] & 268419072) >> 14
     p = (records["_"] & 268435456) >> 28

@@ -35,7 +35,8 @@ def test_a_tonic_dataset_sample(tmp_path):
 
 @pytest.mark.parametrize("content, says", [
     ({"events": np.zeros(1, dtype=[("x", "i2"), ("y", "i2"), ("t", "i8"), ("p", "?")])}, "sensor_size"),
-    ({"events": np.zeros(1, dtype=[("x", "i2"), ("t", "i8")]), "sensor_size": np.array([4, 4, 2])}, "fields x, y, t, p"),
+    ({"events": np.zeros(1, dtype=[("x", "i2"), ("t", "i8")]), "sensor_size": np.array([4, 4, 2])},
+     "fields x, y, t, p"),
     ({"events": np.zeros(1, dtype=[("x", "i2"), ("y", "i2"), ("t", "i8"), ("p", "?")]),
       "sensor_size": np.array([4, 4, 2]), "labels": np.zeros(2)}, "Prophesee box fields"),
 ])
