@@ -7,6 +7,7 @@ and moved into place only when complete: a failed export leaves nothing behind.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from typing import Final
@@ -73,6 +74,4 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
                     if crop else f"the full {source.frame_hw[1]}x{source.frame_hw[0]} sensor"
                     + (f"; boxes moved from their crop at {tuple(source.labels_origin_xy)} onto it"
                        if source.labels_origin_xy not in (None, (0, 0)) else ""))
-    if to == "rvt":
-        return summary
-    return ExportSummary(**{**summary.__dict__, "notes": (geometry, *summary.notes)})
+    return summary if to == "rvt" else dataclasses.replace(summary, notes=(geometry, *summary.notes))

@@ -16,7 +16,8 @@ class ExportSummary:
         format: the format name (``aedat4``, ``prophesee-dat``, ``rvt``, ``npz``).
         session: the session file read.
         outputs: the files or folders written.
-        events: events written (after any crop); events_read: events of the session.
+        events: events written (after any crop; ``rvt``: the events read into its histograms); events_read: events
+            of the session.
         labels: boxes written; labels_left_out: boxes of the session not written (the note says why).
         frame_hw: (height, width) of the output's pixels; origin_xy: the sensor pixel of its ``(0, 0)``.
         t_offset_us: device µs subtracted from every time (0 when times stay device µs).
