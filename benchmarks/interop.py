@@ -11,6 +11,7 @@ dv-processing. One run each (an export is long enough not to need repeats); the 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -79,12 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--formats", nargs="+", choices=list(OUTPUT_NAMES), default=list(OUTPUT_NAMES))
     args = parser.parse_args(argv)
     formats = list(args.formats)
-    try:
-        import dv_processing  # noqa: F401
-    except ImportError:
-        if "aedat4" in formats:
-            formats.remove("aedat4")
-            print("aedat4 skipped: dv-processing is not installed")
+    if "aedat4" in formats and importlib.util.find_spec("dv_processing") is None:
+        formats.remove("aedat4")
+        print("aedat4 skipped: dv-processing is not installed")
     print(metadata_line(("numpy", "h5py", "hdf5plugin", "dv-processing"), events=f"{args.events:.3g}",
                         rate=f"{args.rate:.3g} ev/s"))
     with tempfile.TemporaryDirectory() as tmp:
