@@ -3,7 +3,7 @@
 Every stream travels, with the device clock (µs) as DV timestamps:
 
 - events -> the ``events`` stream, in packets of :data:`DV_PACKET_EVENTS` (dv-processing builds them from
-  Python objects: about 1 M events/s, where the other exports run at 5-25 M events/s);
+  Python objects: under 1 M events/s, where the other exports run at several M events/s);
 - APS frames -> the ``frames`` stream as 16-bit grey images (libcaer scale, nothing rounded), each its read-out
   region at its position; DV keeps the exposure start and duration only (start/end of frame are not kept). With
   a crop, each frame is the 304x240 window (zeros outside the read-out region), at position (0, 0);
