@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import importlib.util
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Final, Sequence
@@ -21,7 +20,8 @@ from typing import Callable, Final, Sequence
 import numpy as np
 
 from davis_rig import __version__
-from davis_rig.errors import ConfigError, FormatError, MissingDependencyError, SessionError
+from davis_rig.errors import ConfigError, MissingDependencyError, SessionError
+from davis_rig.session.labels import write_labels  # re-exported: where labelers have always found it
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["FALL_DETECTION_MODEL", "LabelSummary", "crop_boxes", "label_frames", "label_session",
@@ -132,36 +132,6 @@ def label_frames(
         parts.append(out)
     labels = np.concatenate(parts) if parts else np.zeros(0, BBOX_DTYPE)
     return labels[np.argsort(labels["t"], kind="stable")]
-
-
-def write_labels(path: str | Path, labels: np.ndarray, attrs: dict, *, overwrite: bool = False) -> None:
-    """Store labels as ``/labels/boxes`` with attributes (JSON-encoded when not scalar).
-
-    Raises:
-        SessionError: ``/labels`` exists and ``overwrite`` is false, or the file cannot be written.
-        FormatError: ``labels`` is not BBOX_DTYPE.
-    """
-    import h5py
-
-    from davis_rig.session import schema
-
-    if not isinstance(labels, np.ndarray) or labels.dtype != BBOX_DTYPE:
-        raise FormatError(f"labels: expected BBOX_DTYPE, got {getattr(labels, 'dtype', type(labels))}")
-    schema.import_hdf5plugin()
-    try:
-        with h5py.File(path, "r+", locking=False) as f:
-            if schema.LABELS_GROUP in f:
-                if not overwrite:
-                    raise SessionError(f"{path}: already has /labels ({f[schema.LABELS_GROUP].attrs.get('labeler')}); "
-                                       "pass --overwrite to replace them")
-                del f[schema.LABELS_GROUP]
-            group = f.create_group(schema.LABELS_GROUP)
-            group.create_dataset(schema.LABEL_BOXES, data=labels, maxshape=(None,), chunks=True)
-            for key, value in attrs.items():
-                group.attrs[key] = value if isinstance(value, (str, int, float, bool, np.integer, np.floating)) \
-                    else json.dumps(value)
-    except OSError as exc:
-        raise SessionError(f"{path}: cannot write /labels: {exc}") from exc
 
 
 def label_session(

@@ -1,0 +1,56 @@
+"""Write new files beside their destination and move them into place only once they are complete.
+
+Imports and exports write for minutes; a failure (bad input, disk full, Ctrl-C) must leave neither a partial file
+at the destination nor a stray temporary file. :func:`staged_outputs` gives temporary paths next to the
+destinations (same file system, so the final ``os.replace`` is atomic per file), moves them into place when the
+``with`` block ends normally and deletes them when it does not.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+from davis_rig.errors import FormatError
+
+__all__ = ["STAGING_SUFFIX", "staged_outputs"]
+
+#: Marks the temporary files: ``out.dat`` is written as ``out.partial.dat`` (the extension stays last: some
+#: writers, dv-processing's among them, refuse a file name without theirs).
+STAGING_SUFFIX = ".partial"
+
+
+@contextlib.contextmanager
+def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterator[list[Path]]:
+    """Yield temporary paths for ``paths``; on success move each into place, on any failure delete them.
+
+    Args:
+        paths: the destination files.
+        overwrite: replace destinations that exist (else refuse before anything is written).
+
+    Yields:
+        ``[Path]``: one temporary path per destination (``<stem>.partial<suffix>`` beside it); a temporary file
+        the block did not create is skipped when moving.
+
+    Raises:
+        FormatError: a destination exists and ``overwrite`` is false, or its folder does not exist.
+    """
+    targets = [Path(p) for p in paths]
+    for target in targets:
+        if target.exists() and not overwrite:
+            raise FormatError(f"{target}: file exists (pass overwrite=True / --overwrite to replace it)")
+        if not target.parent.is_dir():
+            raise FormatError(f"{target}: the folder {target.parent} does not exist")
+    staged = [target.with_name(f"{target.stem}{STAGING_SUFFIX}{target.suffix}") for target in targets]
+    try:
+        yield staged
+    except BaseException:
+        for tmp in staged:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        raise
+    for tmp, target in zip(staged, targets):
+        if tmp.exists():
+            os.replace(tmp, target)
