@@ -426,6 +426,7 @@ class SessionWriter:
 
     def _append_epoch(self, events, frames, specials, imu, *, bridge_gaps: bool) -> None:
         """Append the data of one chunk that lies in the current reset epoch (device µs, see :meth:`append`)."""
+        events = self._check_events(events)
         for frame in frames:
             self._check_frame(frame)
         specials = self._check_table("specials", specials)
@@ -437,8 +438,11 @@ class SessionWriter:
         other_t = [frame_t[:, -1]] + [table["t"].astype(np.int64) for table in (specials, imu) if table is not None]
         other_t = np.concatenate(other_t) + base  # end of frame for frames
         if max_gap is not None:
-            self._clock_us = advance_clock(self._clock_us, other_t, max_gap)
-        plan = self._append_events(events, base, max_gap) if events is not None and len(events) else None
+            clock = self._clock_us
+            if clock is None and events is not None:  # the other streams' evidence starts at the first event
+                clock = int(events["t"][0]) + base
+            self._clock_us = advance_clock(clock, other_t, max_gap)
+        plan = self._append_events(events, base, max_gap) if events is not None else None
         shifts = np.zeros(other_t.shape[0], np.int64) if plan is None else \
             shift_for(other_t, plan.seg_lo_us, plan.seg_hi_us, plan.seg_shift_us)
         shifts += base
@@ -510,13 +514,20 @@ class SessionWriter:
         self._check_usable()
         self._append_epoch(events, (), None, None, bridge_gaps=False)
 
-    def _append_events(self, events, base_us: int, max_gap_us: int | None):
-        """Validate, place (see :func:`~davis_rig.session.timeline.plan_event_times`) and buffer events."""
+    @staticmethod
+    def _check_events(events) -> np.ndarray | None:
+        """The events as an EVENT_DTYPE [N] array (``None`` when absent or empty); FormatError / ShapeError."""
+        if events is None:
+            return None
         events = np.asarray(events)
         if events.dtype != EVENT_DTYPE:
             raise FormatError(f"events: expected dtype {EVENT_DTYPE}, got {events.dtype}")
         if events.ndim != 1:
             raise ShapeError(f"events: expected shape (N,), got {events.shape}")
+        return events if len(events) else None
+
+    def _append_events(self, events: np.ndarray, base_us: int, max_gap_us: int | None):
+        """Place (see :func:`~davis_rig.session.timeline.plan_event_times`) and buffer checked events."""
         plan = plan_event_times(events["t"] + base_us, self._last_t, self._clock_us, max_gap_us)
         self._note_repairs(plan, base_us)
         events = events.copy()
