@@ -31,30 +31,27 @@ the file).
 
 from __future__ import annotations
 
-from _common import limit_blas_threads, metadata_line
+import argparse
+import json
+import logging
+import resource
+import sys
+import tempfile
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import NamedTuple
 
-limit_blas_threads(1)  # before numpy is imported
+import numpy as np
+from _common import metadata_line
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import resource  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-import traceback  # noqa: E402
-import warnings  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from davis_rig.protocol import ApsFrame, SensorLayout, StreamDecoder, StreamEncoder  # noqa: E402
-from davis_rig.session.journal import SessionJournal, journal_path  # noqa: E402
-from davis_rig.session.reader import SessionReader  # noqa: E402
-from davis_rig.session.recovery import recover_session  # noqa: E402
-from davis_rig.session.writer import MAX_GAP_US, SessionWriter  # noqa: E402
-from davis_rig.types import make_events  # noqa: E402
+from davis_rig.protocol import ApsFrame, SensorLayout, StreamDecoder, StreamEncoder
+from davis_rig.session.journal import SessionJournal, journal_path
+from davis_rig.session.reader import SessionReader
+from davis_rig.session.recovery import recover_session
+from davis_rig.session.writer import MAX_GAP_US, SessionWriter
+from davis_rig.types import make_events
 
 LAYOUT = SensorLayout.davis346()
 KINDS = ("random_words", "bit_flips", "byte_shift", "truncation", "huge_jumps", "garbage", "noise")
@@ -66,8 +63,7 @@ FRAME_HW = (12, 16)
 CAMPAIGN_GARBAGE_RATE = 1e-3
 
 
-@dataclass
-class CaseResult:
+class CaseResult(NamedTuple):
     """Outcome of one fuzz case (``error`` is the traceback text of an exception, else empty)."""
 
     kind: str
@@ -198,7 +194,6 @@ def ms_bound(reader: SessionReader, max_gap_us: int) -> int:
 
 def run_case(seed: int, kind: str, workdir: Path, n_events: int, rate_hz: float) -> CaseResult:
     """One fuzz case (see the module docstring); exceptions are caught and returned in ``error``."""
-    result = CaseResult(kind, seed)
     start = time.perf_counter()
     try:
         events, data = clean_stream(seed, n_events, rate_hz)
@@ -210,19 +205,21 @@ def run_case(seed: int, kind: str, workdir: Path, n_events: int, rate_hz: float)
         write_recovered(recovered, transfers)
         with SessionReader(live) as a, SessionReader(recovered) as b:
             stored = a.events()
-            result.files_equal = bool(np.array_equal(stored, b.events()) and len(a.frames) == len(b.frames))
-            result.prefix_events = prefix.shape[0]
             head = stored[: prefix.shape[0]]
-            result.prefix_kept = int(np.count_nonzero(head == prefix)) if head.shape == prefix.shape else 0
-            result.events = stored.shape[0]
-            result.ms_entries = a.ms_to_idx.shape[0]
-            result.ms_bound = ms_bound(a, MAX_GAP_US)
+            result = CaseResult(
+                kind, seed,
+                prefix_events=prefix.shape[0],
+                prefix_kept=int(np.count_nonzero(head == prefix)) if head.shape == prefix.shape else 0,
+                events=stored.shape[0],
+                ms_entries=a.ms_to_idx.shape[0],
+                ms_bound=ms_bound(a, MAX_GAP_US),
+                files_equal=bool(np.array_equal(stored, b.events()) and len(a.frames) == len(b.frames)),
+            )
         live.unlink()
         recovered.unlink()
     except Exception:  # noqa: BLE001 - the campaign counts every exception, whatever its type
-        result.error = traceback.format_exc()
-    result.seconds = time.perf_counter() - start
-    return result
+        result = CaseResult(kind, seed, error=traceback.format_exc())
+    return result._replace(seconds=time.perf_counter() - start)
 
 
 def garbage_kept(seed: int, rate: float, workdir: Path) -> tuple[int, int]:
