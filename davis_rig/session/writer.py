@@ -530,8 +530,9 @@ class SessionWriter:
         """Place (see :func:`~davis_rig.session.timeline.plan_event_times`) and buffer checked events."""
         plan = plan_event_times(events["t"] + base_us, self._last_t, self._clock_us, max_gap_us)
         self._note_repairs(plan, base_us)
-        events = events.copy()
-        events["t"] = plan.t_us
+        if base_us or plan.repaired or plan.shifts:  # else the times are unchanged: no copy at the peak rate
+            events = events.copy()
+            events["t"] = plan.t_us
         if self._t_offset is None:
             self._t_offset = int(events["t"][0]) // 1000 * 1000
             self._file[schema.EVENTS_GROUP].attrs[schema.T_OFFSET_ATTR] = np.int64(self._t_offset)
