@@ -103,17 +103,21 @@ def plan_event_times(t_us: np.ndarray, last_us: int | None, clock_us: int | None
     n = t.shape[0]
     if n == 0:
         return EventTimes(t.copy())
-    starts = np.concatenate([[0], np.flatnonzero(np.diff(t)) + 1])
+    first_odd = last_us is not None and (
+        t[0] < last_us
+        or (max_gap_us is not None and t[0] - (last_us if clock_us is None else max(last_us, clock_us)) > max_gap_us)
+    )
+    step = np.diff(t)
+    if not first_odd and (n == 1 or (step.min() >= 0 and (max_gap_us is None or step.max() <= max_gap_us))):
+        # the usual case, a valid stream: decided with two reductions
+        return EventTimes(t.copy(), 0, [], t[:1].copy(), t[-1:].copy(), np.zeros(1, np.int64))
+    starts = np.concatenate([[0], np.flatnonzero(step) + 1])
     g = t[starts]
     step = np.diff(g)
     odd = step < 0 if max_gap_us is None else (step < 0) | (step > max_gap_us)
     flagged = (np.flatnonzero(odd) + 1).tolist()
-    if last_us is not None:
-        ref0 = last_us if clock_us is None else max(last_us, clock_us)
-        if g[0] < last_us or (max_gap_us is not None and g[0] - ref0 > max_gap_us):
-            flagged.insert(0, 0)
-    if not flagged:
-        return EventTimes(t.copy(), 0, [], g[:1].copy(), g[-1:].copy(), np.zeros(1, np.int64))
+    if first_odd:
+        flagged.insert(0, 0)
     out, repaired, shift_runs = _resolve_runs(g, flagged, last_us, clock_us, max_gap_us)
     lengths = np.diff(np.append(starts, n))
     seg_lo, seg_hi, seg_shift = _segments(g, repaired, shift_runs)

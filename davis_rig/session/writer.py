@@ -433,16 +433,20 @@ class SessionWriter:
         imu = self._check_table("imu", imu)
         base = self._offset_us
         max_gap = self.max_gap_us if bridge_gaps else None
-        frame_t = np.array([[int(getattr(f, name)) for name in schema.FRAME_TIME_COLUMNS] for f in frames],
-                           dtype=np.int64).reshape(-1, len(schema.FRAME_TIME_COLUMNS))
-        other_t = [frame_t[:, -1]] + [table["t"].astype(np.int64) for table in (specials, imu) if table is not None]
-        other_t = np.concatenate(other_t) + base  # end of frame for frames
+        tables = [table for table in (specials, imu) if table is not None]
+        other_t = None  # the end of frame for frames
+        if frames or tables:
+            frame_t = np.array([[int(getattr(f, name)) for name in schema.FRAME_TIME_COLUMNS] for f in frames],
+                               dtype=np.int64).reshape(-1, len(schema.FRAME_TIME_COLUMNS))
+            other_t = np.concatenate([frame_t[:, -1]] + [table["t"].astype(np.int64) for table in tables]) + base
         if max_gap is not None:
-            clock = self._clock_us
-            if clock is None and events is not None:  # the other streams' evidence starts at the first event
-                clock = int(events["t"][0]) + base
-            self._clock_us = advance_clock(clock, other_t, max_gap)
+            if self._clock_us is None and events is not None:  # the other streams' evidence starts at the first event
+                self._clock_us = int(events["t"][0]) + base
+            if other_t is not None:
+                self._clock_us = advance_clock(self._clock_us, other_t, max_gap)
         plan = self._append_events(events, base, max_gap) if events is not None else None
+        if other_t is None:
+            return
         shifts = np.zeros(other_t.shape[0], np.int64) if plan is None else \
             shift_for(other_t, plan.seg_lo_us, plan.seg_hi_us, plan.seg_shift_us)
         shifts += base
