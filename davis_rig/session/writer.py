@@ -243,7 +243,7 @@ class SessionWriter:
         self._discontinuities: list[dict] = []  # the first MAX_OFFSET_ENTRIES {"t_us", "offset_us"} of them
         self._n_discontinuities = 0
         self._repaired_events = 0
-        self._resets: list[dict] = []  # the first MAX_OFFSET_ENTRIES {"t_us": reset special's recording µs, "offset_us"}
+        self._resets: list[dict] = []  # the first MAX_OFFSET_ENTRIES {"t_us": reset special's time, "offset_us"}
         self._n_resets = 0
         # device µs of each stream's last item in the current reset epoch (None: nothing since the last reset)
         self._epoch_last_device_t: dict[str, int | None] = {"events": None, "frames": None, "imu": None}
