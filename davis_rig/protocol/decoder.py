@@ -88,6 +88,9 @@ _POLARITY_SHIFT: Final = CODE_SHIFT
 _Y_WORD_BASE: Final = np.uint16(int(Code.Y_ADDR) << CODE_SHIFT)
 #: Largest 16-bit word value.
 _WORD_MAX: Final = 0xFFFF
+#: ROI and IMU values arrive as big-endian byte pairs (misc8 payloads); IMU values are signed 16-bit.
+_BYTE_BITS: Final = MISC8_BYTE_MASK.bit_length()
+_INT16_SPAN: Final = 1 << 16
 
 # Plain ints of the word codes: numpy compares arrays with an IntEnum member as int64 (about 10x slower than
 # with a plain int), and the per-control-word loop avoids enum attribute lookups.
@@ -908,7 +911,7 @@ class StreamDecoder:
             aps.roi_high = byte
         elif misc == Misc8.APS_ROI_LOW:
             slot = aps.roi_counter & 3
-            aps.roi_values[slot] = (aps.roi_high << 8) | byte
+            aps.roi_values[slot] = (aps.roi_high << _BYTE_BITS) | byte
             aps.roi_counter += 1
             if slot == 3:
                 block.take_samples(cut)
@@ -1158,9 +1161,9 @@ class StreamDecoder:
         if count % 2 == 0:
             imu.high_byte = byte
         else:
-            raw = (imu.high_byte << 8) | byte
-            if raw >= 0x8000:
-                raw -= 0x10000
+            raw = (imu.high_byte << _BYTE_BITS) | byte
+            if raw >= _INT16_SPAN >> 1:  # signed 16-bit
+                raw -= _INT16_SPAN
             slot = count // 2  # 0-2 accel, 3 temperature, 4-6 gyro
             if slot < 3:
                 imu.values[slot] = imu.flip[slot] * raw / imu.accel_lsb_per_g
