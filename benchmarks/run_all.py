@@ -26,8 +26,8 @@ from _common import REPO_ROOT, git_commit
 HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
-ORDER = ("decode", "usb_pipeline", "io", "fuzz_capture", "representation", "model", "rvt_eager", "evaluation", "body", "motion",
-         "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
+ORDER = ("decode", "usb_pipeline", "io", "fuzz_capture", "representation", "model", "rvt_eager", "evaluation", "body",
+         "motion", "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
