@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 
-from davis_rig.cli._common import (EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
+from davis_rig.cli._common import (EXIT_DATA, EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
                                    run_main)
 from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS
 
@@ -167,6 +167,11 @@ def _recover(path: str) -> int:
             f"{report.frames} frames (last event t={report.t_last_us} µs; {report.discarded_bytes} damaged bytes "
             "at the journal's end dropped)"
         )
+    elif not report.complete:
+        print(f"{NAME}: error: {report.path}: incomplete (the recording was interrupted) and there is no journal to "
+              f"rebuild it from (recorded with --no-journal?); it holds {report.events} events and "
+              f"{report.frames} frames up to its last flush, nothing more can be recovered", file=sys.stderr)
+        return EXIT_DATA
     else:
         print(f"{report.path}: intact, no journal: nothing to recover ({report.events} events, {report.frames} frames)")
     return EXIT_OK

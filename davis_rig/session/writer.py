@@ -19,6 +19,7 @@ from davis_rig import __version__
 from davis_rig.errors import FormatError, SessionError, ShapeError
 from davis_rig.session import schema
 from davis_rig.session.journal import SessionJournal, journal_path
+from davis_rig.session.timeline import advance_clock, plan_event_times, shift_for
 from davis_rig.types import EVENT_DTYPE
 
 #: libcaer special type id of TIMESTAMP_RESET (``davis_rig.protocol.words.SpecialType.TIMESTAMP_RESET``; the
@@ -30,6 +31,12 @@ WRITE_BATCH_EVENTS = 1 << 20
 METADATA_MARGIN_BYTES = 1 << 20
 #: Default free space that must remain after a write, bytes (the recording stops cleanly below it).
 MIN_FREE_BYTES = 64 << 20
+#: Default largest forward jump of the device clock taken as it is, µs (policy, see :class:`SessionWriter`).
+MAX_GAP_US = 1_000_000
+#: ``ms_to_idx`` entries computed and written at once (8 MiB): memory stays bounded whatever the time gap.
+MS_INDEX_BLOCK = 1 << 20
+#: Offset-change entries kept in the ``stats`` attribute per list (HDF5 attributes hold at most 64 KiB).
+MAX_OFFSET_ENTRIES = 256
 
 
 def to_jsonable(obj):
@@ -96,6 +103,14 @@ class SessionWriter:
         start_unix_us: wall-clock start of the recording, µs since the Unix epoch (default: now).
         min_free_bytes: free disk space to leave; below it the recording stops cleanly (HDF5 corrupts a file
             it cannot extend, so the writer checks ``statvfs`` before every write instead of waiting for ENOSPC).
+        max_gap_us: largest forward jump of the device clock that :meth:`append` stores as it is, µs (``None``:
+            any). A longer jump that no APS frame, IMU sample or special event bridges in steps of at most this
+            length is taken for a damaged timestamp (a corrupt wrap word): the data after it continues 1 µs after
+            the data before it, and the offset is recorded (see :meth:`append`), so the file's time span, and
+            with it ``ms_to_idx``, stays proportional to the data. The default, 1 s, is a policy: a DAVIS346 with
+            its DVS on sends background-activity events all the time, and frames or IMU samples bridge a quiet
+            scene; a real gap longer than that is only a USB stall, which is stored shortened (nothing is lost:
+            device time = recording time - offset).
 
     Use as a context manager (``with SessionWriter(...) as writer:``) or call :meth:`open` / :meth:`close`.
     """
@@ -111,6 +126,7 @@ class SessionWriter:
         flush_interval_s: float = 1.0,
         start_unix_us: int | None = None,
         min_free_bytes: int = MIN_FREE_BYTES,
+        max_gap_us: int | None = MAX_GAP_US,
     ):
         self.path = Path(path)
         self.device_info = device_info
@@ -120,6 +136,7 @@ class SessionWriter:
         self.flush_interval_s = flush_interval_s
         self.start_unix_us = start_unix_us
         self.min_free_bytes = min_free_bytes
+        self.max_gap_us = max_gap_us
         self.journal: SessionJournal | None = None
         self._file = None
         self._extra_stats: dict = {}
@@ -219,16 +236,20 @@ class SessionWriter:
         self._n_frames_written = 0
         self._n_table_written = {"specials": 0, "imu": 0}
         self._last_t_written = None
-        self._last_t = None  # recording µs (device µs + reset offset) of the last accepted event
+        self._last_t = None  # recording µs (device µs + offset) of the last accepted event
         self._t_max: int | None = None  # latest recording µs accepted on any stream (events, frames, tables)
-        self._reset_offset_us = 0  # added to device µs since the last TIMESTAMP_RESET (0 before any)
-        self._resets: list[dict] = []  # {"t_us": recording µs of the reset special, "offset_us": offset from then}
+        self._clock_us: int | None = None  # latest plausible recording µs on any stream (bridges event gaps)
+        self._offset_us = 0  # recording µs - device µs; changed by timestamp resets and time discontinuities
+        self._discontinuities: list[dict] = []  # the first MAX_OFFSET_ENTRIES {"t_us", "offset_us"} of them
+        self._n_discontinuities = 0
+        self._repaired_events = 0
+        self._resets: list[dict] = []  # the first MAX_OFFSET_ENTRIES {"t_us": reset special's time, "offset_us"}
+        self._n_resets = 0
         # device µs of each stream's last item in the current reset epoch (None: nothing since the last reset)
         self._epoch_last_device_t: dict[str, int | None] = {"events": None, "frames": None, "imu": None}
         self._counts = {"events": 0, "frames": 0, "specials": 0, "imu": 0}
         self._committed = dict(self._counts)  # counts as of the last successful HDF5 flush
         self._committed_t_us = None
-        self._dropped_non_monotonic = 0
         self._last_flush = time.monotonic()
         self._failed: Exception | None = None
         self._aborting = False
@@ -311,8 +332,10 @@ class SessionWriter:
                 "frames": self._counts["frames"],
                 "specials": self._counts["specials"],
                 "imu": self._counts["imu"],
-                "events_dropped_non_monotonic": self._dropped_non_monotonic,
-                "timestamp_resets": len(self._resets),
+                "events_time_repaired": self._repaired_events,
+                "time_discontinuities": self._n_discontinuities,
+                "time_discontinuity_offsets": [dict(entry) for entry in self._discontinuities],
+                "timestamp_resets": self._n_resets,
                 "timestamp_reset_offsets": [dict(reset) for reset in self._resets],
                 "journal_transfers": self.journal.transfers if self.journal else 0,
             },
@@ -327,31 +350,41 @@ class SessionWriter:
     def append(self, chunk, *, device_clock: bool = True) -> None:
         """Append one decoded chunk (anything with ``events``, ``frames``, ``specials`` and optional ``imu``).
 
-        Timestamp resets: the device clock restarts at 0 after a TIMESTAMP_RESET special (``Davis346.timestamp_reset``
-        or a sync master), and the decoder reports the stream faithfully. The file keeps one monotonic *recording
-        time* instead: every item after the n-th reset is stored at ``t_device + offset_n`` with
-        ``offset_n = T_before + 1 - t_reset`` (all µs), where ``t_reset`` is the reset special's device time (0 from
-        the decoder) and ``T_before`` the latest recording time written before it on any stream (event times, the
-        four frame times, specials, IMU); the reset special itself is kept, stored at ``T_before + 1``. Before the
-        first reset the offset is 0 (recording time = device time); a reset before any data keeps the offset. The
-        resets and offsets are in ``stats["writer"]["timestamp_resets"]`` and
-        ``stats["writer"]["timestamp_reset_offsets"]`` (``[{"t_us": reset special's recording time, "offset_us":
-        offset_n}, ...]``): the device time of an item at recording time ``t`` is ``t - offset_us`` of the last
-        entry with ``t_us <= t``.
+        The file keeps one monotonic *recording time*: every item is stored at ``t_device + offset`` (µs). The
+        offset starts at 0 (recording time = device time) and changes at two kinds of events, each listed in the
+        ``stats`` attribute as ``{"t_us": recording time from which it holds, "offset_us": the new offset}``, so
+        the device time of an item at recording time ``t`` is ``t - offset_us`` of the last entry (of both lists)
+        with ``t_us <= t``. Each list keeps its first :data:`MAX_OFFSET_ENTRIES` entries; the counts are complete.
+
+        * **Timestamp resets** (``stats["writer"]["timestamp_resets"]``, ``["timestamp_reset_offsets"]``): the
+          device clock restarts at 0 after a TIMESTAMP_RESET special (``Davis346.timestamp_reset`` or a sync
+          master), and the decoder reports the stream faithfully. Every item after the reset is stored at
+          ``t_device + T_before + 1 - t_reset``, where ``t_reset`` is the reset special's device time (0 from the
+          decoder) and ``T_before`` the latest recording time written before it on any stream (event times, the
+          four frame times, specials, IMU); the reset special itself is stored at ``T_before + 1``. A reset before
+          any data keeps the offset.
+        * **Time discontinuities** (``["time_discontinuities"]``, ``["time_discontinuity_offsets"]``): damaged
+          event timestamps, see :mod:`davis_rig.session.timeline` — time that keeps going back (a lost wrap word)
+          continues from the last event time, and a forward jump over ``max_gap_us`` that no other stream bridges
+          (a corrupt wrap word) continues 1 µs after it. A single run of events whose timestamp alone goes back or
+          sticks out (one corrupt timestamp word) is kept at the previous run's time instead and counted in
+          ``["events_time_repaired"]``. Nothing is dropped; a warning is issued once for each kind.
 
         A chunk may hold data from before and after a reset (the decoder does not split at resets; each array is
         in stream order). The specials are split exactly at the reset specials; events, frames (by end-of-frame
         time) and IMU samples are split where their device time goes back (the restart), at most once per reset in
         the chunk. If the data after a reset is not earlier than the data before it (a reset within about one
         chunk's span of the previous epoch's start), no split is visible and it stays in the old epoch: nothing is
-        lost and time stays monotonic, but those items' offset is 0 (relative to the true one).
+        lost and time stays monotonic, but those items' offset is 0 (relative to the true one). Frames, specials
+        and IMU samples take the offset of the stretch of events nearest to their own time.
 
         Args:
-            chunk: a ``DecodedChunk``: ``events`` EVENT_DTYPE [N] time-sorted per reset epoch (device µs);
-                ``frames`` list of ``ApsFrame``; ``specials`` structured [M] with a ``t`` (and ``type``) field;
-                ``imu`` structured [K] or None.
-            device_clock: the times are the device clock (reset handling above); False for times that are
-                already continuous (e.g. an AEDAT4 import): TIMESTAMP_RESET specials are then stored as they are.
+            chunk: a ``DecodedChunk``: ``events`` EVENT_DTYPE [N] in stream order (device µs); ``frames`` list of
+                ``ApsFrame``; ``specials`` structured [M] with a ``t`` (and ``type``) field; ``imu`` structured [K]
+                or None.
+            device_clock: the times are the device clock (reset handling and ``max_gap_us`` above); False for
+                times that are already continuous (e.g. an AEDAT4 import): TIMESTAMP_RESET specials are then stored
+                as they are and forward jumps are kept (events that go back are still repaired).
 
         Raises:
             SessionError: the writer is not open or an earlier write failed (disk full, ...).
@@ -370,7 +403,7 @@ class SessionWriter:
                 self._epoch_last_device_t["frames"] = int(frames[-1].t_end_of_frame_us)
             if imu is not None and len(imu):
                 self._epoch_last_device_t["imu"] = int(imu["t"][-1])
-            self._append_epoch(events, frames, specials, imu)
+            self._append_epoch(events, frames, specials, imu, bridge_gaps=device_clock)
             self.maybe_flush()
             return
         n_resets = reset_at.shape[0]
@@ -387,19 +420,46 @@ class SessionWriter:
                 [frame for frame, epoch in zip(frames, frame_epoch.tolist()) if epoch == k],
                 specials[bounds[k] : bounds[k + 1]],
                 None if imu_epoch is None else imu[imu_epoch == k],
+                bridge_gaps=True,
             )
         self.maybe_flush()
 
-    def _append_epoch(self, events, frames, specials, imu) -> None:
-        """Append the data of one chunk that lies in the current reset epoch (device µs)."""
-        if events is not None and len(events):
-            self.append_events(events)
+    def _append_epoch(self, events, frames, specials, imu, *, bridge_gaps: bool) -> None:
+        """Append the data of one chunk that lies in the current reset epoch (device µs, see :meth:`append`)."""
+        events = self._check_events(events)
         for frame in frames:
-            self.append_frame(frame)
-        if specials is not None and len(specials):
-            self._append_table("specials", specials)
-        if imu is not None and len(imu):
-            self._append_table("imu", imu)
+            self._check_frame(frame)
+        specials = self._check_table("specials", specials)
+        imu = self._check_table("imu", imu)
+        base = self._offset_us
+        max_gap = self.max_gap_us if bridge_gaps else None
+        tables = [table for table in (specials, imu) if table is not None]
+        other_t = None  # the end of frame for frames
+        if frames or tables:
+            frame_t = np.array([[int(getattr(f, name)) for name in schema.FRAME_TIME_COLUMNS] for f in frames],
+                               dtype=np.int64).reshape(-1, len(schema.FRAME_TIME_COLUMNS))
+            other_t = np.concatenate([frame_t[:, -1]] + [table["t"].astype(np.int64) for table in tables]) + base
+        if max_gap is not None:
+            if self._clock_us is None and events is not None:  # the other streams' evidence starts at the first event
+                self._clock_us = int(events["t"][0]) + base
+            if other_t is not None:
+                self._clock_us = advance_clock(self._clock_us, other_t, max_gap)
+        plan = self._append_events(events, base, max_gap) if events is not None else None
+        if other_t is None:
+            return
+        shifts = np.zeros(other_t.shape[0], np.int64) if plan is None else \
+            shift_for(other_t, plan.seg_lo_us, plan.seg_hi_us, plan.seg_shift_us)
+        shifts += base
+        n_frames = frame_t.shape[0]
+        for frame, times, offset in zip(frames, frame_t.tolist(), shifts[:n_frames].tolist()):
+            self._buffers["frames"].append((frame, offset))
+            self._counts["frames"] += 1
+            self._note_time(max(times) + offset)
+        start = n_frames
+        for kind, table in (("specials", specials), ("imu", imu)):
+            if table is not None:
+                self._buffer_table(kind, table, shifts[start : start + len(table)])
+                start += len(table)
 
     def _epochs(self, kind: str, t: np.ndarray | None, n_resets: int) -> np.ndarray | None:
         """Reset epoch (0..n_resets) of each item of one stream of a chunk holding ``n_resets`` resets.
@@ -425,11 +485,13 @@ class SessionWriter:
     def _start_reset_epoch(self, t_reset_device_us: int) -> None:
         """A TIMESTAMP_RESET special at device time ``t_reset_device_us``: continue after the latest time written."""
         if self._t_max is not None:
-            self._reset_offset_us = self._t_max + 1 - t_reset_device_us
-        self._resets.append({"t_us": t_reset_device_us + self._reset_offset_us, "offset_us": self._reset_offset_us})
+            self._offset_us = self._t_max + 1 - t_reset_device_us
+        self._n_resets += 1
+        if len(self._resets) < MAX_OFFSET_ENTRIES:
+            self._resets.append({"t_us": t_reset_device_us + self._offset_us, "offset_us": self._offset_us})
         for kind in self._epoch_last_device_t:
             self._epoch_last_device_t[kind] = None
-        if len(self._resets) == 1:
+        if self._n_resets == 1:
             warnings.warn(
                 f"{self.path}: the device timestamp was reset; later data is stored after the earlier data "
                 "(offsets in stats['writer']['timestamp_reset_offsets'])",
@@ -441,43 +503,40 @@ class SessionWriter:
             self._t_max = t_us
 
     def append_events(self, events: np.ndarray) -> None:
-        """Append events (EVENT_DTYPE [N], non-decreasing ``t`` in device µs of the current reset epoch).
+        """Append events (EVENT_DTYPE [N] in stream order, device µs of the current reset epoch).
 
-        The current timestamp-reset offset (see :meth:`append`, which detects the resets; 0 before any) is added
-        to ``t`` (the caller's array is not modified). Events still older than the last accepted one cannot be
-        indexed by ``ms_to_idx``: they are dropped, counted in ``stats["writer"]["events_dropped_non_monotonic"]``
-        and warned about once.
+        The current offset (see :meth:`append`, which detects timestamp resets; 0 before any) is added to ``t``
+        (the caller's array is not modified). The times are taken as continuous: forward jumps are kept, while
+        events that go back in time (which ``ms_to_idx`` cannot index) are repaired as :meth:`append` describes,
+        counted in ``stats["writer"]["events_time_repaired"]`` / ``["time_discontinuities"]`` and warned about
+        once.
 
         Raises:
             FormatError: ``events`` is not an EVENT_DTYPE array.
+            ShapeError: ``events`` is not 1-D.
         """
         self._check_usable()
+        self._append_epoch(events, (), None, None, bridge_gaps=False)
+
+    @staticmethod
+    def _check_events(events) -> np.ndarray | None:
+        """The events as an EVENT_DTYPE [N] array (``None`` when absent or empty); FormatError / ShapeError."""
+        if events is None:
+            return None
         events = np.asarray(events)
         if events.dtype != EVENT_DTYPE:
             raise FormatError(f"events: expected dtype {EVENT_DTYPE}, got {events.dtype}")
         if events.ndim != 1:
             raise ShapeError(f"events: expected shape (N,), got {events.shape}")
-        if not len(events):
-            return
-        if self._reset_offset_us:
+        return events if len(events) else None
+
+    def _append_events(self, events: np.ndarray, base_us: int, max_gap_us: int | None):
+        """Place (see :func:`~davis_rig.session.timeline.plan_event_times`) and buffer checked events."""
+        plan = plan_event_times(events["t"] + base_us, self._last_t, self._clock_us, max_gap_us)
+        self._note_repairs(plan, base_us)
+        if base_us or plan.repaired or plan.shifts:  # else the times are unchanged: no copy at the peak rate
             events = events.copy()
-            events["t"] += self._reset_offset_us
-        t = events["t"]
-        floor = self._last_t if self._last_t is not None else t[0]
-        ordered = t[0] >= floor and (len(t) < 2 or bool(np.all(t[1:] >= t[:-1])))
-        keep = None if ordered else (t >= np.maximum.accumulate(t)) & (t >= floor)
-        if keep is not None:
-            dropped = int((~keep).sum())
-            if self._dropped_non_monotonic == 0:
-                warnings.warn(
-                    f"{self.path}: {dropped} events go back in time and are dropped "
-                    "(counted in stats['writer']['events_dropped_non_monotonic'])",
-                    stacklevel=2,
-                )
-            self._dropped_non_monotonic += dropped
-            events = events[keep]
-            if not len(events):
-                return
+            events["t"] = plan.t_us
         if self._t_offset is None:
             self._t_offset = int(events["t"][0]) // 1000 * 1000
             self._file[schema.EVENTS_GROUP].attrs[schema.T_OFFSET_ATTR] = np.int64(self._t_offset)
@@ -486,18 +545,50 @@ class SessionWriter:
         self._buffered_events += len(events)
         self._counts["events"] += len(events)
         self._last_t = int(events["t"][-1])
+        self._clock_us = self._last_t if self._clock_us is None else max(self._clock_us, self._last_t)
         self._note_time(self._last_t)
         if self._buffered_events >= WRITE_BATCH_EVENTS:
             self._write_out()
+        return plan
+
+    def _note_repairs(self, plan, base_us: int) -> None:
+        """Count a batch's repaired timestamps and discontinuities, move the offset, warn once for each kind."""
+        if plan.repaired:
+            if not self._repaired_events:
+                warnings.warn(
+                    f"{self.path}: {plan.repaired} events have a timestamp that goes back or sticks out (a damaged "
+                    "timestamp word); they are kept at the previous events' time (counted in "
+                    "stats['writer']['events_time_repaired'])",
+                    stacklevel=4,
+                )
+            self._repaired_events += plan.repaired
+        if not plan.shifts:
+            return
+        if not self._n_discontinuities:
+            warnings.warn(
+                f"{self.path}: the device time jumps (a damaged timestamp: it goes back, or ahead by more than "
+                f"{self.max_gap_us} µs with nothing in between); the data after it continues where the data before "
+                "it ended (offsets in stats['writer']['time_discontinuity_offsets'])",
+                stacklevel=4,
+            )
+        for index, shift in plan.shifts:
+            self._n_discontinuities += 1
+            if len(self._discontinuities) < MAX_OFFSET_ENTRIES:
+                self._discontinuities.append({"t_us": int(plan.t_us[index]), "offset_us": base_us + shift})
+        self._offset_us = base_us + plan.shifts[-1][1]
 
     def append_frame(self, frame) -> None:
         """Append one APS frame (``ApsFrame``: ``pixels`` uint16 [h, w] at ``position_x/y`` plus four times, device
-        µs; the current timestamp-reset offset is added when written, see :meth:`append`).
+        µs; the current offset is added when written, see :meth:`append`).
 
         Raises:
             ShapeError: the frame's region does not fit the sensor.
         """
         self._check_usable()
+        self._append_epoch(None, [frame], None, None, bridge_gaps=False)
+
+    def _check_frame(self, frame) -> None:
+        """Raise ShapeError unless the frame's pixels are 2-D and its region fits the sensor."""
         pixels = np.asarray(frame.pixels)
         height, width = self._frame_hw
         if pixels.ndim != 2:
@@ -507,19 +598,21 @@ class SessionWriter:
             raise ShapeError(
                 f"frame ROI {pixels.shape} at (x={x0}, y={y0}) does not fit the sensor ({height}, {width})"
             )
-        self._buffers["frames"].append((frame, self._reset_offset_us))
-        self._counts["frames"] += 1
-        self._note_time(max(int(getattr(frame, name)) for name in schema.FRAME_TIME_COLUMNS) + self._reset_offset_us)
 
-    def _append_table(self, kind: str, table: np.ndarray) -> None:
+    @staticmethod
+    def _check_table(kind: str, table) -> np.ndarray | None:
+        """The table as an array (``None`` when absent or empty); FormatError without a ``t`` field."""
+        if table is None:
+            return None
         table = np.asarray(table)
         if table.dtype.names is None or "t" not in table.dtype.names:
             raise FormatError(f"{kind}: expected a structured array with a 't' field, got dtype {table.dtype}")
-        if not len(table):
-            return
-        if self._reset_offset_us:
-            table = table.copy()
-            table["t"] += self._reset_offset_us
+        return table if len(table) else None
+
+    def _buffer_table(self, kind: str, table: np.ndarray, offsets_us: np.ndarray) -> None:
+        """Buffer specials or IMU samples with their offsets (int64 [K], µs) added to ``t``."""
+        table = table.copy()
+        table["t"] += offsets_us.astype(table.dtype["t"])
         self._buffers[kind].append(table)
         self._counts[kind] += len(table)
         self._note_time(int(table["t"].max()))
@@ -572,12 +665,13 @@ class SessionWriter:
             for name in ("x", "y", "p"):
                 _extend(group[name], np.concatenate([part[name] for part in parts]))
             # ms m is final once an event with t >= 1000 m has been seen (later events are not older).
+            # Written in blocks of MS_INDEX_BLOCK entries: memory stays bounded however long the gap is.
             last_ms = int(t_rel[-1]) // 1000
-            if last_ms >= self._ms_written:
-                ms = np.arange(self._ms_written, last_ms + 1, dtype=np.int64) * 1000
+            for lo in range(self._ms_written, last_ms + 1, MS_INDEX_BLOCK):
+                ms = np.arange(lo, min(lo + MS_INDEX_BLOCK, last_ms + 1), dtype=np.int64) * 1000
                 idx = n0 + np.searchsorted(t_rel, ms, side="left")
                 _extend(group[schema.MS_TO_IDX], idx.astype(schema.MS_TO_IDX_DTYPE))
-                self._ms_written = last_ms + 1
+            self._ms_written = max(self._ms_written, last_ms + 1)
             self._n_events_written = n0 + len(t_rel)
             self._last_t_written = int(t_rel[-1]) + self._t_offset
         if self._buffers["frames"]:
