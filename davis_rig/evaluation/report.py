@@ -154,7 +154,9 @@ def write_gif(scores, threshold: float, path: Path, *, frame_ms: int = 50) -> Pa
 
 def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True, gif: bool = True,
                  gif_threshold: float | None = None) -> dict[str, Path]:
-    """Write ``report.json``, ``table.md`` and (optionally) ``ap_seqasr.png`` and ``<name>.gif`` per recording.
+    """Write ``report.json``, ``table.md``, ``detections/<name>.npz`` per recording (every window's detections,
+    :mod:`davis_rig.evaluation.detections`, for ``davis-view --detections``) and (optionally) ``ap_seqasr.png`` and
+    ``<name>.gif`` per recording.
 
     Returns:
         ``{kind: path}`` of the written files.
@@ -168,6 +170,12 @@ def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True,
     table = out_dir / "table.md"
     table.write_text(markdown_table(results))
     written["table"] = table
+    from davis_rig.evaluation.detections import write_detections
+
+    for r, s in zip(results, scores):
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", r.name).strip("._") or "recording"
+        written[f"detections:{r.name}"] = write_detections(s, r.name, settings.window_us,
+                                                           out_dir / "detections" / f"{safe}.npz")
     if plot:
         written["plot"] = write_plot(results, out_dir / "ap_seqasr.png")
     if gif:
