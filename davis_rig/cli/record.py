@@ -12,48 +12,62 @@ import signal
 import sys
 import threading
 
-from davis_rig.cli._common import EXIT_OK, EXIT_USAGE, run_command
+from davis_rig.cli._common import (EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
+                                   run_main)
 from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS
 
 NAME = "davis-record"
 
-EPILOG = """\
+EXAMPLES = """\
 examples:
   davis-record --out session.h5 --duration 10 --exposure 4000 --frame-interval 40000
-  davis-record --out test.h5 --fake recordings/replay.bin --duration 5     # virtual camera replaying a file
+  davis-record --out session.h5 --overwrite --fake recordings/sample.davisreplay   # virtual camera replaying a file
   davis-record --recover session.h5       # rebuild session.h5 from session.h5.journal after a crash
 
-Ctrl-C stops cleanly (the file is closed and complete). Exit codes: 0 ok, 1 error, 2 bad arguments,
-3 camera/USB problem, 4 file problem (exists, disk full, corrupt), 5 missing dependency, 130 interrupted.
+Ctrl-C stops cleanly (the file is closed and complete, exit 0). An existing --out file is kept (exit 4) unless
+--overwrite replaces it.
 """
+
+
+def _register_us(limit_name: str):
+    """``type=`` validator of an APS time register, ``0..davis_rig.protocol.config.<limit_name>`` µs.
+
+    The limit is imported when a value is parsed, not when the parser is built, so ``--help`` imports no numpy.
+    """
+
+    def check(text: str) -> int:
+        from davis_rig.protocol import config
+
+        return int_in(0, getattr(config, limit_name))(text)
+
+    return check
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-record``."""
-    parser = argparse.ArgumentParser(
-        prog=NAME,
-        description="Record DVS events, APS frames, special events and IMU samples of a DAVIS346 into a session.h5.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = new_parser(
+        NAME, "Record DVS events, APS frames, special events and IMU samples of a DAVIS346 into a session.h5.",
+        EXAMPLES)
     parser.add_argument("--out", metavar="SESSION_H5", help="session file to create")
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
-    parser.add_argument("--exposure", type=int, metavar="US", help="APS exposure, µs (default: camera default)")
-    parser.add_argument("--frame-interval", type=int, metavar="US",
-                        help="APS frame interval, µs (default: camera default)")
+    parser.add_argument("--duration", type=non_negative_float, metavar="S",
+                        help="stop after S seconds (default: until Ctrl-C)")
+    parser.add_argument("--exposure", type=_register_us("MAX_EXPOSURE_US"), metavar="US",
+                        help="APS exposure, µs, within the register's range (default: camera default)")
+    parser.add_argument("--frame-interval", type=_register_us("MAX_FRAME_INTERVAL_US"), metavar="US",
+                        help="APS frame interval, µs, within the register's range (default: camera default)")
     parser.add_argument("--serial", metavar="SN", help="open the camera with this serial number")
     parser.add_argument("--fake", metavar="REPLAY",
                         help="use a virtual DAVIS346 that replays this replay file (davis_rig.usb.replay format); "
                              "the recording ends with the replay (or earlier with --duration / Ctrl-C)")
     parser.add_argument("--fake-fast", action="store_true",
                         help="with --fake: serve the replay as fast as possible instead of in real time")
-    parser.add_argument("--usb-transfers", type=int, default=DEFAULT_TRANSFERS, metavar="N",
+    parser.add_argument("--usb-transfers", type=non_negative_int, default=DEFAULT_TRANSFERS, metavar="N",
                         help=f"asynchronous USB transfers kept in flight (default {DEFAULT_TRANSFERS}, like libcaer); "
                              "0 = a thread of synchronous reads")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
     parser.add_argument("--no-journal", action="store_true",
                         help="do not keep the raw-transfer journal (no crash recovery)")
-    parser.add_argument("--quiet", action="store_true", help="no live progress line")
+    add_quiet(parser, help="no live progress line")
     parser.add_argument("--recover", metavar="SESSION_H5",
                         help="rebuild SESSION_H5 from SESSION_H5.journal after a crash and exit")
     return parser
@@ -106,23 +120,6 @@ def _progress_line(progress) -> None:
         file=sys.stderr,
         flush=True,
     )
-
-
-def _out_of_range(args: argparse.Namespace) -> str | None:
-    """Check the recording numbers before the camera is opened; return the usage error, or ``None`` if all fit.
-
-    Limits: ``--duration`` ≥ 0 s, ``--exposure`` 0..4194303 µs, ``--frame-interval`` 0..8388607 µs (the APS
-    registers' ranges, :data:`davis_rig.protocol.config.MAX_EXPOSURE_US` / ``MAX_FRAME_INTERVAL_US``).
-    """
-    from davis_rig.protocol.config import MAX_EXPOSURE_US, MAX_FRAME_INTERVAL_US  # not at import: --help stays fast
-
-    if args.duration is not None and not args.duration >= 0:
-        return f"--duration must be >= 0 seconds, got {args.duration}"
-    for option, value, limit in (("--exposure", args.exposure, MAX_EXPOSURE_US),
-                                 ("--frame-interval", args.frame_interval, MAX_FRAME_INTERVAL_US)):
-        if value is not None and not 0 <= value <= limit:
-            return f"{option} must be 0..{limit} µs, got {value}"
-    return None
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -178,28 +175,22 @@ def _recover(path: str) -> int:
     return EXIT_OK
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``davis-record``; returns the exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Cross-option rules (exit 2 with argparse's message), all before the camera is opened."""
     if args.recover is not None:
         if args.out is not None:
-            parser.print_usage(sys.stderr)
-            print(f"{NAME}: error: --recover cannot be combined with --out", file=sys.stderr)
-            return EXIT_USAGE
-        return run_command(NAME, lambda: _recover(args.recover))
+            parser.error("argument --recover: not allowed with --out")
+        return
     if args.out is None:
-        parser.print_usage(sys.stderr)
-        print(f"{NAME}: error: --out is required (or --recover SESSION_H5)", file=sys.stderr)
-        return EXIT_USAGE
+        parser.error("the following arguments are required: --out (or --recover SESSION_H5)")
     if args.fake_fast and args.fake is None:
-        print(f"{NAME}: error: --fake-fast needs --fake REPLAY", file=sys.stderr)
-        return EXIT_USAGE
-    if (message := _out_of_range(args)) is not None:
-        parser.print_usage(sys.stderr)
-        print(f"{NAME}: error: {message}", file=sys.stderr)
-        return EXIT_USAGE
-    return run_command(NAME, lambda: _record(args))
+        parser.error("argument --fake-fast: needs --fake REPLAY")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``davis-record``; returns the exit code."""
+    return run_main(build_parser(), argv,
+                    lambda args: _recover(args.recover) if args.recover is not None else _record(args), check=_check)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The RVT detections of every window of a scored recording, as one ``.npz`` file beside a ``davis-eval`` report.
 
-``davis-eval --report DIR`` writes ``DIR/detections/<name>.npz`` per recording (:func:`write_detections`), so
+``davis-eval --out DIR`` writes ``DIR/<name>.detections.npz`` per recording (:func:`write_detections`), so
 the detections can be looked at later (``davis-view session.h5 --detections DIR``) without scoring again.
 Layout (numpy ``.npz``, no pickled objects)::
 

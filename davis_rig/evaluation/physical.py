@@ -36,11 +36,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import FormatError, SessionError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, SessionError, ShapeError
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
-           "evaluate_sessions", "labels_crop_origin", "labels_provenance", "score_session"]
+           "distinct_names", "evaluate_sessions", "is_labelled", "labels_crop_origin", "labels_provenance",
+           "score_session"]
 
 #: The paper's confidence thresholds (Tables 2 and 3).
 PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
@@ -88,13 +89,23 @@ class EvalSettings:
 
     def __post_init__(self):
         if not self.thresholds or any(not 0.0 <= float(t) <= 1.0 for t in self.thresholds):
-            raise ValueError(f"thresholds: expected values in [0, 1], got {self.thresholds}")
-        if self.seq_len < 1 or (self.seq_stride is not None and self.seq_stride < 1):
-            raise ValueError(f"seq_len/seq_stride: expected >= 1, got {self.seq_len}/{self.seq_stride}")
-        if self.time_tol_us < 0:
-            raise ValueError(f"time_tol_us: expected >= 0, got {self.time_tol_us}")
-        if self.window_us <= 0 or self.chunk_windows < 1:
-            raise ValueError(f"window_us and chunk_windows must be positive, got {self.window_us}/{self.chunk_windows}")
+            raise ConfigError("thresholds", f"expected values in [0, 1], got {tuple(self.thresholds)}")
+        if int(self.seq_len) < 1:
+            raise ConfigError("seq_len", f"expected >= 1, got {self.seq_len}")
+        if self.seq_stride is not None and int(self.seq_stride) < 1:
+            raise ConfigError("seq_stride", f"expected >= 1, got {self.seq_stride}")
+        if self.skip_first_us is not None and int(self.skip_first_us) < 0:
+            raise ConfigError("skip_first_us", f"expected >= 0 or None, got {self.skip_first_us}")
+        if int(self.time_tol_us) < 0:
+            raise ConfigError("time_tol_us", f"expected >= 0, got {self.time_tol_us}")
+        if int(self.window_us) <= 0:
+            raise ConfigError("window_us", f"expected > 0, got {self.window_us}")
+        if int(self.chunk_windows) < 1:
+            raise ConfigError("chunk_windows", f"expected >= 1, got {self.chunk_windows}")
+        if self.intra_op_threads is not None and int(self.intra_op_threads) < 1:
+            raise ConfigError("intra_op_threads", f"expected >= 1 or None, got {self.intra_op_threads}")
+        if int(self.gif_windows) < 0:
+            raise ConfigError("gif_windows", f"expected >= 0, got {self.gif_windows}")
 
 
 @dataclass
@@ -184,13 +195,49 @@ def _open_checked(path: Path):
                                f"recording ({DAVIS346_HW[1]}x{DAVIS346_HW[0]})")
         labels = reader.labels()
         if labels is None:
-            raise SessionError(f"{path}: the session has no /labels; run `davis-label {path} --yolo MODEL.onnx` first")
+            raise SessionError(f"{path}: the session has no /labels: add --yolo MODEL.onnx to label it in this run "
+                               f"(or run `davis-label {path} --yolo MODEL.onnx` first)")
         if len(labels) == 0:
             raise SessionError(f"{path}: /labels is empty (the labeler found no pedestrian); nothing to evaluate")
     except BaseException:
         reader.close()
         raise
     return reader, np.sort(labels, order="t", kind="stable")
+
+
+def is_labelled(path: str | Path) -> bool:
+    """Whether the session has a ``/labels`` group (possibly empty).
+
+    Raises:
+        SessionError: the file is missing or not a readable session.
+    """
+    from davis_rig.session import SessionReader
+
+    with SessionReader(path) as reader:
+        return reader.labels() is not None
+
+
+def distinct_names(paths: Sequence[str | Path]) -> list[str]:
+    """Column names of recordings: the file stem, with as many parent folders as it takes to tell equal stems apart.
+
+    ``a.h5, d1/case.h5, d2/case.h5`` -> ``a, d1/case, d2/case``; the same file given twice keeps its full path and a
+    ``#2`` suffix on the repeat.
+    """
+    parts = [Path(p).with_suffix("").parts or (str(p),) for p in paths]
+    depth = [1] * len(parts)
+    while True:
+        names = ["/".join(pp[-d:]) for pp, d in zip(parts, depth)]
+        clashing = [i for i, name in enumerate(names) if names.count(name) > 1 and depth[i] < len(parts[i])]
+        if not clashing:
+            break
+        for i in clashing:
+            depth[i] += 1
+    seen: dict[str, int] = {}
+    out = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        out.append(name if seen[name] == 1 else f"{name}#{seen[name]}")
+    return out
 
 
 def _crop_origin(path: Path, settings: EvalSettings, labels_attrs: dict) -> tuple[int, int]:
@@ -420,7 +467,7 @@ def evaluate_sessions(
         paths: session files (each needs ``/labels``).
         model: RVT step ONNX; ``None`` = :func:`davis_rig.models.default_detector_path`.
         settings: :class:`EvalSettings`.
-        names: column names (default: file stems).
+        names: column names (default: :func:`distinct_names` of the paths); must be distinct.
         progress: see :func:`score_session`.
 
     Returns:
@@ -436,9 +483,12 @@ def evaluate_sessions(
 
     paths = [Path(p) for p in paths]
     if not paths:
-        raise ValueError("evaluate_sessions: no session given")
+        raise ConfigError("paths", "no session given")
     if names is not None and len(names) != len(paths):
-        raise ValueError(f"names: {len(names)} names for {len(paths)} recordings")
+        raise ConfigError("names", f"{len(names)} names for {len(paths)} recordings")
+    names = list(names) if names is not None else distinct_names(paths)
+    if len(set(names)) != len(names):
+        raise ConfigError("names", f"every recording needs its own name, got {', '.join(names)}")
     for p in paths:  # validate every file and its crop origin before the (slow) scoring starts
         reader, _ = _open_checked(p)
         try:
@@ -461,7 +511,7 @@ def evaluate_sessions(
                 "labels_provenance": labels_provenance(scores.labels_attrs),
                 "duration_s": float(len(scores.window_end_us) * settings.window_us / 1e6),
                 "timings_s": dict(scores.timings_s)}
-        results.append(RecordingResult(name=names[i] if names else p.stem, path=str(p), metrics=metrics, info=info))
+        results.append(RecordingResult(name=names[i], path=str(p), metrics=metrics, info=info))
         all_scores.append(scores)
     return results, all_scores
 

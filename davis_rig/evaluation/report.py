@@ -18,7 +18,8 @@ import numpy as np
 from davis_rig import __version__
 from davis_rig.errors import MissingDependencyError
 
-__all__ = ["markdown_table", "report_dict", "write_gif", "write_json", "write_plot", "write_report"]
+__all__ = ["check_report_dependencies", "gif_file_names", "markdown_table", "report_dict", "write_gif", "write_json",
+           "write_plot", "write_report"]
 
 
 def _pct(value) -> str:
@@ -152,36 +153,73 @@ def write_gif(scores, threshold: float, path: Path, *, frame_ms: int = 50) -> Pa
     return Path(path)
 
 
+def gif_file_names(names: Sequence[str]) -> list[str]:
+    """One distinct ``.gif`` file name per recording name (``d1/case`` -> ``d1_case.gif``; clashes get ``-2``...)."""
+    out: list[str] = []
+    for name in names:
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "recording"
+        candidate, n = safe, 1
+        while f"{candidate}.gif" in out:
+            n += 1
+            candidate = f"{safe}-{n}"
+        out.append(f"{candidate}.gif")
+    return out
+
+
+def check_report_dependencies(*, plot: bool, gif: bool) -> None:
+    """Raise :class:`MissingDependencyError` now (before any scoring) when the plot or the GIF cannot be made."""
+    import importlib.util
+
+    for wanted, module, what in ((plot, "matplotlib", "the plot needs matplotlib"),
+                                 (gif, "PIL", "the GIF needs Pillow")):
+        if wanted and importlib.util.find_spec(module) is None:
+            raise MissingDependencyError(f'{what}: pip install "davis_rig[report]" (or leave it out: --no-plot, '
+                                         "--gif-seconds 0)")
+
+
 def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True, gif: bool = True,
                  gif_threshold: float | None = None) -> dict[str, Path]:
-    """Write ``report.json``, ``table.md``, ``detections/<name>.npz`` per recording (every window's detections,
+    """Write ``report.json``, ``table.md``, ``<name>.detections.npz`` per recording (every window's detections,
     :mod:`davis_rig.evaluation.detections`, for ``davis-view --detections``) and (optionally) ``ap_seqasr.png`` and
-    ``<name>.gif`` per recording.
+    a GIF per recording.
+
+    The files are written into a temporary folder beside ``out_dir`` and moved into ``out_dir`` only when all of
+    them are complete, so a failure (or Ctrl-C) leaves ``out_dir`` as it was. GIF names come from
+    :func:`gif_file_names` (distinct even when two recordings share a file name).
 
     Returns:
-        ``{kind: path}`` of the written files.
+        ``{kind: path}`` of the written files (``gif:<recording name>`` for the GIFs).
 
     Raises:
         MissingDependencyError: ``plot``/``gif`` requested without matplotlib/Pillow.
+        OSError: ``out_dir`` cannot be created or written.
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = {"json": write_json(results, settings, out_dir / "report.json")}
-    table = out_dir / "table.md"
-    table.write_text(markdown_table(results))
-    written["table"] = table
-    from davis_rig.evaluation.detections import write_detections
+    import shutil
+    import tempfile
 
-    for r, s in zip(results, scores):
-        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", r.name).strip("._") or "recording"
-        written[f"detections:{r.name}"] = write_detections(s, r.name, settings.window_us,
-                                                           out_dir / "detections" / f"{safe}.npz")
-    if plot:
-        written["plot"] = write_plot(results, out_dir / "ap_seqasr.png")
-    if gif:
-        th = float(gif_threshold if gif_threshold is not None else max(settings.thresholds))
-        for r, s in zip(results, scores):
-            if len(s.event_images):
-                safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", r.name).strip("._") or "recording"
-                written[f"gif:{r.name}"] = write_gif(s, th, out_dir / f"{safe}.gif")
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
+    try:
+        written = {"json": write_json(results, settings, staging / "report.json")}
+        table = staging / "table.md"
+        table.write_text(markdown_table(results))
+        written["table"] = table
+        from davis_rig.evaluation.detections import write_detections
+
+        for r, s, file_name in zip(results, scores, gif_file_names([r.name for r in results])):
+            written[f"detections:{r.name}"] = write_detections(
+                s, r.name, settings.window_us, staging / f"{file_name[:-len('.gif')]}.detections.npz")
+        if plot:
+            written["plot"] = write_plot(results, staging / "ap_seqasr.png")
+        if gif:
+            th = float(gif_threshold if gif_threshold is not None else max(settings.thresholds))
+            for r, s, file_name in zip(results, scores, gif_file_names([r.name for r in results])):
+                if len(s.event_images):
+                    written[f"gif:{r.name}"] = write_gif(s, th, staging / file_name)
+        out_dir.mkdir(exist_ok=True)
+        for kind, path in written.items():
+            written[kind] = Path(shutil.move(str(path), str(out_dir / path.name)))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return written

@@ -21,7 +21,7 @@ from typing import Callable, Final, Sequence
 import numpy as np
 
 from davis_rig import __version__
-from davis_rig.errors import FormatError, MissingDependencyError, SessionError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, MissingDependencyError, SessionError
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["FALL_DETECTION_MODEL", "LabelSummary", "crop_boxes", "label_frames", "label_session",
@@ -195,6 +195,8 @@ def label_session(
         :class:`LabelSummary`.
 
     Raises:
+        ConfigError: a threshold outside [0, 1] (or NaN), ``intra_op_threads`` < 1, or a crop origin that puts
+            the 304x240 crop outside the sensor (``.field`` names the argument).
         SessionError: missing/corrupt session, no frames, frames of the wrong resolution, labels present.
         ModelFormatError: a model that is not a supported YOLO ONNX, or lacks one of ``classes``.
     """
@@ -202,6 +204,15 @@ def label_session(
     from davis_rig.labelers.yolo import YoloOnnxDetector
     from davis_rig.session import SessionReader
 
+    for name, value in (("conf_threshold", conf_threshold), ("iou_threshold", iou_threshold)):
+        if not 0.0 <= float(value) <= 1.0:  # also refuses NaN
+            raise ConfigError(name, f"expected a number in [0, 1], got {value}")
+    if intra_op_threads is not None and int(intra_op_threads) < 1:
+        raise ConfigError("intra_op_threads", f"expected >= 1 or None, got {intra_op_threads}")
+    origin = center_crop_origin(DAVIS346_HW, RVT_HW) if crop_origin_xy is None else tuple(map(int, crop_origin_xy))
+    if origin[0] < 0 or origin[1] < 0 or origin[0] + RVT_HW[1] > DAVIS346_HW[1] or origin[1] + RVT_HW[0] > DAVIS346_HW[0]:
+        raise ConfigError("crop_origin_xy", f"{origin} puts the {RVT_HW[1]}x{RVT_HW[0]} crop outside the "
+                                            f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]} sensor")
     path = Path(path)
     with SessionReader(path) as reader:  # validates the file before the model is even loaded
         n_frames = len(reader.frames)
@@ -213,9 +224,6 @@ def label_session(
                                f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]}")
         if reader.labels() is not None and not overwrite:
             raise SessionError(f"{path}: already has /labels; pass --overwrite to replace them")
-        origin = center_crop_origin(DAVIS346_HW, RVT_HW) if crop_origin_xy is None else tuple(map(int, crop_origin_xy))
-        if origin[0] < 0 or origin[1] < 0 or origin[0] + RVT_HW[1] > DAVIS346_HW[1] or origin[1] + RVT_HW[0] > DAVIS346_HW[0]:
-            raise ShapeError(f"crop origin {origin} puts the {RVT_HW[1]}x{RVT_HW[0]} crop outside the sensor")
         model_path, default_classes = resolve_yolo_model(yolo)
         detector = YoloOnnxDetector(model_path, layout=layout, class_names=None, conf_threshold=conf_threshold,
                                     iou_threshold=iou_threshold, intra_op_threads=intra_op_threads)

@@ -34,11 +34,11 @@ def default_detector_path() -> _Path:
         The path of the bundled model (fp32, one recurrent step; input uint8/float histograms [1, 20, 240, 304]).
 
     Raises:
-        MissingDependencyError: the file is absent; pass an RVT step ONNX explicitly (``davis-eval --model
+        MissingDependencyError: the file is absent; pass an RVT step ONNX explicitly (``davis-eval --detector
             rvt.onnx``, exported with ``davis_rig.models.rvt.onnx_export.export_step_onnx``).
     """
     return _bundled(DEFAULT_DETECTOR_FILE,
-                    "pass --model RVT_STEP.onnx (davis_rig.models.rvt.onnx_export.export_step_onnx)")
+                    "pass --detector RVT_STEP.onnx (davis_rig.models.rvt.onnx_export.export_step_onnx)")
 
 
 def default_detector_weights_path() -> _Path:

@@ -26,7 +26,7 @@ _NONE = np.zeros((0, 7), np.float32)
 
 
 class StoredDetections:
-    """The detections of one recording from a ``davis-eval --report`` folder.
+    """The detections of one recording from a ``davis-eval --out`` folder.
 
     Args:
         stored: the :class:`~davis_rig.evaluation.detections.WindowDetections` read from the file.
@@ -67,13 +67,13 @@ class StoredDetections:
 
 
 def find_stored_detections(run: Path, session: Path):
-    """The detections file of ``session`` in a ``davis-eval --report`` folder (or the file itself).
+    """The detections file of ``session`` in a ``davis-eval --out`` folder (or the file itself).
 
     A file is picked when the session it names resolves to the same file as ``session``; else, when exactly one
     file names a session with the same file name (a report made on another machine).
 
     Args:
-        run: the report folder (with ``detections/*.npz``) or one ``.npz``.
+        run: the report folder (with ``<name>.detections.npz`` files) or one such file.
         session: the session being viewed.
 
     Returns:
@@ -85,12 +85,9 @@ def find_stored_detections(run: Path, session: Path):
     from davis_rig.evaluation.detections import read_detections
 
     run = Path(run)
-    if run.is_file():
-        files = [run]
-    elif (run / "detections").is_dir():
-        files = sorted((run / "detections").glob("*.npz"))
-    else:
-        raise FormatError(f"{run}: not a davis-eval report folder (no detections/ in it) nor a detections .npz")
+    files = [run] if run.is_file() else sorted(run.glob("*.detections.npz")) if run.is_dir() else []
+    if not files:
+        raise FormatError(f"{run}: neither a davis-eval --out folder with *.detections.npz files nor such a file")
     stored = [(read_detections(f), f) for f in files]
     if run.is_file():
         return stored[0]

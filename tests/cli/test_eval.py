@@ -58,7 +58,7 @@ def test_two_recordings_one_table_and_a_full_report(sessions, tmp_path, capsys):
     def gif_pixels(threshold):
         extra = [] if threshold is None else ["--gif-threshold", str(threshold)]
         out_dir = tmp_path / f"gif_{threshold}"
-        assert cli.main([str(a), "--model", str(weak), "--threshold", "0.001", "0.25", "--report", str(out_dir),
+        assert cli.main([str(a), "--model", str(weak), "--threshold", "0.001,0.25", "--report", str(out_dir),
                          "--no-plot", "--gif-seconds", "0.5", "--quiet", *extra]) == 0
         gif = Image.open(next(out_dir.glob("*.gif")))
         return np.asarray(gif.convert("RGB"))
@@ -73,12 +73,15 @@ def test_two_recordings_one_table_and_a_full_report(sessions, tmp_path, capsys):
 
 
 def test_gif_threshold_must_be_scored(capsys):
-    assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1", "0.25", "--gif-threshold", "0.5"]) == 2
-    assert "--gif-threshold 0.5 is not one of the scored thresholds 0.1, 0.25" in capsys.readouterr().err
+    assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1,0.25", "--gif-threshold", "0.5"]) == 2
+    assert ("davis-eval: error: argument --gif-threshold: 0.5 is not one of the scored thresholds 0.1, 0.25"
+            in capsys.readouterr().err)
 
 
-def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
+def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys, tmp_path):
     calls = []
+    model_file = tmp_path / "m.onnx"
+    model_file.write_bytes(b"onnx")
 
     def fake(paths, model, settings, names=None, progress=None):
         calls.append((paths, model, settings, names, progress))
@@ -88,23 +91,24 @@ def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys):
         return [RecordingResult("x", "x.h5", metrics, {})], [None]
 
     monkeypatch.setattr("davis_rig.evaluation.physical.evaluate_sessions", fake)
-    assert cli.main(["x.h5", "--model", "m.onnx", "--threshold", "0.1", "0.2", "--seq-len", "3", "--seq-stride", "1",
-                     "--skip-first-ms", "0", "--crop-origin", "0", "0", "--coco-backend", "pycocotools",
-                     "--threads", "1", "--time-tol-ms", "50", "--quiet"]) == 0
+    assert cli.main(["--threshold", "0.1", "x.h5", "--detector", str(model_file), "--threshold", "0.2", "--seq-len",
+                     "3", "--seq-stride", "1", "--skip-first-ms", "0", "--crop-origin", "0", "0", "--coco-backend",
+                     "pycocotools", "--threads", "1", "--time-tol-ms", "50", "--quiet"]) == 0
     paths, model, settings, names, progress = calls[0]
-    assert (paths, model, names, progress) == (["x.h5"], "m.onnx", None, None)
+    assert (paths, model, names, progress) == (["x.h5"], model_file, None, None)
     assert settings.thresholds == (0.1, 0.2) and settings.seq_len == 3 and settings.seq_stride == 1
-    assert settings.skip_first_us is None and settings.crop_origin_xy == (0, 0) and settings.time_tol_us == 50_000
+    assert settings.skip_first_us == 0 and settings.crop_origin_xy == (0, 0) and settings.time_tol_us == 50_000
     assert settings.coco_backend == "pycocotools" and settings.intra_op_threads == 1 and settings.gif_windows == 0
     assert "| SeqASR ↑ | 0.2 | 25.0% |" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv_tail, message", [
-    (["--names", "a,b"], "--names has 2 names for 1 sessions"),
-    (["--seq-len", "0"], "--seq-len"),
-    (["--threshold", "2"], "thresholds must be in [0, 1]"),
-    (["--time-tol-ms", "-1"], "--time-tol-ms must be >= 0"),
-    (["--skip-first-ms", "-1"], "--skip-first-ms must be >= 0, got -1"),
+    (["--names", "a,b"], "argument --names: 2 names for 1 sessions"),
+    (["--seq-len", "0"], "argument --seq-len: expected an integer >= 1, got '0'"),
+    (["--threshold", "2"], "argument --threshold: expected a number in [0, 1], got '2'"),
+    (["--time-tol-ms", "-1"], "argument --time-tol-ms: expected a number in [0, inf), got '-1'"),
+    (["--skip-first-ms", "-1"], "argument --skip-first-ms: expected a number in [0, inf), got '-1'"),
+    (["--crop-origin", "500", "500"], "argument --crop-origin: the 304x240 crop at (500, 500) leaves the"),
 ])
 def test_bad_arguments_exit_2(argv_tail, message, capsys):
     assert cli.main(["x.h5", *argv_tail]) == 2
@@ -180,7 +184,7 @@ def test_missing_bundled_detector_exits_5_and_says_how_to_pass_one(sessions, tmp
     before = sha256(a)
     assert cli.main([str(a), "--quiet"]) == 5
     err = capsys.readouterr().err
-    assert err.startswith("davis-eval: error:") and "bundled default detector" in err and "--model" in err, err
+    assert err.startswith("davis-eval: error:") and "bundled default detector" in err and "--detector" in err, err
     assert sha256(a) == before
 
 
@@ -220,3 +224,84 @@ def test_label_and_eval_run_with_torch_imports_blocked(sessions, tmp_path):
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     assert "| AP ↓ | 0.1 | 100.0% |" in result.stdout
+
+
+def test_threshold_takes_one_value_and_never_swallows_the_session(sessions, tmp_path, capsys):
+    _, a, _ = sessions
+    model = person_rvt(tmp_path)
+    assert cli.main(["--threshold", "0.25", str(a), "--detector", str(model), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "| AP ↓ | 0.25 | 100.0% |" in out and "0.001" not in out
+
+
+def test_files_with_the_same_name_get_distinct_columns_and_gifs(sessions, tmp_path, capsys):
+    pytest.importorskip("PIL", reason="the GIF needs the report extra")
+    _, a, b = sessions
+    for folder, source in (("d1", a), ("d2", b)):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "case.h5").write_bytes(source.read_bytes())
+    report = tmp_path / "R"
+    argv = [str(tmp_path / "d1" / "case.h5"), str(tmp_path / "d2" / "case.h5"), "--detector", str(person_rvt(tmp_path)),
+            "--threshold", "0.25", "--out", str(report), "--no-plot", "--gif-seconds", "0.2", "--skip-first-ms", "0",
+            "--seq-len", "3", "--quiet"]
+    assert cli.main(argv) == 0
+    assert "| Metric | Confidence threshold | d1/case | d2/case |" in capsys.readouterr().out
+    data = json.loads((report / "report.json").read_text())
+    assert [r["name"] for r in data["recordings"]] == ["d1/case", "d2/case"]
+    assert data["settings"]["skip_first_us"] == 0  # 0 is stored as 0, not null
+    assert sorted(p.name for p in report.glob("*.gif")) == ["d1_case.gif", "d2_case.gif"]
+    assert cli.main([*argv[:2], "--names", "x,x", "--quiet"]) == 2
+    assert "argument --names: every session needs its own non-empty name" in capsys.readouterr().err
+
+
+def test_yolo_labels_an_unlabelled_session_in_the_same_run_like_davis_label(tmp_path, capsys):
+    from davis_rig.cli import label as label_cli
+    from davis_rig.evaluation.physical import labels_provenance
+    from davis_rig.session import SessionReader
+
+    yolo, rvt = person_yolo(tmp_path), person_rvt(tmp_path)
+    fresh = scene_session(tmp_path, "fresh.h5")
+    by_label = tmp_path / "by_label.h5"
+    by_label.write_bytes(fresh.read_bytes())
+    assert cli.main([str(fresh), "--threshold", "0.25", "--detector", str(rvt), "--quiet"]) == 4
+    err = capsys.readouterr().err
+    assert "has no /labels: add --yolo MODEL.onnx to label it in this run" in err and "Traceback" not in err
+
+    assert cli.main([str(fresh), "--threshold", "0.25", "--detector", str(rvt), "--yolo", str(yolo), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "| AP ↓ | 0.25 | 100.0% |" in captured.out and "labelled with person_yolo.onnx" in captured.err
+    assert label_cli.main([str(by_label), "--yolo", str(yolo), "--quiet"]) == 0
+    with SessionReader(fresh) as ours, SessionReader(by_label) as theirs:
+        assert np.array_equal(ours.labels(), theirs.labels())
+        mine, reference = labels_provenance(ours.labels_attrs()), labels_provenance(theirs.labels_attrs())
+    mine.pop("created_utc"), reference.pop("created_utc")
+    assert mine == reference  # the same provenance as davis-label stores
+
+    before = sha256(fresh)  # a labelled session is left as it is
+    assert cli.main([str(fresh), "--threshold", "0.25", "--detector", str(rvt), "--yolo", str(yolo), "--quiet"]) == 0
+    assert sha256(fresh) == before and "labelled with" not in capsys.readouterr().err
+
+
+def test_a_missing_detector_fails_before_yolo_writes_labels(tmp_path, capsys):
+    fresh = scene_session(tmp_path, "fresh.h5")
+    before = sha256(fresh)
+    argv = [str(fresh), "--detector", str(tmp_path / "nope.onnx"), "--yolo", str(person_yolo(tmp_path)), "--quiet"]
+    assert cli.main(argv) == 4
+    assert "nope.onnx: no such RVT ONNX model" in capsys.readouterr().err and sha256(fresh) == before
+
+
+def test_a_failing_report_leaves_no_report_folder(sessions, tmp_path, monkeypatch, capsys):
+    import davis_rig.evaluation.report as report
+
+    _, a, _ = sessions
+
+    def interrupted(results, settings, path):
+        path.write_text("{")  # half a file, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "write_json", interrupted)
+    out = tmp_path / "new" / "report"
+    assert cli.main([str(a), "--detector", str(person_rvt(tmp_path)), "--threshold", "0.25", "--out", str(out),
+                     "--no-plot", "--gif-seconds", "0", "--quiet"]) == 130
+    assert not (tmp_path / "new").exists() and "davis-eval: interrupted" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == [tmp_path / "rvt.onnx"]  # no staging folder either

@@ -82,9 +82,44 @@ def test_bad_input_gives_a_message_exit_4_and_leaves_the_file_untouched(tmp_path
 
 
 def test_missing_required_argument_is_a_usage_error(capsys):
-    with pytest.raises(SystemExit) as exit_info:
-        cli.main(["s.h5"])
-    assert exit_info.value.code == 2 and "--yolo" in capsys.readouterr().err
+    assert cli.main(["s.h5"]) == 2 and "--yolo" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--conf", "1.5"], "argument --conf: expected a number in [0, 1], got '1.5'"),
+    (["--conf", "nan"], "argument --conf: expected a finite number, got 'nan'"),
+    (["--conf", "-1"], "argument --conf: expected a number in [0, 1], got '-1'"),
+    (["--threshold", "1.5"], "argument --threshold: expected a number in [0, 1], got '1.5'"),
+    (["--iou", "2"], "argument --iou: expected a number in [0, 1], got '2'"),
+    (["--iou", "nan"], "argument --iou: expected a finite number, got 'nan'"),
+    (["--threads", "-2"], "argument --threads: expected an integer >= 1, got '-2'"),
+    (["--threads", "0"], "argument --threads: expected an integer >= 1, got '0'"),
+    (["--crop-origin", "500", "500"], "argument --crop-origin: the 304x240 crop at (500, 500) leaves the 346x260"),
+    (["--crop-origin", "-1", "0"], "argument --crop-origin: expected an integer >= 0, got '-1'"),
+    (["--classes", " , "], "argument --classes: expected comma-separated class names"),
+])
+def test_bad_values_exit_2_naming_the_option_and_write_nothing(tmp_path, capsys, argv, message):
+    session = scene_session(tmp_path)
+    before = sha256(session)
+    assert cli.main([str(session), "--yolo", str(person_yolo(tmp_path)), "--quiet", *argv]) == 2
+    err = capsys.readouterr().err
+    assert f"davis-label: error: {message}" in err and "Traceback" not in err, err
+    assert sha256(session) == before
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"conf_threshold": float("nan")}, "conf_threshold"), ({"iou_threshold": 2.0}, "iou_threshold"),
+    ({"intra_op_threads": 0}, "intra_op_threads"), ({"crop_origin_xy": (43, 0)}, "crop_origin_xy"),
+])
+def test_label_session_refuses_bad_settings_with_the_field_named(tmp_path, kwargs, field):
+    from davis_rig.errors import ConfigError
+    from davis_rig.labelers.session_labels import label_session
+
+    session = scene_session(tmp_path)
+    before = sha256(session)
+    with pytest.raises(ConfigError) as info:
+        label_session(session, person_yolo(tmp_path), **kwargs)
+    assert info.value.field == field and sha256(session) == before
 
 
 def test_console_script_help_is_fast_and_lists_examples():

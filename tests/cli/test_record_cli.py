@@ -103,20 +103,25 @@ def test_recover_maps_onto_recover_session(monkeypatch, capsys):
 
 @pytest.mark.parametrize(
     "argv, message",
-    [([], "--out is required"), (["--recover", "a.h5", "--out", "b.h5"], "cannot be combined"),
-     (["--out", "a.h5", "--fake-fast"], "needs --fake")],
+    [([], "the following arguments are required: --out (or --recover SESSION_H5)"),
+     (["--recover", "a.h5", "--out", "b.h5"], "argument --recover: not allowed with --out"),
+     (["--out", "a.h5", "--fake-fast"], "argument --fake-fast: needs --fake REPLAY")],
 )
 def test_usage_errors(argv, message, capsys):
     assert cli.main(argv) == EXIT_USAGE
-    assert message in capsys.readouterr().err
+    assert f"davis-record: error: {message}" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
     "argv, message",
-    [(["--duration", "-1"], "--duration must be >= 0"), (["--duration", "nan"], "--duration must be >= 0"),
-     (["--exposure", "-1"], "--exposure must be 0..4194303"), (["--exposure", "4194304"], "--exposure must be"),
-     (["--frame-interval", "-5"], "--frame-interval must be 0..8388607"),
-     (["--frame-interval", "8388608"], "--frame-interval must be")],
+    [(["--duration", "-1"], "argument --duration: expected a number in [0, inf), got '-1'"),
+     (["--duration", "nan"], "argument --duration: expected a finite number, got 'nan'"),
+     (["--exposure", "-1"], "argument --exposure: expected an integer in [0, 4194303], got '-1'"),
+     (["--exposure", "4194304"], "argument --exposure: expected an integer in [0, 4194303]"),
+     (["--frame-interval", "-5"], "argument --frame-interval: expected an integer in [0, 8388607], got '-5'"),
+     (["--frame-interval", "8388608"], "argument --frame-interval: expected an integer in [0, 8388607]"),
+     (["--usb-transfers", "-1"], "argument --usb-transfers: expected an integer >= 0, got '-1'"),
+     (["--usb-transfers", "two"], "argument --usb-transfers: expected an integer, got 'two'")],
 )
 def test_out_of_range_numbers_are_usage_errors_before_the_camera_is_opened(monkeypatch, capsys, argv, message):
     def must_not_open(*args, **kwargs):
@@ -140,9 +145,21 @@ def test_limits_of_the_numbers_are_accepted(monkeypatch, tmp_path):
 
 
 def test_bad_number_is_a_usage_error(capsys):
-    with pytest.raises(SystemExit) as info:
-        cli.main(["--out", "a.h5", "--duration", "soon"])
-    assert info.value.code == EXIT_USAGE
+    assert cli.main(["--out", "a.h5", "--duration", "soon"]) == EXIT_USAGE
+    assert "argument --duration: expected a number, got 'soon'" in capsys.readouterr().err
+
+
+def test_help_names_only_files_that_exist_and_the_exit_codes(capsys):
+    import re
+
+    from davis_rig.cli._common import EXIT_CODES_TEXT
+
+    assert cli.main(["--help"]) == 0
+    text = capsys.readouterr().out
+    repo = Path(__file__).resolve().parents[2]
+    mentioned = re.findall(r"recordings/[\w./-]+", text)
+    assert mentioned and all((repo / path).is_file() for path in mentioned), mentioned
+    assert EXIT_CODES_TEXT.splitlines()[0] in text
 
 
 @pytest.mark.parametrize("error, code", [(DeviceNotFoundError("no DAVIS346 attached"), EXIT_DEVICE),
