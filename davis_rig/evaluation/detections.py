@@ -106,7 +106,7 @@ def read_detections(path: Path) -> WindowDetections:
     except (OSError, ValueError, EOFError) as exc:
         raise FormatError(f"{path}: cannot read as a detections .npz ({exc})") from exc
     if str(arrays.get("format", "")) != FORMAT_NAME:
-        raise FormatError(f"{path}: not a {FORMAT_NAME} file (written by davis-eval --report)")
+        raise FormatError(f"{path}: not a {FORMAT_NAME} file (written by davis-eval --out)")
     try:
         if int(arrays["format_version"]) > FORMAT_VERSION:
             raise FormatError(f"{path}: format version {int(arrays['format_version'])} is newer than this "
