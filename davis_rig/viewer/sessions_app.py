@@ -101,8 +101,6 @@ class SessionsApp:
         return json_response(misses.as_dict() | {"threshold": threshold, "mode": mode})
 
     def _export(self, view, params: dict) -> Response:
-        from davis_rig.viewer.export import export_video
-
         start = int_param(params, "start", 0, view.num_windows - 1)
         stop = int_param(params, "stop", start + 1, view.num_windows)
         if stop - start > self.max_export_windows:
@@ -114,6 +112,8 @@ class SessionsApp:
         fps = int_param(params, "fps", 1, 100, default=20)
         layers = layers_param(params, LAYERS, LAYERS)
         threshold = self._threshold(view, params)
+        from davis_rig.viewer.export import export_video
+
         with tempfile.TemporaryDirectory(prefix="davis-view-") as folder:
             path = export_video(view, Path(folder) / f"export.{fmt}", start=start, stop=stop, fps=fps,
                                 layers=layers, threshold=threshold)
