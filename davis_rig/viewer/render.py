@@ -257,7 +257,7 @@ def render_view(content: ViewContent) -> np.ndarray:
 
 
 def encode_image(image: np.ndarray, fmt: str = "png", jpeg_quality: int = 85) -> bytes:
-    """Encode an RGB uint8 image as PNG (lossless, compression level 1) or JPEG.
+    """Encode an RGB uint8 image as PNG (lossless, compression level 1) or JPEG (4:4:4).
 
     Args:
         image: uint8 ``[H, W, 3]`` RGB.
@@ -276,7 +276,9 @@ def encode_image(image: np.ndarray, fmt: str = "png", jpeg_quality: int = 85) ->
     if fmt == "png":
         ok, data = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     elif fmt == "jpg":
-        ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        # 4:4:4: no chroma subsampling, so 1-px coloured box outlines stay their colour
+        ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality),
+                                              cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
     else:
         raise ValueError(f"image format: expected 'png' or 'jpg', got {fmt!r}")
     if not ok:  # pragma: no cover - OpenCV fails only on invalid arrays, which the asarray above rules out
