@@ -33,14 +33,16 @@ import numpy as np
 
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
-from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
+from davis_rig.types import DAVIS346_HW, RVT_HW
 from davis_rig.viewer.render import LAYERS, ViewContent, encode_image, event_counts, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
-__all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter"]
+__all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter", "crop_columns"]
 
 #: nice increment of the view's threads (Linux), so the capture threads get the CPU first.
 VIEW_NICE = 10
+#: Events of one display frame kept as arrays before they are folded into counts (memory bound if rendering lags).
+FOLD_EVENTS = 2_000_000
 
 
 def _lower_priority() -> None:
@@ -116,50 +118,71 @@ class WindowCutter:
     """Cut a live event stream into RVT's windows: ends at ``t0 + k · window_us``, each ``end − window_us ≤ t ≤ end``.
 
     ``t0`` is the first event's millisecond (as a session's ``t_offset``). A window is complete once an event
-    after its end has arrived. Time going back by more than a window (a device timestamp reset) restarts the grid
-    at the new time and marks the next window as the start of a new sequence (RVT states reset).
+    after its end has arrived. Nothing is copied or cropped here (the detector crops the windows it scores, and
+    skips the others at no cost): a window is handed out as views into the arrays pushed. Time going back by more
+    than a window (a device timestamp reset) restarts the grid at the new time and marks the next window as the
+    start of a new sequence (RVT states reset).
 
     Args:
         window_us: window length, µs.
-        crop_origin_xy: the 304x240 crop on the sensor, px.
     """
 
-    def __init__(self, window_us: int = WINDOW_US, crop_origin_xy: tuple[int, int] = (21, 10)):
+    def __init__(self, window_us: int = WINDOW_US):
         self.window_us = int(window_us)
-        self.crop_origin_xy = tuple(int(v) for v in crop_origin_xy)
         self._end: int | None = None
-        self._pending: list[np.ndarray] = []
+        self._pending: list[np.ndarray] = []  # arrays (views) holding the current window's events, in order
         self._restart = True
 
-    def push(self, events: np.ndarray) -> list[tuple[int, np.ndarray, bool]]:
+    def push(self, events: np.ndarray) -> list[tuple[int, list[np.ndarray], bool]]:
         """Add time-sorted sensor events (EVENT_DTYPE); return the windows they complete.
 
         Returns:
-            ``[(end µs, cropped events EVENT_DTYPE [N] with end − window_us ≤ t ≤ end, starts_sequence), ...]``.
+            ``[(end µs, [views whose concatenation is the window's events, end − window_us ≤ t ≤ end],
+            starts_sequence), ...]``, oldest first.
         """
-        from davis_rig.events.crop import crop_events
-
         if not len(events):
             return []
         t_first, t_last = int(events["t"][0]), int(events["t"][-1])
         if self._end is None or t_first < self._end - 2 * self.window_us:
             self._end = t_first // 1000 * 1000 + self.window_us
             self._pending, self._restart = [], True
-        cropped = crop_events(events, self.crop_origin_xy, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
-        if len(cropped):
-            self._pending.append(cropped)
+        self._pending.append(events)
         done = []
         while t_last > self._end:
-            buffered = np.concatenate(self._pending) if self._pending else np.zeros(0, EVENT_DTYPE)
-            t = buffered["t"]
-            lo = np.searchsorted(t, self._end - self.window_us, side="left")
-            hi = np.searchsorted(t, self._end, side="right")
-            done.append((self._end, buffered[lo:hi], self._restart))
+            parts = [_between(part, self._end - self.window_us, self._end) for part in self._pending]
+            done.append((self._end, [part for part in parts if len(part)], self._restart))
             self._restart = False
-            rest = buffered[np.searchsorted(t, self._end, side="left"):]  # the next window starts at this end
-            self._pending = [rest] if len(rest) else []
             self._end += self.window_us
+            # keep what the next window (which starts at the old end, inclusive) may hold
+            kept = [_between(part, self._end - self.window_us, None) for part in self._pending]
+            self._pending = [part for part in kept if len(part)]
         return done
+
+
+def _between(events: np.ndarray, t0_us: int, t1_us: int | None) -> np.ndarray:
+    """The view of time-sorted ``events`` with ``t0_us <= t <= t1_us`` (no upper bound for ``None``); a binary
+    search only where the bounds cut the array (a field of a structured array is strided: searching it copies)."""
+    first, last = int(events["t"][0]), int(events["t"][-1])
+    if first >= t0_us and (t1_us is None or last <= t1_us):
+        return events
+    if last < t0_us or (t1_us is not None and first > t1_us):
+        return events[:0]
+    t = events["t"]
+    lo = 0 if first >= t0_us else int(np.searchsorted(t, t0_us, side="left"))
+    hi = len(events) if t1_us is None or last <= t1_us else int(np.searchsorted(t, t1_us, side="right"))
+    return events[lo:hi]
+
+
+def crop_columns(parts: list[np.ndarray], origin_xy: tuple[int, int]):
+    """The events of ``parts`` (EVENT_DTYPE arrays, in order) inside the 304x240 crop at ``origin_xy``, as
+    columns ``(x, y, t, p)`` in crop px (a new array each; the same events as
+    :func:`~davis_rig.events.crop.crop_events`)."""
+    events = np.concatenate(parts) if len(parts) != 1 else parts[0]
+    x0, y0 = (int(v) for v in origin_xy)
+    x = events["x"].astype(np.int32) - x0
+    y = events["y"].astype(np.int32) - y0
+    keep = (x >= 0) & (x < RVT_HW[1]) & (y >= 0) & (y < RVT_HW[0])
+    return x[keep], y[keep], events["t"][keep], events["p"][keep]
 
 
 class _Mailbox:
@@ -222,7 +245,7 @@ class LiveView:
         self.jpeg_quality = int(jpeg_quality)
         self.nms_threshold = float(nms_threshold)
         self.tap = LiveTap(max_pending_chunks)
-        self._cutter = WindowCutter(self.window_us, self.crop_origin_xy)
+        self._cutter = WindowCutter(self.window_us)
         self._mailbox = _Mailbox()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -231,8 +254,10 @@ class LiveView:
         self._boxes: tuple[int, np.ndarray] | None = None  # (window end µs, float32 [K, 7]) of the latest step
         self._detector_ready = threading.Event()
         self._detector_error: DavisRigError | None = None
-        self._latency_ms: deque = deque(maxlen=100)
-        self._behind_ms: deque = deque(maxlen=100)
+        #: detector latency of the last 1000 windows, ms: the chunk that completed the window was read -> boxes ready
+        self.latency_ms: deque = deque(maxlen=1000)
+        #: at the last 1000 frames drawn with boxes: newest event − the boxes' window end, ms of device time
+        self.behind_ms: deque = deque(maxlen=1000)
         self._render_times: deque = deque(maxlen=200)
         self._served_times: deque = deque(maxlen=200)
         self._camera_stats: dict = {}
@@ -268,32 +293,59 @@ class LiveView:
     # --- the view thread ----------------------------------------------------------------------
     def _view_loop(self) -> None:
         _lower_priority()
+        shown: list[np.ndarray] = []  # the events of the frame being drawn, one array per chunk
         counts = np.zeros((2, *DAVIS346_HW), np.int64)
         aps = None
-        next_render = time.monotonic()
-        next_stats = next_render
+        next_render = next_stats = time.monotonic()
         while not self._stop.is_set():
-            for t_offer, chunk in self.tap.take():
+            taken = self.tap.take()
+            if taken:
                 if self._t_first_chunk is None:
-                    self._t_first_chunk = t_offer
-                events = getattr(chunk, "events", None)
-                if events is not None and len(events):
-                    counts += event_counts(events["x"], events["y"], events["p"], DAVIS346_HW)
-                    self._newest_t = int(events["t"][-1])
-                    for end, window, restart in self._cutter.push(events):
-                        self._mailbox.put((end, window, restart, t_offer))
-                frames = getattr(chunk, "frames", None)
-                if frames:
-                    aps = (np.asarray(frames[-1].pixels), (int(frames[-1].position_x), int(frames[-1].position_y)))
+                    self._t_first_chunk = taken[0][0]
+                aps = self._latest_aps(taken) or aps
+                shown.extend(self._take_events(taken))
+                if sum(len(part) for part in shown) > FOLD_EVENTS:  # keep memory bounded if rendering lags
+                    counts += self._counts(shown)
+                    shown = []
             now = time.monotonic()
             if now >= next_stats:
                 self._update_stats(now)
                 next_stats = now + 0.5
             if now >= next_render:
-                self._render(counts, aps)
-                counts = np.zeros_like(counts)
+                self._render(counts + self._counts(shown), aps)
+                counts[...] = 0
+                shown = []
                 next_render = max(next_render + self.period_s, now)
             self._stop.wait(min(0.005, max(next_render - time.monotonic(), 0.0)))
+
+    @staticmethod
+    def _latest_aps(taken: list):
+        """``(pixels, (x0, y0))`` of the newest APS frame among the chunks taken, or ``None``."""
+        for _, chunk in reversed(taken):
+            frames = getattr(chunk, "frames", None)
+            if frames:
+                return np.asarray(frames[-1].pixels), (int(frames[-1].position_x), int(frames[-1].position_y))
+        return None
+
+    def _take_events(self, taken: list) -> list[np.ndarray]:
+        """The non-empty event arrays of the chunks taken (not copied); the detector's windows are cut from them."""
+        out = []
+        for t_offer, chunk in taken:
+            events = getattr(chunk, "events", None)
+            if events is None or not len(events):
+                continue
+            out.append(events)
+            self._newest_t = int(events["t"][-1])
+            for end, parts, restart in self._cutter.push(events):  # complete since this chunk was read
+                self._mailbox.put((end, parts, restart, t_offer))
+        return out
+
+    @staticmethod
+    def _counts(parts: list) -> np.ndarray:
+        if not parts:
+            return np.zeros((2, *DAVIS346_HW), np.int64)
+        events = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return event_counts(events["x"], events["y"], events["p"], DAVIS346_HW)
 
     def _update_stats(self, now: float) -> None:
         t_then, events_then = self._rate
@@ -311,7 +363,7 @@ class LiveView:
         if boxes is not None:
             end_us, detections = boxes
             if self._newest_t is not None:
-                self._behind_ms.append((self._newest_t - end_us) / 1000)
+                self.behind_ms.append((self._newest_t - end_us) / 1000)
         seconds = 0.0 if self._t_first_chunk is None else time.monotonic() - self._t_first_chunk
         caption = f"{seconds:7.1f} s  {self._rate_hz / 1e6:6.2f} Mev/s"
         image = render_view(ViewContent(counts=counts, aps=aps, detections=detections,
@@ -328,7 +380,7 @@ class LiveView:
     # --- the detector thread ------------------------------------------------------------------
     def _detector_loop(self) -> None:
         _lower_priority()  # before the session exists: its intra-op threads inherit the nice value
-        from davis_rig.events.histogram import stacked_histogram
+        from davis_rig.events.histogram import NUM_BINS, stacked_histogram
         from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
         from davis_rig.models.rvt.postprocess import postprocess
 
@@ -344,15 +396,18 @@ class LiveView:
             item = self._mailbox.get(0.1)
             if item is None:
                 continue
-            end_us, events, restart, t_offer = item
+            end_us, parts, restart, t_offer = item
             if restart:
                 states = None
-            t = np.maximum.accumulate(events["t"]) if len(events) else events["t"]
-            hist = stacked_histogram(events["x"], events["y"], t, events["p"])
+            if parts:
+                x, y, t, p = crop_columns(parts, self.crop_origin_xy)
+                hist = stacked_histogram(x, y, np.maximum.accumulate(t) if len(t) else t, p)
+            else:
+                hist = np.zeros((2 * NUM_BINS, *RVT_HW), np.uint8)
             decoded, states = runner.step(hist[None], states)
             rows = postprocess(decoded, self.threshold, self.nms_threshold)[0]
             self._boxes = (end_us, np.zeros((0, 7), np.float32) if rows is None else rows)
-            self._latency_ms.append((time.monotonic() - t_offer) * 1000)
+            self.latency_ms.append((time.monotonic() - t_offer) * 1000)
             self.windows_scored += 1
 
     # --- what the server asks -----------------------------------------------------------------
@@ -378,8 +433,8 @@ class LiveView:
 
     def stats(self) -> dict:
         """Counters of the view (JSON-ready); ``display`` holds the same as short texts for the page."""
-        latency = list(self._latency_ms)
-        behind = list(self._behind_ms)
+        latency = list(self.latency_ms)
+        behind = list(self.behind_ms)
         out = {
             "events": self.tap.offered_events,
             "event_rate_hz": self._rate_hz,

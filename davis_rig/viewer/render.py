@@ -55,14 +55,17 @@ def event_counts(x, y, p, hw: tuple[int, int] = DAVIS346_HW) -> np.ndarray:
     Raises:
         ShapeError: columns of different lengths, or an event outside the image.
     """
-    x, y, p = (np.asarray(v).astype(np.int64, copy=False).reshape(-1) for v in (x, y, p))
+    x, y, p = (np.asarray(v).reshape(-1) for v in (x, y, p))
     if not x.shape == y.shape == p.shape:
         raise ShapeError(f"event columns: expected equal lengths, got x {x.shape}, y {y.shape}, p {p.shape}")
     height, width = hw
-    if x.size and (x.min() < 0 or x.max() >= width or y.min() < 0 or y.max() >= height):
+    if x.size and (int(x.min()) < 0 or int(x.max()) >= width or int(y.min()) < 0 or int(y.max()) >= height):
         raise ShapeError(f"events outside the {width}x{height} image (w x h): x in [{x.min()}, {x.max()}], "
                          f"y in [{y.min()}, {y.max()}]")
-    index = (np.clip(p, 0, 1) * height + y) * width + x
+    index = y.astype(np.int32)  # (ON · H + y) · W + x in int32: 2 H W cells fit easily
+    index += (np.asarray(p) > 0).astype(np.int32) * height
+    index *= width
+    index += x
     return np.bincount(index, minlength=2 * height * width).reshape(2, height, width)
 
 
@@ -76,11 +79,9 @@ def event_image(counts: np.ndarray) -> np.ndarray:
     if counts.ndim != 3 or counts.shape[0] != 2:
         raise ShapeError(f"counts: expected [2, H, W], got {counts.shape}")
     off, on = counts[0], counts[1]
-    image = np.empty((*on.shape, 3), np.uint8)
-    image[...] = BACKGROUND_RGB
-    image[(on >= off) & (on > 0)] = ON_RGB
-    image[off > on] = OFF_RGB
-    return image
+    palette = np.array([BACKGROUND_RGB, ON_RGB, OFF_RGB], np.uint8)
+    # 2: more OFF than ON; else 1 when any ON (ties to ON), 0 when none at all
+    return np.take(palette, np.where(off > on, np.uint8(2), (on > 0).view(np.uint8)), axis=0)
 
 
 def aps_image(pixels: np.ndarray, origin_xy: tuple[int, int] = (0, 0),

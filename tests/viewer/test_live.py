@@ -14,7 +14,7 @@ from davis_rig.errors import ModelFormatError
 from davis_rig.events.crop import crop_events
 from davis_rig.events.histogram import window_indices
 from davis_rig.types import make_events
-from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, TappedCamera, WindowCutter
+from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, TappedCamera, WindowCutter, crop_columns
 from davis_rig.viewer.server import RequestError
 
 from eval_data import PERSON_BOX, PERSON_BOX_CROP, moving_blob_events, person_rvt
@@ -34,26 +34,36 @@ def test_window_cutter_gives_rvts_windows_of_the_whole_stream(seed, pieces):
     rng = np.random.default_rng(seed)
     events = stream(rng)
     cuts = np.sort(rng.integers(0, len(events), pieces - 1))
-    cutter = WindowCutter(50_000, (21, 10))
+    cutter = WindowCutter(50_000)
     windows = [w for part in np.split(events, cuts) for w in cutter.push(part)]
     t0 = int(events["t"][0]) // 1000 * 1000
     ends = t0 + 50_000 * np.arange(1, len(windows) + 1)
     assert [w[0] for w in windows] == ends.tolist()
     assert ends[-1] < events["t"][-1] <= ends[-1] + 50_000  # every window an event has passed, no more
-    cropped = crop_events(events, (21, 10))
-    starts, stops = window_indices(cropped["t"], ends, 50_000)
-    for (end, got, restart), a, b in zip(windows, starts, stops):
-        np.testing.assert_array_equal(got, cropped[a:b])  # both ends inclusive, boundary events in both
+    starts, stops = window_indices(events["t"], ends, 50_000)
+    for (end, parts, restart), a, b in zip(windows, starts, stops):
+        got = np.concatenate(parts) if parts else events[:0]
+        np.testing.assert_array_equal(got, events[a:b])  # both ends inclusive, boundary events in both
         assert restart == (end == ends[0])
 
 
 def test_window_cutter_restarts_after_a_timestamp_reset():
     rng = np.random.default_rng(1)
-    cutter = WindowCutter(50_000, (21, 10))
+    cutter = WindowCutter(50_000)
     assert len(cutter.push(stream(rng, span_us=300_000, t0_us=1_000_000))) == 5
     after = cutter.push(stream(rng, span_us=120_000, t0_us=0))
     assert [w[0] for w in after] == [50_000, 100_000] and [w[2] for w in after] == [True, False]
     assert cutter.push(make_events([], [], [], [])) == []
+
+
+def test_crop_columns_are_crop_events():
+    rng = np.random.default_rng(4)
+    events = stream(rng)
+    parts = np.array_split(events, 7)
+    x, y, t, p = crop_columns(parts, (21, 10))
+    expected = crop_events(events, (21, 10))
+    for got, name in ((x, "x"), (y, "y"), (t, "t"), (p, "p")):
+        np.testing.assert_array_equal(got, expected[name])
 
 
 def test_tap_drops_the_oldest_chunks_and_counts_them():
