@@ -135,7 +135,7 @@ def _record(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     try:
         with open_camera(args.serial, backend, args.usb_transfers) as camera, \
-                live_view(args, camera, quiet=args.quiet) as source:
+                live_view(args, camera) as source:
             summary = record_session(
                 source,
                 args.out,

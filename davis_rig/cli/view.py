@@ -267,9 +267,10 @@ def check_live_view_arguments(parser: argparse.ArgumentParser, args: argparse.Na
 
 
 @contextlib.contextmanager
-def live_view(args: argparse.Namespace, camera, quiet: bool = False):
-    """With ``--view``: start the live view and its page, and yield the camera to record from (tapped);
-    without: yield ``camera`` unchanged.
+def live_view(args: argparse.Namespace, camera, prog: str = "davis-record"):
+    """With ``--view``: start the live view and its page (its address, with the token when one is needed, is
+    printed on stderr even with ``--quiet``), and yield the camera to record from (tapped); without: yield
+    ``camera`` unchanged.
 
     Raises:
         ConfigError: the page's port cannot be bound (names ``--view-port``).
@@ -286,8 +287,7 @@ def live_view(args: argparse.Namespace, camera, quiet: bool = False):
                     stats=lambda: camera.stats)
     server = ViewerServer(LiveApp(view), host=args.view_host, port=args.view_port, allow_remote=args.allow_remote)
     with view, _bound(server, "--view-port"):
-        if not quiet:
-            print(f"{NAME}: live view at {server.url}", file=sys.stderr, flush=True)
+        print(f"{prog}: live view at {server.url}", file=sys.stderr, flush=True)
         yield TappedCamera(camera, view.tap)
 
 

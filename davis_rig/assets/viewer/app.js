@@ -39,7 +39,8 @@ function layers() {
 }
 
 function frameQuery(k) {
-  const q = {k: k, layers: layers()};
+  // JPEG while playing (a fraction of the bytes over SSH), lossless PNG for a still frame
+  const q = {k: k, layers: layers(), fmt: S.playing ? "jpg" : "png"};
   if (info().detections) q.threshold = $("threshold").value;
   return q;
 }
@@ -79,9 +80,11 @@ function play() {
 }
 
 function pause() {
+  const wasPlaying = S.playing;
   S.playing = false;
   $("play").textContent = "play";
   clearInterval(S.timer);
+  if (wasPlaying) show(S.k);  // the still frame again, lossless
 }
 
 async function refreshMisses() {
