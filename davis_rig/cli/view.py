@@ -103,8 +103,8 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
     if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):
         parser.error(f"argument --crop-origin: {message}")
-    if args.no_detector and (args.detector is not None or args.detections is not None):
-        parser.error("argument --no-detector: not allowed with --detector or --detections")
+    if args.no_detector and (args.detector is not None or args.detections is not None or args.threshold):
+        parser.error("argument --no-detector: not allowed with --detector, --detections or --threshold")
     if args.detections is not None and args.detector is not None:
         parser.error("argument --detections: not allowed with --detector (the boxes come from the report)")
     if args.detections is not None and args.threshold is not None:

@@ -39,6 +39,7 @@ def test_version_and_help(capsys):
     (["--export", "x.gif", "--session", "3"], "argument --session: 3 is not an index of the 1 SESSION_H5 given"),
     (["--export", "x.gif", "--start", "2", "--end", "1"], "argument --end: 1 s is not after --start 2 s"),
     (["--no-detector", "--detector", "m.onnx"], "argument --no-detector: not allowed with --detector"),
+    (["--no-detector", "--threshold", "0.1"], "argument --no-detector: not allowed with --detector"),
     (["--detections", "run", "--detector", "m.onnx"], "argument --detections: not allowed with --detector"),
     (["--detections", "run", "--threshold", "0.1"], "argument --threshold: with --detections the report's"),
     (["--crop-origin", "100", "100"], "argument --crop-origin: the 304x240 crop at (100, 100) leaves"),
