@@ -122,3 +122,26 @@ def test_serves_until_ctrl_c_and_a_busy_port_is_a_usage_error(scene):
         process.send_signal(signal.SIGINT)
         out, err = process.communicate(timeout=60)
     assert process.returncode == 0 and "stopped" in err
+
+
+def test_a_file_that_is_no_session_exits_4_and_nan_exits_2(tmp_path, scene, capsys):
+    text = tmp_path / "text.h5"
+    text.write_text("not hdf5")
+    assert cli.main([str(text), "--no-detector", "--port", "0"]) == 4
+    assert "text.h5: cannot open as HDF5" in capsys.readouterr().err
+    assert cli.main([str(scene), "--export", str(tmp_path / "x.gif"), "--fps", "nan"]) == 2
+    assert "argument --fps: expected a finite number, got 'nan'" in capsys.readouterr().err
+
+
+def test_ctrl_c_during_an_export_leaves_no_file(scene, tmp_path, monkeypatch, capsys):
+    from davis_rig.viewer import export
+
+    def interrupted(frames, path, fps):
+        next(frames)
+        path.write_bytes(b"half a video")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "_write_mp4", interrupted)
+    assert cli.main([str(scene), "--no-detector", "--export", str(tmp_path / "v.mp4")]) == 130
+    assert capsys.readouterr().err.strip() == "davis-view: interrupted"
+    assert list(tmp_path.iterdir()) == []
