@@ -17,10 +17,10 @@ import argparse
 import datetime as dt
 import sys
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from davis_rig.device.camera import Davis346
-from davis_rig.errors import DavisRigError
 from davis_rig.usb.replay import ReplayHeader, ReplayWriter
 
 
@@ -111,14 +111,23 @@ def capture_replay(
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit code."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from davis_rig.cli._common import new_parser, non_negative_int, positive_float, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
+                        "examples:\n  python tools/capture_replay.py recordings/scene.davisreplay --duration-s 10\n\n"
+                        "Ctrl-C stops early and still closes the replay file cleanly (exit 130).\n")
     parser.add_argument("path", help="output replay file, e.g. recordings/scene.davisreplay")
-    parser.add_argument("--duration-s", type=float, default=10.0, help="recording time in seconds (default 10)")
+    parser.add_argument("--duration-s", type=positive_float, default=10.0,
+                        help="recording time in seconds (default 10)")
     parser.add_argument("--serial", default=None, help="camera serial number (default: first DAVIS found)")
-    parser.add_argument("--exposure-us", type=int, default=None, help="APS exposure in µs (default 4000)")
-    parser.add_argument("--frame-interval-us", type=int, default=None, help="APS frame interval in µs (default 40000)")
+    parser.add_argument("--exposure-us", type=non_negative_int, default=None, help="APS exposure in µs (default 4000)")
+    parser.add_argument("--frame-interval-us", type=non_negative_int, default=None,
+                        help="APS frame interval in µs (default 40000)")
     parser.add_argument("--imu", action="store_true", help="also record IMU samples")
-    args = parser.parse_args(argv)
+    return run_main(parser, argv, _capture)
+
+
+def _capture(args: argparse.Namespace) -> int:
     try:
         counts = capture_replay(
             args.path,
@@ -129,11 +138,8 @@ def main(argv: list[str] | None = None) -> int:
             imu=args.imu,
         )
     except KeyboardInterrupt:
-        print("interrupted; the replay file was closed cleanly", file=sys.stderr)
+        print(f"{Path(__file__).name}: interrupted; the replay file was closed cleanly", file=sys.stderr)
         return 130
-    except DavisRigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
     print(
         f"wrote {args.path}: {counts['records']} records, {counts['bytes']} bytes, "
         f"{counts['events']} events, {counts['frames']} frames, {counts['dropped_transfers']} dropped transfers"

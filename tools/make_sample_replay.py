@@ -54,10 +54,17 @@ def make_sample_replay(session_path: Path, out_path: Path) -> dict[str, int]:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit code."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--session", type=Path, default=Path("recordings/sample.h5"))
-    parser.add_argument("--out", type=Path, default=Path("recordings/sample.davisreplay"))
-    args = parser.parse_args(argv)
+    from davis_rig.cli._common import new_parser, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
+                        "examples:\n  python tools/make_sample_replay.py --session recordings/sample.h5 "
+                        "--out recordings/sample.davisreplay\n")
+    parser.add_argument("--session", type=Path, default=Path("recordings/sample.h5"), help="the session to encode")
+    parser.add_argument("--out", type=Path, default=Path("recordings/sample.davisreplay"), help="the replay to write")
+    return run_main(parser, argv, _make)
+
+
+def _make(args: argparse.Namespace) -> int:
     counts = make_sample_replay(args.session, args.out)
     print(f"wrote {args.out}: {counts['records']} transfers, {counts['bytes']} bytes, {counts['events']} events, "
           f"{counts['frames']} frames, {counts['dropped_transfers']} dropped transfers")

@@ -20,16 +20,23 @@ import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("recordings/sample.h5"))
-    parser.add_argument("--duration", type=float, default=0.6, help="clip length, s")
-    parser.add_argument("--rate", type=float, default=200.0, help="render rate, Hz (>= 200)")
-    parser.add_argument("--grid", type=int, default=20, help="n of the n x n black/white texture grid")
-    parser.add_argument("--seed", type=int, default=0)
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import float_in, new_parser, non_negative_int, positive_float, positive_int, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.split("\n")[0],
+                        "examples:\n  python tools/make_sample_session.py --out recordings/sample.h5 --overwrite\n")
+    parser.add_argument("--out", type=Path, default=Path("recordings/sample.h5"), help="the session file to write")
+    parser.add_argument("--duration", type=positive_float, default=0.6, help="clip length, s")
+    parser.add_argument("--rate", type=float_in(200.0), default=200.0, help="render rate, Hz (>= 200)")
+    parser.add_argument("--grid", type=positive_int, default=20, help="n of the n x n black/white texture grid")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--usb", action="store_true", help="go through the encoder + virtual USB camera")
     parser.add_argument("--ideal", action="store_true", help="noise-free events (no mismatch/shot noise/leak)")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    return run_main(parser, argv, _make)
+
+
+def _make(args: argparse.Namespace) -> int:
 
     import torch
 

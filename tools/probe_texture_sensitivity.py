@@ -22,25 +22,35 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--detector", default=None, help="RVT checkpoint (default: the bundled detector)")
-    parser.add_argument("--cells", type=int, default=10, help="grid cells per side (default 10)")
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import (add_detector, add_threads, new_parser, non_negative_int, positive_float,
+                                       positive_int, probability, run_main)
+
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+                        "examples:\n  python tools/probe_texture_sensitivity.py --clips 2 --steps 200 --threads 2\n")
+    add_detector(parser, help="RVT checkpoint (default: the bundled detector)")
+    parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
     parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
                         help="painted body parts (default torso arms legs; 'all' = whole body)")
-    parser.add_argument("--clips", type=int, default=2, help="validation clips probed one by one (default 2)")
-    parser.add_argument("--steps", type=int, default=200, help="Adam steps per clip (default 200)")
-    parser.add_argument("--lr", type=float, default=0.2, help="Adam learning rate on the logits (default 0.2)")
-    parser.add_argument("--threshold", type=float, default=0.25, help="confidence threshold (default 0.25)")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the clips and the random texture")
-    parser.add_argument("--greedy-passes", type=int, default=0,
+    parser.add_argument("--clips", type=positive_int, default=2, help="validation clips probed one by one (default 2)")
+    parser.add_argument("--steps", type=non_negative_int, default=200, help="Adam steps per clip (default 200)")
+    parser.add_argument("--lr", type=positive_float, default=0.2, help="Adam learning rate on the logits (default 0.2)")
+    parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
+                        help="confidence threshold, one value (default 0.25)")
+    add_threads(parser, help="torch CPU threads")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the clips and the random texture")
+    parser.add_argument("--greedy-passes", type=non_negative_int, default=0,
                         help="gradient-free cell-flip sweeps after the gradient search (default 0: none)")
-    args = parser.parse_args(argv)
+    return run_main(parser, argv, _probe)
+
+
+def _probe(args: argparse.Namespace) -> int:
 
     import torch
 

@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from davis_rig.cli._attack_commands import add_evaluate_parser, add_optimize_parser, add_reproduce_parser
-from davis_rig.cli._common import run_command
+from davis_rig.cli._common import new_parser, run_command
 from davis_rig.cli._export_command import add_export_parser
 
 NAME = "davis-attack"
@@ -21,9 +21,8 @@ NAME = "davis-attack"
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-attack`` with its subcommands."""
-    parser = argparse.ArgumentParser(prog=NAME, description="Adversarial texture attack on an event-camera "
-                                     "pedestrian detector: optimize, evaluate (paper's digital protocol), "
-                                     "reproduce Tables 1-2, export.")
+    parser = new_parser(NAME, "Adversarial texture attack on an event-camera pedestrian detector: optimize, evaluate "
+                              "(paper's digital protocol), reproduce Tables 1-2, export.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add_optimize_parser(sub)
     add_evaluate_parser(sub)

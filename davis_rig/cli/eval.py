@@ -98,9 +98,14 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
 
 
 def _warn_no_sequences(results, args: argparse.Namespace) -> None:
-    """On stderr: why a recording's SeqASR is n/a (no labelled run of --seq-len windows) and how to get one."""
+    """On stderr: why a recording's SeqASR is n/a (no labelled run of --seq-len windows) and how to get one, and
+    that an AP of 0 without any label left after the filters is the official evaluation's value, no measurement."""
     for result in results:
         metrics = next(iter(result.metrics.values()), {})
+        if metrics.get("num_labels", 1) == 0:
+            print(f"{NAME}: warning: {result.name}: no label left after --skip-first-ms {args.skip_first_ms:g} and "
+                  "the box size filter: AP is 0 (the official evaluation's value), not a measurement",
+                  file=sys.stderr)
         if metrics.get("num_sequences", 1) != 0:
             continue
         longest = metrics.get("longest_labelled_run", 0)

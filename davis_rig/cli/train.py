@@ -10,17 +10,19 @@ import argparse
 import json
 import sys
 
-from davis_rig.cli._common import EXIT_OK, EXIT_USAGE, run_command
+from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
+                                   non_negative_float, non_negative_int, positive_float, positive_int,
+                                   removing_new_empty_dirs, run_main)
 from davis_rig.models.rvt.config import RVTConfig  # pure Python: keeps --help fast
 
 NAME = "davis-train"
 
-EPILOG = """\
+EXAMPLES = """\
 examples:
   davis-train data/synth --out runs/rvt_t                       # RVT-T, Gen1 recipe, 400k steps, batch 8, L 21
   davis-train data/synth --out runs/rvt_t --resume              # continue from runs/rvt_t/checkpoints/last.pt
   davis-train data/synth --out runs/t --steps 20000 --chunk-steps 500   # CPU: 500 steps per call, then --resume
-  davis-train data/synth --out runs/mini --model mini --steps 50 --batch 2 --seq-len 3 --device cpu
+  davis-train data/synth --out runs/mini --preset mini --steps 50 --batch 2 --seq-len 3 --device cpu
 
 DATA_DIR holds train/ (and val/ for validation AP) sequences in RVT's layout (event_representations_v2/
 stacked_histogram_dt=50_nbins=10 + labels_v2), e.g. a preprocessed Gen1 folder or davis_rig's synthetic data.
@@ -28,75 +30,81 @@ RUN_DIR gets log.jsonl (train losses, validation AP/AP50), checkpoints/last.pt (
 best.safetensors (best validation AP) and, when the run reaches --steps, export/model_fp16.safetensors and
 export/model.onnx. With --resume the saved training settings are used (only --device, --workers and the
 progress bar may change); without it an earlier run in RUN_DIR is replaced (last.pt overwritten, log.jsonl and
-best.safetensors removed). Prints a JSON summary. Exit codes: 0 ok, 1 error, 2 bad arguments, 4 file or
-checkpoint problem, 5 missing dependency.
+best.safetensors removed). Prints a JSON summary. A run that fails before its first checkpoint leaves no empty
+RUN_DIR behind; Ctrl-C keeps the checkpoints written so far (continue with --resume).
 """
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-train``."""
-    parser = argparse.ArgumentParser(
-        prog=NAME, description="Train an RVT event-camera detector (YOLOX losses, truncated BPTT, RVT Gen1 recipe).",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = new_parser(NAME, "Train an RVT event-camera detector (YOLOX losses, truncated BPTT, RVT Gen1 recipe).",
+                        EXAMPLES)
     parser.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (train/, val/)")
-    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder of the run")
-    parser.add_argument("--model", choices=sorted(RVTConfig.presets()), default="tiny",
+    add_out(parser, metavar="RUN_DIR", required=True, help="output folder of the run")
+    parser.add_argument("--preset", choices=sorted(RVTConfig.presets()), default="tiny",
                         help="architecture preset (default: tiny = RVT-T; nano = RVT-T at half width, for CPUs)")
-    parser.add_argument("--steps", type=int, default=400_000, help="total optimizer steps (default: 400000, RVT)")
-    parser.add_argument("--batch", type=int, default=8, help="sequence chunks per batch (default: 8)")
-    parser.add_argument("--seq-len", type=int, default=21, help="windows per chunk, the TBPTT length (default: 21)")
+    add_hidden_alias(parser, "--model", dest="preset", choices=sorted(RVTConfig.presets()))
+    parser.add_argument("--steps", type=positive_int, default=400_000,
+                        help="total optimizer steps (default: 400000, RVT)")
+    parser.add_argument("--batch", type=positive_int, default=8, help="sequence chunks per batch (default: 8)")
+    parser.add_argument("--seq-len", type=positive_int, default=21,
+                        help="windows per chunk, the TBPTT length (default: 21)")
     parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
-    parser.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (default: 2e-4)")
+    parser.add_argument("--lr", type=positive_float, default=2e-4, help="peak learning rate (default: 2e-4)")
     parser.add_argument("--precision", choices=["auto", "fp32", "bf16", "fp16"], default="auto",
                         help="mixed precision on CUDA (auto: bf16 if supported, else fp16; CPU: fp32)")
-    parser.add_argument("--ema", type=float, default=None, metavar="DECAY", help="EMA of the weights, e.g. 0.9998")
-    parser.add_argument("--val-every", type=int, default=5_000, help="validation interval in steps (0 = only at the end)")
-    parser.add_argument("--val-batch", type=int, default=8, help="streaming lanes for validation (default: 8)")
-    parser.add_argument("--val-max-sequences", type=int, default=None, help="validate on the first N val sequences")
-    parser.add_argument("--val-skip-first-ms", type=float, default=500.0,
+    parser.add_argument("--ema", type=float_in(0, 1, low_open=True, high_open=True), default=None, metavar="DECAY",
+                        help="EMA of the weights, e.g. 0.9998")
+    parser.add_argument("--val-every", type=non_negative_int, default=5_000,
+                        help="validation interval in steps (0 = only at the end)")
+    parser.add_argument("--val-batch", type=positive_int, default=8, help="streaming lanes for validation (default: 8)")
+    parser.add_argument("--val-max-sequences", type=positive_int, default=None,
+                        help="validate on the first N val sequences")
+    parser.add_argument("--val-skip-first-ms", type=non_negative_float, default=500.0,
                         help="ignore labels/detections in the first ms of each val sequence (RVT: 500)")
-    parser.add_argument("--min-box-side", type=float, default=0.0, metavar="PX",
+    parser.add_argument("--min-box-side", type=non_negative_float, default=0.0, metavar="PX",
                         help="drop training boxes with a side <= PX after clipping to the frame (default: 0)")
-    parser.add_argument("--ckpt-every", type=int, default=1_000, help="checkpoint interval in steps (default: 1000)")
-    parser.add_argument("--log-every", type=int, default=50, help="log interval in steps (default: 50)")
-    parser.add_argument("--workers", type=int, default=0, help="DataLoader workers reading histograms (default: 0)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of init, data order and augmentation")
+    parser.add_argument("--ckpt-every", type=non_negative_int, default=1_000,
+                        help="checkpoint interval in steps (default: 1000)")
+    parser.add_argument("--log-every", type=non_negative_int, default=50, help="log interval in steps (default: 50)")
+    parser.add_argument("--workers", type=non_negative_int, default=0,
+                        help="DataLoader workers reading histograms (default: 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of init, data order and augmentation")
     parser.add_argument("--sampling", choices=["mixed", "random"], default="mixed",
                         help="mixed (RVT: half streaming lanes with carried states, half random chunks) or random")
     parser.add_argument("--no-augment", action="store_true", help="disable flip/zoom augmentation")
-    parser.add_argument("--chunk-steps", type=int, default=None,
+    parser.add_argument("--chunk-steps", type=positive_int, default=None,
                         help="stop after this many steps in this call (checkpointed; continue with --resume)")
-    parser.add_argument("--time-budget-min", type=float, default=None,
+    parser.add_argument("--time-budget-min", type=positive_float, default=None,
                         help="stop this call after this many minutes (checkpointed; continue with --resume)")
     parser.add_argument("--no-export", action="store_true", help="do not export the final model")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_threads(parser, help="torch CPU threads (default: torch's choice)")
+    add_quiet(parser, help="no progress bar on stderr")
     return parser
 
 
-#: TrainConfig field -> the option that sets it (names the option in argument errors).
-_OPTION_OF_FIELD = {"steps": "--steps", "batch_size": "--batch", "seq_len": "--seq-len", "lr": "--lr",
-                    "ema_decay": "--ema", "val_every": "--val-every", "val_batch_size": "--val-batch",
-                    "val_max_sequences": "--val-max-sequences", "val_skip_first_us": "--val-skip-first-ms",
-                    "min_box_side_px": "--min-box-side", "ckpt_every": "--ckpt-every", "log_every": "--log-every",
-                    "num_workers": "--workers", "sampling": "--sampling"}
+#: TrainConfig field -> the option that sets it (names the option in a ConfigError).
+OPTIONS = {"model": "--preset", "steps": "--steps", "batch_size": "--batch", "seq_len": "--seq-len", "lr": "--lr",
+           "precision": "--precision", "ema_decay": "--ema", "val_every": "--val-every",
+           "val_batch_size": "--val-batch", "val_max_sequences": "--val-max-sequences",
+           "val_skip_first_us": "--val-skip-first-ms", "min_box_side_px": "--min-box-side",
+           "ckpt_every": "--ckpt-every", "log_every": "--log-every", "num_workers": "--workers",
+           "sampling": "--sampling"}
 
 
 def _train(args: argparse.Namespace) -> int:
-    from davis_rig.errors import FormatError
     from davis_rig.training.trainer import train
 
-    try:
-        config = _config(args)
-    except FormatError as exc:  # every value here comes from an option: an argument error, not a file problem
-        field_name, _, reason = str(exc).partition(": ")
-        option = _OPTION_OF_FIELD.get(field_name)
-        message = f"{option}: {reason}" if option and reason else str(exc)
-        print(f"{NAME}: error: {message}", file=sys.stderr)
-        return EXIT_USAGE
-    summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
-                    time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
-                    export=not args.no_export)
+    config = _config(args)  # a bad combination raises ConfigError before anything is created
+    if args.threads is not None:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    with removing_new_empty_dirs(args.out):  # e.g. a missing DATA_DIR leaves no empty RUN_DIR/checkpoints
+        summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
+                        time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
+                        export=not args.no_export)
     print(json.dumps(summary, indent=1, default=str))
     if not summary["finished"]:
         print(f"{NAME}: stopped at step {summary['step']}; continue with: {NAME} {args.data_dir} --out {args.out} "
@@ -105,36 +113,24 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _config(args: argparse.Namespace):
-    """The :class:`TrainConfig` of the options (raises its ``FormatError`` for a bad value)."""
+    """The :class:`TrainConfig` of the options (raises its ``ConfigError`` for a bad value)."""
     from davis_rig.training.augment import AugmentConfig
     from davis_rig.training.trainer import TrainConfig
 
     return TrainConfig(
-        model=args.model, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
+        model=args.preset, steps=args.steps, batch_size=args.batch, seq_len=args.seq_len, lr=args.lr,
         precision=args.precision, ema_decay=args.ema, val_every=args.val_every, val_batch_size=args.val_batch,
         val_max_sequences=args.val_max_sequences, val_skip_first_us=int(round(args.val_skip_first_ms * 1000)),
         min_box_side_px=args.min_box_side, ckpt_every=args.ckpt_every, log_every=args.log_every,
         sampling=args.sampling, augment=AugmentConfig.off() if args.no_augment else AugmentConfig(),
         stream_augment=AugmentConfig.off() if args.no_augment else AugmentConfig.rvt_stream(), seed=args.seed,
         device=args.device,
-        num_workers=args.workers, progress=not args.no_progress)
+        num_workers=args.workers, progress=not args.quiet)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-train``; returns the exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    for name in ("steps", "batch", "seq_len", "val_batch"):
-        if getattr(args, name) < 1:
-            print(f"{NAME}: error: --{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}", file=sys.stderr)
-            return 2
-    if args.chunk_steps is not None and args.chunk_steps < 1:
-        print(f"{NAME}: error: --chunk-steps must be >= 1", file=sys.stderr)
-        return 2
-    if args.time_budget_min is not None and not args.time_budget_min > 0:
-        print(f"{NAME}: error: --time-budget-min must be > 0", file=sys.stderr)
-        return 2
-    return run_command(NAME, lambda: _train(args))
+    return run_main(build_parser(), argv, _train, options=OPTIONS)
 
 
 if __name__ == "__main__":

@@ -4,19 +4,26 @@ Reproduces ``utils/evaluation/prophesee`` of RVT (``evaluation.py::evaluate_list
 ``metrics/coco_eval.py``):
 
 * the same filter on labels **and** detections: keep boxes with ``t > skip_first_us`` (relative to the start of
-  the sequence; RVT: 0.5 s), ``w² + h² ≥ 30²``, ``w ≥ 10``, ``h ≥ 10`` (px);
+  the sequence; RVT: 0.5 s), ``w² + h² ≥ 30²``, ``w ≥ 10``, ``h ≥ 10`` (px), computed in float32 on the
+  boxes' float32 fields like the official numpy code (a box on a float32 rounding boundary is kept or dropped
+  exactly as there);
 * one COCO "image" per distinct label timestamp; the detections of an image are those with
   ``|t_det − t_label| ≤ time_tol_us`` (50 ms); frames without labels are not images (their detections are ignored);
-* categories ``id = class_id + 1``; label area ``w · h``; ``iscrowd`` false; the ranking score is the box's
-  ``class_confidence`` (RVT writes the class probability alone, not obj · class);
+* categories ``id = class_id + 1``; label and detection areas ``w · h`` as float32 products (the official code
+  multiplies the float32 fields; the area decides the small/medium/large ranges); ``iscrowd`` false; the
+  ranking score is the box's ``class_confidence`` (RVT writes the class probability alone, not obj · class);
 * the standard COCOeval 'bbox' (IoU .50:.05:.95, 101 recall points, 100 detections per image and class, area
   ranges small/medium/large) computed by ``faster-coco-eval`` (same numbers as ``pycocotools``, several times
   faster; ``backend="pycocotools"`` runs the original, used by the tests to cross-check).
 
+* no detection at all, or no label left after the filter (then there are no images, so no detections either):
+  0.0 for every key, the official early return.
+
 Differences to the official code, on purpose: ``category`` restricts the evaluation to one class (the physical
 evaluation reports the pedestrian AP; with pedestrian-only labels this equals the official all-class mean,
-because COCOeval leaves classes without labels out of the mean); an evaluation without any label returns NaN
-instead of COCOeval's -1; timestamps must be sorted like the official code asserts (checked here, not asserted).
+because COCOeval leaves classes without labels out of the mean); an area range without any label (COCOeval's
+-1, e.g. ``AP_S`` when no label is small) is NaN here, so that it can never be averaged as a score; timestamps
+must be sorted like the official code asserts (checked here, not asserted).
 """
 
 from __future__ import annotations
@@ -111,8 +118,9 @@ def filter_boxes(
     Args:
         boxes: BBOX_DTYPE [B].
         skip_until_us: drop boxes with ``t <= skip_until_us`` (device µs); ``None`` keeps all times.
-        min_diag_px: keep ``w² + h² ≥ min_diag_px²``.
-        min_side_px: keep ``w ≥ min_side_px`` and ``h ≥ min_side_px``.
+        min_diag_px: keep ``w² + h² ≥ min_diag_px²``, the left side in float32 arithmetic (as the official code
+            computes it on the float32 fields), the bound ``min_diag_px²`` rounded to float32.
+        min_side_px: keep ``w ≥ min_side_px`` and ``h ≥ min_side_px`` (float32 comparison).
 
     Returns:
         The kept boxes, same order (BBOX_DTYPE [B' ≤ B]).
@@ -121,9 +129,10 @@ def filter_boxes(
         FormatError: ``boxes`` is not a box array.
     """
     boxes = _check_boxes("boxes", boxes)
-    w = boxes["w"].astype(np.float64)
-    h = boxes["h"].astype(np.float64)
-    keep = (w * w + h * h >= float(min_diag_px) ** 2) & (w >= min_side_px) & (h >= min_side_px)
+    w = boxes["w"].astype(np.float32)
+    h = boxes["h"].astype(np.float32)
+    side = np.float32(min_side_px)
+    keep = (w * w + h * h >= np.float32(float(min_diag_px) ** 2)) & (w >= side) & (h >= side)
     if skip_until_us is not None:
         keep &= boxes["t"].astype(np.int64) > int(skip_until_us)
     return boxes[keep].copy()
@@ -202,7 +211,8 @@ def coco_ap(
 
     Returns:
         ``{"AP", "AP_50", "AP_75", "AP_S", "AP_M", "AP_L"}`` as floats in [0, 1]: 0.0 everywhere when there is
-        no detection at all (RVT's early return), NaN where COCOeval has no label to score (-1).
+        no detection or no label at all (RVT's early return: without labels the official evaluation has no
+        image, hence no detection), NaN for an area range without labels (COCOeval's -1).
 
     Raises:
         MissingDependencyError: the chosen backend is not installed.
@@ -212,9 +222,7 @@ def coco_ap(
         raise FormatError(f"coco_ap: {len(gt_per_image)} label images but {len(dt_per_image)} detection images")
     num_gt = sum(len(_check_boxes("labels", g)) for g in gt_per_image)
     num_dt = sum(len(_check_boxes("detections", d)) for d in dt_per_image)
-    if num_gt == 0:
-        return {key: float("nan") for key in AP_KEYS}
-    if num_dt == 0:
+    if num_gt == 0 or num_dt == 0:
         return {key: 0.0 for key in AP_KEYS}
     COCO, COCOeval = _coco_classes(backend)
     height, width = frame_hw
@@ -222,9 +230,10 @@ def coco_ap(
     for index, (gt, dt) in enumerate(zip(gt_per_image, dt_per_image), start=1):
         images.append({"id": index, "height": int(height), "width": int(width), "file_name": "n.a",
                        "date_captured": "2019", "license": 1, "url": ""})
-        for box in gt.tolist():  # tolist: Python scalars, in BBOX_DTYPE field order
+        areas = _areas_float32(gt)
+        for box, area in zip(gt.tolist(), areas.tolist()):  # tolist: Python scalars, in BBOX_DTYPE field order
             _, x, y, w, h, class_id = box[:6]
-            annotations.append({"area": float(w * h), "iscrowd": False, "image_id": index,
+            annotations.append({"area": area, "iscrowd": False, "image_id": index,
                                 "bbox": [float(x), float(y), float(w), float(h)],
                                 "category_id": int(class_id) + 1, "id": len(annotations) + 1})
         for box in dt.tolist():
@@ -238,6 +247,10 @@ def coco_ap(
         coco_gt.dataset = dataset
         coco_gt.createIndex()
         coco_dt = coco_gt.loadRes(results)
+        for ann in coco_dt.dataset["annotations"]:  # loadRes multiplies our float64 w, h; the official code's are
+            _, _, w, h = ann["bbox"]  # float32 fields, so its detection areas are float32 products
+            ann["area"] = float(np.float32(w) * np.float32(h))
+        coco_dt.createIndex()  # index the patched areas (an index may hold copies)
         evaluator = COCOeval(coco_gt, coco_dt, "bbox")
         evaluator.params.imgIds = np.arange(1, len(images) + 1, dtype=int)
         if category is not None:
@@ -247,6 +260,11 @@ def coco_ap(
         evaluator.summarize()
     stats = np.asarray(evaluator.stats[: len(AP_KEYS)], dtype=np.float64)
     return {key: (float(v) if v >= 0 else float("nan")) for key, v in zip(AP_KEYS, stats)}
+
+
+def _areas_float32(boxes: np.ndarray) -> np.ndarray:
+    """``w · h`` of BBOX_DTYPE boxes as a float32 product (the official code multiplies the float32 fields)."""
+    return boxes["w"].astype(np.float32) * boxes["h"].astype(np.float32)
 
 
 def evaluate_detection(

@@ -24,11 +24,11 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import FormatError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
 from davis_rig.metrics.seqasr import label_sequences, windows_detected
 from davis_rig.training.dataset import SequenceData, labels_to_tensor, list_sequences
@@ -63,10 +63,13 @@ class SplitScoreConfig:
     nms_threshold: float = 0.45
 
     def __post_init__(self):
-        if self.seq_len < 1 or self.lanes < 1 or self.skip_first_us < 0:
-            raise ValueError("seq_len and lanes must be >= 1 and skip_first_us >= 0")
+        for name in ("seq_len", "lanes"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(name, f"expected >= 1, got {getattr(self, name)}")
+        if int(self.skip_first_us) < 0:
+            raise ConfigError("skip_first_us", f"expected >= 0, got {self.skip_first_us}")
         if not self.seqasr_thresholds or not all(0 < t < 1 for t in self.seqasr_thresholds):
-            raise ValueError(f"seqasr_thresholds: expected values in (0, 1), got {self.seqasr_thresholds}")
+            raise ConfigError("seqasr_thresholds", f"expected values in (0, 1), got {tuple(self.seqasr_thresholds)}")
 
 
 @dataclass
@@ -112,7 +115,8 @@ def _subset_of(path: Path) -> str:
 
 
 def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], *, lanes: int = 8,
-                     nms_threshold: float = 0.45, device: str = "cpu") -> list[SequenceDetections]:
+                     nms_threshold: float = 0.45, device: str = "cpu",
+                     progress: Callable | None = None) -> list[SequenceDetections]:
     """Stream sequences through an RVT detector (zero states at each sequence start) and post-process.
 
     Args:
@@ -122,6 +126,8 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
         lanes: sequences of equal length run side by side as one batch.
         nms_threshold: class-wise NMS IoU.
         device: torch device.
+        progress: ``progress(total=windows, desc=...)`` returning an object with ``update(n)`` and ``close()``
+            (e.g. ``tqdm``), advanced by the windows of all sequences; ``None`` for silence.
 
     Returns:
         One :class:`SequenceDetections` per path, in order.
@@ -137,6 +143,7 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
     by_length: dict[int, list[int]] = {}
     for i, seq in enumerate(data):
         by_length.setdefault(len(seq), []).append(i)
+    bar = progress(total=sum(len(seq) for seq in data), desc="windows") if progress is not None else None
     try:
         for length, members in by_length.items():
             for start in range(0, len(members), lanes):
@@ -150,6 +157,8 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
                         features, states = model.forward_backbone(x, states)
                         decoded = model.forward_detect(features).float().cpu()
                         per_window.append(postprocess_thresholds(decoded, thresholds, nms_threshold))
+                        if bar is not None:
+                            bar.update(len(group))
                 for lane, i in enumerate(group):
                     seq = data[i]
                     ends = seq.window_end_us
@@ -159,6 +168,8 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
                         detections={float(t): [per_window[w][float(t)][lane] for w in range(length)]
                                     for t in thresholds})
     finally:
+        if bar is not None:
+            bar.close()
         for seq in data:
             seq.close()
     return results  # type: ignore[return-value]
@@ -222,7 +233,7 @@ def _groups(records: Sequence[SequenceDetections]) -> dict[str, list[SequenceDet
 
 def evaluate_split(data_dir: str | Path, weights: str | Path | None = None, *,
                    config: SplitScoreConfig = SplitScoreConfig(), device: str = "cpu",
-                   coco_backend: str = "faster_coco_eval") -> dict[str, Any]:
+                   coco_backend: str = "faster_coco_eval", progress: Callable | None = None) -> dict[str, Any]:
     """Score a detector on a dataset split, per group (``all``, clothing, ``clothing/scale``).
 
     Args:
@@ -231,6 +242,7 @@ def evaluate_split(data_dir: str | Path, weights: str | Path | None = None, *,
         config: the scoring settings.
         device: torch device.
         coco_backend: COCO evaluation backend.
+        progress: see :func:`detect_sequences`.
 
     Returns:
         ``{"weights", "split", "config", "time_s", "groups": {group: score_sequences(...)}}``.
@@ -250,7 +262,7 @@ def evaluate_split(data_dir: str | Path, weights: str | Path | None = None, *,
     model = load_detector(weights)
     thresholds = sorted({AP_THRESHOLD, *config.seqasr_thresholds})
     records = detect_sequences(model, paths, thresholds, lanes=config.lanes, nms_threshold=config.nms_threshold,
-                               device=device)
+                               device=device, progress=progress)
     groups = {name: score_sequences(members, config, coco_backend=coco_backend)
               for name, members in _groups(records).items()}
     return {"weights": str(weights), "split": config.split,

@@ -65,7 +65,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import regular_window_ends, stacked_histograms
 from davis_rig.events.simulator import EventSimulator, SimulatorConfig
 from davis_rig.scene.background import random_background
@@ -332,24 +332,24 @@ class SyntheticSceneConfig:
 
     def __post_init__(self) -> None:
         if not 0 <= self.vehicle_counts[0] <= self.vehicle_counts[1]:
-            raise ValueError(f"vehicle_counts: expected 0 <= min <= max, got {tuple(self.vehicle_counts)}")
+            raise ConfigError("vehicle_counts", f"expected 0 <= min <= max, got {tuple(self.vehicle_counts)}")
         unknown = sorted(set(self.clothing_kinds) - set(CLOTHING_KINDS))
         if not self.clothing_kinds or unknown:
-            raise ValueError(f"clothing_kinds: expected a non-empty subset of {CLOTHING_KINDS}, got "
+            raise ConfigError("clothing_kinds", f"expected a non-empty subset of {CLOTHING_KINDS}, got "
                              f"{tuple(self.clothing_kinds)}")
         if not self.duration_s >= 0.05:
-            raise ValueError(f"duration_s must be >= 0.05 s (one window), got {self.duration_s}")
+            raise ConfigError("duration_s", f"must be >= 0.05 s (one window), got {self.duration_s}")
         if self.render_rate_hz < 200.0 or (1e6 / self.render_rate_hz) % 1:
-            raise ValueError(
-                f"render_rate_hz must be >= 200 and give whole µs frame periods, got {self.render_rate_hz}")
+            raise ConfigError(
+                "render_rate_hz", f"must be >= 200 and give whole µs frame periods, got {self.render_rate_hz}")
         p = np.asarray(self.people_probabilities, dtype=np.float64)
         if p.shape != (4,) or np.any(p < 0) or not math.isclose(p.sum(), 1.0, abs_tol=1e-6):
-            raise ValueError(
-                f"people_probabilities: expected 4 probabilities summing to 1, got {self.people_probabilities}")
+            raise ConfigError(
+                "people_probabilities", f"expected 4 probabilities summing to 1, got {self.people_probabilities}")
         if not 0 < self.person_height_px[0] <= self.person_height_px[1]:
-            raise ValueError(f"person_height_px: expected 0 < low <= high, got {self.person_height_px}")
+            raise ConfigError("person_height_px", f"expected 0 < low <= high, got {self.person_height_px}")
         if not 0.0 <= self.test_scale_probability <= 1.0:
-            raise ValueError(f"test_scale_probability must be in [0, 1], got {self.test_scale_probability}")
+            raise ConfigError("test_scale_probability", f"must be in [0, 1], got {self.test_scale_probability}")
 
 
 def _split_check(split: str) -> None:

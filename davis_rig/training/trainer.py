@@ -29,7 +29,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from davis_rig.errors import CheckpointError, FormatError
+from davis_rig.errors import CheckpointError, ConfigError, FormatError
 from davis_rig.models.rvt._torch import nn, torch
 from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
 from davis_rig.models.rvt.config import RVTConfig
@@ -115,28 +115,28 @@ class TrainConfig:
 
     def __post_init__(self):
         if self.model not in RVTConfig.presets():
-            raise FormatError(f"model: expected one of {sorted(RVTConfig.presets())}, got {self.model!r}")
+            raise ConfigError("model", f"expected one of {sorted(RVTConfig.presets())}, got {self.model!r}")
         if self.precision not in ("auto", "fp32", "bf16", "fp16"):
-            raise FormatError(f"precision: expected auto, fp32, bf16 or fp16, got {self.precision!r}")
+            raise ConfigError("precision", f"expected auto, fp32, bf16 or fp16, got {self.precision!r}")
         for name in ("steps", "batch_size", "seq_len", "val_batch_size", "val_seq_len"):
             if int(getattr(self, name)) < 1:
-                raise FormatError(f"{name}: expected ≥ 1, got {getattr(self, name)}")
+                raise ConfigError(name, f"expected ≥ 1, got {getattr(self, name)}")
         if self.sampling not in ("mixed", "random"):
-            raise FormatError(f"sampling: expected 'mixed' or 'random', got {self.sampling!r}")
+            raise ConfigError("sampling", f"expected 'mixed' or 'random', got {self.sampling!r}")
         if self.sampling == "mixed" and self.batch_size < 2:
-            raise FormatError("sampling 'mixed' needs batch_size ≥ 2 (half streaming, half random); use 'random'")
+            raise ConfigError("batch_size", "sampling 'mixed' needs ≥ 2 (half streaming, half random); use 'random'")
         if self.ema_decay is not None and not 0 < self.ema_decay < 1:
-            raise FormatError(f"ema_decay: expected in (0, 1), got {self.ema_decay}")
+            raise ConfigError("ema_decay", f"expected in (0, 1), got {self.ema_decay}")
         if not float(self.lr) > 0:  # also rejects NaN
-            raise FormatError(f"lr: expected > 0, got {self.lr}")
+            raise ConfigError("lr", f"expected > 0, got {self.lr}")
         for name in ("val_every", "ckpt_every", "log_every", "num_workers", "val_skip_first_us"):
             if int(getattr(self, name)) < 0:
-                raise FormatError(f"{name}: expected ≥ 0, got {getattr(self, name)}")
+                raise ConfigError(name, f"expected ≥ 0, got {getattr(self, name)}")
         for name in ("weight_decay", "grad_clip", "min_box_side_px"):
             if not float(getattr(self, name)) >= 0:
-                raise FormatError(f"{name}: expected ≥ 0, got {getattr(self, name)}")
+                raise ConfigError(name, f"expected ≥ 0, got {getattr(self, name)}")
         if self.val_max_sequences is not None and int(self.val_max_sequences) < 1:
-            raise FormatError(f"val_max_sequences: expected ≥ 1 or None, got {self.val_max_sequences}")
+            raise ConfigError("val_max_sequences", f"expected ≥ 1 or None, got {self.val_max_sequences}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (``from_dict`` reads it back)."""

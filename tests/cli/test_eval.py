@@ -305,3 +305,13 @@ def test_a_failing_report_leaves_no_report_folder(sessions, tmp_path, monkeypatc
                      "--no-plot", "--gif-seconds", "0", "--quiet"]) == 130
     assert not (tmp_path / "new").exists() and "davis-eval: interrupted" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == [tmp_path / "rvt.onnx"]  # no staging folder either
+
+
+def test_no_label_left_after_the_filters_gives_ap_zero_with_a_warning(sessions, tmp_path, capsys):
+    _, a, _ = sessions
+    argv = [str(a), "--detector", str(person_rvt(tmp_path)), "--threshold", "0.25", "--skip-first-ms", "100000",
+            "--quiet"]
+    assert cli.main(argv) == 0
+    captured = capsys.readouterr()
+    assert "| AP ↓ | 0.25 | 0.0% |" in captured.out
+    assert "a: no label left after --skip-first-ms 100000 and the box size filter: AP is 0" in captured.err

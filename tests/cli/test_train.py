@@ -18,7 +18,7 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
         return {"step": 7, "finished": False}
 
     monkeypatch.setattr("davis_rig.training.trainer.train", fake_train)
-    code = cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--model", "small", "--steps", "100",
+    code = cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--preset", "small", "--steps", "100",
                      "--batch", "4", "--seq-len", "5", "--device", "cpu", "--resume", "--ema", "0.999",
                      "--chunk-steps", "7", "--no-augment", "--no-export", "--no-progress", "--workers", "2",
                      "--val-skip-first-ms", "0", "--min-box-side", "4", "--sampling", "random"])
@@ -47,13 +47,21 @@ def test_defaults_are_the_rvt_recipe(monkeypatch, tmp_path):
 
 
 @pytest.mark.parametrize("argv", [["--steps", "0"], ["--batch", "0"], ["--seq-len", "0"], ["--chunk-steps", "0"],
-                                  ["--model", "huge"]])
+                                  ["--model", "huge"], ["--preset", "huge"], ["--threads", "0"], ["--lr", "nan"],
+                                  ["--seed", "-1"]])
 def test_bad_arguments_exit_2(tmp_path, argv, capsys):
-    try:
-        code = cli.main([str(tmp_path), "--out", str(tmp_path / "r"), *argv])
-    except SystemExit as exc:  # argparse choices
-        code = exc.code
-    assert code == 2
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), *argv]) == 2
+    assert f"davis-train: error: argument {argv[0]}: " in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_the_old_model_option_is_a_hidden_alias_of_preset(monkeypatch, tmp_path, capsys):
+    seen = {}
+    monkeypatch.setattr("davis_rig.training.trainer.train",
+                        lambda d, r, c, **k: seen.update(config=c) or {"step": 1, "finished": True})
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), "--model", "mini", "--threads", "1", "-q"]) == 0
+    assert seen["config"].model == "mini" and not seen["config"].progress
+    assert "--model" not in cli.build_parser().format_help()
 
 
 def test_errors_become_messages(monkeypatch, tmp_path, capsys):
@@ -65,19 +73,21 @@ def test_errors_become_messages(monkeypatch, tmp_path, capsys):
     assert "davis-train: error: no checkpoint" in capsys.readouterr().err
 
 
-def test_missing_dataset_is_a_data_error(tmp_path, capsys):
-    code = cli.main([str(tmp_path / "absent"), "--out", str(tmp_path / "r"), "--model", "mini", "--device", "cpu",
+def test_missing_dataset_is_a_data_error_and_leaves_nothing(tmp_path, capsys):
+    code = cli.main([str(tmp_path / "absent"), "--out", str(tmp_path / "r"), "--preset", "mini", "--device", "cpu",
                      "--no-progress"])
     assert code == 4
     assert "no such split folder" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()  # no empty RUN_DIR/checkpoints
 
 
 @pytest.mark.parametrize(("argv", "option"), [(["--lr", "-1"], "--lr"), (["--val-every", "-5"], "--val-every"),
                                               (["--ema", "2"], "--ema"), (["--workers", "-1"], "--workers"),
-                                              (["--batch", "1"], "sampling 'mixed' needs"),
+                                              (["--batch", "1"], "--batch: sampling 'mixed' needs"),
                                               (["--time-budget-min", "0"], "")])
 def test_bad_values_are_argument_errors_not_file_errors(monkeypatch, tmp_path, capsys, argv, option):
     monkeypatch.setattr("davis_rig.training.trainer.train", lambda *a, **k: pytest.fail("must not train"))
     assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), *argv]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"davis-train: error: {option or argv[0]}") and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"davis-train: error: argument {option or argv[0]}") and "Traceback" not in err, err

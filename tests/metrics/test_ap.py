@@ -40,9 +40,10 @@ def test_perfect_detector_has_ap_one():
     assert ap["AP_L"] == pytest.approx(1.0) and math.isnan(ap["AP_S"])  # no small labels: undefined, not 0
 
 
-def test_no_detections_give_ap_zero_and_no_labels_give_nan():
+def test_no_detections_or_no_labels_give_ap_zero_like_the_official_code():
     assert coco_ap(GT, [np.zeros(0, BBOX_DTYPE)] * 5) == {key: 0.0 for key in AP_KEYS}
-    assert all(math.isnan(v) for v in coco_ap([np.zeros(0, BBOX_DTYPE)], [boxes([(0, 0, 50, 50)])]).values())
+    assert coco_ap([np.zeros(0, BBOX_DTYPE)], [boxes([(0, 0, 50, 50)])]) == {key: 0.0 for key in AP_KEYS}
+    assert coco_ap([], []) == {key: 0.0 for key in AP_KEYS}
 
 
 @pytest.mark.parametrize("shift_px, ap, ap50, ap75", [(10, 0.7, 1.0, 1.0), (30, 0.1, 1.0, 0.0), (70, 0.0, 0.0, 0.0)])

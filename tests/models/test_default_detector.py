@@ -9,7 +9,7 @@ from davis_rig.errors import MissingDependencyError
 
 
 @pytest.mark.parametrize(("function", "name", "hint"), [
-    (models.default_detector_path, "rvt_default.onnx", "--model RVT_STEP.onnx"),
+    (models.default_detector_path, "rvt_default.onnx", "--detector RVT_STEP.onnx"),
     (models.default_detector_weights_path, "rvt_default.safetensors", "RVT checkpoint explicitly"),
 ])
 def test_missing_bundle_raises_with_the_path_and_a_hint(monkeypatch, tmp_path, function, name, hint):

@@ -128,9 +128,8 @@ def test_config_json_errors(tool, lightning_ckpt, tmp_path, capsys):
     assert "not valid JSON" in capsys.readouterr().err
     assert tool.main([str(path), "--out-dir", str(tmp_path / "out"), "--config-json", str(tmp_path / "none.json")]) == 4
     assert "none.json" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as excinfo:  # one architecture source at a time
-        tool.main([str(path), "--out-dir", str(tmp_path), "--config", "mini", "--config-json", str(bad)])
-    assert excinfo.value.code == 2
+    # one architecture source at a time
+    assert tool.main([str(path), "--out-dir", str(tmp_path), "--config", "mini", "--config-json", str(bad)]) == 2
     assert not (tmp_path / "out").exists()
 
 
@@ -155,11 +154,12 @@ def test_wrong_variant_reports_shape_mismatches(tool, lightning_ckpt, tmp_path, 
     assert "with a different shape" in err and "hint: the checkpoint's shapes match RVT-mini" in err
 
 
-def test_verify_without_onnx_is_a_usage_error(tool, lightning_ckpt, tmp_path):
+def test_verify_without_onnx_is_a_usage_error(tool, lightning_ckpt, tmp_path, capsys):
     path, _ = lightning_ckpt
-    with pytest.raises(SystemExit) as excinfo:
-        tool.main([str(path), "--out-dir", str(tmp_path), "--verify"])
-    assert excinfo.value.code == 2
+    assert tool.main([str(path), "--out", str(tmp_path), "--verify"]) == 2
+    assert "argument --verify: needs --onnx" in capsys.readouterr().err
+    assert tool.main([str(path)]) == 2
+    assert "the following arguments are required: --out" in capsys.readouterr().err
     with pytest.raises(ValueError, match="config: expected one of"):
         tool.convert(path, tmp_path, config="huge")
 

@@ -44,7 +44,7 @@ def test_unfinished_run_is_refused(load_tool, tmp_path, capsys):
 def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_path, capsys):
     data, run = finished_run
     out = tmp_path / "detector"
-    assert load_tool("ship_detector").main([str(run), str(data), "--out", str(out), "--threshold", "0.1", "0.25",
+    assert load_tool("ship_detector").main([str(run), str(data), "--out", str(out), "--threshold", "0.1,0.25",
                                             "--name", "undefended test detector"]) == 0
     printed = capsys.readouterr().out
     assert {p.name for p in out.iterdir()} == {"rvt_default.safetensors", "rvt_default.onnx", "test_scores.json",
@@ -63,7 +63,7 @@ def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_p
     assert set(scores["groups"]["white"]["seqasr"]) == {"0.1", "0.25"}
     card = (out / "MODEL_CARD.md").read_text()
     assert "synthetic" in card and "test white/large" in card and "SeqASR@0.25 %" in card
-    assert "## Reproduce" in card and f"davis-train {data.name} --out {run.name} --model mini --steps 2" in card
+    assert "## Reproduce" in card and f"davis-train {data.name} --out {run.name} --preset mini --steps 2" in card
     assert "undefended test detector, " in card and f"ship_detector.py {run.name} {data.name} --out {out}" in card
     assert "--clothing" not in card  # the fixture dataset draws every clothing kind
     assert "white/large" in printed and '"total_mb"' in printed
@@ -78,5 +78,39 @@ def test_reproduce_commands_carry_the_clothing_restriction(load_tool, finished_r
     generation["settings"]["config"]["clothing_kinds"] = ["white", "stripes"]
     (restricted / "generation.json").write_text(json.dumps(generation))
     train_config = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["train_config"]
-    make, _, ship, _ = tool._commands(run, restricted, train_config, tool.DEFAULT_OUT)
-    assert make.endswith("--clothing white stripes") and ship == f"python tools/ship_detector.py {run.name} natural"
+    make, _, ship, _ = tool._commands(run, restricted, train_config, tool.INSTALL_DIR)
+    assert make.endswith("--clothing white stripes")
+    assert ship == f"python tools/ship_detector.py {run.name} natural --install"
+
+
+def test_the_package_is_written_only_with_install(load_tool, tmp_path, capsys):
+    tool = load_tool("ship_detector")
+    assert tool.main([str(tmp_path), str(tmp_path)]) == 2
+    assert "one of the arguments --out --install is required" in capsys.readouterr().err
+    assert tool.main([str(tmp_path), str(tmp_path), "--out", str(tmp_path / "o"), "--install"]) == 2
+    assert "not allowed with argument" in capsys.readouterr().err
+    help_text = tool.build_parser().format_help()
+    usage = " ".join(help_text.split("\n\n")[0].split())
+    assert "(--out DIR | --install)" in usage and usage.endswith("RUN_DIR DATA_DIR")  # what the docstring says
+    assert "(--out DIR | --install)" in tool.__doc__
+
+
+def test_a_failure_leaves_the_target_as_it_was(load_tool, finished_run, tmp_path, monkeypatch, capsys):
+    import davis_rig.training.evaluate as evaluate
+    from davis_rig.errors import FormatError
+
+    tool = load_tool("ship_detector")
+    data, run = finished_run
+    out = tmp_path / "detector"
+    out.mkdir()
+    (out / "rvt_default.onnx").write_bytes(b"the detector before")
+
+    def failing(*args, **kwargs):
+        raise FormatError("test split unreadable")
+
+    monkeypatch.setattr(evaluate, "evaluate_split", failing)
+    assert tool.main([str(run), str(data), "--out", str(out)]) == 4
+    assert "test split unreadable" in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["detector"]  # no staging folder left
+    assert [p.name for p in out.iterdir()] == ["rvt_default.onnx"]
+    assert (out / "rvt_default.onnx").read_bytes() == b"the detector before"

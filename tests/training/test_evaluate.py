@@ -91,8 +91,11 @@ def test_config_and_cli_reject_bad_values(tmp_path, capsys):
     with pytest.raises(ValueError):
         SplitScoreConfig(seqasr_thresholds=(1.5,))
     assert cli.main([str(tmp_path), "--threshold", "0"]) == 2
+    assert ("davis-eval-dataset: error: argument --threshold: expected values in (0, 1), got (0.0,)"
+            in capsys.readouterr().err)  # SplitScoreConfig's ConfigError, mapped onto the option
     assert cli.main([str(tmp_path), "--seq-len", "0"]) == 2
-    assert cli.main([str(tmp_path / "missing"), "--weights", str(tmp_path / "w.safetensors")]) == 4
+    assert "argument --seq-len: expected an integer >= 1, got '0'" in capsys.readouterr().err
+    assert cli.main([str(tmp_path / "missing"), "--weights", str(tmp_path / "w.safetensors"), "-q"]) == 4
     assert "no such split folder" in capsys.readouterr().err
 
 
@@ -101,7 +104,7 @@ def test_cli_prints_the_table_and_writes_json(monkeypatch, tmp_path, capsys):
 
     calls = []
 
-    def fake_evaluate_split(data_dir, weights, *, config, device):
+    def fake_evaluate_split(data_dir, weights, *, config, device, progress):
         calls.append((data_dir, weights, config, device))
         groups = {"all": score_sequences([_record([True] * 3)], config)}
         return {"weights": "w.safetensors", "split": config.split, "time_s": 0.1, "groups": groups,
@@ -109,7 +112,7 @@ def test_cli_prints_the_table_and_writes_json(monkeypatch, tmp_path, capsys):
 
     monkeypatch.setattr(evaluate, "evaluate_split", fake_evaluate_split)
     out = tmp_path / "scores.json"
-    assert cli.main([str(tmp_path), "--weights", "w.safetensors", "--threshold", "0.1", "0.25", "--seq-len", "3",
+    assert cli.main([str(tmp_path), "--weights", "w.safetensors", "--threshold", "0.1,0.25", "--seq-len", "3",
                      "--skip-first-ms", "0", "--json", str(out)]) == 0
     ((_, weights, config, device),) = calls
     assert weights == "w.safetensors" and device == "cpu"

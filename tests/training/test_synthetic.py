@@ -101,7 +101,7 @@ def test_refused_resume_names_every_setting_that_differs(tiny_dataset):
     message = str(info.value)
     assert "compression (stored 'gzip', now 'lzf')" in message and "config.vehicle_counts" in message
     assert "seed" not in message.split("differing:")[1] and "duration_s" not in message
-    assert "all the same settings" in message and "all the same settings" in " ".join(cli.EPILOG.split())
+    assert "all the same settings" in message and "all the same settings" in " ".join(cli.EXAMPLES.split())
 
 
 def test_generation_is_deterministic_per_seed(tiny_dataset, model):
@@ -322,21 +322,25 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "white", "stripes"]) == 0
     assert calls[-1][2]["config"].clothing_kinds == ("white", "stripes")
     assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "tartan"]) == 2
-    assert "tartan" in capsys.readouterr().err
+    assert "davis-make-dataset: error: argument --clothing: expected a non-empty subset" in capsys.readouterr().err
     assert cli.main([str(tmp_path), "--sequences", "4", "--vehicles", "0", "2"]) == 0
     assert calls[-1][2]["config"] == syn.SyntheticSceneConfig(vehicle_counts=(0, 2))
     assert cli.main([str(tmp_path), "--sequences", "4", "--vehicles", "3", "1"]) == 2
-    assert "vehicle_counts" in capsys.readouterr().err
+    assert "argument --vehicles: expected 0 <= min <= max, got (3, 1)" in capsys.readouterr().err
     assert cli.main([str(tmp_path), "--sequences", "4", "--person-height", "25", "125",
                      "--test-scale-probability", "0"]) == 0
     assert calls[-1][2]["config"] == syn.SyntheticSceneConfig(person_height_px=(25.0, 125.0), test_scale_probability=0.0)
     assert cli.main([str(tmp_path), "--sequences", "4", "--test-scale-probability", "1.5"]) == 2
-    assert "test_scale_probability" in capsys.readouterr().err
+    assert "argument --test-scale-probability: expected a number in [0, 1], got '1.5'" in capsys.readouterr().err
     assert cli.parse_split_sizes(None, 24) == {"train": 18, "val": 3, "test": 3}
     assert cli.main([str(tmp_path), "--sequences", "10", "--split-sizes", "train=7"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "0"]) == 2
     assert cli.main([str(tmp_path), "--sequences", "4", "--threads", "0"]) == 2  # torch.set_num_threads(0) crashes
-    assert "--threads >= 1" in capsys.readouterr().err
+    assert "argument --threads: expected an integer >= 1, got '0'" in capsys.readouterr().err
+    assert cli.main(["--out", str(tmp_path / "new"), "--sequences", "4", "-q"]) == 0  # the vocabulary's spelling
+    assert calls[-1][0] == str(tmp_path / "new") and calls[-1][2]["progress"] is False
+    assert cli.main([str(tmp_path), "--out", str(tmp_path), "--sequences", "4"]) == 2
+    assert "argument --out: not allowed with a positional OUT_DIR" in capsys.readouterr().err
 
 
 def test_held_out_evaluation_scores_each_subset(tiny_dataset, tmp_path):

@@ -190,7 +190,7 @@ def test_resume_from_a_bad_last_pt_is_a_checkpoint_error(moving_boxes_dataset, t
 @pytest.mark.parametrize(("field", "value"), [("lr", -1e-3), ("lr", 0.0), ("val_every", -5), ("ckpt_every", -1),
                                               ("log_every", -1), ("num_workers", -1), ("val_max_sequences", 0)])
 def test_config_rejects_negative_rates_and_intervals(field, value):
-    from davis_rig.errors import FormatError
+    from davis_rig.errors import ConfigError
 
-    with pytest.raises(FormatError, match=f"^{field}: "):
+    with pytest.raises(ConfigError, match=f"^{field}: "):
         _config(**{field: value})

@@ -51,5 +51,5 @@ def test_main_reports_errors_with_exit_code(tmp_path, capsys, monkeypatch, load_
         raise DeviceNotFoundError("no DAVIS camera found")
 
     monkeypatch.setattr(tool, "capture_replay", fail)
-    assert tool.main([str(tmp_path / "x.davisreplay"), "--duration-s", "0.1"]) == 1
-    assert "no DAVIS camera found" in capsys.readouterr().err
+    assert tool.main([str(tmp_path / "x.davisreplay"), "--duration-s", "0.1"]) == 3  # the camera/USB exit code
+    assert "capture_replay.py: error: no DAVIS camera found" in capsys.readouterr().err
