@@ -268,7 +268,8 @@ def check_live_view_arguments(parser: argparse.ArgumentParser, args: argparse.Na
 
 @contextlib.contextmanager
 def live_view(args: argparse.Namespace, camera, prog: str = "davis-record"):
-    """With ``--view``: start the live view and its page (its address, with the token when one is needed, is
+    """With ``--view``: start the live view and its page in a child process
+    (:class:`~davis_rig.viewer.live_process.LiveViewProcess`; the address, with the token when one is needed, is
     printed on stderr even with ``--quiet``), and yield the camera to record from (tapped); without: yield
     ``camera`` unchanged.
 
@@ -279,15 +280,15 @@ def live_view(args: argparse.Namespace, camera, prog: str = "davis-record"):
     if not args.view:
         yield camera
         return
-    from davis_rig.viewer.live import LiveApp, LiveView, TappedCamera
-    from davis_rig.viewer.server import ViewerServer
+    from davis_rig.viewer.live import TappedCamera
+    from davis_rig.viewer.live_process import LiveViewProcess
 
     detector = None if args.no_detector else _detector_path(args.detector)
-    view = LiveView(detector=detector, threshold=args.threshold, threads=args.threads, fps=args.view_fps,
-                    stats=lambda: camera.stats)
-    server = ViewerServer(LiveApp(view), host=args.view_host, port=args.view_port, allow_remote=args.allow_remote)
-    with view, _bound(server, "--view-port"):
-        print(f"{prog}: live view at {server.url}", file=sys.stderr, flush=True)
+    view = LiveViewProcess(detector=detector, threshold=args.threshold, threads=args.threads, fps=args.view_fps,
+                           host=args.view_host, port=args.view_port, allow_remote=args.allow_remote,
+                           stats=lambda: camera.stats)
+    with view:
+        print(f"{prog}: live view at {view.url}", file=sys.stderr, flush=True)
         yield TappedCamera(camera, view.tap)
 
 

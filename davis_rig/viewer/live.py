@@ -69,9 +69,14 @@ class LiveTap:
         self.offered_events = 0
         self.taken_chunks = 0
 
-    def offer(self, chunk) -> None:
-        """Hand over one decoded chunk (called by the recording loop; O(1), never blocks, never copies)."""
-        self._queue.append((time.monotonic(), chunk))
+    def offer(self, chunk, t_offer_s: float | None = None) -> None:
+        """Hand over one decoded chunk (called by the recording loop; O(1), never blocks, never copies).
+
+        Args:
+            chunk: has ``events`` (EVENT_DTYPE) and/or ``frames`` (APS frames).
+            t_offer_s: when the recording read it, ``time.monotonic()`` s (default: now).
+        """
+        self._queue.append((time.monotonic() if t_offer_s is None else t_offer_s, chunk))
         events = getattr(chunk, "events", None)
         self.offered_chunks += 1
         self.offered_events += 0 if events is None else len(events)
@@ -207,8 +212,8 @@ class _Mailbox:
             return item
 
 
-def _median(values) -> float | None:
-    return float(np.median(list(values))) if len(values) else None
+def _percentile(values, q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
 
 
 class LiveView:
@@ -221,8 +226,8 @@ class LiveView:
         fps: display frames rendered per second.
         crop_origin_xy: the 304x240 crop, px (default centred).
         window_us: detector window, µs.
-        stats: called about twice a second for the camera's counters (``dropped_transfers`` is shown), or
-            ``None``.
+        stats: called about twice a second for the camera's counters (``dropped_transfers`` is shown; an optional
+            ``view_dropped_chunks`` counts display chunks dropped before this view's tap), or ``None``.
         max_pending_chunks: chunks the tap keeps for a view that falls behind.
         jpeg_quality: 0..100.
 
@@ -254,7 +259,8 @@ class LiveView:
         self._boxes: tuple[int, np.ndarray] | None = None  # (window end µs, float32 [K, 7]) of the latest step
         self._detector_ready = threading.Event()
         self._detector_error: DavisRigError | None = None
-        #: detector latency of the last 1000 windows, ms: the chunk that completed the window was read -> boxes ready
+        #: detector latency of the last 1000 windows scored, ms: the chunk that completed the window was read by the
+        #: recording -> its boxes ready
         self.latency_ms: deque = deque(maxlen=1000)
         #: at the last 1000 frames drawn with boxes: newest event − the boxes' window end, ms of device time
         self.behind_ms: deque = deque(maxlen=1000)
@@ -355,7 +361,8 @@ class LiveView:
         self._rate = (now, events)
         if self.stats_source is not None:
             stats = self.stats_source()
-            self._camera_stats = {"dropped_transfers": int(getattr(stats, "dropped_transfers", 0) or 0)}
+            self._camera_stats = {"dropped_transfers": int(getattr(stats, "dropped_transfers", 0) or 0),
+                                  "upstream_dropped_chunks": int(getattr(stats, "view_dropped_chunks", 0) or 0)}
 
     def _render(self, counts: np.ndarray, aps) -> None:
         boxes = self._boxes
@@ -386,6 +393,7 @@ class LiveView:
 
         try:
             runner = RVTOnnxRunner(self.detector, intra_op_threads=self.threads)
+            runner.step(np.zeros((1, 2 * NUM_BINS, *RVT_HW), np.uint8))  # warm-up: the first step allocates
         except DavisRigError as exc:
             self._detector_error = exc
             return
@@ -439,15 +447,16 @@ class LiveView:
             "events": self.tap.offered_events,
             "event_rate_hz": self._rate_hz,
             "dropped_transfers": self._camera_stats.get("dropped_transfers"),
-            "view_dropped_chunks": self.tap.dropped_chunks,
+            "view_dropped_chunks": self.tap.dropped_chunks + self._camera_stats.get("upstream_dropped_chunks", 0),
             "frames_rendered": self.frames_rendered,
             "render_fps": self._fps(self._render_times),
             "served_fps": self._fps(self._served_times),
             "detector": None if self.detector is None else {
                 "model": self.detector.name, "threshold": self.threshold, "windows_scored": self.windows_scored,
-                "windows_skipped": self._mailbox.replaced, "latency_ms_median": _median(latency),
-                "latency_ms_last": latency[-1] if latency else None, "behind_ms_median": _median(behind),
-                "behind_ms_max": max(behind) if behind else None,
+                "windows_skipped": self._mailbox.replaced, "latency_ms_median": _percentile(latency, 50),
+                "latency_ms_p95": _percentile(latency, 95), "latency_ms_max": max(latency) if latency else None,
+                "latency_ms_last": latency[-1] if latency else None, "behind_ms_median": _percentile(behind, 50),
+                "behind_ms_p95": _percentile(behind, 95), "behind_ms_max": max(behind) if behind else None,
             },
         }
         display = {"event rate": f"{self._rate_hz / 1e6:.2f} Mev/s", "events": f"{self.tap.offered_events:,}",

@@ -139,3 +139,75 @@ def test_live_app_routes():
         app.handle(["live", "nothing"], {})
     with pytest.raises(RequestError, match="after"):
         app.handle(["live", "frame"], {"after": ["x"]})
+
+
+def _events(rng, n, t0):
+    return make_events(np.arange(t0, t0 + n), rng.integers(0, 346, n), rng.integers(0, 260, n), np.ones(n, np.uint8))
+
+
+def test_event_ring_hands_chunks_over_and_counts_what_was_overwritten():
+    from davis_rig.viewer.live_process import EventRing
+
+    rng = np.random.default_rng(5)
+    with EventRing(capacity=100, mark_capacity=8) as writer, EventRing(writer.name) as reader:
+        first = _events(rng, 30, 0)
+        writer.write(first, 1.0)
+        writer.write(_events(rng, 30, 30), 2.0)
+        got = reader.read()
+        assert [t for t, _ in got] == [1.0, 2.0] and reader.dropped_chunks == 0
+        np.testing.assert_array_equal(got[0][1], first)
+        assert reader.read() == []
+        for i in range(5):  # 150 events into a ring of 100: the first two of these chunks are overwritten
+            writer.write(_events(rng, 30, 60 + 30 * i), 3.0 + i)
+        got = reader.read()
+        assert [t for t, _ in got] == [5.0, 6.0, 7.0] and reader.dropped_chunks == 2
+        assert [int(c["t"][0]) for _, c in got] == [120, 150, 180]  # wrapped around the ring's end intact
+        for i in range(10):  # 10 chunks for 8 marks: 2 marks lost, and the chunk after them has no known start
+            writer.write(_events(rng, 5, 210 + 5 * i), 10.0 + i)
+        got = reader.read()
+        assert [t for t, _ in got] == [13.0 + i for i in range(7)] and reader.dropped_chunks == 5
+
+
+def test_live_view_process_serves_frames_of_the_chunks_given(tmp_path):
+    import json
+    import urllib.request
+
+    from davis_rig.viewer.live_process import LiveViewProcess
+
+    rng = np.random.default_rng(6)
+    events = moving_blob_events(rng, 600_000, 200_000, box=PERSON_BOX)
+    with LiveViewProcess(detector=person_rvt(tmp_path), threshold=0.25, threads=1, fps=20) as view:
+        assert view.url.startswith("http://127.0.0.1:")
+        for part in np.array_split(events, 60):
+            view.tap.offer(Chunk(events=part))
+            time.sleep(0.01)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            stats = json.load(urllib.request.urlopen(view.url + "api/live/stats", timeout=10))
+            if stats["events"] == len(events) and stats["detector"]["windows_scored"] >= 1:
+                break
+            time.sleep(0.1)
+        with urllib.request.urlopen(view.url + "api/live/frame?after=-1", timeout=10) as response:
+            assert response.status == 200 and response.read()[:2] == b"\xff\xd8"
+    assert stats["events"] == len(events) and stats["view_dropped_chunks"] == 0
+    assert stats["detector"]["latency_ms_median"] is not None
+    assert view.tap.offered_events == len(events)
+
+
+def test_live_view_process_start_errors(tmp_path):
+    import socket
+
+    from davis_rig.errors import ConfigError
+    from davis_rig.viewer.live_process import LiveViewProcess
+
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not onnx")
+    with pytest.raises(ModelFormatError, match="bad.onnx"):
+        with LiveViewProcess(detector=bad):
+            pass
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        with pytest.raises(ConfigError, match="cannot listen"):
+            with LiveViewProcess(port=busy.getsockname()[1]):
+                pass
