@@ -1,16 +1,17 @@
-"""The live view while recording: it samples the chunks the writer gets, draws frames, and runs RVT beside them.
+"""The live view: frames and RVT boxes of an event stream as it arrives, for the page of ``davis-record --view``.
 
-It must never slow the recording. What each thread does, and what it may cost the recording:
+``davis-record --view`` runs a :class:`LiveView` in a process of its own, fed through shared memory
+(:mod:`davis_rig.viewer.live_process`), so that none of this competes with the recording for the GIL. Inside
+the view (threads, and what each does):
 
-- the recording loop (:func:`~davis_rig.session.record.record_session`) reads the camera through
-  :class:`TappedCamera`, whose ``read`` hands each decoded chunk to :meth:`LiveTap.offer`: one ``deque.append``
-  of a reference (no copy, no lock, never blocks);
+- chunks arrive through :meth:`LiveTap.offer` (one ``deque.append`` of a reference: no copy, no lock, never
+  blocks; :class:`TappedCamera` offers every chunk a camera's ``read`` returns);
 - ``davis-view-live`` takes the chunks every few ms, accumulates the events of the current display frame (ON/OFF
-  counts on the sensor), keeps the latest APS frame, cuts the detector's 50 ms windows (RVT's grid, cropped to
-  304x240), and every ``1 / fps`` s renders a frame (:func:`~davis_rig.viewer.render.render_view`) and encodes it
+  counts on the sensor), keeps the latest APS frame, cuts RVT's 50 ms windows (:class:`WindowCutter`, views, no
+  copy), and every ``1 / fps`` s renders a frame (:func:`~davis_rig.viewer.render.render_view`) and encodes it
   as JPEG;
-- ``davis-view-detector`` turns the latest complete window into a stacked histogram, runs one RVT step
-  (onnxruntime, ``threads`` intra-op threads, LSTM states carried) and post-processes it;
+- ``davis-view-detector`` crops the newest complete window to 304x240, turns it into a stacked histogram, runs
+  one RVT step (onnxruntime, ``threads`` intra-op threads, LSTM states carried) and post-processes it;
 - the web server's threads hand out the latest encoded frame (a page that is slower gets fewer frames).
 
 On Linux the view's threads run at nice +10 (onnxruntime's worker threads inherit it from the detector thread,
