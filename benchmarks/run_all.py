@@ -26,8 +26,8 @@ from _common import REPO_ROOT, git_commit
 HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
-ORDER = ("decode", "usb_pipeline", "io", "representation", "model", "rvt_eager", "evaluation", "body", "motion",
-         "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
+ORDER = ("decode", "usb_pipeline", "io", "representation", "model", "rvt_eager", "evaluation", "view_live", "body",
+         "motion", "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
@@ -38,6 +38,7 @@ QUICK_ARGS = {
     "model": ["--repeats", "3"],
     "rvt_eager": ["--repeats", "3"],
     "evaluation": ["--duration-s", "10"],
+    "view_live": ["--seconds", "1"],
     "body": ["--repeats", "3"],
     "motion": ["--repeats", "3"],
     "render": ["--repeats", "3"],
