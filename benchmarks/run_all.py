@@ -27,7 +27,8 @@ HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
 ORDER = ("decode", "usb_pipeline", "io", "fuzz_capture", "interop", "representation", "model", "rvt_eager",
-         "evaluation", "body", "motion", "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
+         "evaluation", "view_live", "body", "motion", "render", "v2e", "digital_cost", "synthetic", "train_step",
+         "attack_step")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
@@ -40,6 +41,7 @@ QUICK_ARGS = {
     "model": ["--repeats", "3"],
     "rvt_eager": ["--repeats", "3"],
     "evaluation": ["--duration-s", "10"],
+    "view_live": ["--seconds", "1"],
     "body": ["--repeats", "3"],
     "motion": ["--repeats", "3"],
     "render": ["--repeats", "3"],

@@ -32,6 +32,8 @@ HELPER_MODULES = {
     "eval_data": TESTS / "evaluation" / "eval_data.py",
     # synthetic events, frames and fake cameras of the session tests
     "session_data": TESTS / "session" / "session_data.py",
+    # a session with a known "person" and a headless chromium over the DevTools protocol (tests/viewer)
+    "viewer_data": TESTS / "viewer" / "viewer_data.py",
     # tiny synthetic AMASS .npz / CMU BVH files (tests/scene/mocap, tests/attack)
     "mocap_files": TESTS / "scene" / "mocap" / "mocap_files.py",
 }

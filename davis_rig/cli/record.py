@@ -14,6 +14,7 @@ import threading
 
 from davis_rig.cli._common import (EXIT_DATA, EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
                                    run_main)
+from davis_rig.cli.view import add_live_view_arguments, check_live_view_arguments, live_view
 from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS
 
 NAME = "davis-record"
@@ -70,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_quiet(parser, help="no live progress line")
     parser.add_argument("--recover", metavar="SESSION_H5",
                         help="rebuild SESSION_H5 from SESSION_H5.journal after a crash and exit")
+    add_live_view_arguments(parser)
     return parser
 
 
@@ -129,9 +131,10 @@ def _record(args: argparse.Namespace) -> int:
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
     previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     try:
-        with open_camera(args.serial, backend, args.usb_transfers) as camera:
+        with open_camera(args.serial, backend, args.usb_transfers) as camera, \
+                live_view(args, camera) as source:
             summary = record_session(
-                camera,
+                source,
                 args.out,
                 duration_s=args.duration,
                 exposure_us=args.exposure,
@@ -179,6 +182,7 @@ def _recover(path: str) -> int:
 
 def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message), all before the camera is opened."""
+    check_live_view_arguments(parser, args)
     if args.recover is not None:
         if args.out is not None:
             parser.error("argument --recover: not allowed with --out")
