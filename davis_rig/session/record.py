@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Callable
 
 from davis_rig.errors import DavisRigError, DeviceDisconnectedError, DeviceError, TransportError
-from davis_rig.session.writer import SessionWriter, to_jsonable
+from davis_rig.session.h5file import to_jsonable
+from davis_rig.session.writer import SessionWriter
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
 POLL_TIMEOUT_S = 0.1

@@ -11,9 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from davis_rig.errors import ProtocolError, SessionError
+from davis_rig.session.h5file import to_jsonable
 from davis_rig.session.journal import KIND_HEADER, KIND_NOTE, KIND_TRANSFER, iter_journal, journal_path
 from davis_rig.session.reader import SessionReader
-from davis_rig.session.writer import SessionWriter, to_jsonable
+from davis_rig.session.writer import SessionWriter
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,8 @@ import pytest
 
 from davis_rig.protocol.words import SpecialType
 from davis_rig.session import SessionReader, SessionWriter
+from davis_rig.session.clock import TIMESTAMP_RESET_TYPE
 from davis_rig.session.record import record_session
-from davis_rig.session.writer import TIMESTAMP_RESET_TYPE
 
 from session_data import SPECIAL_DTYPE, Chunk, FakeCamera, cut, random_events, random_frame, synth_stream
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from davis_rig.protocol import SensorLayout, StreamDecoder
-from davis_rig.session import SessionReader, SessionWriter, record_session
+from davis_rig.session import SessionReader, SessionWriter, h5file, record_session
 from davis_rig.session import writer as writer_module
 from davis_rig.types import make_events
 
@@ -67,7 +67,7 @@ def test_months_ahead_in_odd_short_transfers_stay_small(tmp_path, rng):
 
 
 def test_ms_to_idx_is_written_in_bounded_blocks_across_a_long_gap(tmp_path, monkeypatch):
-    monkeypatch.setattr(writer_module, "MS_INDEX_BLOCK", 1000)
+    monkeypatch.setattr(h5file, "MS_INDEX_BLOCK", 1000)
     t = np.array([0, 5, 2_000, 7_654_321, 7_654_322, 9_000_000], np.int64)
     events = make_events(t, np.arange(6), np.arange(6), np.zeros(6, int))
     path = tmp_path / "s.h5"
