@@ -1,30 +1,11 @@
-"""A virtual DAVIS346 behind a real ``usb.backend.IBackend``, so the unmodified pyusb code path runs without a camera.
+"""The device model of the virtual DAVIS346 (FX3): :class:`VirtualDavis346`, served by
+:class:`~davis_rig.usb.virtual.backend.VirtualDavis346Backend` (the package docstring tells what it presents).
 
-Modelled on pyftdi's virtual backend (``pyftdi/tests/backend/usbvirt.py``): the backend answers descriptor and
-standard requests, routes vendor control transfers and bulk reads to a :class:`VirtualDavis346` device model.
-Pass it explicitly: ``usb.core.find(backend=VirtualDavis346Backend(VirtualDavis346()))`` or
-``Davis346.open(backend=...)`` — there is no environment switch.
-
-The device model
-
-- presents VID 0x152A / PID 0x841A, bcdDevice with the firmware version in its low byte, a serial string,
-  one configuration with interface 0 and endpoints 0x82 (bulk IN) and 0x81 (interrupt IN);
-- answers the read-only registers libcaer reads at open (PROTOCOL.md §5) from a
-  :class:`~davis_rig.protocol.layout.SensorLayout`-like mapping, clocks, versions and feature flags — all
-  configurable (e.g. a wrong logic version to test the version gate);
-- keeps a register file, and **records every control transfer** (:attr:`VirtualDavis346.control_log`,
-  :attr:`VirtualDavis346.writes`) so tests can assert the exact §6/§7 sequences;
-- honours the RUN flags: bulk data flows only while MUX RUN, USB RUN and at least one of DVS RUN / APS RUN are set;
-- serves bulk reads on 0x82 from a :class:`~davis_rig.usb.sources.DataSource`, one transfer per read, and
-  injects :class:`~davis_rig.usb.sources.Faults` (disconnect, stalls, timeouts, short/odd transfers, garbage,
-  permission/busy errors) with the errno/libusb codes libusb-1.0 reports. Like a real bulk read, a read
-  completes at the end of a transfer that ends with a short packet; transfers made of whole 1024-byte packets
-  run on into the next released transfer until the host buffer is full.
+Also the libusb-1.0 error mapping every part of the virtual camera raises (:func:`usb_error`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import errno as errno_mod
 import struct
 import threading
@@ -33,7 +14,6 @@ from dataclasses import dataclass, fields
 from typing import Any, Callable, Mapping
 
 import numpy as np
-import usb.backend
 import usb.core
 
 from davis_rig.protocol.config import (
@@ -57,17 +37,8 @@ from davis_rig.protocol.config import (
     Usb,
     decode_multiple,
 )
-from davis_rig.usb.async_bulk import (
-    LIBUSB_ERROR_NO_DEVICE,
-    LIBUSB_ERROR_NOT_FOUND,
-    LIBUSB_TRANSFER_CANCELLED,
-    LIBUSB_TRANSFER_COMPLETED,
-    LIBUSB_TRANSFER_ERROR,
-    LIBUSB_TRANSFER_NO_DEVICE,
-    LIBUSB_TRANSFER_STALL,
-    LIBUSB_TRANSFER_TYPE_INTERRUPT,
-    LibusbTransfer,
-)
+from davis_rig.protocol.layout import SensorLayout
+from davis_rig.usb.async_bulk import LIBUSB_ERROR_NO_DEVICE
 from davis_rig.usb.sources import DataSource, Faults
 
 #: libusb-1.0 error codes (what pyusb's libusb1 backend puts in ``backend_error_code``).
@@ -103,12 +74,12 @@ def usb_error(errno: int) -> usb.core.USBError:
     return usb.core.USBError(text, code, errno)
 
 
-def _deadline(timeout_ms: int) -> float | None:
+def transfer_deadline(timeout_ms: int) -> float | None:
     """The ``time.monotonic()`` deadline, s, of a transfer timeout in ms; ``None`` for 0 (pyusb: wait forever)."""
     return None if timeout_ms == 0 else time.monotonic() + timeout_ms / 1000.0
 
 
-def _copy_into(buff: Any, data: bytes) -> int:
+def copy_into(buff: Any, data: bytes) -> int:
     """Copy as much of ``data`` as fits into the writable transfer buffer ``buff``; returns the byte count."""
     n = min(len(data), len(buff))
     memoryview(buff).cast("B")[:n] = data[:n]
@@ -118,19 +89,8 @@ def _copy_into(buff: Any, data: bytes) -> int:
 #: wMaxPacketSize of the bulk endpoint at SuperSpeed, bytes.
 MAX_PACKET_BYTES = 1024
 
-#: Raw read-outs of a DAVIS346 as the test vectors assume them (346 cols × 260 rows, orientation 0, chip id 5).
-DAVIS346_DEVICE_INFO = {
-    "dvs_size_columns": 346,
-    "dvs_size_rows": 260,
-    "dvs_orientation_info": 0,
-    "aps_size_columns": 346,
-    "aps_size_rows": 260,
-    "aps_orientation_info": 0,
-    "imu_type": 1,
-    "imu_orientation_info": 0,
-    "chip_id": 5,
-    "aps_color_filter": 0,
-}
+#: The read-outs a layout gives the virtual device (``SensorLayout``'s fields, the test vectors' ``device_info``).
+READ_OUTS = tuple(f.name for f in fields(SensorLayout))
 #: Clocks of the virtual device. Placeholders (jAER's fallback values), not a statement about real DAVIS346 hardware.
 VIRTUAL_CLOCKS = Clocks(logic_mhz=90, adc_mhz=30, usb_mhz=30, deviation=1000)
 #: Feature flags of the virtual device: a global-shutter APS, no optional DVS filters.
@@ -139,18 +99,18 @@ VIRTUAL_FEATURES = DeviceFeatures(aps_has_global_shutter=True)
 
 def _as_info_dict(layout: Any) -> dict[str, int]:
     if layout is None:
-        return dict(DAVIS346_DEVICE_INFO)
+        return SensorLayout.davis346().to_dict()
     if isinstance(layout, Mapping):
         src = dict(layout)
     else:
-        src = {k: getattr(layout, k) for k in DAVIS346_DEVICE_INFO if hasattr(layout, k)}
-    missing = [k for k in DAVIS346_DEVICE_INFO if k not in src]
+        src = {k: getattr(layout, k) for k in READ_OUTS if hasattr(layout, k)}
+    missing = [k for k in READ_OUTS if k not in src]
     if missing:
         raise ValueError(f"virtual DAVIS layout: missing read-outs {missing}")
-    return {k: int(src[k]) for k in DAVIS346_DEVICE_INFO}
+    return {k: int(src[k]) for k in READ_OUTS}
 
 
-class _Desc:
+class Descriptor:
     """A descriptor: attribute bag pyusb reads with getattr."""
 
     def __init__(self, **kw: Any):
@@ -184,7 +144,7 @@ class VirtualDavis346:
     Args:
         serial: serial string (≤ 8 chars); ``None`` = no serial descriptor (host falls back to ``TMPnnnnn``).
         layout: raw read-outs — a ``SensorLayout`` or a mapping with the test vectors' ``device_info`` names;
-            default :data:`DAVIS346_DEVICE_INFO`.
+            default ``SensorLayout.davis346()``.
         clocks: SYSINFO 3-6.
         features: ``HAS_*`` read-only flags.
         firmware_version: bcdDevice low byte (6 passes the FX3 gate).
@@ -413,7 +373,7 @@ class VirtualDavis346:
 
     def bulk_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
         """Serve one bulk read on 0x82 into ``buff``; returns the byte count (see class docstring for faults)."""
-        deadline = _deadline(timeout_ms)
+        deadline = transfer_deadline(timeout_ms)
         with self._cond:
             self._check_present()
             if endpoint != DATA_ENDPOINT:
@@ -466,7 +426,7 @@ class VirtualDavis346:
             if len(data) > limit:
                 self._pending = data[limit:]  # the rest comes with the next read, like a device FIFO
                 data = data[:limit]
-            n = _copy_into(buff, data)
+            n = copy_into(buff, data)
             self.transfers_served += 1
             self.bytes_served += n
             if f.disconnect_after_transfers is not None and self.transfers_served >= f.disconnect_after_transfers:
@@ -495,7 +455,7 @@ class VirtualDavis346:
 
     def intr_read(self, endpoint: int, buff: Any, timeout_ms: int) -> int:
         """Interrupt endpoint 0x81: serve queued debug messages, else time out."""
-        deadline = _deadline(timeout_ms)
+        deadline = transfer_deadline(timeout_ms)
         with self._cond:
             self._check_present()
             if endpoint != DEBUG_ENDPOINT:
@@ -504,7 +464,7 @@ class VirtualDavis346:
                 if not self._wait(deadline):
                     raise usb_error(errno_mod.ETIMEDOUT)
                 self._check_present()
-            return _copy_into(buff, self._debug.pop(0))
+            return copy_into(buff, self._debug.pop(0))
 
     # --- descriptors ------------------------------------------------------------------------------
     def strings(self) -> dict[int, str]:
@@ -514,9 +474,9 @@ class VirtualDavis346:
             out[3] = self.serial
         return out
 
-    def device_descriptor(self) -> _Desc:
+    def device_descriptor(self) -> Descriptor:
         """USB device descriptor (plus pyusb's bus/address/port/speed extras)."""
-        return _Desc(
+        return Descriptor(
             bLength=18,
             bDescriptorType=1,
             bcdUSB=0x0300,
@@ -537,262 +497,3 @@ class VirtualDavis346:
             port_numbers=(1,),
             speed=5,  # LIBUSB_SPEED_SUPER
         )
-
-
-_CONFIG_DESC = dict(
-    bLength=9,
-    bDescriptorType=2,
-    wTotalLength=9 + 9 + 7 + 7,
-    bNumInterfaces=1,
-    bConfigurationValue=1,
-    iConfiguration=0,
-    bmAttributes=0x80,
-    bMaxPower=112,
-    extra_descriptors=[],
-)
-_INTERFACE_DESC = dict(
-    bLength=9,
-    bDescriptorType=4,
-    bInterfaceNumber=0,
-    bAlternateSetting=0,
-    bNumEndpoints=2,
-    bInterfaceClass=0xFF,
-    bInterfaceSubClass=0,
-    bInterfaceProtocol=0,
-    iInterface=0,
-    extra_descriptors=[],
-)
-_ENDPOINT_DESCS = (
-    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DATA_ENDPOINT, bmAttributes=0x02, wMaxPacketSize=MAX_PACKET_BYTES,
-         bInterval=0, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
-    dict(bLength=7, bDescriptorType=5, bEndpointAddress=DEBUG_ENDPOINT, bmAttributes=0x03, wMaxPacketSize=64,
-         bInterval=4, bRefresh=0, bSynchAddress=0, extra_descriptors=[]),
-)
-
-
-class VirtualAsyncTransfers:
-    """libusb's asynchronous transfer API (:class:`~davis_rig.usb.async_bulk.AsyncTransferApi`) on a virtual camera.
-
-    Transfers are real ``LibusbTransfer`` structures completed through their C callback pointers, in submission
-    order like a host controller: :meth:`handle_events` serves the oldest transfer in flight with one
-    :meth:`VirtualDavis346.bulk_read` (:meth:`~VirtualDavis346.intr_read` for interrupt transfers) into its buffer
-    (waiting up to the poll timeout, faults included) and maps the outcome to a transfer status (ETIMEDOUT → still
-    in flight, EPIPE → ``STALL``, ENODEV → ``NO_DEVICE``). Cancelled transfers come back with ``CANCELLED`` and no
-    data.
-
-    Args:
-        device: the virtual camera (its interface claimed by the caller).
-    """
-
-    dev_handle = None
-
-    def __init__(self, device: "VirtualDavis346"):
-        self._device = device
-        self._queue: list[Any] = []
-        self._cancelled: set[int] = set()
-        self._lock = threading.Lock()
-
-    def alloc_transfer(self) -> Any:
-        return ctypes.pointer(LibusbTransfer())
-
-    def free_transfer(self, transfer: Any) -> None:
-        return None
-
-    def submit_transfer(self, transfer: Any) -> int:
-        if self._device.unplugged:
-            return LIBUSB_ERROR_NO_DEVICE
-        with self._lock:
-            self._queue.append(transfer)
-        return 0
-
-    def cancel_transfer(self, transfer: Any) -> int:
-        with self._lock:
-            key = ctypes.addressof(transfer.contents)
-            if key in self._cancelled or not any(ctypes.addressof(t.contents) == key for t in self._queue):
-                return LIBUSB_ERROR_NOT_FOUND  # like libusb: not in flight, or already cancelled
-            self._cancelled.add(key)
-        return 0
-
-    def handle_events(self, timeout_ms: int) -> int:
-        with self._lock:
-            if not self._queue:
-                head = None
-            else:
-                head = self._queue[0]
-                cancelled = ctypes.addressof(head.contents) in self._cancelled
-        if head is None:
-            time.sleep(timeout_ms / 1000.0)
-            return 0
-        fields = head.contents
-        count = 0
-        if cancelled:
-            status = LIBUSB_TRANSFER_CANCELLED
-        else:
-            buffer = (ctypes.c_ubyte * fields.length).from_address(fields.buffer)
-            try:
-                interrupt = fields.type == LIBUSB_TRANSFER_TYPE_INTERRUPT
-                read = self._device.intr_read if interrupt else self._device.bulk_read
-                count = read(fields.endpoint, buffer, timeout_ms)
-                status = LIBUSB_TRANSFER_COMPLETED
-            except usb.core.USBTimeoutError:
-                return 0  # nothing yet: the transfer stays in flight
-            except usb.core.USBError as exc:
-                status = {errno_mod.EPIPE: LIBUSB_TRANSFER_STALL, errno_mod.ENODEV: LIBUSB_TRANSFER_NO_DEVICE}.get(
-                    exc.errno, LIBUSB_TRANSFER_ERROR
-                )
-        with self._lock:
-            self._queue.pop(0)
-            self._cancelled.discard(ctypes.addressof(fields))
-        fields.status = status
-        fields.actual_length = count
-        fields.callback(head)
-        return 0
-
-
-class _Handle:
-    def __init__(self, device: VirtualDavis346, number: int):
-        self.device = device
-        self.number = number
-
-
-class VirtualDavis346Backend(usb.backend.IBackend):
-    """pyusb backend serving one or more :class:`VirtualDavis346` devices.
-
-    Args:
-        *devices: the virtual cameras on this "bus" (enumeration order = argument order).
-
-    Attributes:
-        devices: the device models.
-        open_handles: number of currently open device handles.
-    """
-
-    def __init__(self, *devices: VirtualDavis346):
-        self.devices = list(devices)
-        self._handles = 0
-        self.open_handles = 0
-        self._lock = threading.Lock()
-
-    def add_device(self, device: VirtualDavis346) -> None:
-        """Plug in another virtual camera."""
-        self.devices.append(device)
-
-    # enumeration and descriptors
-    def enumerate_devices(self):
-        return [d for d in self.devices if not d.unplugged]
-
-    def get_parent(self, dev):
-        return None
-
-    def get_device_descriptor(self, dev):
-        return dev.device_descriptor()
-
-    def get_configuration_descriptor(self, dev, config):
-        if config != 0:
-            raise IndexError(f"configuration index {config} out of range")
-        return _Desc(**_CONFIG_DESC)
-
-    def get_interface_descriptor(self, dev, intf, alt, config):
-        if config != 0 or intf != 0 or alt != 0:
-            raise IndexError(f"interface ({intf}, {alt}) out of range")
-        return _Desc(**_INTERFACE_DESC)
-
-    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
-        if config != 0 or intf != 0 or alt != 0 or not 0 <= ep < len(_ENDPOINT_DESCS):
-            raise IndexError(f"endpoint {ep} out of range")
-        return _Desc(**_ENDPOINT_DESCS[ep])
-
-    # handles, configuration, interfaces
-    def open_device(self, dev):
-        dev._check_present()
-        if dev.faults.open_errno is not None:
-            raise usb_error(dev.faults.open_errno)
-        with self._lock:
-            self._handles += 1
-            self.open_handles += 1
-            return _Handle(dev, self._handles)
-
-    def close_device(self, dev_handle):
-        with self._lock:
-            self.open_handles -= 1
-
-    def set_configuration(self, dev_handle, config_value):
-        dev_handle.device._check_present()
-        if config_value not in (0, 1):
-            raise usb_error(errno_mod.EIO)
-        dev_handle.device.configuration = int(config_value)
-
-    def get_configuration(self, dev_handle):
-        dev_handle.device._check_present()
-        return dev_handle.device.configuration
-
-    def set_interface_altsetting(self, dev_handle, intf, altsetting):
-        dev_handle.device._check_present()
-
-    def claim_interface(self, dev_handle, intf):
-        dev = dev_handle.device
-        dev._check_present()
-        if dev.faults.claim_errno is not None:
-            raise usb_error(dev.faults.claim_errno)
-        if dev.claimed:
-            raise usb_error(errno_mod.EBUSY)
-        dev.claimed = True
-
-    def release_interface(self, dev_handle, intf):
-        dev = dev_handle.device
-        dev.claimed = False
-        dev._check_present()
-
-    # transfers
-    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
-        return dev_handle.device.bulk_read(ep, buff, timeout)
-
-    def bulk_write(self, dev_handle, ep, intf, data, timeout):
-        dev_handle.device._check_present()
-        raise usb_error(errno_mod.EPIPE)  # the DAVIS has no OUT data endpoint
-
-    def intr_read(self, dev_handle, ep, intf, buff, timeout):
-        return dev_handle.device.intr_read(ep, buff, timeout)
-
-    def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
-        dev = dev_handle.device
-        if (bmRequestType & 0x60) == 0x00:  # standard request
-            return self._standard_request(dev, bmRequestType, bRequest, wValue, wIndex, data)
-        reply = dev.control(bmRequestType, bRequest, wValue, wIndex, data)
-        if bmRequestType & 0x80:
-            memoryview(data).cast("B")[: len(reply)] = reply
-            return len(reply)
-        return reply
-
-    def _standard_request(self, dev, bmRequestType, bRequest, wValue, wIndex, data):
-        dev._check_present()
-        if bmRequestType == 0x80 and bRequest == 6 and (wValue >> 8) == 3:  # GET_DESCRIPTOR(STRING)
-            index = wValue & 0xFF
-            if index == 0:
-                payload = struct.pack("<BBH", 4, 3, 0x0409)
-            else:
-                text = dev.strings().get(index)
-                if text is None:
-                    raise usb_error(errno_mod.EPIPE)
-                encoded = text.encode("utf-16-le")
-                payload = struct.pack("<BB", 2 + len(encoded), 3) + encoded
-            return _copy_into(data, payload)
-        raise usb_error(errno_mod.EPIPE)
-
-    def clear_halt(self, dev_handle, ep):
-        dev_handle.device.clear_halt(ep)
-
-    def async_transfers(self, dev_handle) -> VirtualAsyncTransfers:
-        """libusb's asynchronous transfer API for an open handle (what ``LibusbAsyncApi`` is on real hardware)."""
-        return VirtualAsyncTransfers(dev_handle.device)
-
-    def reset_device(self, dev_handle):
-        dev_handle.device._check_present()
-
-    def is_kernel_driver_active(self, dev_handle, intf):
-        return False
-
-    def detach_kernel_driver(self, dev_handle, intf):
-        return None
-
-    def attach_kernel_driver(self, dev_handle, intf):
-        return None
