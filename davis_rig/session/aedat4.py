@@ -32,6 +32,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import FormatError, MissingDependencyError
+from davis_rig.protocol import IMU6_DTYPE, SPECIAL_DTYPE, ApsFrame, SpecialType
 from davis_rig.session.info import sensor_layout
 from davis_rig.session.labels import labels_crop_origin, shift_boxes, write_labels
 from davis_rig.session.writer import SessionWriter
@@ -40,8 +41,19 @@ from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, GEN1_CLASSES, make_events
 #: First bytes of every AEDAT 4.0 file.
 AEDAT4_MAGIC = b"#!AER-DAT4.0\r\n"
 
-#: dv.TriggerType value -> libcaer special type id (``davis_rig.protocol.words.SpecialType``).
-TRIGGER_TO_SPECIAL = {0: 1, 1: 2, 2: 3, 3: 4, 4: 12, 5: 13, 6: 14, 7: 15, 8: 16, 9: 17}
+#: dv.TriggerType value -> libcaer special type (``davis_rig.protocol.words.SpecialType``).
+TRIGGER_TO_SPECIAL = {
+    0: SpecialType.TIMESTAMP_RESET,
+    1: SpecialType.EXTERNAL_INPUT_RISING_EDGE,
+    2: SpecialType.EXTERNAL_INPUT_FALLING_EDGE,
+    3: SpecialType.EXTERNAL_INPUT_PULSE,
+    4: SpecialType.EXTERNAL_GENERATOR_RISING_EDGE,
+    5: SpecialType.EXTERNAL_GENERATOR_FALLING_EDGE,
+    6: SpecialType.APS_FRAME_START,
+    7: SpecialType.APS_FRAME_END,
+    8: SpecialType.APS_EXPOSURE_START,
+    9: SpecialType.APS_EXPOSURE_END,
+}
 #: libcaer special type id -> dv.TriggerType value (the export direction).
 SPECIAL_TO_TRIGGER = {special: trigger for trigger, special in TRIGGER_TO_SPECIAL.items()}
 
@@ -55,10 +67,6 @@ META_LABELS_CROP_ORIGIN_XY = "davis_rig.labels_crop_origin_xy"
 META_LABELS_ATTRS = "davis_rig.labels_attrs"
 _CLASS_IDS = {name: class_id for class_id, name in GEN1_CLASSES.items()}
 
-_SPECIAL_DTYPE = np.dtype([("t", "<i8"), ("type", "u1")])
-_IMU_DTYPE = np.dtype([("t", "<i8"), ("accel_x_g", "<f4"), ("accel_y_g", "<f4"), ("accel_z_g", "<f4"),
-                       ("gyro_x_dps", "<f4"), ("gyro_y_dps", "<f4"), ("gyro_z_dps", "<f4"),
-                       ("temperature_c", "<f4")])
 
 
 def import_dv():
@@ -127,9 +135,7 @@ class _Chunk:
     imu: np.ndarray | None = None
 
 
-def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)):
-    from davis_rig.session.reader import StoredFrame
-
+def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)) -> ApsFrame:
     image = np.asarray(dv_frame.image)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -143,8 +149,8 @@ def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)):
         raise FormatError(f"AEDAT4 frame at t={dv_frame.timestamp}: unsupported pixel type {image.dtype}")
     t_start = int(dv_frame.timestamp)
     exposure_us = int(dv_frame.exposure.total_seconds() * 1e6 + 0.5)
-    return StoredFrame(pixels, int(dv_frame.positionX) + origin_xy[0], int(dv_frame.positionY) + origin_xy[1],
-                       t_start, t_start, t_start + exposure_us, t_start + exposure_us)
+    return ApsFrame(pixels, int(dv_frame.positionX) + origin_xy[0], int(dv_frame.positionY) + origin_xy[1],
+                    t_start, t_start, t_start + exposure_us, t_start + exposure_us)
 
 
 def _read_boxes(recording) -> tuple[np.ndarray, int]:
@@ -231,7 +237,7 @@ def _write_streams(recording, writer: SessionWriter, origin: tuple[int, int]) ->
         while (batch := recording.getNextTriggerBatch()) is not None:
             specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
         if specials:
-            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)),
+            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=SPECIAL_DTYPE)),
                           device_clock=False)
     if recording.isImuStreamAvailable():
         samples = []
@@ -239,8 +245,8 @@ def _write_streams(recording, writer: SessionWriter, origin: tuple[int, int]) ->
             samples += [(int(s.timestamp), s.accelerometerX, s.accelerometerY, s.accelerometerZ, s.gyroscopeX,
                          s.gyroscopeY, s.gyroscopeZ, s.temperature) for s in batch]
         if samples:
-            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, _SPECIAL_DTYPE),
-                                 np.array(samples, dtype=_IMU_DTYPE)))
+            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, SPECIAL_DTYPE),
+                                 np.array(samples, dtype=IMU6_DTYPE)))
 
 
 def _write_box_labels(src: Path, dst, boxes: np.ndarray, box_meta, origin: tuple[int, int]) -> None:

@@ -15,14 +15,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from davis_rig.protocol.words import SpecialType
 from davis_rig.session import schema
 from davis_rig.session.timeline import EventTimes, advance_clock, plan_event_times, shift_for
 
-__all__ = ["MAX_OFFSET_ENTRIES", "TIMESTAMP_RESET_TYPE", "Epoch", "Placement", "RecordingClock"]
+__all__ = ["MAX_OFFSET_ENTRIES", "Epoch", "Placement", "RecordingClock"]
 
-#: libcaer special type id of TIMESTAMP_RESET (``davis_rig.protocol.words.SpecialType.TIMESTAMP_RESET``; the
-#: session package does not import the protocol package).
-TIMESTAMP_RESET_TYPE = 1
 #: Offset-change entries kept in the ``stats`` attribute per list (HDF5 attributes hold at most 64 KiB).
 MAX_OFFSET_ENTRIES = 256
 
@@ -34,7 +32,7 @@ def reset_positions(specials) -> np.ndarray:
     names = np.asarray(specials).dtype.names or ()
     if "type" not in names:
         return np.zeros(0, np.int64)
-    return np.flatnonzero(np.asarray(specials)["type"] == TIMESTAMP_RESET_TYPE)
+    return np.flatnonzero(np.asarray(specials)["type"] == SpecialType.TIMESTAMP_RESET)
 
 
 @dataclass(frozen=True)

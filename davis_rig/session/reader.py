@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from davis_rig.errors import SessionError
+from davis_rig.protocol.frames import ApsFrame
 from davis_rig.session import schema
 from davis_rig.session.journal import journal_path
 from davis_rig.types import EVENT_DTYPE
@@ -77,30 +77,6 @@ def _index_text(key) -> str:
     return "..." if key is Ellipsis else str(key)
 
 
-@dataclass(frozen=True)
-class StoredFrame:
-    """One APS frame as stored (same fields as ``davis_rig.protocol.frames.ApsFrame``).
-
-    Attributes:
-        pixels: uint16 [height, width] of the read-out region (libcaer 16-bit scale).
-        position_x, position_y: region origin, px.
-        t_start_of_frame_us, t_start_exposure_us, t_end_exposure_us, t_end_of_frame_us: device µs.
-    """
-
-    pixels: np.ndarray
-    position_x: int
-    position_y: int
-    t_start_of_frame_us: int
-    t_start_exposure_us: int
-    t_end_exposure_us: int
-    t_end_of_frame_us: int
-
-    @property
-    def t_exposure_mid_us(self) -> int:
-        """Middle of the exposure, device µs (libcaer: ``SOE + (EOE - SOE) // 2``)."""
-        return self.t_start_exposure_us + (self.t_end_exposure_us - self.t_start_exposure_us) // 2
-
-
 class FrameStore:
     """Lazy access to the APS frames of a session: ``len``, indexing (-> frame objects) and time columns.
 
@@ -151,25 +127,19 @@ class FrameStore:
         return self._roi.copy()
 
     def __getitem__(self, index: int):
-        """Return frame ``index`` as an ``ApsFrame`` (or :class:`StoredFrame` if the protocol package is absent)."""
+        """Return frame ``index`` as an :class:`~davis_rig.protocol.frames.ApsFrame`."""
         n = len(self)
         if not -n <= index < n:
             raise IndexError(f"frame index {index} out of range for {n} frames")
         index %= n
         x0, y0, width, height = (int(v) for v in self._roi[index])
         pixels = self.data[index, y0 : y0 + height, x0 : x0 + width]
-        fields = dict(
+        return ApsFrame(
             pixels=pixels,
             position_x=x0,
             position_y=y0,
             **{name: int(self._times[name][index]) for name in schema.FRAME_TIME_COLUMNS},
         )
-        try:
-            from davis_rig.protocol.frames import ApsFrame
-
-            return ApsFrame(**fields)
-        except (ImportError, TypeError):
-            return StoredFrame(**fields)
 
     def __iter__(self):
         for i in range(len(self)):

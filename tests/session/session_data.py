@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from davis_rig.session.reader import StoredFrame
+from davis_rig.protocol.frames import ApsFrame
 from davis_rig.types import DAVIS346_HW, make_events
 
 SPECIAL_DTYPE = np.dtype([("t", "<i8"), ("type", "u1")])
@@ -29,12 +29,12 @@ def random_events(rng: np.random.Generator, n: int, t0_us: int = 0, span_us: int
     return make_events(t, rng.integers(0, width, n), rng.integers(0, height, n), rng.integers(0, 2, n))
 
 
-def random_frame(rng: np.random.Generator, t_us: int, roi=None) -> StoredFrame:
+def random_frame(rng: np.random.Generator, t_us: int, roi=None) -> ApsFrame:
     """A random APS frame (10-bit values << 6) starting at t_us; roi = (x, y, w, h) or full sensor."""
     height, width = DAVIS346_HW
     x0, y0, w, h = roi if roi is not None else (0, 0, width, height)
     pixels = (rng.integers(0, 1024, (h, w)) << 6).astype(np.uint16)
-    return StoredFrame(pixels, x0, y0, t_us, t_us + 10, t_us + 4010, t_us + 4100)
+    return ApsFrame(pixels, x0, y0, t_us, t_us + 10, t_us + 4010, t_us + 4100)
 
 
 def split_chunks(events: np.ndarray, sizes) -> list[np.ndarray]:

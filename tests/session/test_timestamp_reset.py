@@ -7,7 +7,6 @@ import pytest
 
 from davis_rig.protocol.words import SpecialType
 from davis_rig.session import SessionReader, SessionWriter
-from davis_rig.session.clock import TIMESTAMP_RESET_TYPE
 from davis_rig.session.record import record_session
 
 from session_data import SPECIAL_DTYPE, Chunk, FakeCamera, cut, random_events, random_frame, synth_stream
@@ -15,10 +14,6 @@ from session_data import SPECIAL_DTYPE, Chunk, FakeCamera, cut, random_events, r
 RESET = int(SpecialType.TIMESTAMP_RESET)
 RISING = int(SpecialType.EXTERNAL_INPUT_RISING_EDGE)
 IMU_DTYPE = np.dtype([("t", "<i8"), ("accel_x_g", "<f4")])
-
-
-def test_the_writer_knows_the_protocol_reset_type():
-    assert TIMESTAMP_RESET_TYPE == int(SpecialType.TIMESTAMP_RESET)
 
 
 def _imu(times):

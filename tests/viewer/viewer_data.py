@@ -57,8 +57,8 @@ def scene_events(rng: np.random.Generator) -> np.ndarray:
 
 
 def scene_frames():
-    """The scene's APS frames (``StoredFrame``)."""
-    from davis_rig.session.reader import StoredFrame
+    """The scene's APS frames (``ApsFrame``)."""
+    from davis_rig.protocol.frames import ApsFrame
     from davis_rig.types import DAVIS346_HW
 
     frames = []
@@ -66,7 +66,7 @@ def scene_frames():
         pixels = np.full(DAVIS346_HW, BACKGROUND, np.uint16)
         x1, y1, x2, y2 = person_box(start + 2100)
         pixels[y1:y2, x1:x2] = PERSON
-        frames.append(StoredFrame(pixels, 0, 0, start, start + 100, start + 4100, start + 5100))
+        frames.append(ApsFrame(pixels, 0, 0, start, start + 100, start + 4100, start + 5100))
     return frames
 
 
