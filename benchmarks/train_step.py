@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from _common import metadata_line
 
+from davis_rig.events.histogram import WINDOW_US
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.augment import AugmentConfig
@@ -39,7 +40,7 @@ def _write_dataset(root: Path, num_sequences: int, num_windows: int) -> None:
             hist = np.zeros((num_windows, 20, 240, 304), np.uint8)
             mask = rng.random(hist.shape) < 0.01
             hist[mask] = rng.integers(1, 11, size=int(mask.sum()), dtype=np.uint8)
-            ends = (np.arange(num_windows, dtype=np.int64) + 1) * 50_000
+            ends = (np.arange(num_windows, dtype=np.int64) + 1) * WINDOW_US
             labels = []
             for end in ends.tolist():
                 k = int(rng.integers(1, 4))

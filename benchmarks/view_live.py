@@ -216,14 +216,14 @@ def detector_step_ms(detector: Path, threads: int, repeats: int = 10):
     path: the yardstick for the latency figures (``_common.Timing``)."""
     from _common import time_ms
 
-    from davis_rig.events.histogram import stacked_histogram
+    from davis_rig.events.histogram import WINDOW_US, stacked_histogram
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
     from davis_rig.types import RVT_HW
 
     rng = np.random.default_rng(1)
     n = 600_000
     x, y = rng.integers(0, RVT_HW[1], n), rng.integers(0, RVT_HW[0], n)
-    t, p = np.sort(rng.integers(0, 50_000, n)), rng.integers(0, 2, n)
+    t, p = np.sort(rng.integers(0, WINDOW_US, n)), rng.integers(0, 2, n)
     runner = RVTOnnxRunner(detector, intra_op_threads=threads)
     return time_ms(lambda: runner.step(stacked_histogram(x, y, t, p)[None]), warmup=3, repeats=repeats)
 

@@ -62,6 +62,9 @@ def _add_server_arguments(parser: argparse.ArgumentParser, *, host_option: str, 
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-view``."""
+    from davis_rig.evaluation.physical import PAPER_THRESHOLDS, EvalSettings
+
+    defaults = EvalSettings()
     parser = new_parser(NAME, "Look at recordings: events, APS frames, labels and RVT boxes in a local web page.",
                         EXAMPLES)
     parser.add_argument("sessions", nargs="+", metavar="SESSION_H5", help="session files (addressed by index)")
@@ -72,14 +75,17 @@ def build_parser() -> argparse.ArgumentParser:
                  help="RVT step ONNX to score the windows with, on the fly (default: the bundled detector)")
     parser.add_argument("--no-detector", action="store_true", help="no RVT boxes (nothing is scored)")
     add_threshold(parser, default=None,
-                  help="confidence thresholds offered on the page (default: davis-eval's 0.001 0.01 0.1 0.25)")
+                  help="confidence thresholds offered on the page (default: davis-eval's "
+                       f"{' '.join(f'{t:g}' for t in PAPER_THRESHOLDS)})")
     add_threads(parser, help="onnxruntime threads of the on-the-fly scoring (default: its choice)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred; as davis-eval)")
-    parser.add_argument("--seq-len", type=positive_int, default=10, metavar="N",
-                        help="windows per SeqASR sequence for the attack's successes (default 10, as davis-eval)")
-    parser.add_argument("--skip-first-ms", type=non_negative_float, default=500.0, metavar="MS",
-                        help="labels in the first MS ms need no detection (default 500, as davis-eval)")
+    parser.add_argument("--seq-len", type=positive_int, default=defaults.seq_len, metavar="N",
+                        help=f"windows per SeqASR sequence for the attack's successes (default {defaults.seq_len}, "
+                             "as davis-eval)")
+    parser.add_argument("--skip-first-ms", type=non_negative_float, default=defaults.skip_first_us / 1000,
+                        metavar="MS", help="labels in the first MS ms need no detection (default "
+                                           f"{defaults.skip_first_us // 1000}, as davis-eval)")
     _add_server_arguments(parser, host_option="--host", port_option="--port")
     parser.add_argument("--export", metavar="VIDEO", default=None,
                         help="write the view as VIDEO (.mp4 or .gif) and exit instead of serving the page")
@@ -89,8 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --export: from S seconds after the recording's start (default 0)")
     parser.add_argument("--end", type=positive_float, default=None, metavar="S",
                         help="with --export: up to S seconds after the start (default: the end)")
-    parser.add_argument("--fps", type=positive_float, default=20.0, metavar="F",
-                        help="with --export: video frames per second (default 20 = real time)")
+    parser.add_argument("--fps", type=positive_float, default=None, metavar="F",
+                        help="with --export: video frames per second (default: real time, one frame per window)")
     parser.add_argument("--layers", type=_layers, default=None, metavar="L,...",
                         help="with --export: layers to draw (default all: events,aps,labels,detections,crop)")
     add_quiet(parser, help="print nothing but errors")
@@ -176,7 +182,8 @@ def _export(args: argparse.Namespace, view) -> int:
     path = export_video(view, args.export, start=start, stop=max(stop, start + 1), fps=args.fps,
                         layers=args.layers if args.layers is not None else LAYERS, threshold=threshold)
     if not args.quiet:
-        print(f"{path}: windows {start}..{max(stop, start + 1) - 1} of {view.path.name} at {args.fps:g} fps")
+        fps = args.fps if args.fps is not None else 1e6 / view.window_us
+        print(f"{path}: windows {start}..{max(stop, start + 1) - 1} of {view.path.name} at {fps:g} fps")
     return EXIT_OK
 
 

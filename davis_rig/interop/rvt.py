@@ -140,8 +140,8 @@ def _summary(source: ExportSource, seq_dir: Path, meta: dict, labels: np.ndarray
     label_times = meta["label_times"]
     left_out = label_times - len(frame_window)
     notes = [f"RVT's Gen1 input is {RVT_HW[1]}x{RVT_HW[0]}: the events are cropped at {tuple(source.origin_xy)}",
-             f"{len(ends)} windows of 50 ms ending every 50 ms from the session's first millisecond (device µs {t0}, "
-             "time 0 of the files), as davis-eval scores them"]
+             f"{len(ends)} windows of {WINDOW_US // 1000} ms ending every {WINDOW_US // 1000} ms from the session's "
+             f"first millisecond (device µs {t0}, time 0 of the files), as davis-eval scores them"]
     if left_out:
         notes.append(f"{left_out} of {label_times} label times share a window with a later one and are left out "
                      "(RVT's layout holds one labelled frame per window)")

@@ -33,9 +33,13 @@ import numpy as np
 
 from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatError, ShapeError
 
-__all__ = ["COCO_PERSON", "LAYOUTS", "YoloOnnxDetector", "letterbox", "to_gray_u8"]
+__all__ = ["COCO_PERSON", "LAYOUTS", "YOLO_CONF_THRESHOLD", "YOLO_NMS_IOU", "YoloOnnxDetector", "letterbox",
+           "to_gray_u8"]
 
 LAYOUTS: Final = ("yolov5", "yolov8", "yolov7-nms", "ultralytics-nms")
+#: Default score threshold and class-wise NMS IoU of the labeler (YOLOv5 ``detect.py``'s ``conf_thres``/``iou_thres``).
+YOLO_CONF_THRESHOLD: Final = 0.25
+YOLO_NMS_IOU: Final = 0.45
 #: COCO class 0 is "person" in every YOLOv5/v7/v8 COCO model.
 COCO_PERSON: Final = "person"
 PAD_VALUE: Final = 114
@@ -164,8 +168,8 @@ class YoloOnnxDetector:
         *,
         layout: str = "auto",
         class_names: Sequence[str] | None = None,
-        conf_threshold: float = 0.25,
-        iou_threshold: float = 0.45,
+        conf_threshold: float = YOLO_CONF_THRESHOLD,
+        iou_threshold: float = YOLO_NMS_IOU,
         max_det: int = 300,
         intra_op_threads: int | None = None,
     ):

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import DavisRigError, FormatError
+from davis_rig.types import RVT_NMS_IOU
 
 __all__ = ["DetectionWorker", "OnTheFlyDetections", "StoredDetections", "find_stored_detections"]
 
@@ -126,7 +127,8 @@ class OnTheFlyDetections:
     """
 
     def __init__(self, session: Path, runner, window_end_us: np.ndarray, window_us: int,
-                 crop_origin_xy: tuple[int, int], thresholds, nms_threshold: float = 0.45, block_windows: int = 20):
+                 crop_origin_xy: tuple[int, int], thresholds, nms_threshold: float = RVT_NMS_IOU,
+                 block_windows: int = 20):
         self.session = Path(session)
         self.runner = runner
         self.window_end_us = np.asarray(window_end_us, np.int64)

@@ -29,7 +29,7 @@ def _frames(view, start: int, stop: int, layers, threshold, scoring_timeout_s: f
         yield view.render(k, layers=layers, threshold=threshold, caption=True)
 
 
-def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: float = 20.0, layers=LAYERS,
+def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: float | None = None, layers=LAYERS,
                  threshold: float | None = None, scoring_timeout_s: float | None = None) -> Path:
     """Write windows ``start .. stop - 1`` of a recording as an MP4 or a GIF (by ``path``'s suffix).
 
@@ -37,7 +37,7 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
         view: a :class:`~davis_rig.viewer.recording.RecordingView`.
         path: ``.mp4`` or ``.gif`` to create (replaced if it exists).
         start, stop: window range (``stop=None``: to the end).
-        fps: frames per second of the video (20 = real time for 50 ms windows).
+        fps: frames per second of the video (``None``: real time, one frame per window: ``1e6 / view.window_us``).
         layers: overlays to draw.
         threshold: which threshold's boxes to draw (``None``: none); with on-the-fly scoring the export waits
             for each window to be scored (up to ``scoring_timeout_s`` per window, ``None`` = no limit).
@@ -57,6 +57,7 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     stop = view.num_windows if stop is None else int(stop)
     if not 0 <= int(start) < stop <= view.num_windows:
         raise ValueError(f"window range [{start}, {stop}) is empty or outside 0..{view.num_windows}")
+    fps = 1e6 / view.window_us if fps is None else fps
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     frames = _frames(view, int(start), stop, layers, threshold, scoring_timeout_s)

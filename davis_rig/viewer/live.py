@@ -34,7 +34,7 @@ import numpy as np
 
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
-from davis_rig.types import DAVIS346_HW, RVT_HW
+from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
 from davis_rig.viewer.render import LAYERS, ViewContent, encode_image, event_counts, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
@@ -238,7 +238,8 @@ class LiveView:
 
     def __init__(self, *, detector: Path | None = None, threshold: float = 0.1, threads: int | None = 2,
                  fps: float = 25.0, crop_origin_xy: tuple[int, int] | None = None, window_us: int = WINDOW_US,
-                 stats=None, max_pending_chunks: int = 256, jpeg_quality: int = 80, nms_threshold: float = 0.45):
+                 stats=None, max_pending_chunks: int = 256, jpeg_quality: int = 80,
+                 nms_threshold: float = RVT_NMS_IOU):
         from davis_rig.events.crop import center_crop_origin
 
         self.detector = None if detector is None else Path(detector)

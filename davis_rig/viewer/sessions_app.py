@@ -17,6 +17,7 @@ import re
 import tempfile
 from pathlib import Path
 
+from davis_rig.events.histogram import WINDOW_US
 from davis_rig.viewer.render import LAYERS, encode_image
 from davis_rig.viewer.server import (RequestError, Response, float_param, int_param, json_response,
                                      layers_param)
@@ -29,12 +30,12 @@ class SessionsApp:
     Args:
         views: :class:`~davis_rig.viewer.recording.RecordingView` objects, addressed by their index.
         settings: :class:`~davis_rig.evaluation.physical.EvalSettings` for the misses (filters, ``seq_len``).
-        max_export_windows: longest export the page may ask for, windows (1200 = 60 s of 50 ms windows).
+        max_export_windows: longest export the page may ask for, windows (default: 60 s of RVT windows).
     """
 
     mode = "sessions"
 
-    def __init__(self, views, settings, *, max_export_windows: int = 1200):
+    def __init__(self, views, settings, *, max_export_windows: int = 60 * 1_000_000 // WINDOW_US):
         self.views = list(views)
         self.settings = settings
         self.max_export_windows = int(max_export_windows)
@@ -109,7 +110,7 @@ class SessionsApp:
         fmt = (params.get("format") or ["gif"])[-1]
         if fmt not in ("gif", "mp4"):
             raise RequestError(400, f"format: expected gif or mp4, got {fmt[:8]!r}")
-        fps = int_param(params, "fps", 1, 100, default=20)
+        fps = int_param(params, "fps", 1, 100, default=round(1e6 / view.window_us))  # default: real time
         layers = layers_param(params, LAYERS, LAYERS)
         threshold = self._threshold(view, params)
         from davis_rig.viewer.export import export_video
