@@ -42,6 +42,7 @@ OPTIONS = {"thresholds": "--threshold", "seq_len": "--seq-len", "seq_stride": "-
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-eval``."""
     from davis_rig.evaluation.physical import PAPER_THRESHOLDS, EvalSettings
+    from davis_rig.metrics.ap import CocoBackend
 
     defaults = EvalSettings()
     parser = new_parser(NAME, "Score DAVIS346 sessions with an RVT step ONNX: AP and SeqASR per threshold.",
@@ -64,8 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                              f"{defaults.skip_first_us // 1000}; 0 keeps all)")
     parser.add_argument("--time-tol-ms", type=non_negative_float, default=defaults.time_tol_us / 1000, metavar="MS",
                         help="AP matches a label with the detections stamped within +-MS ms of it (default "
-                             f"{defaults.time_tol_us // 1000}, the right setting here: each window's own detections; > 0 pools the detections of "
-                             "neighbouring windows, whose copies then count as false positives; Prophesee "
+                             f"{defaults.time_tol_us // 1000}, the right setting here: each window's own detections; > 0 "
+                             "pools the detections of neighbouring windows, whose copies then count as false positives; Prophesee "
                              "matching, meant for detections at sparse times)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred)")
@@ -78,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gif-threshold", type=probability, default=None, metavar="T",
                         help="with --out: draw the detections of this threshold in the GIFs (one of --threshold; "
                              "default the highest)")
-    parser.add_argument("--coco-backend", default="faster_coco_eval", choices=["faster_coco_eval", "pycocotools"])
+    parser.add_argument("--coco-backend", default=defaults.coco_backend, choices=[b.value for b in CocoBackend])
     add_threads(parser, help="onnxruntime threads (default: its choice)")
     add_quiet(parser, help="no progress bars")
     return parser

@@ -31,7 +31,7 @@ OPTIONS = {"conf_threshold": "--threshold", "iou_threshold": "--iou", "crop_orig
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-label``."""
-    from davis_rig.labelers.yolo import LAYOUTS, YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
+    from davis_rig.labelers.yolo import AUTO_LAYOUT, LAYOUTS, YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
 
     parser = new_parser(NAME, "Label the APS frames of a session.h5 with a YOLO ONNX person detector.", EXAMPLES)
     parser.add_argument("session", metavar="SESSION_H5", help="the session file (gets a /labels group)")
@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_hidden_alias(parser, "--conf", dest="threshold", type=probability)
     parser.add_argument("--iou", type=probability, default=YOLO_NMS_IOU, metavar="IOU",
                         help=f"YOLO NMS IoU threshold in [0, 1] (default {YOLO_NMS_IOU})")
-    parser.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS],
+    parser.add_argument("--layout", default=AUTO_LAYOUT, choices=[AUTO_LAYOUT, *LAYOUTS],
                         help="YOLO output layout (default: detected from the model)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin on the 346x260 sensor (default: centred, 21 10)")

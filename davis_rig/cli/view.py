@@ -124,8 +124,10 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             if given:
                 parser.error(f"argument {option}: only with --export")
     else:
-        if Path(args.export).suffix.lower() not in (".mp4", ".gif"):
-            parser.error(f"argument --export: expected a .mp4 or .gif file, got {args.export!r}")
+        from davis_rig.viewer.export import VideoFormat
+
+        if VideoFormat.of(args.export) is None:
+            parser.error(f"argument --export: expected a {VideoFormat.expected()} file, got {args.export!r}")
         if args.session >= len(args.sessions):
             parser.error(f"argument --session: {args.session} is not an index of the {len(args.sessions)} "
                          "SESSION_H5 given")

@@ -21,7 +21,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import ConfigError, MissingDependencyError, SessionError
-from davis_rig.labelers.yolo import YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
+from davis_rig.labelers.yolo import AUTO_LAYOUT, YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
 from davis_rig.session.labels import write_labels  # re-exported: where labelers have always found it
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
 
@@ -187,7 +187,7 @@ def label_session(
     classes: Sequence[str] | None = None,
     conf_threshold: float = YOLO_CONF_THRESHOLD,
     iou_threshold: float = YOLO_NMS_IOU,
-    layout: str = "auto",
+    layout: str = AUTO_LAYOUT,
     crop_origin_xy: tuple[int, int] | None = None,
     overwrite: bool = False,
     progress: Callable | None = None,

@@ -9,15 +9,36 @@ from __future__ import annotations
 
 import os
 import tempfile
+from enum import StrEnum
 from pathlib import Path
 
 from davis_rig.errors import FormatError, MissingDependencyError
 from davis_rig.viewer.render import LAYERS
 
-__all__ = ["VIDEO_FORMATS", "export_video"]
+__all__ = ["VideoFormat", "export_video"]
 
-#: File suffixes :func:`export_video` writes.
-VIDEO_FORMATS = (".mp4", ".gif")
+
+class VideoFormat(StrEnum):
+    """Videos :func:`export_video` writes, named by their file suffix."""
+
+    MP4 = "mp4"
+    GIF = "gif"
+
+    @property
+    def suffix(self) -> str:
+        """The file suffix, e.g. ``".mp4"``."""
+        return f".{self.value}"
+
+    @classmethod
+    def of(cls, path) -> "VideoFormat | None":
+        """The format of a file name by its suffix (any case), ``None`` for another suffix."""
+        suffix = Path(path).suffix.lower()
+        return next((fmt for fmt in cls if fmt.suffix == suffix), None)
+
+    @classmethod
+    def expected(cls) -> str:
+        """``".mp4 or .gif"``: the suffixes for an error message."""
+        return " or ".join(fmt.suffix for fmt in cls)
 
 
 def _frames(view, start: int, stop: int, layers, threshold, scoring_timeout_s: float | None):
@@ -51,9 +72,9 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
         FormatError: OpenCV cannot write the MP4 (no mp4v encoder in this OpenCV build).
     """
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in VIDEO_FORMATS:
-        raise ValueError(f"{path}: expected a {' or '.join(VIDEO_FORMATS)} file")
+    video_format = VideoFormat.of(path)
+    if video_format is None:
+        raise ValueError(f"{path}: expected a {VideoFormat.expected()} file")
     stop = view.num_windows if stop is None else int(stop)
     if not 0 <= int(start) < stop <= view.num_windows:
         raise ValueError(f"window range [{start}, {stop}) is empty or outside 0..{view.num_windows}")
@@ -61,10 +82,10 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
     frames = _frames(view, int(start), stop, layers, threshold, scoring_timeout_s)
-    fd, tmp = tempfile.mkstemp(suffix=suffix, prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(suffix=video_format.suffix, prefix=f".{path.name}.", dir=path.parent)
     os.close(fd)
     try:
-        if suffix == ".mp4":
+        if video_format == VideoFormat.MP4:
             _write_mp4(frames, Path(tmp), fps)
         else:
             _write_gif(frames, Path(tmp), fps)

@@ -35,7 +35,7 @@ import numpy as np
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
-from davis_rig.viewer.render import LAYERS, ViewContent, encode_image, event_counts, render_view
+from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, encode_image, event_counts, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
 __all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter", "crop_columns"]
@@ -378,7 +378,7 @@ class LiveView:
         image = render_view(ViewContent(counts=counts, aps=aps, detections=detections,
                                         crop_origin_xy=self.crop_origin_xy, layers=frozenset(LAYERS),
                                         caption=caption))
-        data = encode_image(image, "jpg", self.jpeg_quality)
+        data = encode_image(image, ImageFormat.JPG, self.jpeg_quality)
         with self._frame_cond:
             seq = self._frame[0] + 1 if self._frame is not None else 0
             self._frame = (seq, data)

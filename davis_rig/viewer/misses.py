@@ -94,16 +94,16 @@ def find_misses(labels: np.ndarray, window_end_us: np.ndarray, detections: list,
     Raises:
         ValueError: unknown mode, or more detections than windows.
     """
-    from davis_rig.metrics.seqasr import label_sequences, windows_detected
+    from davis_rig.metrics.seqasr import SeqAsrMode, label_sequences, windows_detected
 
-    if mode not in ("paper", "strict"):
-        raise ValueError(f"mode: expected 'paper' or 'strict', got {mode!r}")
+    if mode not in tuple(SeqAsrMode):
+        raise ValueError(f"mode: expected {' or '.join(repr(m.value) for m in SeqAsrMode)}, got {mode!r}")
     scored = len(detections)
     if scored > len(window_end_us):
         raise ValueError(f"{scored} windows of detections for {len(window_end_us)} windows")
     labelled, boxes = labelled_windows(labels, window_end_us, window_us, t0_us, settings)
     labelled, boxes = labelled[:scored], boxes[:scored]
-    detected = windows_detected(detections, mode=mode, labels_xyxy=boxes if mode == "strict" else None,
+    detected = windows_detected(detections, mode=mode, labels_xyxy=boxes if mode == SeqAsrMode.STRICT else None,
                                 iou_threshold=settings.strict_iou)
     missed = labelled & ~detected
     sequences = label_sequences(labelled, settings.seq_len, settings.seq_stride)

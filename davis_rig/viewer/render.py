@@ -17,6 +17,7 @@ Pixel conventions (exact, tested):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Final
 
 import numpy as np
@@ -24,8 +25,8 @@ import numpy as np
 from davis_rig.errors import ShapeError
 from davis_rig.types import DAVIS346_HW, RVT_HW
 
-__all__ = ["LAYERS", "ViewContent", "aps_image", "box_pixels", "draw_boxes", "draw_caption", "draw_outline",
-           "encode_image", "event_counts", "event_image", "render_view", "side_by_side"]
+__all__ = ["LAYERS", "ImageFormat", "ViewContent", "aps_image", "box_pixels", "draw_boxes", "draw_caption",
+           "draw_outline", "encode_image", "event_counts", "event_image", "render_view", "side_by_side"]
 
 #: Colours, RGB.
 BACKGROUND_RGB: Final = (0, 0, 0)
@@ -40,6 +41,13 @@ CAPTION_RGB: Final = (255, 255, 0)
 GAP_PX: Final = 4
 #: Overlay layers :func:`render_view` knows.
 LAYERS: Final = ("events", "aps", "labels", "detections", "crop")
+
+
+class ImageFormat(StrEnum):
+    """Encodings of :func:`encode_image`: PNG (lossless) or JPEG."""
+
+    PNG = "png"
+    JPG = "jpg"
 
 
 def event_counts(x, y, p, hw: tuple[int, int] = DAVIS346_HW) -> np.ndarray:
@@ -257,7 +265,7 @@ def render_view(content: ViewContent) -> np.ndarray:
     return side_by_side([left, right])
 
 
-def encode_image(image: np.ndarray, fmt: str = "png", jpeg_quality: int = 85) -> bytes:
+def encode_image(image: np.ndarray, fmt: str = ImageFormat.PNG, jpeg_quality: int = 85) -> bytes:
     """Encode an RGB uint8 image as PNG (lossless, compression level 1) or JPEG (4:4:4).
 
     Args:
@@ -274,14 +282,14 @@ def encode_image(image: np.ndarray, fmt: str = "png", jpeg_quality: int = 85) ->
     import cv2
 
     bgr = np.ascontiguousarray(np.asarray(image, np.uint8)[..., ::-1])
-    if fmt == "png":
+    if fmt == ImageFormat.PNG:
         ok, data = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    elif fmt == "jpg":
+    elif fmt == ImageFormat.JPG:
         # 4:4:4: no chroma subsampling, so 1-px coloured box outlines stay their colour
         ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality),
                                               cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
     else:
-        raise ValueError(f"image format: expected 'png' or 'jpg', got {fmt!r}")
+        raise ValueError(f"image format: expected {' or '.join(repr(f.value) for f in ImageFormat)}, got {fmt!r}")
     if not ok:  # pragma: no cover - OpenCV fails only on invalid arrays, which the asarray above rules out
         raise ValueError(f"OpenCV could not encode a {image.shape} image as {fmt}")
     return data.tobytes()

@@ -18,7 +18,8 @@ import tempfile
 from pathlib import Path
 
 from davis_rig.events.histogram import WINDOW_US
-from davis_rig.viewer.render import LAYERS, encode_image
+from davis_rig.viewer.export import VideoFormat, export_video
+from davis_rig.viewer.render import LAYERS, ImageFormat, encode_image
 from davis_rig.viewer.server import (RequestError, Response, float_param, int_param, json_response,
                                      layers_param)
 
@@ -78,20 +79,21 @@ class SessionsApp:
     def _frame(self, view, params: dict) -> Response:
         k = int_param(params, "k", 0, view.num_windows - 1)
         layers = layers_param(params, LAYERS, LAYERS)
-        fmt = (params.get("fmt") or ["png"])[-1]
-        if fmt not in ("png", "jpg"):
-            raise RequestError(400, f"fmt: expected png or jpg, got {fmt[:8]!r}")
+        fmt = (params.get("fmt") or [ImageFormat.PNG.value])[-1]
+        if fmt not in tuple(ImageFormat):
+            raise RequestError(400, f"fmt: expected {' or '.join(ImageFormat)}, got {fmt[:8]!r}")
         image = view.render(k, layers=layers, threshold=self._threshold(view, params))
         scored = view.detections.scored() if view.detections is not None else 0
-        return Response(200, encode_image(image, fmt), "image/png" if fmt == "png" else "image/jpeg",
+        return Response(200, encode_image(image, fmt), "image/png" if fmt == ImageFormat.PNG else "image/jpeg",
                         (("X-Window", str(k)), ("X-Scored", str(scored))))
 
     def _misses(self, view, params: dict) -> Response:
+        from davis_rig.metrics.seqasr import SeqAsrMode
         from davis_rig.viewer.misses import find_misses
 
-        mode = (params.get("mode") or ["paper"])[-1]
-        if mode not in ("paper", "strict"):
-            raise RequestError(400, f"mode: expected paper or strict, got {mode[:8]!r}")
+        mode = (params.get("mode") or [SeqAsrMode.PAPER.value])[-1]
+        if mode not in tuple(SeqAsrMode):
+            raise RequestError(400, f"mode: expected {' or '.join(SeqAsrMode)}, got {mode[:8]!r}")
         threshold = self._threshold(view, params)
         if threshold is None:
             raise RequestError(400, "misses need detections (score on the fly or pass --detections)")
@@ -107,13 +109,12 @@ class SessionsApp:
         if stop - start > self.max_export_windows:
             raise RequestError(400, f"stop: at most {self.max_export_windows} windows per export, asked "
                                     f"{stop - start}")
-        fmt = (params.get("format") or ["gif"])[-1]
-        if fmt not in ("gif", "mp4"):
-            raise RequestError(400, f"format: expected gif or mp4, got {fmt[:8]!r}")
+        fmt = (params.get("format") or [VideoFormat.GIF.value])[-1]
+        if fmt not in tuple(VideoFormat):
+            raise RequestError(400, f"format: expected {' or '.join(VideoFormat)}, got {fmt[:8]!r}")
         fps = int_param(params, "fps", 1, 100, default=round(1e6 / view.window_us))  # default: real time
         layers = layers_param(params, LAYERS, LAYERS)
         threshold = self._threshold(view, params)
-        from davis_rig.viewer.export import export_video
 
         with tempfile.TemporaryDirectory(prefix="davis-view-") as folder:
             path = export_video(view, Path(folder) / f"export.{fmt}", start=start, stop=stop, fps=fps,
@@ -121,5 +122,5 @@ class SessionsApp:
             body = path.read_bytes()
         stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", view.path.stem) or "recording"
         name = f"{stem}_{start}-{stop}.{fmt}"
-        return Response(200, body, "image/gif" if fmt == "gif" else "video/mp4",
+        return Response(200, body, "image/gif" if fmt == VideoFormat.GIF else "video/mp4",
                         (("Content-Disposition", f'attachment; filename="{name}"'),))
