@@ -122,7 +122,7 @@ def _progress_line(progress) -> None:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from davis_rig.session.record import record_session
+    from davis_rig.session.record import StopReason, record_session
 
     stop = threading.Event()
     backend, exhausted = None, None
@@ -150,7 +150,7 @@ def _record(args: argparse.Namespace) -> int:
             print(file=sys.stderr)
     rate = summary.events / summary.duration_s / 1e6 if summary.duration_s > 0 else 0.0
     stopped_by = summary.stopped_by
-    if stopped_by == "stop" and exhausted is not None and exhausted():
+    if stopped_by == StopReason.STOP and exhausted is not None and exhausted():
         stopped_by = "end of replay"
     print(
         f"{summary.path}: {summary.events} events ({rate:.3f} Mev/s), {summary.frames} frames, "

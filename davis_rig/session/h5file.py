@@ -27,13 +27,18 @@ MS_INDEX_BLOCK = 1 << 20
 
 
 def to_jsonable(obj):
-    """Convert device info / config objects (dataclasses, enums, numpy scalars, mappings) into JSON-able values."""
+    """Convert device info / config objects (dataclasses, enums, numpy scalars, mappings) into JSON-able values.
+
+    A string enum becomes its value, any other enum its name.
+    """
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         out = {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
         for name in ("dvs_width", "dvs_height", "aps_width", "aps_height"):
             if hasattr(type(obj), name) and isinstance(getattr(type(obj), name), property):
                 out.setdefault(name, to_jsonable(getattr(obj, name)))
         return out
+    if isinstance(obj, enum.StrEnum):
+        return obj.value
     if isinstance(obj, enum.Enum):
         return obj.name
     if isinstance(obj, Mapping):

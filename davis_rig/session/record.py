@@ -4,7 +4,7 @@
 :mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild the file
 after a crash; the journal is deleted when the recording ends cleanly. An unplug (:class:`DeviceDisconnectedError`)
 ends the recording normally: everything decoded before it is written and the file is closed
-(``stopped_by="disconnected"``). A device timestamp reset during the recording (``Davis346.timestamp_reset`` or a
+(``stopped_by=StopReason.DISCONNECTED``). A device timestamp reset during the recording (``Davis346.timestamp_reset`` or a
 sync master) loses nothing: the data after it is stored after the data before it, offset so the file's time stays
 monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]`` (see :meth:`SessionWriter.append`).
 
@@ -17,6 +17,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Callable
 
@@ -26,6 +27,16 @@ from davis_rig.session.writer import SessionWriter
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
 POLL_TIMEOUT_S = 0.1
+
+
+class StopReason(StrEnum):
+    """Why :func:`record_session` ended: the duration was up, ``stop_event`` was set (Ctrl-C), the camera was
+    unplugged, or acquisition was stopped by someone else (the stream ended)."""
+
+    DURATION = "duration"
+    STOP = "stop"
+    DISCONNECTED = "disconnected"
+    END = "end"
 
 
 @dataclass(frozen=True)
@@ -56,8 +67,7 @@ class RecordingSummary:
         path: the session file.
         duration_s: wall-clock recording time, s.
         events, frames, specials, imu: items in the file.
-        stopped_by: ``"duration"``, ``"stop"`` (stop_event / Ctrl-C), ``"disconnected"`` or ``"end"``
-            (acquisition was stopped by someone else).
+        stopped_by: a :class:`StopReason`.
         camera_stats: the camera's counters at the end (transfers, bytes, dropped_transfers, decoder stats).
     """
 
@@ -67,7 +77,7 @@ class RecordingSummary:
     frames: int
     specials: int
     imu: int
-    stopped_by: str
+    stopped_by: StopReason
     camera_stats: dict = field(default_factory=dict)
 
     @property
@@ -196,23 +206,22 @@ def _configure(camera, exposure_us: int | None, frame_interval_us: int | None, s
 
 
 def _write_until_stopped(camera, writer: SessionWriter, reporter: _ProgressReporter, duration_s: float | None,
-                         stop_event: threading.Event) -> str:
-    """Write the camera's chunks until the duration is up, ``stop_event`` is set or acquisition ends elsewhere;
-    returns the ``stopped_by`` of :class:`RecordingSummary` (``"duration"``, ``"stop"`` or ``"end"``)."""
+                         stop_event: threading.Event) -> StopReason:
+    """Write the camera's chunks until the duration is up, ``stop_event`` is set or acquisition ends elsewhere."""
     while True:
         chunk = camera.read(POLL_TIMEOUT_S)
         if chunk is not None:
             writer.append(chunk)
         elif not camera.running:
-            return "end"  # acquisition ended elsewhere and everything read was delivered
+            return StopReason.END  # acquisition ended elsewhere and everything read was delivered
         else:
             writer.maybe_flush()
         now = time.monotonic()
         reporter.maybe_report(now)
         if stop_event.is_set():
-            return "stop"
+            return StopReason.STOP
         if duration_s is not None and now - reporter.t_start >= duration_s:
-            return "duration"
+            return StopReason.DURATION
 
 
 def _stop_after_error(camera) -> None:
@@ -278,7 +287,7 @@ def record_session(
             stopped_by = _write_until_stopped(camera, writer, reporter, duration_s, stop_event or threading.Event())
             _stop_and_drain(camera, writer)
         except DeviceDisconnectedError:
-            stopped_by = "disconnected"
+            stopped_by = StopReason.DISCONNECTED
             camera.stop()  # safe after an unplug: only stops the reader thread
         except BaseException:
             _stop_after_error(camera)
@@ -294,4 +303,4 @@ def record_session(
                             camera_stats=stats)
 
 
-__all__ = ["RecordingProgress", "RecordingSummary", "record_session"]
+__all__ = ["RecordingProgress", "RecordingSummary", "StopReason", "record_session"]
