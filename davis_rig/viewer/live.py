@@ -38,7 +38,7 @@ from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
 from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, encode_image, event_counts, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
-__all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter", "crop_columns"]
+__all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter", "crop_columns", "lower_priority"]
 
 #: nice increment of the view's threads (Linux), so the capture threads get the CPU first.
 VIEW_NICE = 10
@@ -46,7 +46,7 @@ VIEW_NICE = 10
 FOLD_EVENTS = 2_000_000
 
 
-def _lower_priority() -> None:
+def lower_priority() -> None:
     """Raise the calling thread's nice value by :data:`VIEW_NICE` (Linux only: elsewhere ``setpriority`` on a
     thread id is not per thread, so nothing is done)."""
     if sys.platform.startswith("linux"):
@@ -300,7 +300,7 @@ class LiveView:
 
     # --- the view thread ----------------------------------------------------------------------
     def _view_loop(self) -> None:
-        _lower_priority()
+        lower_priority()
         shown: list[np.ndarray] = []  # the events of the frame being drawn, one array per chunk
         counts = np.zeros((2, *DAVIS346_HW), np.int64)
         aps = None
@@ -388,7 +388,7 @@ class LiveView:
 
     # --- the detector thread ------------------------------------------------------------------
     def _detector_loop(self) -> None:
-        _lower_priority()  # before the session exists: its intra-op threads inherit the nice value
+        lower_priority()  # before the session exists: its intra-op threads inherit the nice value
         from davis_rig.events.histogram import NUM_BINS, stacked_histogram
         from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
         from davis_rig.models.rvt.postprocess import postprocess

@@ -34,7 +34,7 @@ import numpy as np
 
 from davis_rig.errors import ConfigError, DavisRigError, MissingDependencyError, ModelFormatError
 from davis_rig.types import EVENT_DTYPE
-from davis_rig.viewer.live import _lower_priority
+from davis_rig.viewer.live import lower_priority
 
 __all__ = ["EventRing", "LiveViewProcess", "MARK_DTYPE", "RingTap"]
 
@@ -198,7 +198,7 @@ def _serve_ring(conn, ring: EventRing, view, stats: dict) -> None:
     stop = threading.Event()
 
     def feed():
-        _lower_priority()
+        lower_priority()
         while not stop.is_set():
             for t_offer, events in ring.read():
                 view.tap.offer(_Chunk(events=events), t_offer)
@@ -329,7 +329,7 @@ class LiveViewProcess:
 
     def _send(self) -> None:
         """Send the newest APS frame (at most one per display period) and the counters over the pipe."""
-        _lower_priority()
+        lower_priority()
         sent_frame, next_stats = None, 0.0
         while not self._stop.wait(self.period_s):
             frame = self.tap.latest_frame

@@ -101,7 +101,7 @@ class VirtualDavis346Backend(usb.backend.IBackend):
 
     # handles, configuration, interfaces
     def open_device(self, dev):
-        dev._check_present()
+        dev.check_present()
         if dev.faults.open_errno is not None:
             raise usb_error(dev.faults.open_errno)
         with self._lock:
@@ -114,21 +114,21 @@ class VirtualDavis346Backend(usb.backend.IBackend):
             self.open_handles -= 1
 
     def set_configuration(self, dev_handle, config_value):
-        dev_handle.device._check_present()
+        dev_handle.device.check_present()
         if config_value not in (0, 1):
             raise usb_error(errno_mod.EIO)
         dev_handle.device.configuration = int(config_value)
 
     def get_configuration(self, dev_handle):
-        dev_handle.device._check_present()
+        dev_handle.device.check_present()
         return dev_handle.device.configuration
 
     def set_interface_altsetting(self, dev_handle, intf, altsetting):
-        dev_handle.device._check_present()
+        dev_handle.device.check_present()
 
     def claim_interface(self, dev_handle, intf):
         dev = dev_handle.device
-        dev._check_present()
+        dev.check_present()
         if dev.faults.claim_errno is not None:
             raise usb_error(dev.faults.claim_errno)
         if dev.claimed:
@@ -138,14 +138,14 @@ class VirtualDavis346Backend(usb.backend.IBackend):
     def release_interface(self, dev_handle, intf):
         dev = dev_handle.device
         dev.claimed = False
-        dev._check_present()
+        dev.check_present()
 
     # transfers
     def bulk_read(self, dev_handle, ep, intf, buff, timeout):
         return dev_handle.device.bulk_read(ep, buff, timeout)
 
     def bulk_write(self, dev_handle, ep, intf, data, timeout):
-        dev_handle.device._check_present()
+        dev_handle.device.check_present()
         raise usb_error(errno_mod.EPIPE)  # the DAVIS has no OUT data endpoint
 
     def intr_read(self, dev_handle, ep, intf, buff, timeout):
@@ -162,7 +162,7 @@ class VirtualDavis346Backend(usb.backend.IBackend):
         return reply
 
     def _standard_request(self, dev, bmRequestType, bRequest, wValue, wIndex, data):
-        dev._check_present()
+        dev.check_present()
         if bmRequestType == 0x80 and bRequest == 6 and (wValue >> 8) == 3:  # GET_DESCRIPTOR(STRING)
             index = wValue & 0xFF
             if index == 0:
@@ -184,7 +184,7 @@ class VirtualDavis346Backend(usb.backend.IBackend):
         return VirtualAsyncTransfers(dev_handle.device)
 
     def reset_device(self, dev_handle):
-        dev_handle.device._check_present()
+        dev_handle.device.check_present()
 
     def is_kernel_driver_active(self, dev_handle, intf):
         return False

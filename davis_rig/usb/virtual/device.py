@@ -307,14 +307,15 @@ class VirtualDavis346:
             self._cond.notify_all()
 
     # --- requests from the backend ----------------------------------------------------------------
-    def _check_present(self) -> None:
+    def check_present(self) -> None:
+        """Raise the ENODEV error libusb reports once the device is unplugged (every request checks it first)."""
         if self.unplugged:
             raise usb_error(errno_mod.ENODEV)
 
     def control(self, request_type: int, request: int, value: int, index: int, data: Any) -> Any:
         """Handle a vendor control transfer; returns bytes written (OUT) or the reply bytes (IN)."""
         with self._cond:
-            self._check_present()
+            self.check_present()
             if request_type & 0x80:
                 length = len(data)
                 self.control_log.append(ControlRecord(request_type, request, value, index, b"", length))
@@ -357,7 +358,7 @@ class VirtualDavis346:
     def clear_halt(self, endpoint: int) -> None:
         """CLEAR_FEATURE(ENDPOINT_HALT)."""
         with self._cond:
-            self._check_present()
+            self.check_present()
             self.clear_halts.append(int(endpoint))
             if endpoint == DATA_ENDPOINT:
                 self._halted = False
@@ -375,7 +376,7 @@ class VirtualDavis346:
         """Serve one bulk read on 0x82 into ``buff``; returns the byte count (see class docstring for faults)."""
         deadline = transfer_deadline(timeout_ms)
         with self._cond:
-            self._check_present()
+            self.check_present()
             if endpoint != DATA_ENDPOINT:
                 raise usb_error(errno_mod.EPIPE)
             if self._halted:
@@ -391,7 +392,7 @@ class VirtualDavis346:
                 data, self._pending = self._pending, None
             else:
                 while True:
-                    self._check_present()
+                    self.check_present()
                     if self.streaming and self.source is not None:
                         release_us = self.source.peek_release_us()
                         if release_us is not None:
@@ -457,13 +458,13 @@ class VirtualDavis346:
         """Interrupt endpoint 0x81: serve queued debug messages, else time out."""
         deadline = transfer_deadline(timeout_ms)
         with self._cond:
-            self._check_present()
+            self.check_present()
             if endpoint != DEBUG_ENDPOINT:
                 raise usb_error(errno_mod.EPIPE)
             while not self._debug:
                 if not self._wait(deadline):
                     raise usb_error(errno_mod.ETIMEDOUT)
-                self._check_present()
+                self.check_present()
             return copy_into(buff, self._debug.pop(0))
 
     # --- descriptors ------------------------------------------------------------------------------
