@@ -37,6 +37,7 @@ from davis_rig.scene.background import (
     rectangles,
     stripes,
     uniform,
+    warp_background,
 )
 from davis_rig.scene.body import (
     ASSET_FORMAT_VERSION,
@@ -110,6 +111,7 @@ from davis_rig.scene.skeleton import SOLE_BAND_M, Rig, descendants, sole_points
 __all__ = [
     "ApsConfig", "aps_frame_times", "synthesize_aps_frames", "to_adc",
     "KINDS", "checker", "from_image", "gradient", "noise", "random_background", "rectangles", "stripes", "uniform",
+    "warp_background",
     "ASSET_FORMAT_VERSION", "DEFAULT_ASSET_PATH", "PART_NAMES", "BodyAsset", "BodyModel", "WalkCycle",
     "quaternion_to_matrix",
     "DAVIS346_FOCAL_PX", "DAVIS346_LENS_MM", "DAVIS346_PIXEL_UM", "DEFAULT_PERSON_HEIGHT_M", "TEST_SCALES_PX",
