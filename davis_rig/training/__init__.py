@@ -5,7 +5,8 @@ Modules: ``dataset`` (RVT preprocessed layout: :class:`~davis_rig.training.datas
 truncated BPTT, torch imported lazily), ``augment`` (flip / zoom of histogram chunks and boxes), ``losses``
 (SimOTA + YOLOX losses), ``trainer`` (:class:`~davis_rig.training.trainer.Trainer`,
 :func:`~davis_rig.training.trainer.train`), ``cards`` (dataset and model card templates), ``synthetic`` (the
-synthetic dataset generator). Importing this package imports nothing heavy.
+synthetic dataset generator), ``recording`` (a rendered scene → a DAVIS346 session.h5, through the capture
+path). Importing this package imports nothing heavy.
 """
 
 from __future__ import annotations
@@ -20,6 +21,10 @@ _LAZY = {
     "davis_rig.training.train_config": ("TrainConfig",),
     "davis_rig.training.trainer": ("Trainer", "train"),
     "davis_rig.training.cards": ("write_model_card",),
+    "davis_rig.training.recording": (
+        "SYNTHETIC_LABELER", "SyntheticRecording", "embed_in_sensor", "labels_to_crop", "simulate_recording",
+        "write_clip_session", "write_synthetic_session",
+    ),
 }  # fmt: skip
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)
