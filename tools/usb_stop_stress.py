@@ -3,7 +3,7 @@
 Run: ``python tools/usb_stop_stress.py [--cycles 500] [--level camera ring] [--faults plain late race all]
 [--interval-us 250]``
 
-Each run plugs one emulated DAVIS346 (``tests/usb/libusb_emu``: a C libusb-1.0 built with the system compiler,
+Each run plugs one emulated DAVIS346 (``tests/helpers/libusb_emu``: a C libusb-1.0 built with the system compiler,
 below pyusb's unmodified libusb1 backend; the device model is ``VirtualDavis346`` streaming without end) and runs
 ``--cycles`` cycles of start / read 3 / stop at two levels: ``camera`` (``Davis346``: the stop sequence, then the
 transfer ring stops) and ``ring`` (``RingReader`` on a device that keeps streaming, so transfers complete with data
@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-HELPER = REPO_ROOT / "tests" / "usb" / "libusb_emu" / "libusb_emu.py"
+HELPER = REPO_ROOT / "tests" / "helpers" / "libusb_emu.py"
 
 
 def load_helper():

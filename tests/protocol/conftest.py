@@ -13,7 +13,7 @@ import pytest
 
 from davis_rig.protocol import DecodedChunk, SensorLayout, StreamDecoder
 
-from davis346_vectors import VECTOR_IDS, VECTORS, events_as_lists, vector_layout, vector_transfers
+from tests.helpers.davis346_vectors import VECTOR_IDS, VECTORS, events_as_lists, vector_layout, vector_transfers
 
 
 def pytest_generate_tests(metafunc):

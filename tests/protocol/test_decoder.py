@@ -19,7 +19,7 @@ from davis_rig.protocol.words import (
     y_word,
 )
 
-from davis346_vectors import assert_matches_expected
+from tests.helpers.davis346_vectors import assert_matches_expected
 
 
 # ---------------------------------------------------------------------------------------------- shared vectors

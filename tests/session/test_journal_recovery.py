@@ -19,7 +19,7 @@ from davis_rig.session.journal import (KIND_NOTE, KIND_TRANSFER, MAGIC, SessionJ
                                        read_journal)
 from davis_rig.session.record import record_session
 
-from session_data import FakeCamera, cut, random_events, synth_stream
+from tests.helpers.session_data import FakeCamera, cut, random_events, synth_stream
 
 HERE = Path(__file__).resolve().parent
 
@@ -106,7 +106,7 @@ RECORDER = textwrap.dedent(
     import sys, time, json
     sys.path.insert(0, sys.argv[3])
     import numpy as np
-    from session_data import FakeCamera, cut, random_events, synth_stream
+    from tests.helpers.session_data import FakeCamera, cut, random_events, synth_stream
     from davis_rig.session.record import record_session
 
     rng = np.random.default_rng(7)

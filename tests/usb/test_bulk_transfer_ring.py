@@ -33,7 +33,7 @@ from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.transport import UsbTransport
 from davis_rig.usb.virtual import VirtualDavis346, usb_error
 
-from libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
+from tests.helpers.libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
     STRESS_TRANSFER,
     EmuFaults,
     EndlessSource,
