@@ -48,19 +48,23 @@ def fault_sets(emu_module) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=500, help="start/read/stop cycles per run (default 500)")
+    from davis_rig.cli._common import new_parser, non_negative_float, positive_int, run_main
+
+    parser = new_parser("tools/usb_stop_stress.py", __doc__.splitlines()[0],
+                        "examples:\n  python tools/usb_stop_stress.py --cycles 500\n"
+                        "  python tools/usb_stop_stress.py --level ring --interval-us 0\n\n"
+                        "Exit 1 also when a cycle raised or the emulation counted a misuse of the transfer API.\n")
+    parser.add_argument("--cycles", type=positive_int, default=500, help="start/read/stop cycles per run (default 500)")
     parser.add_argument("--level", nargs="+", default=["camera", "ring"], choices=["camera", "ring"])
     parser.add_argument("--faults", nargs="+", default=["plain", "late", "race", "all"],
                         choices=["plain", "late", "race", "all"])
-    parser.add_argument("--interval-us", type=float, default=None, metavar="US",
+    parser.add_argument("--interval-us", type=non_negative_float, default=None, metavar="US",
                         help="device time between two 8 KiB device transfers, µs (default 250 = 33 MB/s; "
                              "0 = as fast as the host takes them)")
-    args = parser.parse_args(argv)
-    if args.cycles < 1:
-        parser.error(f"--cycles must be >= 1, got {args.cycles}")
-    if args.interval_us is not None and args.interval_us < 0:
-        parser.error(f"--interval-us must be >= 0, got {args.interval_us}")
+    return run_main(parser, argv, _stress)
+
+
+def _stress(args: argparse.Namespace) -> int:
     emu_module = load_helper()
     interval_us = emu_module.STRESS_INTERVAL_US if args.interval_us is None else args.interval_us
     try:
