@@ -327,7 +327,7 @@ def _resolve_kernel(kernel: str | None) -> str:
     if kernel is None:
         return "compiled" if _decode_kernel is not None else "numpy"
     if kernel not in KERNELS:
-        raise ConfigError(f"{source}: expected one of {', '.join(KERNELS)}, got {kernel!r}")
+        raise ConfigError(source, f"expected one of {', '.join(KERNELS)}, got {kernel!r}")
     if kernel == "compiled" and _decode_kernel is None:
         raise MissingDependencyError(
             f"{source}=compiled: the compiled decoder kernel davis_rig.protocol._decode_kernel is not built; reinstall "
