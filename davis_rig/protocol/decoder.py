@@ -553,7 +553,9 @@ class StreamDecoder:
         self._kernel_state = None
         if self.kernel == "compiled":
             self._kernel_state = np.zeros(_ST_LEN, np.int64)
-            self._kernel_state[[_ST_ROWS, _ST_COLUMNS, _ST_INVERT_XY]] = self._dvs_rows, self._dvs_cols, self._dvs_invert
+            self._kernel_state[_ST_ROWS] = self._dvs_rows
+            self._kernel_state[_ST_COLUMNS] = self._dvs_cols
+            self._kernel_state[_ST_INVERT_XY] = self._dvs_invert
 
     # ------------------------------------------------------------------ public API
     @property
@@ -828,7 +830,7 @@ class StreamDecoder:
     # ------------------------------------------------------------------ control-word path
     @staticmethod
     def _control_times(codes, key_t, offset_in, base: "_WrapBase", big_wrap_pos) -> tuple[np.ndarray, np.ndarray]:
-        """Positions of a block's control words (codes 0, 5, 6 and the big wraps) and the stream time after each, µs."""
+        """Positions of a block's control words (codes 0, 5, 6, big wraps) and the stream time after each, µs."""
         ctrl_mask = (codes == _SPECIAL) | (codes == _MISC8) | (codes == _MISC10)
         if big_wrap_pos is not None:
             ctrl_mask[big_wrap_pos] = True

@@ -13,11 +13,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from davis346_vectors import VECTOR_IDS, VECTORS, events_as_lists, vector_layout, vector_transfers
 
 from davis_rig.protocol import DecodedChunk, SensorLayout, StreamDecoder
 from davis_rig.protocol.decoder import KERNEL_ENV, KERNELS, compiled_kernel_available
-
-from davis346_vectors import VECTOR_IDS, VECTORS, events_as_lists, vector_layout, vector_transfers
 
 
 def pytest_generate_tests(metafunc):

@@ -9,6 +9,7 @@ from davis_rig.errors import ConfigError, MissingDependencyError
 from davis_rig.protocol import StreamDecoder, decoder
 from davis_rig.protocol.decoder import KERNEL_ENV
 
+
 def test_selection_default_and_environment(monkeypatch, davis346):
     monkeypatch.delenv(KERNEL_ENV, raising=False)
     expected = "compiled" if decoder.compiled_kernel_available() else "numpy"
