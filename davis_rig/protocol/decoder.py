@@ -5,10 +5,13 @@ Semantics follow libcaer 3.x (PROTOCOL.md §8-§13) with two deliberate differen
 stale per-packet value), and TIMESTAMP_RESET / TIMESTAMP_WRAP specials carry the stream time at which they happen
 instead of libcaer's ``INT32_MAX`` marker.
 
-Implementation: the DVS/timestamp path has no per-word Python loop. Per block of words, the timestamp base is a
-cumulative sum of wrap increments segmented at resets, the 15-bit timestamp and the last row address are
-forward-filled with ``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with
-masks. Control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
+Implementation: the DVS/timestamp path has no per-word Python loop. Two kernels give bit-identical output: the
+compiled one (``_decode_kernel.c``, an optional C extension built by ``pip install``; one pass over the words that
+writes the events and lists the control words with their times) and the numpy one (the reference and the fallback
+where no C compiler was present). In the numpy kernel, per block of words, the timestamp base is a cumulative sum
+of wrap increments segmented at resets, the 15-bit timestamp and the last row address are forward-filled with
+``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with masks. With either
+kernel, control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
 APS columns (column start, expected rows of samples, column end, ...), which are recognised with numpy and applied in
 bulk. APS ADC samples are never looped over: they are queued as column segments (their values kept in a bounded
 store across transfers) and written into the frame buffers once per frame — runs of whole columns as one rectangular
@@ -507,8 +510,8 @@ class StreamDecoder:
     delivers nothing. Data loss (odd bytes, unknown words, out-of-range addresses, dropped frames/samples) is counted
     in :attr:`stats` and logged once per kind as a warning on the ``davis_rig.protocol.decoder`` logger.
 
-    Two kernels decode the DVS/timestamp words with bit-identical output: a compiled C pass
-    (``_decode_kernel.c``, about 3x faster per 8 KiB transfer, built by ``pip install`` where a C compiler is
+    Two kernels decode the DVS/timestamp words with bit-identical output: a compiled C pass (``_decode_kernel.c``,
+    about 6x faster per 8 KiB transfer, see benchmarks/README.md; built by ``pip install`` where a C compiler is
     present) and the vectorised numpy path described in the module docstring (the fallback). Control words
     (specials, APS, IMU) take the same Python path with either.
 
