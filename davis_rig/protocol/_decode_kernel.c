@@ -19,7 +19,7 @@
 #	error "the decoder kernel writes little-endian event records; the numpy decoder serves other hosts"
 #endif
 
-/* Layout of the int64 state buffer (davis_rig.protocol.decoder._KernelState mirrors it). */
+/* Layout of the int64 state buffer (the _ST_* constants of davis_rig/protocol/decoder.py mirror it). */
 enum {
 	ST_BASE = 0,       /* wrap base after the last word, us */
 	ST_OFFSET,         /* 15-bit timestamp offset after the last word, us */
@@ -33,7 +33,6 @@ enum {
 };
 
 #define EVENT_BYTES      13
-#define TIMESTAMP_FLAG   0x8000u
 #define TIMESTAMP_MASK   0x7FFFu
 #define DATA_MASK        0x0FFFu
 #define CODE_SHIFT       12
