@@ -21,6 +21,8 @@ from davis_rig.protocol.words import (
 
 from tests.helpers.davis346_vectors import assert_matches_expected
 
+pytestmark = pytest.mark.usefixtures("each_decoder_kernel")
+
 
 # ---------------------------------------------------------------------------------------------- shared vectors
 def test_vector_decodes_exactly(vector, proto):
