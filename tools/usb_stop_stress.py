@@ -50,7 +50,7 @@ def fault_sets(emu_module) -> dict:
 def main(argv: list[str] | None = None) -> int:
     from davis_rig.cli._common import new_parser, non_negative_float, positive_int, run_main
 
-    parser = new_parser("tools/usb_stop_stress.py", __doc__.splitlines()[0],
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/usb_stop_stress.py --cycles 500\n"
                         "  python tools/usb_stop_stress.py --level ring --interval-us 0\n\n"
                         "Exit 1 also when a cycle raised or the emulation counted a misuse of the transfer API.\n")
