@@ -27,9 +27,10 @@ from davis_rig.events.histogram import WINDOW_US
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.augment import AugmentConfig
-from davis_rig.training.dataset import DatasetWriter, collate_chunks
-from davis_rig.training.losses import yolox_loss
-from davis_rig.training.trainer import TrainConfig, Trainer, _to_cxcywh
+from davis_rig.training.batches import collate_chunks
+from davis_rig.training.dataset import DatasetWriter
+from davis_rig.training.losses import yolox_loss, yolox_targets
+from davis_rig.training.trainer import TrainConfig, Trainer
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 
@@ -87,7 +88,7 @@ def _bench_model(data: Path, run: Path, model: str, args) -> dict[str, float]:
             features, states = trainer.model.forward_backbone(pad_to_input(hist[t]), states)
             for level in feats:
                 feats[level].append(features[level])
-            targets.extend(_to_cxcywh(lab) for lab in labels[t])
+            targets.extend(yolox_targets(lab) for lab in labels[t])
         raw = trainer.model.forward_raw_head({k: torch.cat(v) for k, v in feats.items()})
         yolox_loss(raw, targets, trainer.anchors)
         if trainer.device.type == "cuda":

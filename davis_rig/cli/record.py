@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--usb-transfers", type=non_negative_int, default=DEFAULT_TRANSFERS, metavar="N",
                         help=f"asynchronous USB transfers kept in flight (default {DEFAULT_TRANSFERS}, like libcaer); "
                              "0 = a thread of synchronous reads")
+    parser.add_argument("--no-imu", action="store_true",
+                        help="do not record the IMU (accelerometer, gyroscope, temperature; on by default, as in DV)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
     parser.add_argument("--no-journal", action="store_true",
                         help="do not keep the raw-transfer journal (no crash recovery)")
@@ -133,6 +135,8 @@ def _record(args: argparse.Namespace) -> int:
     try:
         with open_camera(args.serial, backend, args.usb_transfers) as camera, \
                 live_view(args, camera) as source:
+            if args.no_imu:
+                camera.set_imu_enabled(False)
             summary = record_session(
                 source,
                 args.out,
@@ -184,8 +188,11 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message), all before the camera is opened."""
     check_live_view_arguments(parser, args)
     if args.recover is not None:
-        if args.out is not None:
-            parser.error("argument --recover: not allowed with --out")
+        recording_only = {"--out": args.out, "--view": args.view, "--fake": args.fake, "--duration": args.duration,
+                          "--no-imu": args.no_imu, "--no-journal": args.no_journal, "--serial": args.serial}
+        for option, value in recording_only.items():
+            if value not in (None, False):
+                parser.error(f"argument --recover: not allowed with {option} (it rebuilds a file, it records nothing)")
         return
     if args.out is None:
         parser.error("the following arguments are required: --out (or --recover SESSION_H5)")

@@ -24,7 +24,7 @@ from davis_rig.labelers.session_labels import label_session
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
-from eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
+from tests.helpers.eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
 
 SETTINGS = EvalSettings(seq_len=5)
 

@@ -58,7 +58,7 @@ def test_dat_refuses_recordings_longer_than_32_bit_microseconds(tmp_path, rich_s
 
 
 def test_dat_without_labels_and_a_stale_box_file(tmp_path, rng):
-    from session_data import random_events
+    from tests.helpers.session_data import random_events
 
     with SessionWriter(tmp_path / "bare.h5") as writer:
         writer.append_events(random_events(rng, 100))

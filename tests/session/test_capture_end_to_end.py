@@ -24,8 +24,8 @@ from davis_rig.usb.replay import ReplayHeader, ReplayWriter
 from davis_rig.usb.sources import EncodedSource, Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346
 
-from libusb_emu import EmuFaults, emulated_usb_backend, usb_backend  # noqa: F401  (fixtures)
-from session_data import random_events
+from tests.helpers.libusb_emu import EmuFaults, emulated_usb_backend, usb_backend  # noqa: F401  (fixtures)
+from tests.helpers.session_data import random_events
 
 LAYOUT = SensorLayout.davis346()
 

@@ -13,7 +13,7 @@ from davis_rig.errors import SessionError
 from davis_rig.session import SessionReader, SessionWriter, recover_session
 from davis_rig.session.journal import KIND_TRANSFER, MAGIC, SessionJournal, iter_journal, journal_path
 
-from session_data import Chunk, random_events, random_frame, synth_stream
+from tests.helpers.session_data import Chunk, random_events, random_frame, synth_stream
 
 
 def _damage_chunk(path, dataset: str, index: int, rng) -> None:
@@ -45,7 +45,7 @@ def test_a_damaged_frame_raises_session_error_naming_the_file(damaged_frames):
 
 def test_davis_label_on_damaged_frames_exits_4_naming_the_file(damaged_frames, tmp_path, capsys):
     from davis_rig.cli.label import main
-    from eval_data import person_yolo
+    from tests.helpers.eval_data import person_yolo
 
     assert main([str(damaged_frames), "--yolo", str(person_yolo(tmp_path)), "--quiet"]) == 4
     err = capsys.readouterr().err

@@ -9,7 +9,7 @@ from davis_rig.protocol.words import SpecialType
 from davis_rig.session import SessionReader, SessionWriter
 from davis_rig.session.record import record_session
 
-from session_data import SPECIAL_DTYPE, Chunk, FakeCamera, cut, random_events, random_frame, synth_stream
+from tests.helpers.session_data import SPECIAL_DTYPE, Chunk, FakeCamera, cut, random_events, random_frame, synth_stream
 
 RESET = int(SpecialType.TIMESTAMP_RESET)
 RISING = int(SpecialType.EXTERNAL_INPUT_RISING_EDGE)

@@ -19,7 +19,7 @@ from davis_rig.session import SessionReader, SessionWriter, schema
 from davis_rig.session.journal import journal_path
 from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, make_events
 
-from session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame, split_chunks
+from tests.helpers.session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame, split_chunks
 
 IMU_DTYPE = np.dtype([("t", "<i8"), ("accel_x_g", "<f4"), ("gyro_z_dps", "<f4"), ("temperature_c", "<f4")])
 

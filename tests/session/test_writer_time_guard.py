@@ -10,7 +10,7 @@ from davis_rig.session import SessionReader, SessionWriter, h5file, record_sessi
 from davis_rig.session import writer as writer_module
 from davis_rig.types import make_events
 
-from session_data import Chunk, FakeCamera, random_events, synth_stream
+from tests.helpers.session_data import Chunk, FakeCamera, random_events, synth_stream
 
 
 def _decode_and_write(path, data: bytes, transfer_bytes: int = 8192, **kwargs) -> SessionReader:
@@ -82,7 +82,7 @@ def test_ms_to_idx_is_written_in_bounded_blocks_across_a_long_gap(tmp_path, monk
 
 
 def test_a_jump_bridged_by_frames_is_kept(tmp_path, rng):
-    from session_data import random_frame
+    from tests.helpers.session_data import random_frame
 
     before = random_events(rng, 100, t0_us=0, span_us=100_000)
     after = random_events(rng, 100, t0_us=3_000_000, span_us=100_000)

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from viewer_data import CHROMIUM_INSTALL, Chromium, chromium_binary, write_scene
+from tests.helpers.viewer_data import CHROMIUM_INSTALL, Chromium, chromium_binary, write_scene
 
 
 @pytest.fixture(scope="module")

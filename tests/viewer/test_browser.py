@@ -20,7 +20,7 @@ from davis_rig.viewer.render import DETECTION_RGB, GAP_PX, LABEL_RGB, OFF_RGB, O
 from davis_rig.viewer.server import ViewerServer
 from davis_rig.viewer.sessions_app import SessionsApp
 
-from viewer_data import BACKGROUND, CROP, H, PERSON, SEG_US, W, person_box
+from tests.helpers.viewer_data import BACKGROUND, CROP, H, PERSON, SEG_US, W, person_box
 
 SCALE = 2
 MISSED = range(8, 12)  # windows without detections: 10 and 11 are labelled (after the first 0.5 s) -> one sequence
@@ -116,7 +116,7 @@ def test_session_page_plays_scrubs_jumps_to_a_miss_and_shows_the_person_where_th
 
 
 def test_live_page_shows_new_frames_and_stats(browser):
-    from session_data import Chunk
+    from tests.helpers.session_data import Chunk
 
     from davis_rig.types import make_events
 

@@ -19,7 +19,7 @@ from davis_rig.cli import view as cli
 from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
 from davis_rig.evaluation.report import write_report
 
-from eval_data import person_rvt
+from tests.helpers.eval_data import person_rvt
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -18,7 +18,7 @@ from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 from davis_rig.viewer.detections import DetectionWorker, OnTheFlyDetections, StoredDetections, find_stored_detections
 from davis_rig.viewer.recording import RecordingView
 
-from eval_data import person_rvt
+from tests.helpers.eval_data import person_rvt
 
 REPO = Path(__file__).resolve().parents[2]
 THRESHOLDS = (0.01, 0.1, 0.25)

@@ -17,8 +17,8 @@ from davis_rig.types import make_events
 from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, TappedCamera, WindowCutter, crop_columns
 from davis_rig.viewer.server import RequestError
 
-from eval_data import PERSON_BOX, PERSON_BOX_CROP, moving_blob_events, person_rvt
-from session_data import Chunk
+from tests.helpers.eval_data import PERSON_BOX, PERSON_BOX_CROP, moving_blob_events, person_rvt
+from tests.helpers.session_data import Chunk
 
 
 def stream(rng, n=20_000, span_us=400_000, t0_us=3_456):

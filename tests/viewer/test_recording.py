@@ -9,7 +9,7 @@ from davis_rig.errors import SessionError, ShapeError
 from davis_rig.viewer.recording import RecordingView, window_grid
 from davis_rig.viewer.render import LABEL_RGB
 
-from viewer_data import CROP, FRAME_T0, FRAME_US, person_box, write_scene
+from tests.helpers.viewer_data import CROP, FRAME_T0, FRAME_US, person_box, write_scene
 
 
 def test_window_grid_covers_the_last_time():

@@ -12,7 +12,7 @@ same model the virtual backend serves, and tests can assert on ``dev.writes`` / 
 pyusb's ``libusb1`` backend module is loaded as a separate module instance for the emulation (same file, unmodified
 code, its own module-level library), so the real libusb-1.0 backend of the process is never replaced.
 
-Registered as module ``libusb_emu`` by ``tests/conftest.py``. Typical use::
+Typical use::
 
     emu = EmulatedLibusb.load()               # or the `emulated_libusb` fixture
     dev = VirtualDavis346(source=...)

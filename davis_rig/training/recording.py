@@ -1,5 +1,9 @@
 """A synthetic scene → a full DAVIS346 recording (session.h5): DVS events, APS frames and ground-truth labels.
 
+It lives in ``training`` (synthetic data), the layer above the capture stack it drives (protocol, usb, device,
+session), the events simulator, the scene's APS model and the label writer: the scene package below stays free of
+capture imports.
+
 Two paths produce the same file layout (:mod:`davis_rig.session.schema`):
 
 * ``through_usb=False`` (default): events and frames go straight into :class:`~davis_rig.session.SessionWriter`;
@@ -46,7 +50,8 @@ __all__ = [
     "write_synthetic_session",
 ]
 
-SYNTHETIC_LABELER = "davis_rig.scene.recording"
+#: ``labeler`` of the ground-truth labels (and ``generator`` of the settings) this module writes: its name.
+SYNTHETIC_LABELER = __name__
 #: Video frames simulated per call (bounds the memory of the float64 simulator state and output).
 _SIM_CHUNK_FRAMES = 64
 
@@ -248,6 +253,43 @@ def _record_through_usb(path: Path, events, frames, config: dict, overwrite: boo
         f.attrs["config"] = json.dumps(stored)
 
 
+def _checked_times(t_us, num_frames: int) -> np.ndarray:
+    """The frame times as an integer array [T] (µs); ShapeError / FormatError unless [num_frames] and ≥ 0."""
+    t = np.asarray(t_us.detach().cpu().numpy() if hasattr(t_us, "detach") else t_us)
+    if t.shape != (num_frames,):
+        raise ShapeError(f"t_us: expected shape ({num_frames},), got {t.shape}")
+    if not np.issubdtype(t.dtype, np.integer) or (t.size and int(t.min()) < 0):
+        raise FormatError(f"t_us: expected non-negative integer µs, got dtype {t.dtype}")
+    return t
+
+
+def _write_directly(path: Path, events: np.ndarray, frames: list, config: dict, overwrite: bool) -> None:
+    """Write events and frames straight into a session file (no encoder, no camera)."""
+    from davis_rig.protocol.layout import SensorLayout
+    from davis_rig.session.writer import SessionWriter
+
+    info = {"serial": "SYNTH001", "synthetic": True, "layout": SensorLayout.davis346()}
+    with SessionWriter(path, device_info=info, config=config, overwrite=overwrite) as writer:
+        for start in range(0, len(events), 1 << 20):
+            writer.append_events(events[start:start + (1 << 20)])
+        for frame in frames:
+            writer.append_frame(frame)
+        writer.set_stats({"stopped_by": "end", "synthetic": {"events": len(events), "frames": len(frames)}})
+
+
+def _write_ground_truth(path: Path, crop_labels: np.ndarray) -> None:
+    """Store the ground-truth boxes (BBOX_DTYPE, RVT crop coordinates) as the session's labels."""
+    from davis_rig.labelers.session_labels import write_labels
+
+    write_labels(path, crop_labels, {
+        "labeler": SYNTHETIC_LABELER,
+        "labeler_version": __version__,
+        "created_utc": _dt.datetime.now(tz=_dt.timezone.utc).isoformat(),
+        "source": "ground truth of the rendered scene (visible-person boxes), RVT crop coordinates",
+        "crop_origin_xy": list(center_crop_origin(DAVIS346_HW, RVT_HW)),
+    })
+
+
 def write_synthetic_session(
     path: str | os.PathLike,
     video,
@@ -290,48 +332,21 @@ def write_synthetic_session(
     if path.exists() and not overwrite:
         raise SessionError(f"{path}: file exists (pass overwrite=True to replace it)")
     sensor_video, video_origin = embed_in_sensor(video, origin_xy=origin_xy, pad_intensity=pad_intensity)
-    t = np.asarray(t_us.detach().cpu().numpy() if hasattr(t_us, "detach") else t_us)
-    if t.shape != (sensor_video.shape[0],):
-        raise ShapeError(f"t_us: expected shape ({sensor_video.shape[0]},), got {t.shape}")
-    if not np.issubdtype(t.dtype, np.integer) or (t.size and int(t.min()) < 0):
-        raise FormatError(f"t_us: expected non-negative integer µs, got dtype {t.dtype}")
-    crop_labels = None
-    if labels is not None:
-        crop_labels = labels_to_crop(labels, video_origin)
+    t = _checked_times(t_us, sensor_video.shape[0])
+    crop_labels = labels_to_crop(labels, video_origin) if labels is not None else None
     simulator = simulator or SimulatorConfig()
     aps = aps or ApsConfig()
     events, frames = simulate_recording(sensor_video, t, simulator=simulator, aps=aps, device=device)
     config = _config_dict(simulator, aps, video_origin, pad_intensity)
-
     if through_usb:
         _record_through_usb(path, events, frames, config, overwrite, usb_timeout_s)
     else:
-        from davis_rig.protocol.layout import SensorLayout
-        from davis_rig.session.writer import SessionWriter
-
-        info = {"serial": "SYNTH001", "synthetic": True, "layout": SensorLayout.davis346()}
-        with SessionWriter(path, device_info=info, config=config, overwrite=overwrite) as writer:
-            for start in range(0, len(events), 1 << 20):
-                writer.append_events(events[start:start + (1 << 20)])
-            for frame in frames:
-                writer.append_frame(frame)
-            writer.set_stats({"stopped_by": "end", "synthetic": {"events": len(events), "frames": len(frames)}})
-
-    n_labels = 0
+        _write_directly(path, events, frames, config, overwrite)
     if crop_labels is not None:
-        from davis_rig.labelers.session_labels import write_labels
-
-        write_labels(path, crop_labels, {
-            "labeler": SYNTHETIC_LABELER,
-            "labeler_version": __version__,
-            "created_utc": _dt.datetime.now(tz=_dt.timezone.utc).isoformat(),
-            "source": "ground truth of the rendered scene (visible-person boxes), RVT crop coordinates",
-            "crop_origin_xy": list(center_crop_origin(DAVIS346_HW, RVT_HW)),
-        })
-        n_labels = len(crop_labels)
-    return SyntheticRecording(path=path, events=len(events), frames=len(frames), labels=n_labels,
-                              through_usb=through_usb, t_first_us=int(t[0]) if t.size else 0,
-                              t_last_us=int(t[-1]) if t.size else 0)
+        _write_ground_truth(path, crop_labels)
+    return SyntheticRecording(path=path, events=len(events), frames=len(frames),
+                              labels=0 if crop_labels is None else len(crop_labels), through_usb=through_usb,
+                              t_first_us=int(t[0]) if t.size else 0, t_last_us=int(t[-1]) if t.size else 0)
 
 
 def write_clip_session(path: str | os.PathLike, clip, **kwargs) -> SyntheticRecording:

@@ -84,7 +84,7 @@ def write_scene(path: Path, *, labels: bool = True) -> Path:
     from davis_rig.labelers.session_labels import write_labels
     from davis_rig.session.writer import SessionWriter
 
-    from session_data import Chunk
+    from tests.helpers.session_data import Chunk
 
     frames = scene_frames()
     with SessionWriter(path) as writer:

@@ -11,7 +11,7 @@ import pytest
 from davis_rig.errors import SessionError, ShapeError
 from davis_rig.events.simulator import SimulatorConfig
 from davis_rig.scene.aps import ApsConfig
-from davis_rig.scene.recording import (
+from davis_rig.training.recording import (
     SYNTHETIC_LABELER,
     embed_in_sensor,
     labels_to_crop,

@@ -1,4 +1,4 @@
-"""Tiny synthetic files in the real AMASS / BVH formats (helper module ``mocap_files``, see tests/conftest.py)."""
+"""Test helper: tiny synthetic files in the real AMASS / BVH formats."""
 
 import numpy as np
 

@@ -1,8 +1,4 @@
-"""Test helper: read a ``Davis346`` over a virtual DAVIS346 until everything the device served is decoded.
-
-Registered as module ``camera_reads`` by ``tests/conftest.py`` (by file path, so ``from camera_reads import ...``
-works under any pytest import mode).
-"""
+"""Test helper: read a ``Davis346`` over a virtual DAVIS346 until everything the device served is decoded."""
 
 from __future__ import annotations
 

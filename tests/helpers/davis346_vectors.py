@@ -1,7 +1,6 @@
 """Test helper: the committed DAVIS346 test vectors and the one full comparison of a decode with a vector.
 
-Registered as module ``davis346_vectors`` by ``tests/conftest.py`` (by file path, so
-``from davis346_vectors import ...`` works under any pytest import mode). Used by the decoder tests
+Used by the decoder tests
 (``tests/protocol``) and by the camera tests that decode the same vectors through the real pyusb path
 (``tests/device``), so both compare events, special events, frames (pixels, every timestamp, position) and IMU
 samples the same way.
@@ -18,7 +17,7 @@ from davis_rig.protocol import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, SensorLa
 from davis_rig.types import EVENT_DTYPE
 
 #: The committed copy of ``shared/davis346/test_vectors.json``.
-VECTORS_PATH = Path(__file__).resolve().parent / "fixtures" / "davis346_test_vectors.json"
+VECTORS_PATH = Path(__file__).resolve().parents[1] / "fixtures" / "davis346_test_vectors.json"
 #: Every vector (dicts with ``id``, ``device_info``, ``transfers_hex``, ``expected``, ...).
 VECTORS: list[dict] = json.loads(VECTORS_PATH.read_text())["vectors"]
 #: The vectors' ids, for ``pytest.mark.parametrize(..., ids=VECTOR_IDS)``.
