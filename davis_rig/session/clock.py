@@ -11,7 +11,7 @@ resets and chooses the times of one epoch's items. It writes nothing: the writer
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from davis_rig.protocol.words import SpecialType
 from davis_rig.session import schema
 from davis_rig.session.timeline import EventTimes, advance_clock, plan_event_times, shift_for
 
-__all__ = ["MAX_OFFSET_ENTRIES", "Epoch", "Placement", "RecordingClock"]
+__all__ = ["MAX_OFFSET_ENTRIES", "Epoch", "RecordingClock"]
 
 #: Offset-change entries kept in the ``stats`` attribute per list (HDF5 attributes hold at most 64 KiB).
 MAX_OFFSET_ENTRIES = 256
@@ -35,8 +35,7 @@ def reset_positions(specials) -> np.ndarray:
     return np.flatnonzero(np.asarray(specials)["type"] == SpecialType.TIMESTAMP_RESET)
 
 
-@dataclass(frozen=True)
-class Epoch:
+class Epoch(NamedTuple):
     """The part of a chunk that lies in one reset epoch (device µs).
 
     Attributes:
@@ -51,21 +50,6 @@ class Epoch:
     specials: object
     imu: object
     bridge_gaps: bool
-
-
-@dataclass(frozen=True)
-class Placement:
-    """The recording times :meth:`RecordingClock.place` chose for one epoch's items.
-
-    Attributes:
-        events: the events with recording times (the caller's array when no time changed), or ``None``.
-        frame_offsets: the offset of each frame, µs (recording time = device time + offset).
-        table_offsets: int64 [K] offsets of each table's rows, µs, in the order the tables were given.
-    """
-
-    events: np.ndarray | None
-    frame_offsets: list = field(default_factory=list)
-    table_offsets: list = field(default_factory=list)
 
 
 class RecordingClock:
@@ -101,10 +85,18 @@ class RecordingClock:
         self._epoch_last_device_t: dict[str, int | None] = {"events": None, "frames": None, "imu": None}
 
     # --- reset epochs -------------------------------------------------------------------------
-    def split(self, events, frames: list, specials, imu, *, device_clock: bool) -> list[Epoch]:
-        """Split a chunk at its TIMESTAMP_RESET specials (only with ``device_clock``; see
-        :meth:`SessionWriter.append <davis_rig.session.writer.SessionWriter.append>` for where each stream is
-        split). Call :meth:`start_reset` with each epoch's ``reset_t_us`` before placing its items."""
+    def split_at_resets(self, events, frames: list, specials, imu, *, device_clock: bool) -> list[Epoch] | None:
+        """Split a chunk at its TIMESTAMP_RESET specials (only with ``device_clock``); ``None`` when the whole chunk
+        lies in the current epoch. Call :meth:`start_reset` with each later epoch's ``reset_t_us`` before placing
+        its items.
+
+        A chunk may hold data from before and after a reset (the decoder does not split at resets; each array is
+        in stream order). The specials are split exactly at the reset specials; events, frames (by end-of-frame
+        time) and IMU samples are split where their device time goes back (the restart), at most once per reset in
+        the chunk. If the data after a reset is not earlier than the data before it (a reset within about one
+        chunk's span of the previous epoch's start), no split is visible and it stays in the old epoch: nothing is
+        lost and time stays monotonic, but those items' offset is 0 (relative to the true one).
+        """
         reset_at = reset_positions(specials) if device_clock and specials is not None and len(specials) else None
         if reset_at is None or not reset_at.shape[0]:  # the common case: one epoch, remember each stream's last time
             if events is not None and len(events):
@@ -113,7 +105,7 @@ class RecordingClock:
                 self._epoch_last_device_t["frames"] = int(frames[-1].t_end_of_frame_us)
             if imu is not None and len(imu):
                 self._epoch_last_device_t["imu"] = int(imu["t"][-1])
-            return [Epoch(None, events, frames, specials, imu, device_clock)]
+            return None
         n_resets = reset_at.shape[0]
         event_epoch = self._epochs("events", None if events is None else np.asarray(events)["t"], n_resets)
         frame_t = np.array([int(frame.t_end_of_frame_us) for frame in frames], dtype=np.int64)
@@ -175,7 +167,8 @@ class RecordingClock:
         if self.t_max is None or t_us > self.t_max:
             self.t_max = t_us
 
-    def place(self, events: np.ndarray | None, frames: list, tables: list, *, bridge_gaps: bool) -> Placement:
+    def place(self, events: np.ndarray | None, frames: list, tables: list, *,
+              bridge_gaps: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Choose the recording times of one epoch's checked items (device µs of the current epoch).
 
         Args:
@@ -185,8 +178,10 @@ class RecordingClock:
             bridge_gaps: bridge forward jumps over ``max_gap_us`` (device clock times).
 
         Returns:
-            A :class:`Placement`. The events' times are final here (the caller buffers them); the caller reports
-            each frame's and table's latest recording time with :meth:`note_time`.
+            ``(events, offsets)``: the events at their recording times (the caller's array when no time changed;
+            ``None`` without events) and int64 [F + K] the offsets, µs, of the frames, then of each table's rows in
+            the order given (``None`` without frames and tables). The caller buffers them and reports each frame's
+            and table's latest recording time with :meth:`note_time`.
         """
         base = self.offset_us
         max_gap = self.max_gap_us if bridge_gaps else None
@@ -204,14 +199,11 @@ class RecordingClock:
         if events is not None:
             events, plan = self._place_events(events, base, max_gap)
         if other_t is None:
-            return Placement(events)
+            return events, None
         shifts = np.zeros(other_t.shape[0], np.int64) if plan is None else \
             shift_for(other_t, plan.seg_lo_us, plan.seg_hi_us, plan.seg_shift_us)
         shifts += base
-        n_frames = len(frames)
-        bounds = np.cumsum([n_frames] + [len(table) for table in tables]).tolist()
-        return Placement(events, shifts[:n_frames].tolist(),
-                         [shifts[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])])
+        return events, shifts
 
     def _place_events(self, events: np.ndarray, base_us: int,
                       max_gap_us: int | None) -> tuple[np.ndarray, EventTimes]:

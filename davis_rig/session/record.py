@@ -4,9 +4,10 @@
 :mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild the file
 after a crash; the journal is deleted when the recording ends cleanly. An unplug (:class:`DeviceDisconnectedError`)
 ends the recording normally: everything decoded before it is written and the file is closed
-(``stopped_by=StopReason.DISCONNECTED``). A device timestamp reset during the recording (``Davis346.timestamp_reset`` or a
-sync master) loses nothing: the data after it is stored after the data before it, offset so the file's time stays
-monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]`` (see :meth:`SessionWriter.append`).
+(``stopped_by=StopReason.DISCONNECTED``). A device timestamp reset during the recording
+(``Davis346.timestamp_reset`` or a sync master) loses nothing: the data after it is stored after the data before
+it, offset so the file's time stays monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]``
+(see :meth:`SessionWriter.append`).
 
 Capture path: this module never imports torch (nor the device package: the camera is passed in).
 """

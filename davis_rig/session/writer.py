@@ -270,12 +270,8 @@ class SessionWriter:
           sticks out (one corrupt timestamp word) is kept at the previous run's time instead and counted in
           ``["events_time_repaired"]``. Nothing is dropped; a warning is issued once for each kind.
 
-        A chunk may hold data from before and after a reset (the decoder does not split at resets; each array is
-        in stream order). The specials are split exactly at the reset specials; events, frames (by end-of-frame
-        time) and IMU samples are split where their device time goes back (the restart), at most once per reset in
-        the chunk. If the data after a reset is not earlier than the data before it (a reset within about one
-        chunk's span of the previous epoch's start), no split is visible and it stays in the old epoch: nothing is
-        lost and time stays monotonic, but those items' offset is 0 (relative to the true one). Frames, specials
+        A chunk may hold data from before and after a reset: see
+        :meth:`~davis_rig.session.clock.RecordingClock.split_at_resets` for where it is split. Frames, specials
         and IMU samples take the offset of the stretch of events nearest to their own time.
 
         Args:
@@ -291,13 +287,18 @@ class SessionWriter:
             FormatError / ShapeError: a field has the wrong dtype or shape.
         """
         self._check_usable()
+        events, specials = getattr(chunk, "events", None), getattr(chunk, "specials", None)
+        imu = getattr(chunk, "imu", None)
         frames = list(getattr(chunk, "frames", None) or ())
-        epochs = self._clock.split(getattr(chunk, "events", None), frames, getattr(chunk, "specials", None),
-                                   getattr(chunk, "imu", None), device_clock=device_clock)
-        for epoch in epochs:
-            if epoch.reset_t_us is not None:
-                self._clock.start_reset(epoch.reset_t_us)
-            self._append_epoch(epoch.events, epoch.frames, epoch.specials, epoch.imu, bridge_gaps=epoch.bridge_gaps)
+        epochs = self._clock.split_at_resets(events, frames, specials, imu, device_clock=device_clock)
+        if epochs is None:  # the common case: one epoch
+            self._append_epoch(events, frames, specials, imu, bridge_gaps=device_clock)
+        else:
+            for epoch in epochs:
+                if epoch.reset_t_us is not None:
+                    self._clock.start_reset(epoch.reset_t_us)
+                self._append_epoch(epoch.events, epoch.frames, epoch.specials, epoch.imu,
+                                   bridge_gaps=epoch.bridge_gaps)
         self.maybe_flush()
 
     def _append_epoch(self, events, frames, specials, imu, *, bridge_gaps: bool) -> None:
@@ -307,16 +308,22 @@ class SessionWriter:
             self._check_frame(frame)
         specials = self._check_table("specials", specials)
         imu = self._check_table("imu", imu)
-        tables = [(kind, table) for kind, table in (("specials", specials), ("imu", imu)) if table is not None]
-        placed = self._clock.place(events, frames, [table for _, table in tables], bridge_gaps=bridge_gaps)
-        if placed.events is not None:
-            self._buffer_events(placed.events)
-        for frame, offset in zip(frames, placed.frame_offsets):
+        tables = [table for table in (specials, imu) if table is not None]
+        events, offsets = self._clock.place(events, frames, tables, bridge_gaps=bridge_gaps)
+        if events is not None:
+            self._buffer_events(events)
+        if offsets is None:
+            return
+        n_frames = len(frames)
+        for frame, offset in zip(frames, offsets[:n_frames].tolist()):
             self._buffers["frames"].append((frame, offset))
             self._counts["frames"] += 1
             self._clock.note_time(max(int(getattr(frame, name)) for name in schema.FRAME_TIME_COLUMNS) + offset)
-        for (kind, table), offsets in zip(tables, placed.table_offsets):
-            self._buffer_table(kind, table, offsets)
+        start = n_frames
+        for kind, table in (("specials", specials), ("imu", imu)):
+            if table is not None:
+                self._buffer_table(kind, table, offsets[start : start + len(table)])
+                start += len(table)
 
     def append_events(self, events: np.ndarray) -> None:
         """Append events (EVENT_DTYPE [N] in stream order, device µs of the current reset epoch).
