@@ -54,7 +54,9 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-MODULES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+#: Every module of the package: Python files, and C extension modules by their source (``_decode_kernel.c``),
+#: which import nothing of the package.
+MODULES = {_module_name(p): p for p in sorted([*PACKAGE.rglob("*.py"), *PACKAGE.rglob("*.c")])}
 
 
 def _top(module: str) -> str:
@@ -79,6 +81,8 @@ def imports_of(module: str) -> tuple[Import, ...]:
 
 @functools.cache
 def _imports_in(module: str, path: Path) -> tuple[Import, ...]:
+    if path.suffix != ".py":
+        return ()
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
         if isinstance(node, ast.Import):
