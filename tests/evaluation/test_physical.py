@@ -243,10 +243,17 @@ def test_report_json_round_trip_has_every_number(labelled, tmp_path):
 
 
 class _HistogramRecorder:
-    """Stand-in for the RVT runner: keeps every window's histogram, detects nothing (one anchor, score 0)."""
+    """Stand-in for the RVT runner: keeps every window's histogram, detects nothing (one anchor, score 0); runs
+    whole steps (no split)."""
 
     def __init__(self):
         self.hists = []
+
+    def prepare_histogram(self, hist):
+        return hist
+
+    def split(self, intra_op_threads):
+        raise ModelFormatError("a stand-in, not a graph")
 
     def step(self, hist, states):
         self.hists.append(hist[0].copy())
