@@ -30,6 +30,7 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -68,8 +69,9 @@ class EvalSettings:
         strict_iou: IoU of the strict SeqASR variant.
         coco_backend: ``"faster_coco_eval"`` or ``"pycocotools"``.
         chunk_windows: windows per event read.
-        intra_op_threads: onnxruntime threads of each part of the pipelined step (``None``: 1), or of the whole
-            step when it is not pipelined (``None``: onnxruntime's default, the physical cores).
+        intra_op_threads: onnxruntime threads of the recurrent part of the pipelined step (``None``: 2, or 1 on a
+            one-core machine; its other two parts run on one thread each), or of the whole step when it is not
+            pipelined (``None``: onnxruntime's default, the physical cores).
         pipeline: run the RVT step as three parts of consecutive windows side by side (:func:`score_session`)
             when the graph splits; ``False``: whole steps, one after the other (same results).
         gif_windows: keep the event images of the first this many windows for the annotated GIF (0: none).
@@ -364,9 +366,9 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     The stages overlap in threads (onnxruntime releases the GIL): one thread reads and histograms the next chunk
     of windows; with ``settings.pipeline`` and a graph that splits (:meth:`RVTOnnxRunner.split`), the RVT step
     runs as three parts — stage 1's non-recurrent front (``pre``) of window k+1, the recurrent part of window k
-    and the PAFPN + head of window k−1 side by side, in two threads and the calling one (each part on
-    ``settings.intra_op_threads`` onnxruntime threads, default 1); otherwise the calling thread runs whole
-    steps. A last thread post-processes each step's output at all thresholds at once
+    and the PAFPN + head of window k−1 side by side, in two threads and the calling one (one onnxruntime thread
+    each for ``pre`` and ``head``, ``settings.intra_op_threads`` (default 2) for the recurrent part, which alone
+    waits for the previous window); otherwise the calling thread runs whole steps. A last thread post-processes each step's output at all thresholds at once
     (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`, exactly equal to one official
     post-processing per threshold). The results do not depend on the overlap: the split parts are the graph's
     own nodes, chained as in the whole graph.
@@ -467,7 +469,7 @@ def _split_or_none(runner, settings: EvalSettings):
     if not settings.pipeline:
         return None
     try:
-        return runner.split(settings.intra_op_threads or 1)
+        return runner.split(1, settings.intra_op_threads or min(2, os.cpu_count() or 1), 1)
     except ModelFormatError:  # a graph of another layout: run it whole
         return None
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -134,16 +135,16 @@ def test_pipelined_parts_give_the_whole_steps_detections_bit_for_bit(labelled, t
     splits = []
     split = runner.split
 
-    def spy(threads):
+    def spy(*threads):
         splits.append(threads)
-        return split(threads)
+        return split(*threads)
 
     runner.split = spy
     settings = EvalSettings(thresholds=(0.001, 0.25), chunk_windows=3)
     whole = score_session(labelled, runner, dataclasses.replace(settings, pipeline=False))
     assert splits == []
     piped = score_session(labelled, runner, settings)
-    assert splits == [1]  # one onnxruntime thread per part by default
+    assert splits == [(1, min(2, os.cpu_count()), 1)]  # the recurrent part on 2 onnxruntime threads by default
     assert piped.num_events == whole.num_events and set(piped.timings_s) == set(whole.timings_s)
     for th in settings.thresholds:
         assert len(piped.detections[th]) == len(whole.detections[th]) == len(whole.window_end_us)
@@ -178,7 +179,7 @@ class _SplitRunner:
     def prepare_histogram(self, hist):
         return hist
 
-    def split(self, intra_op_threads):
+    def split(self, *threads):
         return self._split
 
     def initial_states(self, batch):
@@ -328,7 +329,7 @@ class _HistogramRecorder:
     def prepare_histogram(self, hist):
         return hist
 
-    def split(self, intra_op_threads):
+    def split(self, *threads):
         raise ModelFormatError("a stand-in, not a graph")
 
     def step(self, hist, states):

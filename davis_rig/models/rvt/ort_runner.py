@@ -170,7 +170,7 @@ class SplitStep:
     shaped like :meth:`RVTOnnxRunner.initial_states`).
     """
 
-    def __init__(self, runner: "RVTOnnxRunner", intra_op_threads: int | None):
+    def __init__(self, runner: "RVTOnnxRunner", threads: tuple[int | None, int | None, int | None]):
         import onnxruntime as ort
 
         from davis_rig.models.rvt.onnx_split import _import_onnx, split_step_graph
@@ -181,11 +181,12 @@ class SplitStep:
         except Exception as exc:  # onnx raises DecodeError/OSError variants
             raise ModelFormatError(f"{runner.path}: onnx cannot read the model: {exc}") from exc
         parts = split_step_graph(model)
-        options = _session_options(ort, intra_op_threads, runner.allow_spinning)
         self._x1 = parts.x1_name
-        self._sessions = [ort.InferenceSession(part.SerializeToString(), sess_options=options,
-                                               providers=runner.providers)
-                          for part in (parts.pre, parts.recur, parts.head)]
+        self._sessions = [
+            ort.InferenceSession(part.SerializeToString(), providers=runner.providers,
+                                 sess_options=_session_options(ort, part_threads, runner.allow_spinning))
+            for part, part_threads in zip((parts.pre, parts.recur, parts.head), threads)
+        ]
 
     def pre(self, x: np.ndarray) -> np.ndarray:
         """Stage 1 before its LSTM: padded float32 histogram [B, 20, H, W] → float32 [B, C_1, H/4, W/4]."""
@@ -298,17 +299,19 @@ class RVTOnnxRunner:
         padded[:, :, : hist.shape[2], : hist.shape[3]] = hist
         return padded
 
-    def split(self, intra_op_threads: int | None = 1) -> SplitStep:
+    def split(self, pre_threads: int | None = 1, recur_threads: int | None = 1,
+              head_threads: int | None = 1) -> SplitStep:
         """The step as three sessions that a pipeline can run side by side (:class:`SplitStep`); cached.
 
         Args:
-            intra_op_threads: onnxruntime threads of each part's session (``None``: onnxruntime's choice).
+            pre_threads, recur_threads, head_threads: onnxruntime intra-op threads of each part's session
+                (``None``: onnxruntime's choice).
 
         Raises:
             ModelFormatError: the graph does not split (:func:`~davis_rig.models.rvt.onnx_split.split_step_graph`);
                 :meth:`step` still runs it whole.
         """
-        key = None if intra_op_threads is None else int(intra_op_threads)
+        key = tuple(None if t is None else int(t) for t in (pre_threads, recur_threads, head_threads))
         if key not in self._splits:
             self._splits[key] = SplitStep(self, key)
         return self._splits[key]

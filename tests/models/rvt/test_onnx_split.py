@@ -71,8 +71,8 @@ def test_loop_bodies_reading_the_outer_graph_are_kept(tmp_path):
 
 def test_chained_parts_equal_whole_steps_bit_for_bit_with_states_carried(mini_onnx):
     runner = RVTOnnxRunner(mini_onnx, intra_op_threads=1)
-    split = runner.split(1)
-    assert runner.split(1) is split  # cached
+    split = runner.split(1, 2, 1)
+    assert runner.split(1, 2, 1) is split and runner.split() is not split  # cached per thread counts
     rng = np.random.default_rng(3)
     states_whole, states_split = None, runner.initial_states(1)
     for _ in range(3):
