@@ -14,10 +14,11 @@ confident boxes are the realistic post-processing load.
 
 Per model: a warm-up run on a 2 s session, then ``--repeats`` rounds of full runs of
 :func:`davis_rig.evaluation.physical.score_session` + :func:`compute_metrics` at the paper's four thresholds, one
-run per ``--modes`` entry in each round (interleaved, so load drift on a shared machine hits the modes alike):
+run per ``--modes`` entry in each round, the order reversed every other round (so load drift on a shared machine
+hits the modes alike):
 
 * ``pipelined`` (davis-eval's default): the step split into three parts of consecutive windows running side by
-  side, one onnxruntime thread each (``EvalSettings(pipeline=True)``);
+  side (``EvalSettings(pipeline=True)``: the recurrent part on 2 onnxruntime threads, the others on 1);
 * ``whole``: one session of ``--threads`` intra-op threads runs whole steps (the previous default).
 
 ``score_session`` overlaps its stages in threads, so the table gives each stage's **busy** seconds (read = h5
@@ -212,8 +213,8 @@ def main() -> None:
             for mode in args.modes:
                 run_once(warm, runner, settings[mode])  # warm-up
             runs = {mode: [] for mode in args.modes}
-            for _ in range(args.repeats):
-                for mode in args.modes:
+            for round_index in range(args.repeats):
+                for mode in args.modes if round_index % 2 == 0 else args.modes[::-1]:
                     run = run_once(session, runner, settings[mode])
                     runs[mode].append(run)
                     print(f"  {name} {mode}: total {run['total']:.1f} s, CPU {run['cpu']:.1f} s, load average "
