@@ -73,8 +73,14 @@ def run(device: torch.device, detector, clips_per_step: int, warmup: int, repeat
     generator = TextureGenerator(cfg.grid_n).to(device).train()
     optimizer = torch.optim.Adam(generator.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
 
-    loss_fn = ((lambda grid: attack_loss(grid, clips, detector, cfg)) if step_mode == "attack_loss"
-               else (lambda grid, fixed=FixedShapeAttackLoss(detector, cfg, step_mode): fixed(grid, clips)))
+    if step_mode == "attack_loss":
+        def loss_fn(grid):
+            return attack_loss(grid, clips, detector, cfg)
+    else:
+        fixed = FixedShapeAttackLoss(detector, cfg, step_mode)
+
+        def loss_fn(grid):
+            return fixed(grid, clips)
     cpu_s = []
 
     def step() -> None:

@@ -368,10 +368,10 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     runs as three parts — stage 1's non-recurrent front (``pre``) of window k+1, the recurrent part of window k
     and the PAFPN + head of window k−1 side by side, in two threads and the calling one (one onnxruntime thread
     each for ``pre`` and ``head``, ``settings.intra_op_threads`` (default 2) for the recurrent part, which alone
-    waits for the previous window); otherwise the calling thread runs whole steps. A last thread post-processes each step's output at all thresholds at once
-    (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`, exactly equal to one official
-    post-processing per threshold). The results do not depend on the overlap: the split parts are the graph's
-    own nodes, chained as in the whole graph.
+    waits for the previous window); otherwise the calling thread runs whole steps. A last thread post-processes
+    each step's output at all thresholds at once (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`,
+    exactly equal to one official post-processing per threshold). The results do not depend on the overlap: the
+    split parts are the graph's own nodes, chained as in the whole graph.
 
     Args:
         path: session.h5 with ``/labels``.

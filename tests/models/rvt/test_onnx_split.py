@@ -64,7 +64,7 @@ def test_loop_bodies_reading_the_outer_graph_are_kept(tmp_path):
     runner = RVTOnnxRunner(path, intra_op_threads=1)
     split = runner.split(1)
     hist = np.minimum(np.random.default_rng(4).poisson(0.5, size=(1, 20, 240, 304)), 10).astype(np.uint8)
-    decoded, states = runner.step(hist)
+    decoded, _ = runner.step(hist)
     got_states = split.recur(split.pre(runner.prepare_histogram(hist)), runner.initial_states(1))
     np.testing.assert_array_equal(split.head(got_states), decoded)
 
