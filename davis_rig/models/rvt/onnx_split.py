@@ -30,7 +30,7 @@ from davis_rig.errors import MissingDependencyError, ModelFormatError
 if TYPE_CHECKING:  # pragma: no cover
     import onnx
 
-__all__ = ["StepParts", "split_step_graph"]
+__all__ = ["StepParts", "split_step_file", "split_step_graph"]
 
 _STATES = tuple(f"{kind}{stage}" for stage in range(1, 5) for kind in ("h", "c"))
 _HEAD_INPUTS = ("h2_out", "h3_out", "h4_out")
@@ -179,3 +179,17 @@ def split_step_graph(model) -> StepParts:
             raise ModelFormatError(f"a split part of the RVT step graph is not a valid graph: {exc}") from exc
     return StepParts(pre=pre, recur=recur, head=head, x1_name=x1)
 
+
+def split_step_file(path) -> StepParts:
+    """:func:`split_step_graph` of the ONNX file ``path``.
+
+    Raises:
+        ModelFormatError: onnx cannot read the file, or the graph does not split.
+        MissingDependencyError: onnx is not installed.
+    """
+    onnx = _import_onnx()
+    try:
+        model = onnx.load(str(path))
+    except Exception as exc:  # onnx raises DecodeError/OSError variants
+        raise ModelFormatError(f"{path}: onnx cannot read the model: {exc}") from exc
+    return split_step_graph(model)

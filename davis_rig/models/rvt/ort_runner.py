@@ -173,14 +173,9 @@ class SplitStep:
     def __init__(self, runner: "RVTOnnxRunner", threads: tuple[int | None, int | None, int | None]):
         import onnxruntime as ort
 
-        from davis_rig.models.rvt.onnx_split import _import_onnx, split_step_graph
+        from davis_rig.models.rvt.onnx_split import split_step_file
 
-        onnx = _import_onnx()
-        try:
-            model = onnx.load(str(runner.path))
-        except Exception as exc:  # onnx raises DecodeError/OSError variants
-            raise ModelFormatError(f"{runner.path}: onnx cannot read the model: {exc}") from exc
-        parts = split_step_graph(model)
+        parts = split_step_file(runner.path)
         self._x1 = parts.x1_name
         self._sessions = [
             ort.InferenceSession(part.SerializeToString(), providers=runner.providers,

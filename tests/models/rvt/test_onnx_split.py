@@ -130,3 +130,12 @@ def test_a_graph_without_the_lstm_concat_is_refused(tmp_path):
         split_step_graph(onnx.load(str(path)))
     with pytest.raises(ModelFormatError, match="cannot be split"):
         RVTOnnxRunner(path).split(1)
+
+
+def test_an_unreadable_file_is_a_model_format_error(tmp_path):
+    from davis_rig.models.rvt.onnx_split import split_step_file
+
+    path = tmp_path / "garbage.onnx"
+    path.write_bytes(b"\x00not an onnx model")
+    with pytest.raises(ModelFormatError, match="onnx cannot read the model"):
+        split_step_file(path)
