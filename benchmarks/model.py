@@ -9,6 +9,8 @@ For RVT-T and RVT-B (**random weights** — latency does not depend on the value
   on a shared machine affects all alike);
 * ``bptt_3steps``: 3 recurrent steps forward + backward w.r.t. the three inputs (the digital optimizer's inner
   cost; loss = Σ obj · max class prob of the last step);
+* split parts: thread CPU time of one whole step and of the three parts davis-eval pipelines (``pre``,
+  ``recur``, ``head``, :meth:`RVTOnnxRunner.split`) on one thread — where a window's inference time goes;
 * ``postprocess``: numpy confidence filter + class-wise NMS of one decoded output at conf 0.001 and 0.1, and at
   the paper's four thresholds: one call per threshold vs ``postprocess_thresholds`` (identical output).
 
@@ -64,6 +66,29 @@ def _compare(model: RVTDetector, runner: RVTOnnxRunner, hists: list[np.ndarray])
 
 def _format_diffs(diffs: dict) -> str:
     return ", ".join(f"{k} {v:.2e}" for k, v in diffs.items() if not k.startswith("_"))
+
+
+def split_parts_cpu_ms(runner: RVTOnnxRunner, hists: list[np.ndarray], warmup: int, repeats: int) -> dict:
+    """Thread CPU ms (median) of a whole step and of the split parts ``pre``, ``recur``, ``head``, interleaved.
+
+    With one onnxruntime thread the session computes in the calling thread, so its thread CPU time is the work
+    itself, unaffected by other processes on a shared machine.
+    """
+    split = runner.split(1)
+    x = runner.prepare_histogram(hists[1])
+    _, states = runner.step(hists[0])
+    x1 = split.pre(x)
+    new_states = split.recur(x1, states)
+    cases = {"whole": lambda: runner.step(x, states), "pre": lambda: split.pre(x),
+             "recur": lambda: split.recur(x1, states), "head": lambda: split.head(new_states)}
+    samples = {name: [] for name in cases}
+    for index in range(warmup + repeats):
+        for name, case in cases.items():
+            start = time.thread_time()
+            case()
+            if index >= warmup:
+                samples[name].append(1e3 * (time.thread_time() - start))
+    return {name: float(np.median(values)) for name, values in samples.items()}
 
 
 def _histograms(rng: np.random.Generator) -> list[np.ndarray]:
@@ -129,6 +154,10 @@ def _time_variant(variant: str, hists: list[np.ndarray], tmp: Path, args: argpar
               f"spinning/not {spin_ms / ort_ms:.2f}")
     diffs = _compare(model, RVTOnnxRunner(onnx_path), hists)
     print(f"{config.name:6s} ORT vs PyTorch (random weights, 3 steps): {_format_diffs(diffs)}")
+    parts = split_parts_cpu_ms(RVTOnnxRunner(onnx_path, intra_op_threads=1), hists, args.warmup, args.repeats)
+    print(f"{config.name:6s} 1 thread, thread CPU ms (median): whole step {parts['whole']:.1f}; split parts "
+          f"pre {parts['pre']:.1f} + recur {parts['recur']:.1f} + head {parts['head']:.1f} = "
+          f"{parts['pre'] + parts['recur'] + parts['head']:.1f} (davis-eval runs the three side by side)")
     return diffs["_decoded"]
 
 
