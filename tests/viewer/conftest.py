@@ -1,4 +1,4 @@
-"""Fixtures of the viewer tests (the helper module ``viewer_data`` is found through ``tests/conftest.py``)."""
+"""Fixtures of the viewer tests (the helper module is tests.helpers.viewer_data)."""
 
 from pathlib import Path
 

@@ -123,7 +123,7 @@ def test_a_head_reading_the_histogram_is_refused_and_a_clean_one_splits(tmp_path
 
 
 def test_a_graph_without_the_lstm_concat_is_refused(tmp_path):
-    from eval_data import oracle_rvt_onnx
+    from tests.helpers.eval_data import oracle_rvt_onnx
 
     path = oracle_rvt_onnx(tmp_path / "oracle.onnx", np.zeros((1, 7), np.float32))
     with pytest.raises(ModelFormatError, match="no single two-input Concat of h1"):
