@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -399,13 +399,15 @@ class ClipPool:
         rank, world_size: this process owns the slots ``i`` with ``i % world_size == rank`` (DDP).
         generations: int [size] generation of each slot (a checkpoint's ``state_dict()["generations"]``);
             default zeros.
+        on_clip: called after each clip built here (progress; an exception it raises stops the building).
 
     Raises:
         ValueError: size < world_size or bad rank.
     """
 
     def __init__(self, config: EoTConfig, model, grid_n: int, mask=None, *, size: int = 32, base_seed: int = 0,
-                 motions: Sequence[Motion] = (), rank: int = 0, world_size: int = 1, generations=None):
+                 motions: Sequence[Motion] = (), rank: int = 0, world_size: int = 1, generations=None,
+                 on_clip: Callable[[], None] | None = None):
         if int(world_size) < 1 or not 0 <= int(rank) < int(world_size):
             raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
         if int(size) < int(world_size):
@@ -427,6 +429,8 @@ class ClipPool:
         self.clips: dict[int, PoolClip] = {}
         for slot in self.owned.tolist():
             self._build(slot)
+            if on_clip is not None:
+                on_clip()
 
     def _build(self, slot: int) -> None:
         seed = slot_seed(self.base_seed, slot, int(self.generations[slot]))

@@ -12,8 +12,10 @@ One step (:func:`attack_loss` + Adam)::
     L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss)
     backward; (DDP: gradients all-reduced and averaged over ranks); Adam step
 
-Run state lives in ``out_dir``: ``checkpoints/last.pt`` (generator, optimizer, next step, pool generations, best
-so far, config; written atomically every ``checkpoint_every`` steps and at the end), ``log.jsonl`` (one JSON
+Run state lives in ``out_dir``: ``checkpoints/last.pt`` (generator, optimizer, completed steps, pool generations,
+best so far, config; written atomically every few minutes of work or every ``checkpoint_every`` steps, after the
+last step of a call, and when SIGINT / SIGTERM asks the run to stop: the step in progress finishes, the checkpoint
+is written and :class:`AttackInterrupted` is raised), ``log.jsonl`` (one JSON
 object per step: loss, obj, cls, alpha, lr; validation records with SeqASR), ``snapshots/step_XXXXXX.png``
 (the hard n x n texture), ``best_texture.npy/png`` + ``best.json`` (best validation SeqASR, ties broken by the
 lower mean top pedestrian score; ``best_generator.pt`` is the generator of the best gradient-phase texture),
@@ -40,16 +42,18 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detections
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
+from davis_rig.attack.stop import StopOnSignal
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.errors import CheckpointError, MissingDependencyError
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS
@@ -61,6 +65,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 
 __all__ = [
     "AttackConfig",
+    "AttackInterrupted",
     "AttackResult",
     "SELECTION_RULES",
     "V2E_GRADIENTS",
@@ -68,6 +73,7 @@ __all__ = [
     "clip_histograms",
     "load_attack_detector",
     "optimize_texture",
+    "read_attack_checkpoint",
     "validate",
 ]
 
@@ -96,7 +102,10 @@ class AttackConfig:
         pool_size: pre-rasterized clips in the pool; refresh_every / refresh_fraction: pool refresh.
         validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
         validation_threshold: confidence threshold of the validation SeqASR.
-        checkpoint_every, snapshot_every: periods (steps).
+        checkpoint_every: checkpoint period (steps); ``None`` (default): by wall time, every
+            ``checkpoint_interval_s`` seconds of work (and always after the last step of a call and on a stop
+            request). Both may change on resume.
+        snapshot_every: period of the texture snapshots (steps).
         v2e_mode, v2e_binning: see :func:`davis_rig.events.v2e_torch.v2e_histograms` (``"official_relaxed"``
             and ``"floor"`` need a uniform threshold map, i.e. ``eot.threshold_sigma == 0``; checked here).
         v2e_gradient: backward of the event counts (:data:`V2E_GRADIENTS`, see :func:`clip_histograms`):
@@ -135,7 +144,8 @@ class AttackConfig:
     validate_every: int = 1000
     num_validation_clips: int = 16
     validation_threshold: float = 0.25
-    checkpoint_every: int = 500
+    checkpoint_every: int | None = None
+    checkpoint_interval_s: float = 300.0
     snapshot_every: int = 500
     v2e_mode: str = "dvs"
     v2e_binning: str = "interval"
@@ -152,9 +162,13 @@ class AttackConfig:
 
     def __post_init__(self) -> None:
         for name in ("iterations", "clips_per_step", "pool_size", "refresh_every", "validate_every",
-                     "checkpoint_every", "snapshot_every", "num_validation_clips"):
+                     "snapshot_every", "num_validation_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.checkpoint_every is not None and int(self.checkpoint_every) < 1:
+            raise ValueError(f"checkpoint_every must be >= 1 or None, got {self.checkpoint_every}")
+        if not self.checkpoint_interval_s > 0:
+            raise ValueError(f"checkpoint_interval_s must be > 0, got {self.checkpoint_interval_s}")
         if self.v2e_gradient not in V2E_GRADIENTS:
             raise ValueError(f"v2e_gradient must be one of {V2E_GRADIENTS}, got {self.v2e_gradient!r}")
         if self.loss_reduction not in LOSS_REDUCTIONS:
@@ -375,19 +389,21 @@ def _write_png(path: Path, grid: np.ndarray) -> None:
 
 
 def _validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: int = _VAL_SEED_OFFSET,
-                      motions: Sequence = ()) -> list[PoolClip]:
+                      motions: Sequence = (), on_clip: Callable[[], None] | None = None) -> list[PoolClip]:
     """``num`` clips of the training distribution (``motions`` included) with their own seeds (validation or
-    refinement, by ``seed_offset``)."""
+    refinement, by ``seed_offset``); ``on_clip`` is called after each prepared clip."""
     clips = []
     for i in range(num):
         seed = slot_seed(config.seed + seed_offset, i, 0)
         spec, sensor = draw_scene(config.eot, seed, model.num_shapes, motions)
         clips.append(prepare_clip(spec, sensor, model, config.grid_n, mask, config=config.eot, seed=seed))
+        if on_clip is not None:
+            on_clip()
     return clips
 
 
 def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: float,
-             events: str = "exact") -> dict:
+             events: str = "exact", *, stop=None) -> dict:
     """Validation SeqASR of a hard texture on pre-rasterized clips, events from the exact simulator by default.
 
     Args:
@@ -396,6 +412,8 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
         detector: RVT detector.
         threshold: confidence threshold.
         events: the event model (:data:`davis_rig.attack.evaluate.EVENT_MODELS`).
+        stop: a :class:`~davis_rig.attack.stop.StopOnSignal` polled between clips (internal: a requested stop
+            abandons the validation).
 
     Returns:
         ``{"SeqASR", "num_sequences", "num_detected", "mean_top_score"}`` (top score: mean over windows of the
@@ -404,6 +422,7 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
     g = torch.as_tensor(np.asarray(grid, dtype=np.float32), device=clips[0].threshold.device)
     decoded, boxes, ends, tops = [], [], [], []
     for clip in clips:
+        _check_stop(stop)
         with torch.no_grad():
             video = clip.video(g)
         dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us, events=events,
@@ -417,11 +436,122 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
             "mean_top_score": float(np.mean(tops))}
 
 
+class AttackInterrupted(KeyboardInterrupt):
+    """A stop request (SIGINT / SIGTERM) ended :func:`optimize_texture` after saving its state.
+
+    A :class:`KeyboardInterrupt`, so callers that handle Ctrl-C handle it too.
+
+    Attributes:
+        step: completed steps saved in ``checkpoint`` (the number a resume continues from).
+        iterations: the run's total steps.
+        checkpoint: ``checkpoints/last.pt``, or ``None`` when the stop came before the run's first step (nothing
+            was written).
+        signal_name: ``"SIGINT"`` or ``"SIGTERM"``.
+    """
+
+    def __init__(self, step: int, iterations: int, checkpoint: Path | None, signal_name: str | None):
+        self.step = int(step)
+        self.iterations = int(iterations)
+        self.checkpoint = checkpoint
+        self.signal_name = signal_name
+        where = (f"checkpoint {checkpoint} holds step {step} of {iterations}; continue with --resume"
+                 if checkpoint is not None else "stopped while preparing clips, before the first step; nothing written")
+        super().__init__(f"{signal_name or 'stop'}: {where}")
+
+
+class _StopRequested(Exception):
+    """Raised between clips of a preparation or validation when a stop was requested."""
+
+
+def _check_stop(stop) -> None:
+    if stop is not None and stop.requested:
+        raise _StopRequested
+
+
 def _atomic_save(obj, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
+
+
+#: Keys of ``checkpoints/last.pt`` and their types (``pending_validation``, added later, is optional).
+_CHECKPOINT_KEYS = {"generator": dict, "optimizer": dict, "step": int, "pool": dict, "best": str, "config": dict}
+
+
+def read_attack_checkpoint(path: str | Path, map_location=None) -> dict:
+    """Read an attack run's ``checkpoints/last.pt`` and check its layout.
+
+    Args:
+        path: the checkpoint.
+        map_location: torch ``map_location`` of its tensors.
+
+    Returns:
+        The state dict: ``generator``, ``optimizer`` (state dicts), ``step`` (completed steps), ``pool``
+        (``{"base_seed", "size", "generations"}``), ``best`` (JSON of the best validation record or ``""``),
+        ``config`` (:meth:`AttackConfig.to_dict`), ``pending_validation`` (bool: the validation of ``step`` was
+        interrupted and runs first on resume).
+
+    Raises:
+        CheckpointError: unreadable (truncated, corrupt) or not an attack checkpoint; the message names ``path``.
+    """
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... depending on the damage
+        raise CheckpointError(f"{path}: unreadable attack checkpoint ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: not an attack checkpoint (a {type(state).__name__}, not a dict)")
+    wrong = sorted(k for k, kind in _CHECKPOINT_KEYS.items() if not isinstance(state.get(k), kind))
+    if wrong:
+        raise CheckpointError(f"{path}: not an attack checkpoint (missing or malformed: {', '.join(wrong)})")
+    pool = state["pool"]
+    if not isinstance(pool.get("generations"), list) or not isinstance(state["config"].get("eot"), dict):
+        raise CheckpointError(f"{path}: not an attack checkpoint (malformed pool or config)")
+    if state["step"] < 0:
+        raise CheckpointError(f"{path}: negative step {state['step']}")
+    try:
+        json.loads(state["best"]) if state["best"] else None
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: malformed best record ({exc})") from exc
+    state.setdefault("pending_validation", False)
+    return state
+
+
+#: Settings that may change when a run is resumed (the others must match the checkpoint's).
+_FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_every", "checkpoint_interval_s")
+
+
+def _check_resume_config(state: dict, config: AttackConfig, path: Path) -> None:
+    """Refuse a checkpoint written with other settings (naming the fields that differ).
+
+    A field added after the checkpoint was written (top level or in ``eot``) counts as its default value.
+    """
+    current = config.to_dict()
+    defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
+                                     default=str))
+    saved = {**defaults, **dict(state["config"])}
+    saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **dict(saved["eot"])}
+    for name in _FREE_ON_RESUME:
+        saved.pop(name, None)
+        current.pop(name, None)
+    if saved != current:
+        diff = sorted(k for k in current if saved.get(k) != current.get(k))
+        raise CheckpointError(f"{path} was written with a different configuration (fields {diff})")
+
+
+def _logged_steps(path: Path) -> int:
+    """The last step recorded in a run's ``log.jsonl`` (0 when there is none)."""
+    last = 0
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(rec, dict) and isinstance(rec.get("step"), int):
+                last = max(last, rec["step"])
+    return last
 
 
 def _truncate_log(path: Path, last_step: int) -> None:
@@ -442,15 +572,22 @@ _RUN_OUTPUTS = ("log.jsonl", "best_texture.npy", "best_texture.png", "best.json"
 
 
 def _check_new_run(out: Path, resume: bool) -> None:
-    """Refuse a new run (``resume=False``) in a folder that holds one (``checkpoints/last.pt`` or ``log.jsonl``).
+    """Refuse a new run (``resume=False``) in a folder that holds one (``checkpoints/last.pt`` or ``log.jsonl``),
+    and a resume of a run that logged steps but left no checkpoint (it would silently restart at step 1).
 
     Raises:
-        CheckpointError: ``out`` holds a run; the message names ``--resume`` and a new ``--out``.
+        CheckpointError: the message names the folder and what to do.
     """
-    held = [p for p in (out / "checkpoints" / "last.pt", out / "log.jsonl") if p.is_file()]
+    ckpt = out / "checkpoints" / "last.pt"
+    held = [p for p in (ckpt, out / "log.jsonl") if p.is_file()]
     if held and not resume:
         raise CheckpointError(f"{out} already holds a run ({held[0]}); continue it with --resume (resume=True) or "
                               f"write the new run to another --out folder")
+    logged = _logged_steps(out / "log.jsonl")
+    if resume and not ckpt.is_file() and logged:
+        raise CheckpointError(f"{out}/log.jsonl records {logged} steps but there is no {ckpt} to continue from (the "
+                              f"run ended before its first checkpoint); remove {out} or start again in another --out "
+                              f"folder")
 
 
 def _clear_outputs(out: Path) -> None:
@@ -460,6 +597,16 @@ def _clear_outputs(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
     for snapshot in (out / "snapshots").glob("step_*.png"):
         snapshot.unlink()
+
+
+def _remove_unfinished(out: Path, created: bool) -> None:
+    """Undo a new run that failed before its first checkpoint: its outputs, and the folders it created."""
+    _clear_outputs(out)
+    for folder in (out / "snapshots", out / "checkpoints"):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    if created and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
 
 
 def _better(candidate: dict, best: dict | None, select_by: str = "seqasr") -> bool:
@@ -519,30 +666,34 @@ def optimize_texture(
     device=None,
     progress: bool = True,
     max_steps: int | None = None,
+    handle_signals: bool = True,
 ) -> AttackResult:
     """Optimise an adversarial texture (see the module docstring).
 
     Args:
         config: the attack settings.
         detector: frozen RVT detector (:func:`load_attack_detector`); put in eval mode, parameters frozen here.
-        out_dir: run folder (created).
-        resume: continue from ``out_dir/checkpoints/last.pt``; without that checkpoint, a new run that first
-            removes the outputs of an earlier, unfinished run (log, best, refined and final textures, snapshots).
-            With ``resume=False`` ``out_dir`` must not hold a run. ``iterations`` may change on resume (as may
-            ``refine_passes`` and ``refine_clips``); the alpha schedule then runs over the new total, so extending
-            a finished run lowers alpha again (e.g. 300 -> 11,500 steps: from 1 back to about 0.03 at step 300).
+        out_dir: run folder (created once the clips are prepared).
+        resume: continue from ``out_dir/checkpoints/last.pt`` exactly where it stopped; without a checkpoint (and
+            without logged steps) a new run. With ``resume=False`` ``out_dir`` must not hold a run.
+            ``iterations`` may change on resume (as may ``refine_passes``, ``refine_clips`` and the checkpoint
+            period); the alpha schedule then runs over the new total, so extending a finished run lowers alpha
+            again (e.g. 300 -> 11,500 steps: from 1 back to about 0.03 at step 300).
         body_model: :class:`~davis_rig.scene.body.BodyModel` (default: bundled asset on ``device``).
         motions: training motions for the EoT, validation and refinement clips (default: the shapes' walk cycles).
         device: torch device of the generator and clips (default: the detector's).
-        progress: tqdm bar on rank 0.
+        progress: tqdm bars on rank 0 (stderr): clip preparation, then the steps.
         max_steps: stop after this many steps in this call (the run can be resumed); ``None`` = to the end.
+        handle_signals: from the main thread, SIGINT / SIGTERM finish the current step, write the checkpoint and
+            raise :class:`AttackInterrupted` (a second signal interrupts at once); False: they act as usual.
 
     Returns:
         :class:`AttackResult`.
 
     Raises:
         CheckpointError: the checkpoint belongs to a different configuration or is unreadable; ``resume=False``
-            and ``out_dir`` already holds a run.
+            and ``out_dir`` already holds a run; ``resume=True`` and the run logged steps but has no checkpoint.
+        AttackInterrupted: a stop was requested (the checkpoint holds the completed steps).
     """
     from tqdm import tqdm
 
@@ -554,9 +705,12 @@ def optimize_texture(
         raise ValueError(f"clips_per_step {config.clips_per_step} must be divisible by the world size {world}")
     out = Path(out_dir)
     _check_new_run(out, resume)
-    if rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "checkpoints" / "last.pt"
     device = torch.device(device) if device is not None else next(detector.parameters()).device
+    state = None
+    if resume and ckpt_path.is_file():
+        state = read_attack_checkpoint(ckpt_path, map_location=device)
+        _check_resume_config(state, config, ckpt_path)
     detector.eval()
     for p in detector.parameters():
         p.requires_grad_(False)
@@ -567,56 +721,44 @@ def optimize_texture(
     generator = TextureGenerator(config.grid_n, hidden=config.hidden, dropout=config.dropout).to(device)
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
                                  weight_decay=config.weight_decay)
-    start, best, generations, saved_pool = 0, None, None, None
-    ckpt_path = out / "checkpoints" / "last.pt"
-    if resume and ckpt_path.is_file():
+    start, best, generations, saved_pool, pending = 0, None, None, None, False
+    if state is not None:
         try:
-            state = torch.load(ckpt_path, map_location=device, weights_only=True)
-        except (OSError, RuntimeError, ValueError) as exc:
-            raise CheckpointError(f"{ckpt_path}: unreadable attack checkpoint ({exc})") from exc
-        current = config.to_dict()
-        # a field added after the checkpoint was written (top level or in eot) counts as its default value
-        defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
-                                         default=str))
-        saved = {**defaults, **dict(state["config"])}
-        saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **dict(saved["eot"])}
-        for name in ("iterations", "refine_passes", "refine_clips"):  # free to change on resume
-            saved.pop(name, None)
-            current.pop(name, None)
-        if saved != current:
-            diff = sorted(k for k in current if saved.get(k) != current.get(k))
-            raise CheckpointError(f"{ckpt_path} was written with a different configuration (fields {diff})")
-        generator.load_state_dict(state["generator"])
-        optimizer.load_state_dict(state["optimizer"])
+            generator.load_state_dict(state["generator"])
+            optimizer.load_state_dict(state["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as exc:
+            raise CheckpointError(f"{ckpt_path}: the generator or optimizer state does not fit this run ({exc})") \
+                from exc
         start = int(state["step"])
         saved_pool = dict(state["pool"])
         generations = saved_pool["generations"]
+        if len(generations) != config.pool_size:
+            raise CheckpointError(f"{ckpt_path}: pool of {len(generations)} slots, the run has {config.pool_size}")
         best = json.loads(state["best"]) if state["best"] else None
+        pending = bool(state["pending_validation"])
 
     per_rank = config.clips_per_step // world
     end = config.iterations if max_steps is None else min(config.iterations, start + int(max_steps))
+    created = not out.exists()
     pool, val_clips = None, []
-    if end > start:  # a finished run is only re-read: no clip is rendered
-        pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size, base_seed=config.seed,
-                        motions=motions, rank=rank, world_size=world, generations=generations)
-        if rank == 0:
-            val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips, motions=motions)
-    if world > 1:  # every rank has read the folder before rank 0 changes it
-        torch.distributed.barrier()
-    if rank == 0 and start > 0:
-        _truncate_log(out / "log.jsonl", start)
-    elif rank == 0:
-        _clear_outputs(out)
-    log = open(out / "log.jsonl", "a") if rank == 0 else None
-    bar = tqdm(total=end - start, disable=not progress or rank != 0, desc=f"attack {config.grid_n}x{config.grid_n}")
-    t_start = time.perf_counter()
+    wrote_checkpoint = state is not None
+    last_checkpoint_s = time.monotonic()
 
-    def checkpoint(next_step: int) -> None:
+    def checkpoint(next_step: int, pending_validation: bool = False) -> None:
+        nonlocal wrote_checkpoint, last_checkpoint_s
         # a finished run that is only refined builds no pool: its generations are the loaded ones
         pool_state = pool.state_dict() if pool is not None else saved_pool
         _atomic_save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": next_step,
-                      "pool": pool_state, "best": json.dumps(best) if best else "",
-                      "config": config.to_dict()}, ckpt_path)
+                      "pool": pool_state, "best": json.dumps(best) if best else "", "config": config.to_dict(),
+                      "pending_validation": bool(pending_validation)}, ckpt_path)
+        wrote_checkpoint, last_checkpoint_s = True, time.monotonic()
+
+    def checkpoint_due(done: int) -> bool:
+        if done == end:
+            return True
+        if config.checkpoint_every is not None:
+            return done % config.checkpoint_every == 0
+        return time.monotonic() - last_checkpoint_s >= config.checkpoint_interval_s
 
     def hard_texture() -> np.ndarray:
         generator.eval()
@@ -625,52 +767,121 @@ def optimize_texture(
         generator.train()
         return grid
 
-    try:
-        generator.train()
-        for step in range(start, end):
-            if step > 0 and step % config.refresh_every == 0:
-                pool.refresh(step, config.refresh_fraction)
-            alpha = alpha_at(config.alpha_schedule, step, config.iterations)
-            grid = binarize_ste(_soft_grid(generator, config.seed, step), alpha)
-            loss = attack_loss(grid, pool.sample(step, per_rank), detector, config)
-            optimizer.zero_grad(set_to_none=True)
-            loss.total.backward()
-            _average_gradients(generator.parameters(), world)
-            optimizer.step()
-            values = torch.stack([loss.total.detach(), loss.obj.detach(), loss.cls.detach()]).float()
-            if world > 1:
-                torch.distributed.all_reduce(values)
-                values /= world
-            done = step + 1
-            if rank == 0:
-                record = {"step": done, "loss": float(values[0]), "obj": float(values[1]), "cls": float(values[2]),
-                          "alpha": alpha, "lr": optimizer.param_groups[0]["lr"]}
-                log.write(json.dumps(record) + "\n")
-                bar.set_postfix(loss=f"{record['loss']:.2f}", alpha=f"{alpha:.2f}")
-                bar.update(1)
-                if done % config.snapshot_every == 0 or done == config.iterations:
-                    _write_png(out / "snapshots" / f"step_{done:06d}.png", hard_texture())
-                if done % config.validate_every == 0 or done == config.iterations:
-                    tex = hard_texture()
-                    res = validate(tex, val_clips, detector, config.validation_threshold, config.events)
-                    res.update(step=done)
-                    log.write(json.dumps({"validation": res}) + "\n")
-                    if _better(res, best, config.select_by):
-                        best = res
-                        np.save(out / "best_texture.npy", tex)
-                        _write_png(out / "best_texture.png", tex)
-                        torch.save(generator.state_dict(), out / "best_generator.pt")
-                        (out / "best.json").write_text(json.dumps(best, indent=1))
+    def run_validation(done: int, stop) -> None:
+        nonlocal best
+        tex = hard_texture()
+        res = validate(tex, val_clips, detector, config.validation_threshold, config.events, stop=stop)
+        res.update(step=done)
+        log.write(json.dumps({"validation": res}) + "\n")
+        if _better(res, best, config.select_by):
+            best = res
+            np.save(out / "best_texture.npy", tex)
+            _write_png(out / "best_texture.png", tex)
+            torch.save(generator.state_dict(), out / "best_generator.pt")
+            (out / "best.json").write_text(json.dumps(best, indent=1))
+
+    log, bar = None, None
+    steps_done = 0
+    with StopOnSignal(enabled=handle_signals) as stop:
+        try:
+            if end > start or pending:  # a finished run is only re-read: no clip is rendered
+                owned = len(range(rank, config.pool_size, world))
+                num_val = config.num_validation_clips if rank == 0 else 0
+                prep = tqdm(total=owned + num_val, disable=not progress or rank != 0, desc="preparing clips",
+                            unit="clip", file=sys.stderr)
+
+                def prepared() -> None:
+                    prep.update(1)
+                    _check_stop(stop)
+
+                try:
+                    _check_stop(stop)
+                    if end > start:
+                        pool = ClipPool(config.eot, body_model, config.grid_n, mask, size=config.pool_size,
+                                        base_seed=config.seed, motions=motions, rank=rank, world_size=world,
+                                        generations=generations, on_clip=prepared)
+                    else:
+                        prep.total = num_val
+                    if rank == 0:
+                        val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips,
+                                                      motions=motions, on_clip=prepared)
+                finally:
+                    prep.close()
+        except _StopRequested:
+            raise AttackInterrupted(start, config.iterations, ckpt_path if state is not None else None,
+                                    stop.signal_name) from None
+        if rank == 0:
+            out.mkdir(parents=True, exist_ok=True)
+        if world > 1:  # every rank has read the folder before rank 0 changes it
+            torch.distributed.barrier()
+        if rank == 0 and start > 0:
+            _truncate_log(out / "log.jsonl", start)
+        elif rank == 0:
+            _clear_outputs(out)
+        t_start = time.perf_counter()
+        try:
+            log = open(out / "log.jsonl", "a") if rank == 0 else None
+            bar = tqdm(total=config.iterations, initial=start, disable=not progress or rank != 0,
+                       desc=f"attack {config.grid_n}x{config.grid_n}", unit="step", file=sys.stderr)
+            generator.train()
+            if pending and rank == 0:  # the validation of step `start` was interrupted: it runs first
+                bar.set_postfix_str(f"validating {len(val_clips)} clips")
+                try:
+                    run_validation(start, stop)
+                except _StopRequested:
+                    raise AttackInterrupted(start, config.iterations, ckpt_path, stop.signal_name) from None
                 log.flush()
-                if done % config.checkpoint_every == 0 or done == end:
-                    checkpoint(done)
-            if world > 1:
-                torch.distributed.barrier()
-    finally:
-        bar.close()
-        if log is not None:
-            log.close()
-    steps = end - start
+                checkpoint(start)
+            for step in range(start, end):
+                if step > 0 and step % config.refresh_every == 0:
+                    pool.refresh(step, config.refresh_fraction)
+                alpha = alpha_at(config.alpha_schedule, step, config.iterations)
+                grid = binarize_ste(_soft_grid(generator, config.seed, step), alpha)
+                loss = attack_loss(grid, pool.sample(step, per_rank), detector, config)
+                optimizer.zero_grad(set_to_none=True)
+                loss.total.backward()
+                _average_gradients(generator.parameters(), world)
+                optimizer.step()
+                values = torch.stack([loss.total.detach(), loss.obj.detach(), loss.cls.detach()]).float()
+                if world > 1:
+                    torch.distributed.all_reduce(values)
+                    values /= world
+                done = step + 1
+                steps_done += 1
+                stopped = False
+                if rank == 0:
+                    record = {"step": done, "loss": float(values[0]), "obj": float(values[1]),
+                              "cls": float(values[2]), "alpha": alpha, "lr": optimizer.param_groups[0]["lr"]}
+                    log.write(json.dumps(record) + "\n")
+                    bar.set_postfix(loss=f"{record['loss']:.2f}", alpha=f"{alpha:.2f}")
+                    bar.update(1)
+                    if done % config.snapshot_every == 0 or done == config.iterations:
+                        _write_png(out / "snapshots" / f"step_{done:06d}.png", hard_texture())
+                    if done % config.validate_every == 0 or done == config.iterations:
+                        bar.set_postfix_str(f"validating {len(val_clips)} clips")
+                        try:
+                            run_validation(done, stop)
+                        except _StopRequested:
+                            log.flush()
+                            checkpoint(done, pending_validation=True)
+                            stopped = True
+                    log.flush()
+                    if not stopped and (stop.requested or checkpoint_due(done)):
+                        checkpoint(done)
+                if _any_rank(stop.requested or stopped, world, device):
+                    raise AttackInterrupted(done, config.iterations, ckpt_path, stop.signal_name)
+        except BaseException as exc:
+            if rank == 0 and not wrote_checkpoint and not isinstance(exc, AttackInterrupted):
+                if log is not None:
+                    log.close()
+                    log = None
+                _remove_unfinished(out, created)  # a new run that cannot be resumed leaves nothing behind
+            raise
+        finally:
+            if bar is not None:
+                bar.close()
+            if log is not None:
+                log.close()
     elapsed = time.perf_counter() - t_start
     texture = hard_texture()
     if rank == 0:
@@ -686,5 +897,14 @@ def optimize_texture(
     best_tex = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
     return AttackResult(texture=texture, best_texture=best_tex,
                         best_seq_asr=float(best["SeqASR"]) if best else math.nan,
-                        best_step=int(best["step"]) if best else end, steps=steps,
-                        seconds_per_step=elapsed / steps if steps else math.nan, out_dir=out)
+                        best_step=int(best["step"]) if best else end, steps=end - start,
+                        seconds_per_step=elapsed / steps_done if steps_done else math.nan, out_dir=out)
+
+
+def _any_rank(flag: bool, world: int, device) -> bool:
+    """Whether ``flag`` is set on any rank (all ranks agree on when to stop)."""
+    if world == 1:
+        return bool(flag)
+    value = torch.tensor([1.0 if flag else 0.0], device=device)
+    torch.distributed.all_reduce(value, op=torch.distributed.ReduceOp.MAX)
+    return bool(value.item() > 0)

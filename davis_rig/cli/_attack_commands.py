@@ -22,7 +22,9 @@ examples:
   torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10_ddp --clips-per-step 8   # DDP
 
 RUN_DIR gets log.jsonl (loss, obj, cls, alpha per step; validation SeqASR), snapshots/step_*.png, checkpoints/
-last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Under torchrun
+last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Ctrl-C or SIGTERM
+finishes the current step, writes the checkpoint and exits 130; --resume then continues from that very step
+(the same losses as a run that was never stopped). Under torchrun
 (WORLD_SIZE > 1) the process group is initialised from the environment: nccl on CUDA, gloo on CPU.
 """
 
@@ -85,6 +87,10 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--alpha-schedule", default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
     p.add_argument("--validate-every", type=int, default=1000, help="validation period in steps (default: 1000)")
+    p.add_argument("--checkpoint-every", type=int, default=None, metavar="STEPS",
+                   help="write checkpoints/last.pt every STEPS steps (default: every 5 minutes of work); a "
+                        "checkpoint is also written after the last step of a call and on Ctrl-C / SIGTERM, "
+                        "which then stops with exit code 130")
     p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
     p.add_argument("--box-margin", type=float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
@@ -243,6 +249,7 @@ def _attack_config(args, grid_n: int, parts):
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, alpha_schedule=args.alpha_schedule,
                         validate_every=args.validate_every, num_validation_clips=args.val_clips,
+                        checkpoint_every=args.checkpoint_every,
                         box_margin_px=args.box_margin, loss_reduction=args.loss,
                         v2e_mode="official_relaxed" if relaxed else "dvs",
                         v2e_gradient="ste" if relaxed else args.v2e_gradient, events=args.events,
@@ -251,11 +258,25 @@ def _attack_config(args, grid_n: int, parts):
                         seed=args.seed)
 
 
+def _starting(command: str, args) -> None:
+    """The first progress line, before the imports and loads that take seconds."""
+    if not args.no_progress:
+        print(f"davis-attack {command}: loading torch, the detector and the body model ...", file=sys.stderr,
+              flush=True)
+
+
+def _interrupted(command: str, exc) -> int:
+    """Report a run stopped by Ctrl-C / SIGTERM (:class:`~davis_rig.attack.optimize.AttackInterrupted`)."""
+    print(f"davis-attack {command}: interrupted ({exc})", file=sys.stderr)
+    return 130
+
+
 def optimize_command(args) -> int:
     """Action of ``davis-attack optimize``: one :func:`davis_rig.attack.optimize.optimize_texture` call."""
+    _starting("optimize", args)
     import torch
 
-    from davis_rig.attack.optimize import load_attack_detector, optimize_texture
+    from davis_rig.attack.optimize import AttackInterrupted, load_attack_detector, optimize_texture
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -267,6 +288,8 @@ def optimize_command(args) -> int:
     try:
         result = optimize_texture(config, detector, args.out, resume=args.resume, device=device, motions=motions,
                                   progress=not args.no_progress, max_steps=args.max_steps)
+    except AttackInterrupted as exc:
+        return _interrupted("optimize", exc)
     finally:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
@@ -311,6 +334,14 @@ def _parse_textures(items: list[str]) -> dict[str, str] | None:
 
 def evaluate_command(args) -> int:
     """Action of ``davis-attack evaluate``: Table 1, Table 2 or named textures (one API call each)."""
+    textures = _parse_textures(args.texture)
+    if textures is None:
+        return _usage(f"--texture expects KEY=PATH, got {args.texture}")
+    if args.table == 1 and not all(k.isdigit() for k in textures):
+        return _usage(f"Table 1 keys are grid sizes (e.g. 10=path), got {sorted(textures)}")
+    if args.table is None and not textures:
+        return _usage("give at least one --texture NAME=PATH (or --table 1 / 2)")
+    _starting("evaluate", args)
     import torch
 
     from davis_rig.attack import evaluate as ev
@@ -320,13 +351,6 @@ def evaluate_command(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = _device(args.device)
-    textures = _parse_textures(args.texture)
-    if textures is None:
-        return _usage(f"--texture expects KEY=PATH, got {args.texture}")
-    if args.table == 1 and not all(k.isdigit() for k in textures):
-        return _usage(f"Table 1 keys are grid sizes (e.g. 10=path), got {sorted(textures)}")
-    if args.table is None and not textures:
-        return _usage("give at least one --texture NAME=PATH (or --table 1 / 2)")
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
     config = _eval_config(args, default_thr)
     detector = load_attack_detector(args.detector, device=device)
@@ -363,10 +387,11 @@ def evaluate_command(args) -> int:
 
 def reproduce_command(args) -> int:
     """Action of ``davis-attack reproduce``: one :func:`davis_rig.attack.reproduce.reproduce_table` call."""
+    _starting("reproduce", args)
     import torch
 
     from davis_rig.attack import evaluate as ev
-    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.optimize import AttackInterrupted, load_attack_detector
     from davis_rig.attack.reproduce import reproduce_table
 
     if args.threads:
@@ -375,11 +400,14 @@ def reproduce_command(args) -> int:
     combos = None if args.combinations is None else [tuple(c.split("+")) for c in args.combinations]
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
     detector = load_attack_detector(args.detector, device=device)
-    res = reproduce_table(args.table, detector, args.out, attack=_attack_config(args, 10, None),
-                          eval_config=_eval_config(args, default_thr), grids=args.grids, combinations=combos,
-                          train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
-                          detector_name=str(args.detector) if args.detector else "bundled default",
-                          command=_command_line(), progress=not args.no_progress)
+    try:
+        res = reproduce_table(args.table, detector, args.out, attack=_attack_config(args, 10, None),
+                              eval_config=_eval_config(args, default_thr), grids=args.grids, combinations=combos,
+                              train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
+                              detector_name=str(args.detector) if args.detector else "bundled default",
+                              command=_command_line(), progress=not args.no_progress)
+    except AttackInterrupted as exc:
+        return _interrupted("reproduce", exc)
     print(res["markdown"].read_text())
     print(json.dumps({"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"]),
                       "record": str(res["record"])}))

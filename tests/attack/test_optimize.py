@@ -422,9 +422,7 @@ def test_a_new_run_refuses_a_folder_that_holds_a_run(detector, body, tmp_path):
 
 
 def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
-    # an earlier run that stopped before its first checkpoint left a log, a best texture and a refinement record
-    records = [{"step": 1, "loss": -1.0}, {"refine": {}}]
-    (tmp_path / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    # an earlier run left a best texture, a refinement record and a snapshot but no log and no checkpoint
     np.save(tmp_path / "best_texture.npy", np.full((4, 4), 7.0, np.float32))
     (tmp_path / "best.json").write_text(json.dumps({"SeqASR": 1.0, "mean_top_score": 0.0, "step": 1}))
     (tmp_path / "refine.json").write_text("{}")
@@ -433,11 +431,163 @@ def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
     result = optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False,
                               resume=True)
     steps, vals = _log(tmp_path / "log.jsonl")
-    assert [s["step"] for s in steps] == [1] and steps[0]["loss"] != -1.0 and [v["step"] for v in vals] == [1]
-    assert "refine" not in (tmp_path / "log.jsonl").read_text() and not (tmp_path / "refine.json").exists()
-    assert not (tmp_path / "snapshots" / "step_000500.png").exists()
+    assert [s["step"] for s in steps] == [1] and [v["step"] for v in vals] == [1]
+    assert not (tmp_path / "refine.json").exists() and not (tmp_path / "snapshots" / "step_000500.png").exists()
     assert set(np.unique(result.best_texture)) <= {0.0, 1.0}
     assert json.loads((tmp_path / "best.json").read_text()) == vals[0]
+
+
+def test_resume_of_a_log_without_checkpoint_is_refused_and_nothing_is_touched(detector, body, tmp_path):
+    # a run killed before its first checkpoint: --resume must not silently restart at step 1 over its log
+    log = "".join(json.dumps({"step": s, "loss": -1.0}) + "\n" for s in (1, 2))
+    (tmp_path / "log.jsonl").write_text(log)
+    with pytest.raises(CheckpointError, match="records 2 steps but there is no"):
+        optimize_texture(_tiny(), detector, tmp_path, body_model=body, progress=False, resume=True)
+    assert (tmp_path / "log.jsonl").read_text() == log
+
+
+@pytest.mark.parametrize("content, match", [
+    (b"", "unreadable"),
+    (b"not a checkpoint at all", "unreadable"),
+    ({"step": 2}, "missing or malformed: best, config, generator, optimizer, pool"),
+    ({"generator": {}, "optimizer": {}, "step": 2, "pool": {"generations": [0, 0]}, "best": "", "config": {}},
+     "malformed pool or config"),
+    ([1, 2, 3], "not a dict"),
+])
+def test_resume_from_a_corrupt_checkpoint_is_a_checkpoint_error_naming_the_file(detector, body, tmp_path, content,
+                                                                              match):
+    path = tmp_path / "checkpoints" / "last.pt"
+    path.parent.mkdir()
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save(content, path)
+    with pytest.raises(CheckpointError, match=match) as info:
+        optimize_texture(_tiny(), detector, tmp_path, body_model=body, progress=False, resume=True)
+    assert str(path) in str(info.value)
+
+
+def test_resume_from_a_checkpoint_of_another_generator_size_is_a_checkpoint_error(detector, body, tmp_path):
+    optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False)
+    path = tmp_path / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    state["generator"]["fc1.weight"] = torch.zeros(3, 3)
+    torch.save(state, path)
+    with pytest.raises(CheckpointError, match="does not fit"):
+        optimize_texture(_tiny(iterations=2, pool_size=1), detector, tmp_path, body_model=body, progress=False,
+                         resume=True)
+
+
+def _signal_at(monkeypatch, when: str, count: int) -> None:
+    """Send SIGINT to this process at the ``count``-th call of ``when`` ("attack_loss", "validate", "clip")."""
+    import os
+    import signal
+
+    import davis_rig.attack.eot as eot
+    import davis_rig.attack.optimize as opt
+
+    target = {"attack_loss": opt, "validate": opt, "clip": eot}[when]
+    name = {"attack_loss": "attack_loss", "validate": "detect_windows", "clip": "prepare_clip"}[when]
+    original = getattr(target, name)
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == count:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(target, name, wrapped)
+
+
+def test_sigint_checkpoints_the_step_and_resume_continues_exactly(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    cfg = _tiny(iterations=5, checkpoint_every=None, checkpoint_interval_s=1e6, validate_every=2)
+    optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
+    with monkeypatch.context() as patch:
+        _signal_at(patch, "attack_loss", 3)  # during step 3
+        with pytest.raises(AttackInterrupted) as info:
+            optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False)
+    assert info.value.step == 3 and info.value.checkpoint == tmp_path / "part" / "checkpoints" / "last.pt"
+    assert info.value.signal_name == "SIGINT"
+    assert torch.load(info.value.checkpoint, weights_only=True)["step"] == 3
+    assert [s["step"] for s in _log(tmp_path / "part" / "log.jsonl")[0]] == [1, 2, 3]
+    rest = optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
+    assert rest.steps == 2
+    assert (tmp_path / "full" / "log.jsonl").read_text() == (tmp_path / "part" / "log.jsonl").read_text()
+    a = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=True)
+    b = torch.load(tmp_path / "part" / "checkpoints" / "last.pt", weights_only=True)
+    for key in a["generator"]:
+        assert torch.equal(a["generator"][key], b["generator"][key]), key
+
+
+def test_sigint_during_validation_validates_first_on_resume(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    cfg = _tiny(iterations=3, num_validation_clips=2, validate_every=2, checkpoint_every=None)
+    optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
+    with monkeypatch.context() as patch:
+        _signal_at(patch, "validate", 1)  # the first validation clip of step 2
+        with pytest.raises(AttackInterrupted) as info:
+            optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False)
+    assert info.value.step == 2
+    state = torch.load(info.value.checkpoint, weights_only=True)
+    assert state["step"] == 2 and state["pending_validation"]
+    assert _log(tmp_path / "part" / "log.jsonl")[1] == []  # the abandoned validation left no record
+    optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
+    assert (tmp_path / "full" / "log.jsonl").read_text() == (tmp_path / "part" / "log.jsonl").read_text()
+    assert (tmp_path / "full" / "best.json").read_text() == (tmp_path / "part" / "best.json").read_text()
+
+
+def test_sigint_while_preparing_clips_leaves_nothing(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    _signal_at(monkeypatch, "clip", 1)
+    with pytest.raises(AttackInterrupted) as info:
+        optimize_texture(_tiny(), detector, tmp_path / "run", body_model=body, progress=False)
+    assert info.value.step == 0 and info.value.checkpoint is None and not (tmp_path / "run").exists()
+
+
+def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+
+    original = opt.attack_loss
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("out of memory")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(opt, "attack_loss", failing)
+    cfg = _tiny(checkpoint_every=None, checkpoint_interval_s=1e6)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        optimize_texture(cfg, detector, tmp_path / "run", body_model=body, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_checkpoint_period_in_steps_or_wall_time(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+
+    saved = []
+    original = opt._atomic_save
+    monkeypatch.setattr(opt, "_atomic_save", lambda state, path: saved.append(state["step"]) or original(state, path))
+    optimize_texture(_tiny(iterations=5, checkpoint_every=2), detector, tmp_path / "steps", body_model=body,
+                     progress=False)
+    assert saved == [2, 4, 5]  # every 2 steps and after the last one
+    saved.clear()
+    optimize_texture(_tiny(iterations=3, checkpoint_every=None, checkpoint_interval_s=1e6), detector,
+                     tmp_path / "long", body_model=body, progress=False, max_steps=2)
+    assert saved == [2]  # none due by time: only after the last step of the call
+    saved.clear()
+    optimize_texture(_tiny(iterations=3, checkpoint_every=None, checkpoint_interval_s=1e-9), detector,
+                     tmp_path / "short", body_model=body, progress=False)
+    assert saved == [1, 2, 3]
+    # the period is free on resume
+    optimize_texture(_tiny(iterations=3, checkpoint_every=5), detector, tmp_path / "long", body_model=body,
+                     progress=False, resume=True)
 
 
 def test_pool_clip_histograms_and_validation_use_the_clip_window(body, detector):
@@ -495,9 +645,9 @@ def test_optimize_passes_the_training_motions_to_validation_and_refinement(detec
     seen = []
     original = opt._validation_clips
 
-    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=()):
+    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=(), on_clip=None):
         seen.append((seed_offset, motions))
-        return original(config, model, mask, num, seed_offset, motions)
+        return original(config, model, mask, num, seed_offset, motions, on_clip)
 
     monkeypatch.setattr(opt, "_validation_clips", recording)
     cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)

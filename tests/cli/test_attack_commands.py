@@ -121,6 +121,29 @@ def test_main_entry_point_exit_codes(tmp_path, capsys):
     assert "davis-attack optimize: error:" in err and "missing.ckpt" in err
 
 
+def test_optimize_interrupted_exits_130_with_one_line_and_maps_the_checkpoint_period(monkeypatch, tmp_path, capsys):
+    import davis_rig.attack.optimize as opt
+
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake(config, detector, out, **kw):
+        seen["config"] = config
+        raise opt.AttackInterrupted(7, 11_500, Path(out) / "checkpoints" / "last.pt", "SIGINT")
+
+    monkeypatch.setattr(opt, "optimize_texture", fake)
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--device", "cpu", "--checkpoint-every", "50"])
+    assert args.func(args) == 130
+    assert seen["config"].checkpoint_every == 50
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("davis-attack optimize: loading")  # the first line comes before any slow import
+    assert err[-1] == (f"davis-attack optimize: interrupted (SIGINT: checkpoint {tmp_path}/checkpoints/last.pt "
+                       f"holds step 7 of 11500; continue with --resume)")
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--device", "cpu", "--no-progress"])
+    assert args.func(args) == 130 and seen["config"].checkpoint_every is None
+    assert len(capsys.readouterr().err.splitlines()) == 1
+
+
 def _patch_reproduce(monkeypatch) -> dict:
     """Patch the detector loader and ``reproduce_table``; returns the dict the fake fills with its call."""
     import davis_rig.attack.optimize as opt
@@ -224,7 +247,8 @@ def test_reproduce_examples_share_a_folder_only_with_the_same_budget():
     # refinement's may change): two examples writing to one folder with different --lr made the second one fail
     import shlex
 
-    free = ("iterations", "refine_passes", "refine_clips")
+    from davis_rig.attack.optimize import _FREE_ON_RESUME as free
+
     configs: dict[str, list[dict]] = {}
     for line in cmd.REPRODUCE_EPILOG.splitlines():
         if not line.strip().startswith("davis-attack reproduce"):
@@ -275,3 +299,40 @@ def test_help_documents_resume_schedule_refine_start_and_relaxed_gradient():
     assert "alpha schedule then runs over the new total" in text
     assert "better of the best texture and plain white" in text
     assert "replacing --v2e-gradient" in text
+
+
+def test_ctrl_c_on_a_real_run_exits_130_after_a_checkpoint_and_resume_continues(tmp_path):
+    # the command as a user runs it: SIGINT once steps are logged -> exit 130, one line, a checkpoint at the last
+    # logged step; --resume continues at the next step (the library test pins the bit-identical losses)
+    import json
+    import os
+    import signal
+    import subprocess
+    import time
+
+    fixture = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+    run = tmp_path / "run"
+    argv = [sys.executable, "-m", "davis_rig.cli.attack", "optimize", "--out", str(run), "--cells", "2",
+            "--pool-size", "1", "--val-clips", "1", "--iterations", "1000", "--validate-every", "1000",
+            "--detector", str(fixture), "--device", "cpu", "--threads", "1", "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    log = run / "log.jsonl"
+    deadline = time.monotonic() + 240
+    while not (log.is_file() and log.read_text().count("\n") >= 2) and time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stderr.read()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("davis-attack optimize: interrupted")
+    import torch
+
+    step = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["step"]
+    logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert step >= 2 and logged == list(range(1, step + 1))
+    done = subprocess.run([*argv, "--resume", "--max-steps", "2"], capture_output=True, text=True, env=env,
+                          timeout=240)
+    assert done.returncode == 0, done.stderr
+    logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert logged == list(range(1, step + 3))
