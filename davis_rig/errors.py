@@ -66,6 +66,24 @@ class ModelFormatError(FormatError):
     """An ONNX model has the wrong inputs/outputs or shapes for the requested use."""
 
 
+class ConfigError(DavisRigError, ValueError):
+    """A configuration value is out of its range or conflicts with another (a settings dataclass, an API argument).
+
+    Attributes:
+        field: the name of the offending field or argument (``conf_threshold``); a command maps it onto the
+            option that set it, so the message names the option without parsing this text.
+        reason: why the value is refused (``expected a number in [0, 1], got 1.5``).
+    """
+
+    def __init__(self, field: str, reason: str):
+        super().__init__(field, reason)  # both in args: the error pickles (worker processes) and compares
+        self.field = field
+        self.reason = reason
+
+    def __str__(self) -> str:
+        return f"{self.field}: {self.reason}"
+
+
 class ShapeError(DavisRigError, ValueError):
     """An array or tensor argument has the wrong shape; the message shows expected vs actual."""
 
