@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
 from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
@@ -158,19 +158,26 @@ class EoTConfig:
                       **overrides})
 
     def __post_init__(self) -> None:
+        def refuse(name: str, reason: str) -> None:
+            raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")
+
         if int(self.seq_len) < 1:
-            raise ValueError(f"seq_len must be >= 1, got {self.seq_len}")
+            refuse("seq_len", "expected an integer >= 1")
         for name in ("advance_probability", "random_light_probability", "random_background_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+                refuse(name, "expected a number in [0, 1]")
         lo, hi = self.threshold_range
         if not 0 < lo <= hi:
-            raise ValueError(f"threshold_range must satisfy 0 < low <= high, got {self.threshold_range}")
+            refuse("threshold_range", "expected 0 < low <= high")
         low_rate, high_rate = self.shot_noise_rate_hz
-        if self.threshold_sigma < 0 or low_rate < 0 or high_rate < low_rate:
-            raise ValueError("threshold_sigma must be >= 0 and shot_noise_rate_hz a range of rates >= 0")
+        if not 0 <= low_rate <= high_rate:
+            refuse("shot_noise_rate_hz", "expected a range of rates 0 <= low <= high")
+        if not self.threshold_sigma >= 0:
+            refuse("threshold_sigma", "expected a number >= 0")
         if int(self.window_us) <= 0:
-            raise ValueError(f"window_us must be > 0, got {self.window_us}")
+            refuse("window_us", "expected an integer > 0")
+        if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
+            refuse("playback_speed", "expected a finite number > 0")
 
     @property
     def duration_s(self) -> float:

@@ -36,7 +36,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
 from davis_rig.scene.camera import PinholeCamera
@@ -136,12 +136,24 @@ class EvalConfig:
         return cls(**{"background": 1.0, "light": Light.official(), "walk_in_place": True, **overrides})
 
     def __post_init__(self) -> None:
-        if int(self.seq_len) < 1 or int(self.warmup_windows) < 0:
-            raise ValueError(f"need seq_len >= 1 and warmup_windows >= 0, got {self.seq_len}, {self.warmup_windows}")
+        from davis_rig.scene.camera import TEST_SCALES_PX
+
+        def refuse(name: str, reason: str) -> None:
+            raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")
+
+        if int(self.seq_len) < 1:
+            refuse("seq_len", "expected an integer >= 1")
+        if int(self.warmup_windows) < 0:
+            refuse("warmup_windows", "expected an integer >= 0")
         if not self.thresholds or any(not 0 <= t <= 1 for t in self.thresholds):
-            raise ValueError(f"thresholds must be non-empty and in [0, 1], got {self.thresholds}")
+            refuse("thresholds", "expected one or more numbers in [0, 1]")
         if self.events not in EVENT_MODELS:
-            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
+            refuse("events", f"expected one of {EVENT_MODELS}")
+        if not self.scales or any(s not in TEST_SCALES_PX if isinstance(s, str) else not (math.isfinite(s) and s > 0)
+                                  for s in self.scales):
+            refuse("scales", f"expected names from {tuple(TEST_SCALES_PX)} or heights in px > 0")
+        if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
+            refuse("playback_speed", "expected a finite number > 0")
 
     @property
     def num_windows(self) -> int:

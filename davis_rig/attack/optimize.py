@@ -54,8 +54,15 @@ from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detect
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
 from davis_rig.attack.stop import StopOnSignal
-from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
-from davis_rig.errors import CheckpointError, MissingDependencyError
+from davis_rig.attack.texture import (
+    ALPHA_SCHEDULES,
+    MAX_CELLS,
+    TextureGenerator,
+    alpha_at,
+    binarize_ste,
+    hard_binarize,
+)
+from davis_rig.errors import CheckpointError, ConfigError, MissingDependencyError
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS
 
 try:
@@ -161,32 +168,38 @@ class AttackConfig:
     eot: EoTConfig = field(default_factory=EoTConfig)
 
     def __post_init__(self) -> None:
+        def refuse(name: str, reason: str) -> None:
+            raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")
+
+        if isinstance(self.grid_n, bool) or int(self.grid_n) != self.grid_n or not 1 <= self.grid_n <= MAX_CELLS:
+            refuse("grid_n", f"expected an integer in [1, {MAX_CELLS}]")
         for name in ("iterations", "clips_per_step", "pool_size", "refresh_every", "validate_every",
-                     "snapshot_every", "num_validation_clips"):
+                     "snapshot_every", "num_validation_clips", "refine_clips"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+                refuse(name, "expected an integer >= 1")
         if self.checkpoint_every is not None and int(self.checkpoint_every) < 1:
-            raise ValueError(f"checkpoint_every must be >= 1 or None, got {self.checkpoint_every}")
-        if not self.checkpoint_interval_s > 0:
-            raise ValueError(f"checkpoint_interval_s must be > 0, got {self.checkpoint_interval_s}")
-        if self.v2e_gradient not in V2E_GRADIENTS:
-            raise ValueError(f"v2e_gradient must be one of {V2E_GRADIENTS}, got {self.v2e_gradient!r}")
-        if self.loss_reduction not in LOSS_REDUCTIONS:
-            raise ValueError(f"loss_reduction must be one of {LOSS_REDUCTIONS}, got {self.loss_reduction!r}")
-        if self.precision not in ("fp32", "bf16"):
-            raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
-        if self.refine_passes < 0 or self.refine_clips < 1:
-            raise ValueError(f"need refine_passes >= 0 and refine_clips >= 1, got {self.refine_passes}, "
-                             f"{self.refine_clips}")
-        if self.select_by not in SELECTION_RULES:
-            raise ValueError(f"select_by must be one of {SELECTION_RULES}, got {self.select_by!r}")
-        if self.events not in EVENT_MODELS:
-            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
+            refuse("checkpoint_every", "expected an integer >= 1 or None")
+        if self.refine_passes < 0:
+            refuse("refine_passes", "expected an integer >= 0")
+        for name in ("lr", "checkpoint_interval_s"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                refuse(name, "expected a finite number > 0")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            refuse("weight_decay", "expected a finite number >= 0")
+        if self.box_margin_px is not None and not (math.isfinite(self.box_margin_px) and self.box_margin_px >= 0):
+            refuse("box_margin_px", "expected a finite number >= 0 or None")
+        if not 0 <= self.validation_threshold <= 1:
+            refuse("validation_threshold", "expected a number in [0, 1]")
+        for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("v2e_gradient", V2E_GRADIENTS),
+                              ("loss_reduction", LOSS_REDUCTIONS), ("precision", ("fp32", "bf16")),
+                              ("select_by", SELECTION_RULES), ("events", EVENT_MODELS)):
+            if getattr(self, name) not in allowed:
+                refuse(name, f"expected one of {allowed}")
         if self.clips_per_step > self.pool_size:
-            raise ValueError(f"clips_per_step {self.clips_per_step} exceeds pool_size {self.pool_size}")
+            refuse("clips_per_step", f"expected at most pool_size ({self.pool_size}) clips per step")
         if self.v2e_mode != "dvs" and self.eot.threshold_sigma > 0:
-            raise ValueError(f"v2e_mode {self.v2e_mode!r} needs one threshold per clip: set eot.threshold_sigma to 0 "
-                             f"(got {self.eot.threshold_sigma})")
+            raise ConfigError("v2e_mode", f"{self.v2e_mode!r} needs one threshold per clip: set eot.threshold_sigma "
+                                          f"to 0 (got {self.eot.threshold_sigma})")
 
     def to_dict(self) -> dict:
         """JSON-ready dict (nested dataclasses as dicts)."""
@@ -499,7 +512,8 @@ def read_attack_checkpoint(path: str | Path, map_location=None) -> dict:
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ... depending on the damage
-        raise CheckpointError(f"{path}: unreadable attack checkpoint ({type(exc).__name__}: {exc})") from exc
+        first = (str(exc).strip().splitlines() or [""])[0]  # torch's messages run over several lines
+        raise CheckpointError(f"{path}: unreadable attack checkpoint ({type(exc).__name__}: {first})") from exc
     if not isinstance(state, dict):
         raise CheckpointError(f"{path}: not an attack checkpoint (a {type(state).__name__}, not a dict)")
     wrong = sorted(k for k, kind in _CHECKPOINT_KEYS.items() if not isinstance(state.get(k), kind))

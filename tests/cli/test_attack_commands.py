@@ -15,12 +15,9 @@ from davis_rig.cli import _attack_commands as cmd
 
 
 def _parser():
-    parser = argparse.ArgumentParser(prog="davis-attack")
-    sub = parser.add_subparsers(dest="command", required=True)
-    cmd.add_optimize_parser(sub)
-    cmd.add_evaluate_parser(sub)
-    cmd.add_reproduce_parser(sub)
-    return parser
+    from davis_rig.cli.attack import build_parser
+
+    return build_parser()
 
 
 def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
@@ -104,11 +101,105 @@ def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
     assert config.headings_rad == (math.pi / 2,) and seen["kw"]["parts"] == ("torso", "arms", "legs")
 
 
-@pytest.mark.parametrize("argv", [["--texture", "nokey"], ["--table", "1", "--texture", "ten=x.npy"], []])
-def test_evaluate_usage_errors(argv, tmp_path, capsys):
-    args = _parser().parse_args(["evaluate", "--out", str(tmp_path), *argv])
-    assert args.func(args) == 2
-    assert "error" in capsys.readouterr().err
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+BAD_VALUES = [  # (argv after the subcommand, the option the one-line message must name)
+    (["optimize", "--cells", "0"], "--cells"),
+    (["optimize", "--cells", "300"], "--cells"),  # ConfigError of AttackConfig, mapped onto the option
+    (["optimize", "--iterations", "-1"], "--iterations"),
+    (["optimize", "--lr", "nan"], "--lr"),
+    (["optimize", "--lr", "0"], "--lr"),
+    (["optimize", "--parts", "nose"], "--parts"),
+    (["optimize", "--parts", "all", "torso"], "--parts"),
+    (["optimize", "--clips-per-step", "64"], "--clips-per-step"),
+    (["optimize", "--checkpoint-every", "0"], "--checkpoint-every"),
+    (["optimize", "--box-margin", "-2"], "--box-margin"),
+    (["optimize", "--playback-speed", "inf"], "--playback-speed"),
+    (["optimize", "--threads", "0"], "--threads"),
+    (["optimize", "--device", "gpu"], "--device"),
+    (["optimize", "--seed", "-1"], "--seed"),
+    (["optimize", "--max-steps", "0"], "--max-steps"),
+    (["evaluate", "--texture", "nokey"], "--texture"),
+    (["evaluate", "--table", "1", "--texture", "ten=x.npy"], "--texture"),
+    (["evaluate"], "--texture"),
+    (["evaluate", "--texture", "a=x.npy", "--threshold", "1.5"], "--threshold"),
+    (["evaluate", "--texture", "a=x.npy", "--thresholds", "nan"], "--thresholds"),
+    (["evaluate", "--texture", "a=x.npy", "--scales", "huge"], "--scales"),
+    (["evaluate", "--texture", "a=x.npy", "--phases", "-1"], "--phases"),
+    (["reproduce", "--table", "2", "--combinations", "torso+nose"], "--combinations"),
+    (["reproduce", "--table", "1", "--grids", "0"], "--grids"),
+    (["export", "TEXTURE", "--shape", "-1"], "--shape"),
+    (["export", "TEXTURE", "--ease", "nan"], "--ease"),
+    (["export", "TEXTURE", "--size-mm", "0"], "--size-mm"),
+]
+
+
+@pytest.mark.parametrize("argv, option", BAD_VALUES)
+def test_a_bad_value_exits_2_with_one_line_naming_the_option_and_leaves_nothing(argv, option, tmp_path, capsys):
+    from davis_rig.cli.attack import main
+
+    out = tmp_path / "out"
+    argv = [tmp_path / "grid.npy" if a == "TEXTURE" else a for a in argv]
+    np.save(tmp_path / "grid.npy", np.eye(4, dtype=np.float32))
+    code = main([str(a) for a in argv] + ["--out", str(out), "--device", "cpu", *(["--quiet"] if argv[0] != "export"
+                                                                                  else ["--no-preview"])])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith(f"davis-attack {argv[0]}: error: argument {option}")
+    assert not any(line.startswith("Traceback") for line in err) and not out.exists()
+
+
+@pytest.mark.parametrize("argv", [["optimize", "--detector", "MISSING"], ["evaluate", "--texture", "a=MISSING"],
+                                  ["export", "MISSING"], ["optimize", "--resume", "--detector", "FIXTURE"]])
+def test_a_missing_or_corrupt_file_exits_4_with_one_line_and_leaves_nothing(argv, tmp_path, capsys):
+    from davis_rig.cli.attack import main
+
+    out = tmp_path / "out"
+    if "--resume" in argv:  # a corrupt checkpoint
+        (out / "checkpoints").mkdir(parents=True)
+        (out / "checkpoints" / "last.pt").write_bytes(b"corrupt")
+    argv = [str(FIXTURE) if a == "FIXTURE" else str(tmp_path / "missing.npy") if a == "MISSING" else
+            a.replace("MISSING", str(tmp_path / "missing.npy")) for a in argv]
+    extra = ["--no-preview"] if argv[0] == "export" else ["--device", "cpu", "--quiet"]
+    assert main([*argv, "--out", str(out), *extra]) == 4
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"davis-attack {argv[0]}: error: ")
+    if "--resume" in argv:
+        assert str(out / "checkpoints" / "last.pt") in err[0] and "unreadable attack checkpoint" in err[0]
+    else:
+        assert "missing" in err[0] and not out.exists()
+
+
+def test_help_lists_the_exit_codes_and_the_vocabulary(capsys):
+    from davis_rig.cli.attack import main
+
+    for command in ([], ["optimize"], ["evaluate"], ["reproduce"], ["export"]):
+        assert main([*command, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert "exit codes: 0 ok, 1 internal error, 2 usage" in text and "130 interrupted" in text
+        assert "--no-progress" not in text and "--thresholds" not in text
+    for command in ("optimize", "evaluate", "reproduce"):
+        main([command, "--help"])
+        text = capsys.readouterr().out
+        assert all(option in text for option in ("--quiet", "--threads", "--detector", "--out"))
+    main(["evaluate", "--help"])
+    assert "--threshold T" in capsys.readouterr().out
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.startswith("davis-attack (davis_rig ")
+
+
+def test_threshold_takes_one_value_per_use_comma_lists_and_the_old_spelling(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--threshold", "0.1,0.25",
+                                 "--thresholds", "0.5", "-q"])
+    assert args.func(args) == 0 and seen["kw"]["eval_config"].thresholds == (0.1, 0.25, 0.5)
+
+
+def test_cli_choices_match_the_library():
+    from davis_rig.attack.texture import ALPHA_SCHEDULES
+    from davis_rig.scene.body import PART_NAMES
+    from davis_rig.scene.camera import TEST_SCALES_PX
+
+    assert cmd.ALPHA_SCHEDULE_CHOICES == tuple(ALPHA_SCHEDULES)
+    assert cmd.PART_CHOICES == (*PART_NAMES, "all") and cmd.SCALE_NAMES == tuple(TEST_SCALES_PX)
 
 
 def test_main_entry_point_exit_codes(tmp_path, capsys):
