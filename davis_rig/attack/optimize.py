@@ -10,7 +10,9 @@ One step (:func:`attack_loss` + Adam)::
                                           backward: relaxed-count surrogate or the paper's STE, clip_histograms)
     RVT over the W windows with recurrent states, batched over the clips (frozen, eval mode)
     L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss)
-    backward; (DDP: gradients all-reduced and averaged over ranks); Adam step
+    backward; (DDP: gradients all-reduced and averaged over ranks); Adam step at lr(step)
+                                          (cosine annealing with warm restarts, the official default, or constant;
+                                          davis_rig.attack.lr_schedule)
 
 Run state lives in ``out_dir``: ``checkpoints/last.pt`` (generator, optimizer, completed steps, pool generations,
 best so far, config; written atomically every few minutes of work or every ``checkpoint_every`` steps, after the
@@ -52,6 +54,7 @@ import numpy as np
 
 from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detections
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
+from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN, lr_at
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
 from davis_rig.attack.stop import StopOnSignal
 from davis_rig.attack.texture import (
@@ -102,6 +105,12 @@ class AttackConfig:
         parts: painted body parts (``None`` = whole body, no mask); white elsewhere.
         lambda_obj, lambda_cls: loss weights (paper 1e4 each).
         lr, betas, weight_decay: Adam (paper 1e-4, (0.9, 0.99), 1e-5).
+        lr_schedule: :data:`~davis_rig.attack.lr_schedule.LR_SCHEDULES`: ``"cosine_restarts"`` (default, the
+            official code's: cosine from ``lr`` to ``lr_min`` over ``lr_period`` steps, then a warm restart) or
+            ``"constant"``.
+        lr_min: floor of the cosine (official 1e-7).
+        lr_period: steps of one cosine; ``None`` = ``iterations`` (the official 11,500-step run: one cosine
+            over the whole run). Like alpha, it follows a changed ``iterations`` on resume.
         iterations: optimisation steps (paper 11,500).
         clips_per_step: EoT clips per step over all ranks (divisible by the world size).
         alpha_schedule: soft-to-hard schedule name (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
@@ -140,6 +149,9 @@ class AttackConfig:
     lr: float = 1e-4
     betas: tuple[float, float] = (0.9, 0.99)
     weight_decay: float = 1e-5
+    lr_schedule: str = "cosine_restarts"
+    lr_min: float = OFFICIAL_LR_MIN
+    lr_period: int | None = None
     iterations: int = 11_500
     clips_per_step: int = 1
     alpha_schedule: str = "linear"
@@ -190,7 +202,12 @@ class AttackConfig:
             refuse("box_margin_px", "expected a finite number >= 0 or None")
         if not 0 <= self.validation_threshold <= 1:
             refuse("validation_threshold", "expected a number in [0, 1]")
+        if not (math.isfinite(self.lr_min) and 0 <= self.lr_min <= self.lr):
+            refuse("lr_min", f"expected a number in [0, lr = {self.lr:g}]")
+        if self.lr_period is not None and int(self.lr_period) < 1:
+            refuse("lr_period", "expected an integer >= 1 or None")
         for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("v2e_gradient", V2E_GRADIENTS),
+                              ("lr_schedule", LR_SCHEDULES),
                               ("loss_reduction", LOSS_REDUCTIONS), ("precision", ("fp32", "bf16")),
                               ("select_by", SELECTION_RULES), ("events", EVENT_MODELS)):
             if getattr(self, name) not in allowed:
@@ -534,17 +551,21 @@ def read_attack_checkpoint(path: str | Path, map_location=None) -> dict:
 
 #: Settings that may change when a run is resumed (the others must match the checkpoint's).
 _FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_every", "checkpoint_interval_s")
+#: Fields whose default changed after runs were written without them: the value such a run used. A checkpoint
+#: that lacks another field counts it as its (unchanged) default.
+_LEGACY_VALUES = {"lr_schedule": "constant"}
 
 
 def _check_resume_config(state: dict, config: AttackConfig, path: Path) -> None:
     """Refuse a checkpoint written with other settings (naming the fields that differ).
 
-    A field added after the checkpoint was written (top level or in ``eot``) counts as its default value.
+    A field added after the checkpoint was written (top level or in ``eot``) counts as its default value, or as
+    the value runs used before it existed (:data:`_LEGACY_VALUES`).
     """
     current = config.to_dict()
     defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
                                      default=str))
-    saved = {**defaults, **dict(state["config"])}
+    saved = {**defaults, **_LEGACY_VALUES, **dict(state["config"])}
     saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **dict(saved["eot"])}
     for name in _FREE_ON_RESUME:
         saved.pop(name, None)
@@ -850,6 +871,9 @@ def optimize_texture(
                 if step > 0 and step % config.refresh_every == 0:
                     pool.refresh(step, config.refresh_fraction)
                 alpha = alpha_at(config.alpha_schedule, step, config.iterations)
+                for group in optimizer.param_groups:
+                    group["lr"] = lr_at(config.lr_schedule, step, config.lr, config.lr_period or config.iterations,
+                                        config.lr_min)
                 grid = binarize_ste(_soft_grid(generator, config.seed, step), alpha)
                 loss = attack_loss(grid, pool.sample(step, per_rank), detector, config)
                 optimizer.zero_grad(set_to_none=True)

@@ -75,12 +75,15 @@ counts instead, to compare with the paper's numbers).
 PART_CHOICES = ("torso", "arms", "legs", "head", "hands", "feet", "all")
 #: Binarization schedules of ``--alpha-schedule`` (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
 ALPHA_SCHEDULE_CHOICES = ("linear", "cosine", "step", "hard", "soft")
+#: Learning-rate schedules of ``--lr-schedule`` (:data:`davis_rig.attack.lr_schedule.LR_SCHEDULES`).
+LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
 #: Named camera scales of ``--scales`` (:data:`davis_rig.scene.camera.TEST_SCALES_PX`).
 SCALE_NAMES = ("large", "middle", "small")
 #: Library field -> the option that sets it: a :class:`~davis_rig.errors.ConfigError` names the option.
 CONFIG_OPTIONS = {
     "grid_n": "--cells", "iterations": "--iterations", "clips_per_step": "--clips-per-step",
-    "pool_size": "--pool-size", "refresh_every": "--refresh-every", "lr": "--lr", "alpha_schedule": "--alpha-schedule",
+    "pool_size": "--pool-size", "refresh_every": "--refresh-every", "lr": "--lr", "lr_min": "--lr-min",
+    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule",
     "validate_every": "--validate-every", "num_validation_clips": "--val-clips", "checkpoint_every": "--checkpoint-every",
     "box_margin_px": "--box-margin", "refine_passes": "--refine-passes", "refine_clips": "--refine-clips",
     "playback_speed": "--playback-speed", "thresholds": "--threshold", "device": "--device", "parts": "--parts",
@@ -154,6 +157,13 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refresh-every", type=positive_int, default=50,
                    help="pool refresh period in steps (default: 50)")
     p.add_argument("--lr", type=positive_float, default=1e-4, help="Adam learning rate (default: 1e-4)")
+    p.add_argument("--lr-schedule", choices=LR_SCHEDULE_CHOICES, default="cosine_restarts",
+                   help="cosine_restarts (default, the official code's: cosine from --lr down to --lr-min over "
+                        "--lr-period steps, then a warm restart) or constant (--lr at every step)")
+    p.add_argument("--lr-min", type=non_negative_float, default=1e-7, help="floor of the cosine (default: 1e-7)")
+    p.add_argument("--lr-period", type=positive_int, default=None, metavar="STEPS",
+                   help="steps of one cosine (default: --iterations, one cosine over the run as the official "
+                        "11,500-step run)")
     p.add_argument("--alpha-schedule", choices=ALPHA_SCHEDULE_CHOICES, default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
     p.add_argument("--validate-every", type=positive_int, default=1000,
@@ -351,7 +361,8 @@ def _attack_config(args, grid_n: int, parts):
     eot = make(playback_speed=args.playback_speed, **({"threshold_sigma": 0.0} if relaxed else {}))
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
-                        refresh_every=args.refresh_every, lr=args.lr, alpha_schedule=args.alpha_schedule,
+                        refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,
+                        lr_min=args.lr_min, lr_period=args.lr_period, alpha_schedule=args.alpha_schedule,
                         validate_every=args.validate_every, num_validation_clips=args.val_clips,
                         checkpoint_every=args.checkpoint_every,
                         box_margin_px=args.box_margin, loss_reduction=args.loss,

@@ -653,3 +653,26 @@ def test_optimize_passes_the_training_motions_to_validation_and_refinement(detec
     cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)
     optimize_texture(cfg, detector, tmp_path, body_model=body, motions=motions, progress=False)
     assert seen == [(opt._VAL_SEED_OFFSET, motions), (opt._REFINE_SEED_OFFSET, motions)]
+
+
+def test_the_official_lr_schedule_is_the_default_and_a_run_before_it_resumes_as_constant(detector, body, tmp_path):
+    from davis_rig.attack.lr_schedule import cosine_restarts_lr
+
+    assert (AttackConfig().lr_schedule, AttackConfig().lr_min) == ("cosine_restarts", 1e-7)
+    cfg = _tiny(iterations=3, lr=0.05)
+    optimize_texture(cfg, detector, tmp_path / "cos", body_model=body, progress=False)
+    assert [r["lr"] for r in _log(tmp_path / "cos" / "log.jsonl")[0]] == [cosine_restarts_lr(k, 0.05, 3)
+                                                                          for k in range(3)]
+    old = _tiny(iterations=2, lr=0.05, lr_schedule="constant")
+    optimize_texture(old, detector, tmp_path / "old", body_model=body, progress=False)
+    path = tmp_path / "old" / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    for name in ("lr_schedule", "lr_min", "lr_period"):  # a run written before the schedule existed
+        del state["config"][name]
+    torch.save(state, path)
+    with pytest.raises(CheckpointError, match="lr_schedule"):
+        optimize_texture(replace(old, lr_schedule="cosine_restarts", iterations=3), detector, tmp_path / "old",
+                         body_model=body, progress=False, resume=True)
+    optimize_texture(replace(old, iterations=3), detector, tmp_path / "old", body_model=body, progress=False,
+                     resume=True)
+    assert [r["lr"] for r in _log(tmp_path / "old" / "log.jsonl")[0]] == [0.05] * 3
