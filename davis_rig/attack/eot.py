@@ -25,7 +25,9 @@ jitter only), every clip draws:
   in place, camera jitter only, ideal sensor);
 - sensor non-idealities for the differentiable V2E: the clip's contrast threshold (uniform range), per-pixel
   threshold mismatch (Gaussian, v2e's ``sigma_thres``) and shot-noise events (Poisson, added to the histogram as
-  constants: they carry no gradient, like real noise).
+  constants: they carry no gradient, like real noise); with ``test_sensor_probability`` (default 1/2) the clip
+  has the evaluation's ideal sensor instead, so the test sensor is inside the distribution that trains and
+  validates the texture.
 
 All randomness comes from ``numpy.random.default_rng`` seeded with integers; no global RNG is touched.
 """
@@ -41,6 +43,7 @@ import numpy as np
 
 from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
+from davis_rig.events.simulator import DEFAULT_THRESHOLD
 from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
 from davis_rig.scene.shading import Light
@@ -63,6 +66,8 @@ __all__ = [
 ]
 
 _SEED_SALT = 0x5EED_A77C
+#: The evaluation's contrast threshold (:class:`~davis_rig.events.simulator.SimulatorConfig`, ON = OFF).
+TEST_THRESHOLD = DEFAULT_THRESHOLD
 
 
 def split_shapes(num_shapes: int, test_every: int = 4) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -114,6 +119,9 @@ class EoTConfig:
         threshold_sigma: per-pixel threshold mismatch std (log units), 0 = off.
         min_threshold: lower clip of the per-pixel thresholds.
         shot_noise_rate_hz: per-pixel noise event rate (ON + OFF), uniform in this range (Hz).
+        test_sensor_probability: chance that a clip's sensor is the evaluation's instead of the ranges above:
+            the ideal sensor of :class:`~davis_rig.events.simulator.SimulatorConfig` (theta = 0.2 ON and OFF,
+            no mismatch, no noise), so the test sensor lies inside the training (and validation) distribution.
         seq_len: windows per sequence (paper: 3).
         window_us: window duration (RVT: 50 ms).
         playback_speed: motion seconds per clip second (official code: 5/3,
@@ -138,6 +146,7 @@ class EoTConfig:
     threshold_sigma: float = 0.02
     min_threshold: float = 0.05
     shot_noise_rate_hz: tuple[float, float] = (0.0, 1.0)
+    test_sensor_probability: float = 0.5
     seq_len: int = 3
     window_us: int = WINDOW_US
     playback_speed: float = 1.0
@@ -163,7 +172,8 @@ class EoTConfig:
 
         if int(self.seq_len) < 1:
             refuse("seq_len", "expected an integer >= 1")
-        for name in ("advance_probability", "random_light_probability", "random_background_probability"):
+        for name in ("advance_probability", "random_light_probability", "random_background_probability",
+                     "test_sensor_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 refuse(name, "expected a number in [0, 1]")
         lo, hi = self.threshold_range
@@ -214,6 +224,8 @@ class PoolClip:
         active_backdrop: float32 tensor [T, y1 - y0, x1 - x0], ``backdrop`` inside the active box.
         active_pixel: int64 tensor [N], each covered sample's flat pixel index ``t*h*w + row*w + col`` in the box.
         window_us: window duration (µs): each window is ``[end - window_us, end]``.
+        base_threshold: the clip's contrast threshold as drawn (float64) when every pixel has it (no mismatch),
+            else ``None``.
     """
 
     seed: int
@@ -232,6 +244,7 @@ class PoolClip:
     active_backdrop: "torch.Tensor"
     active_pixel: "torch.Tensor"
     window_us: int = WINDOW_US
+    base_threshold: float | None = None
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
@@ -275,7 +288,7 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     Returns:
         ``(spec, sensor)``: the scene (``seed`` resolves jitter, light and background inside
         :func:`~davis_rig.scene.scene.render_clip`) and ``{"threshold", "threshold_sigma", "noise_rate_hz",
-        "sensor_seed"}``.
+        "sensor_seed", "test_sensor"}`` (``test_sensor``: the evaluation's ideal sensor was drawn).
     """
     rng = np.random.default_rng([_SEED_SALT, int(seed)])
     shapes = config.shapes if config.shapes is not None else split_shapes(num_shapes)[0]
@@ -307,7 +320,11 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
         "threshold_sigma": float(config.threshold_sigma),
         "noise_rate_hz": float(rng.uniform(*config.shot_noise_rate_hz)),
         "sensor_seed": int(rng.integers(2**62)),
+        "test_sensor": False,
     }
+    # drawn last: the draws above (scene and sensor) are the same whatever the probability
+    if config.test_sensor_probability > 0 and rng.random() < config.test_sensor_probability:
+        sensor.update(threshold=TEST_THRESHOLD, threshold_sigma=0.0, noise_rate_hz=0.0, test_sensor=True)
     return spec, sensor
 
 
@@ -379,6 +396,7 @@ def prepare_clip(
         noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device), active_box=active_box,
         active_backdrop=backdrop[:, y0:y1, x0:x1].contiguous(), active_pixel=active_pixel,
         window_us=int(config.window_us),
+        base_threshold=None if sensor["threshold_sigma"] > 0 else float(sensor["threshold"]),
     )
 
 

@@ -56,6 +56,7 @@ __all__ = [
     "TextureSpec",
     "EVENT_MODELS",
     "EVENT_MODEL_NAMES",
+    "detect_histograms",
     "detect_windows",
     "evaluate_textures",
     "prepare_scenes",
@@ -345,6 +346,31 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
             out, states = detector(x, states)
             decoded.append(out[0].float().cpu().numpy())
     return decoded, hist
+
+
+def detect_histograms(detector, hists: Sequence["torch.Tensor"], device=None) -> list[list[np.ndarray]]:
+    """The detector over the windows of several sequences at once, recurrent states per sequence.
+
+    Args:
+        detector: :class:`~davis_rig.models.rvt.detector.RVTDetector` (eval mode).
+        hists: per sequence a tensor [W, 20, H, W] of counts (all the same shape).
+        device: torch device of the detector (default: its parameters').
+
+    Returns:
+        per sequence, per window: the head's decoded float32 [A, 5 + nc] array.
+    """
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    device = next(detector.parameters()).device if device is None else torch.device(device)
+    batch = torch.stack([torch.as_tensor(h) for h in hists], dim=1).to(device=device, dtype=torch.float32)
+    decoded, states = [[] for _ in hists], None
+    with torch.no_grad():
+        for k in range(batch.shape[0]):
+            out, states = detector(pad_to_input(batch[k], detector.config.in_res_hw), states)
+            out = out.float().cpu().numpy()
+            for i in range(len(hists)):
+                decoded[i].append(out[i])
+    return decoded
 
 
 def _label_boxes(box: np.ndarray, t_us: int) -> np.ndarray:

@@ -28,9 +28,13 @@ every random choice of a step is derived from ``(seed, step)`` and the pool from
 as far as the kernels are: on CPU at any thread count, the texture lookup's backward summing in index order; on
 CUDA, whose scatter-adds are atomic, with ``torch.use_deterministic_algorithms(True)``).
 
-Validation: clips drawn from the EoT distribution with their own seeds (training shapes, and the training motions
-as in the pool), scored as in the evaluation (:mod:`davis_rig.attack.evaluate`): exact simulator events (or
-``events``), SeqASR at ``validation_threshold``.
+Validation: ``num_validation_clips`` clips drawn from the EoT distribution with their own seeds (training shapes,
+the training motions and the training sensors as in the pool, half of them the evaluation's ideal sensor by
+default), each scored twice (:func:`validate`): as trained (each clip's own sensor, the forward of the step) and
+as tested (the evaluation's exact simulator events, or ``events``, from the ideal sensor). The best texture is
+chosen on the first, the distribution the texture is trained on; every validation record (and ``best.json``)
+carries both and their difference, the **transfer gap** (test minus training mean top score). SeqASR at
+``validation_threshold``. The refinement scores its flips as trained.
 
 DDP: launch with ``torchrun --nproc_per_node N``; call :func:`optimize_texture` after
 ``torch.distributed.init_process_group`` (gloo on CPU, nccl on GPU; the CLI does it from the torchrun
@@ -233,6 +237,8 @@ class AttackResult:
         best_seq_asr: its validation SeqASR; best_step: its step (1-based count of completed steps).
         steps: completed steps; seconds_per_step: mean wall time of the steps of this call.
         out_dir: the run folder.
+        final_validation: the validation record of the final texture (step ``iterations``: SeqASR and mean top
+            score as tested and as trained, ``transfer_gap``); ``None`` before the run reaches its last step.
     """
 
     texture: np.ndarray
@@ -242,6 +248,7 @@ class AttackResult:
     steps: int
     seconds_per_step: float
     out_dir: Path
+    final_validation: dict | None = None
 
 
 def load_attack_detector(path=None, device=None):
@@ -288,8 +295,12 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
                     gradient: str = "relaxed") -> "torch.Tensor":
     """Differentiable RVT input of one pool clip: float tensor [W, 20, H, W] (V2E counts + noise, clipped at 10).
 
-    The forward value is always the event counts of ``mode`` (``"dvs"``: identical to the exact simulator without
-    noise) plus the clip's noise events, clipped at ``COUNT_CUTOFF``. The backward pass depends on ``gradient``:
+    The forward value is always the event counts of ``mode`` plus the clip's noise events, clipped at
+    ``COUNT_CUTOFF``. Counts (``"dvs"``, ``"floor"``) are taken in float64, the exact simulator's precision: with a
+    uniform threshold map they are the simulator's events per pixel and window (float32 lin-log values move
+    ~1 % of the events across a threshold; the bins still differ where events fall near a bin edge, see
+    :func:`validate`). ``"official_relaxed"`` counts are the value itself (float32, their own gradient). The
+    backward pass depends on ``gradient``:
 
     - ``"ste"`` (paper): the V2E's own gradient, straight through the floor of the counts; the clamp at 10 has
       zero gradient. Measured on the interim RVT-mini (2 clips, ``docs/attack.md``): a step along its negative
@@ -298,7 +309,7 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
       (the official code's relaxed simulator in count units, clip-mean threshold theta) through the same binning,
       used as a straight-through surrogate of the exact counts (value: the exact counts; gradient: the
       surrogate's), no clamp. Along its negative gradient the exact-count loss falls monotonically for steps up to
-      0.3 grid units. The exact counts (no grad) and the surrogate are taken from one lin-log video, computed once.
+      0.3 grid units.
 
     Args:
         grid: float tensor [n, n] texture grid (1 = white), gradients flow to it.
@@ -317,13 +328,16 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
     # events can only fire where the person is: the V2E runs on clip.active_box; the full-frame tensor is built
     # once (zeros, the crop's counts, the noise events, the clip at COUNT_CUTOFF), in place
     y0, y1, x0, x1 = clip.active_box
-    log_video = log_intensity(clip.active_video(grid))
-    threshold = clip.threshold[y0:y1, x0:x1]
-    if mode != "dvs":  # the grid modes take one θ
-        if bool((clip.threshold != clip.threshold.flatten()[0]).any()):
-            raise ValueError(f"v2e mode {mode!r} needs one threshold θ for all pixels; turn off the EoT's "
-                             f"threshold mismatch")
-        threshold = float(clip.threshold.flatten()[0])
+    video = clip.active_video(grid)
+    log_video = log_intensity(video)
+    uniform = clip.base_threshold is not None or bool((clip.threshold == clip.threshold.flatten()[0]).all())
+    if mode != "dvs" and not uniform:  # the grid modes take one θ
+        raise ValueError(f"v2e mode {mode!r} needs one threshold θ for all pixels; turn off the EoT's "
+                         f"threshold mismatch")
+    if uniform:  # one θ, as drawn (float64) when the clip knows it
+        threshold = clip.base_threshold if clip.base_threshold is not None else float(clip.threshold.flatten()[0])
+    else:
+        threshold = clip.threshold[y0:y1, x0:x1]
     shape = (len(clip.window_end_us), 2 * NUM_BINS, *clip.threshold.shape)
 
     def full_frame(crop: "torch.Tensor") -> "torch.Tensor":
@@ -333,19 +347,24 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
             hist.view(-1).index_add_(0, clip.noise_cell, clip.noise_count.to(hist.dtype))
         return torch.clamp(hist, max=float(COUNT_CUTOFF))
 
-    def exact_crop() -> "torch.Tensor":
-        return log_histograms(log_video, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
-                              window_us=clip.window_us, count_cutoff=None, threshold_on=threshold,
-                              threshold_off=threshold)
+    def counts(log: "torch.Tensor", theta) -> "torch.Tensor":
+        return log_histograms(log, clip.t_us, clip.window_end_us, mode=mode, binning=binning,
+                              window_us=clip.window_us, count_cutoff=None, threshold_on=theta, threshold_off=theta)
 
+    if mode == "official_relaxed":  # not counts: the relaxed value carries its own gradient
+        return full_frame(counts(log_video, threshold))
+    with torch.no_grad():  # the exact simulator's precision
+        theta64 = threshold if uniform else threshold.double()
+        exact = counts(log_intensity(video.detach().double()), theta64).to(log_video.dtype)
     if gradient == "ste":
-        return full_frame(exact_crop())
+        ste = counts(log_video, threshold)
+        return full_frame(exact + (ste - ste.detach()))  # the value of the float64 counts, the floor's gradient
     theta = float(clip.threshold.mean())
     surrogate = log_histograms(log_video, clip.t_us, clip.window_end_us, mode="official_relaxed", binning=binning,
                                window_us=clip.window_us, count_cutoff=None, threshold_on=theta,
                                threshold_off=theta) / OFFICIAL_RELAXED_SCALE
     with torch.no_grad():
-        hist = full_frame(exact_crop())
+        hist = full_frame(exact)
     # the value stays the exact counts bit for bit (surrogate - surrogate == 0); the gradient is the surrogate's
     hist[..., y0:y1, x0:x1] += surrogate - surrogate.detach()
     return hist
@@ -432,38 +451,80 @@ def _validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: 
     return clips
 
 
+#: Clips per detector batch in :func:`validate`.
+VALIDATION_BATCH = 8
+
+
 def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: float,
-             events: str = "exact", *, stop=None) -> dict:
-    """Validation SeqASR of a hard texture on pre-rasterized clips, events from the exact simulator by default.
+             events: str = "exact", *, train_path: tuple[str, str] | None = None, test_path: bool = True,
+             stop=None, batch: int = VALIDATION_BATCH) -> dict:
+    """Validation SeqASR and top scores of a hard texture on pre-rasterized clips, as tested and as trained.
+
+    The **test path** is the evaluation's: events of the exact simulator (or ``events``) from the ideal sensor
+    (:class:`~davis_rig.events.simulator.SimulatorConfig`). The **training path** (with ``train_path``) is what
+    the optimisation sees: the forward of :func:`clip_histograms`, i.e. each clip's own sensor (its threshold,
+    per-pixel mismatch and noise events). On a clip drawn with the test sensor both give the same counts. The
+    detector runs on ``batch`` clips at once.
 
     Args:
         grid: float32 [n, n] hard texture.
         clips: validation clips (their lookups carry the part mask).
         detector: RVT detector.
         threshold: confidence threshold.
-        events: the event model (:data:`davis_rig.attack.evaluate.EVENT_MODELS`).
+        events: the event model of the test path (:data:`davis_rig.attack.evaluate.EVENT_MODELS`).
+        train_path: ``(v2e_mode, v2e_binning)`` of the training (``AttackConfig.v2e_mode``, ``v2e_binning``):
+            also score the training path; ``None``: the test path only.
+        test_path: score the test path (False needs ``train_path``: the training path alone, half the cost).
         stop: a :class:`~davis_rig.attack.stop.StopOnSignal` polled between clips (internal: a requested stop
             abandons the validation).
+        batch: clips per detector call (>= 1).
 
     Returns:
-        ``{"SeqASR", "num_sequences", "num_detected", "mean_top_score"}`` (top score: mean over windows of the
-        highest obj * p_ped).
+        ``{"SeqASR", "num_sequences", "num_detected", "mean_top_score"}`` of the test path (top score: mean over
+        windows of the highest obj * p_ped); with ``train_path`` also ``"train_SeqASR"``, ``"train_top_score"``
+        and, with both paths, ``"transfer_gap"`` = ``mean_top_score - train_top_score`` (> 0: the test detects the
+        texture more than training saw).
+
+    Raises:
+        ValueError: neither path requested.
     """
+    if not test_path and train_path is None:
+        raise ValueError("validate needs the test path, the training path or both")
+    from davis_rig.attack.evaluate import detect_histograms, window_histograms
+
     g = torch.as_tensor(np.asarray(grid, dtype=np.float32), device=clips[0].threshold.device)
-    decoded, boxes, ends, tops = [], [], [], []
-    for clip in clips:
-        _check_stop(stop)
-        with torch.no_grad():
-            video = clip.video(g)
-        dec, _ = detect_windows(detector, video, clip.t_us, clip.window_end_us, events=events,
-                                window_us=clip.window_us)
-        decoded.append(dec)
-        boxes.append(clip.boxes)
-        ends.append(clip.window_end_us)
-        tops += [float((d[:, 4] * d[:, 6]).max()) for d in dec]
-    res = score_detections(decoded, boxes, ends, (threshold,), seq_len=len(clips[0].window_end_us))[float(threshold)]
-    return {"SeqASR": res["SeqASR"], "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
-            "mean_top_score": float(np.mean(tops))}
+    paths = {name: ([], []) for name, wanted in (("test", test_path), ("train", train_path is not None)) if wanted}
+    for first in range(0, len(clips), int(batch)):
+        chunk = clips[first : first + int(batch)]
+        hists = {name: [] for name in paths}
+        for clip in chunk:
+            _check_stop(stop)
+            with torch.no_grad():
+                video = clip.video(g)
+                if test_path:
+                    hists["test"].append(torch.as_tensor(window_histograms(
+                        video, clip.t_us, clip.window_end_us, events=events, device=video.device,
+                        window_us=clip.window_us)))
+                if train_path is not None:
+                    hists["train"].append(clip_histograms(g, clip, train_path[0], train_path[1], gradient="ste"))
+        for name, (decoded, tops) in paths.items():
+            for dec in detect_histograms(detector, hists[name]):
+                decoded.append(dec)
+                tops += [float((d[:, 4] * d[:, 6]).max()) for d in dec]
+    boxes = [clip.boxes for clip in clips]
+    ends = [clip.window_end_us for clip in clips]
+    scores = {name: score_detections(decoded, boxes, ends, (threshold,), seq_len=len(clips[0].window_end_us))
+              [float(threshold)] for name, (decoded, _) in paths.items()}
+    out = {}
+    if test_path:
+        test = scores["test"]
+        out.update(SeqASR=test["SeqASR"], num_sequences=test["num_sequences"], num_detected=test["num_detected"],
+                   mean_top_score=float(np.mean(paths["test"][1])))
+    if train_path is not None:
+        out.update(train_SeqASR=scores["train"]["SeqASR"], train_top_score=float(np.mean(paths["train"][1])))
+    if test_path and train_path is not None:
+        out["transfer_gap"] = out["mean_top_score"] - out["train_top_score"]
+    return out
 
 
 class AttackInterrupted(KeyboardInterrupt):
@@ -644,16 +705,25 @@ def _remove_unfinished(out: Path, created: bool) -> None:
         out.rmdir()
 
 
+def _selection_scores(record: dict) -> tuple[float, float]:
+    """``(SeqASR, mean top score)`` a validation record is ranked by: the training path's when it has one (the
+    validation clips' own sensors, the distribution the texture is trained on), else the test path's."""
+    if "train_top_score" in record:
+        return record["train_SeqASR"], record["train_top_score"]
+    return record["SeqASR"], record["mean_top_score"]
+
+
 def _better(candidate: dict, best: dict | None, select_by: str = "seqasr") -> bool:
-    """Whether a validation record beats the best so far under ``select_by`` (:data:`SELECTION_RULES`)."""
+    """Whether a validation record beats the best so far under ``select_by`` (:data:`SELECTION_RULES`), on
+    :func:`_selection_scores`."""
     if best is None:
         return True
+    (a, a_top), (b, b_top) = _selection_scores(candidate), _selection_scores(best)
     if select_by == "score":
-        return candidate["mean_top_score"] < best["mean_top_score"]
-    a, b = candidate["SeqASR"], best["SeqASR"]
+        return a_top < b_top
     a = -1.0 if not np.isfinite(a) else a
     b = -1.0 if not np.isfinite(b) else b
-    return a > b or (a == b and candidate["mean_top_score"] < best["mean_top_score"])
+    return a > b or (a == b and a_top < b_top)
 
 
 def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, best: dict | None,
@@ -668,11 +738,13 @@ def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, be
     clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET, motions)
 
     def score(grid: np.ndarray) -> float:
-        return validate(grid, clips, detector, config.validation_threshold, config.events)["mean_top_score"]
+        return validate(grid, clips, detector, config.validation_threshold, config.events, test_path=False,
+                        train_path=(config.v2e_mode, config.v2e_binning))["train_top_score"]
 
     t0 = time.perf_counter()
     found = refine_texture(start_grid, clips, score, config.refine_passes, config.seed)
-    res = validate(found["texture"], val_clips, detector, config.validation_threshold, config.events)
+    res = validate(found["texture"], val_clips, detector, config.validation_threshold, config.events,
+                   train_path=(config.v2e_mode, config.v2e_binning))
     res.update(step=config.iterations, refined=True)
     summary = {key: value for key, value in found.items() if key != "texture"}
     summary.update(passes=config.refine_passes, clips=config.refine_clips, validation=res,
@@ -805,7 +877,8 @@ def optimize_texture(
     def run_validation(done: int, stop) -> None:
         nonlocal best
         tex = hard_texture()
-        res = validate(tex, val_clips, detector, config.validation_threshold, config.events, stop=stop)
+        res = validate(tex, val_clips, detector, config.validation_threshold, config.events, stop=stop,
+                       train_path=(config.v2e_mode, config.v2e_binning))
         res.update(step=done)
         log.write(json.dumps({"validation": res}) + "\n")
         if _better(res, best, config.select_by):
@@ -936,7 +1009,19 @@ def optimize_texture(
     return AttackResult(texture=texture, best_texture=best_tex,
                         best_seq_asr=float(best["SeqASR"]) if best else math.nan,
                         best_step=int(best["step"]) if best else end, steps=end - start,
-                        seconds_per_step=elapsed / steps_done if steps_done else math.nan, out_dir=out)
+                        seconds_per_step=elapsed / steps_done if steps_done else math.nan, out_dir=out,
+                        final_validation=_final_validation(out / "log.jsonl", config.iterations) if rank == 0 else None)
+
+
+def _final_validation(log_path: Path, iterations: int) -> dict | None:
+    """The last gradient-phase validation record of step ``iterations`` in a run's log (``None`` if none)."""
+    found = None
+    if log_path.is_file():
+        for line in log_path.read_text().splitlines():
+            rec = json.loads(line).get("validation")
+            if rec is not None and rec.get("step") == iterations and not rec.get("refined"):
+                found = rec
+    return found
 
 
 def _any_rank(flag: bool, world: int, device) -> bool:

@@ -415,9 +415,14 @@ def optimize_command(args) -> int:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
     if int(os.environ.get("RANK", "0")) == 0:
+        final = result.final_validation or {}
         print(json.dumps({"out_dir": str(result.out_dir), "steps": result.steps,
                           "seconds_per_step": result.seconds_per_step, "best_step": result.best_step,
-                          "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr}))
+                          "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr,
+                          "final_texture": {"train_top_score": final["train_top_score"],
+                                            "test_top_score": final["mean_top_score"],
+                                            "transfer_gap": final["transfer_gap"]} if "transfer_gap" in final
+                          else None}))
     return 0
 
 

@@ -18,7 +18,8 @@ from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.scene.body import BodyModel
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
-TINY_EOT = EoTConfig(supersample=1)
+# the seeds below were picked with a noisy training sensor on every clip (no test-sensor draws)
+TINY_EOT = EoTConfig(supersample=1, test_sensor_probability=0.0)
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # exact resume is checked on one thread
 
 
@@ -353,25 +354,49 @@ def test_clip_histograms_equals_the_two_pass_computation(body, rule):
     events = clip.noise_cell.repeat_interleave(clip.noise_count.long())
     noise = torch.zeros(weight.numel()).index_add_(0, events, torch.ones(events.numel())).view_as(weight)
 
-    def exact(video):
-        counts = v2e_histograms(video, clip.t_us, clip.window_end_us, count_cutoff=None,
-                                threshold_on=clip.threshold, threshold_off=clip.threshold)
-        return torch.clamp(counts + noise, max=10.0)
+    def counts(video, threshold):
+        return v2e_histograms(video, clip.t_us, clip.window_end_us, count_cutoff=None, threshold_on=threshold,
+                              threshold_off=threshold)
 
     two_pass = grid.clone().requires_grad_(True)
     video = clip.video(two_pass)
+    with torch.no_grad():  # the value: counts in float64, as the exact simulator takes them
+        value = counts(video.double(), clip.threshold.double()).float()
     if rule == "ste":
-        expected = exact(video)
+        ste = counts(video, clip.threshold)
+        expected = torch.clamp(value + (ste - ste.detach()) + noise, max=10.0)
     else:
-        with torch.no_grad():
-            counts = exact(video)
         theta = float(clip.threshold.mean())
         surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", count_cutoff=None,
                                    threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
-        expected = counts + (surrogate - surrogate.detach())  # the exact counts' value, the surrogate's gradient
+        expected = torch.clamp(value + noise, max=10.0) + (surrogate - surrogate.detach())
     expected.backward(weight)
     assert torch.equal(hist, expected) and torch.equal(shared.grad, two_pass.grad)
     assert shared.grad.abs().sum() > 0
+
+
+def test_with_the_test_sensor_the_step_counts_the_exact_simulators_events(body):
+    # per pixel and window (the bins may differ: a frame pair's midpoint vs interpolated event times)
+    from davis_rig.attack.optimize import clip_histograms
+    from davis_rig.events.simulator import simulate_events
+
+    clip = ClipPool(replace(TINY_EOT, test_sensor_probability=1.0), body, 4, size=1, base_seed=3).clips[0]
+    assert clip.base_threshold == 0.2 and clip.noise_cell.numel() == 0
+    grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
+    hist = clip_histograms(grid, clip, gradient="ste").detach()
+    events = simulate_events(clip.video(grid).detach(), clip.t_us)
+    compared = 0
+    for k, end in enumerate(clip.window_end_us):
+        inside = events[(events["t"] > end - clip.window_us) & (events["t"] <= end)]
+        for polarity in (0, 1):
+            expected = np.zeros(clip.raster.hw)
+            sel = inside[inside["p"] == polarity]
+            np.add.at(expected, (sel["y"], sel["x"]), 1)
+            bins = hist[k, polarity * 10 : (polarity + 1) * 10].numpy()
+            unclipped = (bins < 10).all(0)  # a bin at 10 may hold more events
+            assert np.array_equal(bins.sum(0)[unclipped], expected[unclipped]), (k, polarity)
+            compared += int(expected[unclipped].sum())
+    assert compared >= len(events) // 3  # the events of pixels with no bin at the clip (38 % here) agree
 
 
 def test_load_attack_detector_defaults_to_bundled_weights(monkeypatch, tmp_path):
@@ -484,10 +509,11 @@ def _signal_at(monkeypatch, when: str, count: int) -> None:
     import signal
 
     import davis_rig.attack.eot as eot
+    import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt
 
-    target = {"attack_loss": opt, "validate": opt, "clip": eot}[when]
-    name = {"attack_loss": "attack_loss", "validate": "detect_windows", "clip": "prepare_clip"}[when]
+    target = {"attack_loss": opt, "validate": ev, "clip": eot}[when]
+    name = {"attack_loss": "attack_loss", "validate": "window_histograms", "clip": "prepare_clip"}[when]
     original = getattr(target, name)
     calls = []
 
@@ -603,9 +629,9 @@ def test_pool_clip_histograms_and_validation_use_the_clip_window(body, detector)
     clip = replace(clip, noise_cell=empty, noise_count=empty.float())
     assert clip.window_us == 25_000 and np.array_equal(np.diff(clip.window_end_us), [25_000, 25_000])
     grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
-    expected = torch.clamp(v2e_histograms(clip.video(grid), clip.t_us, clip.window_end_us, window_us=25_000,
-                                          count_cutoff=None, threshold_on=clip.threshold,
-                                          threshold_off=clip.threshold), max=10.0)
+    expected = torch.clamp(v2e_histograms(clip.video(grid).double(), clip.t_us, clip.window_end_us,
+                                          window_us=25_000, count_cutoff=None, threshold_on=clip.threshold.double(),
+                                          threshold_off=clip.threshold.double()), max=10.0).float()
     hist = clip_histograms(grid, clip, gradient="ste")
     assert torch.equal(hist, expected) and hist.sum() > 0
     hard = (grid > 0.5).float().numpy()
@@ -676,3 +702,47 @@ def test_the_official_lr_schedule_is_the_default_and_a_run_before_it_resumes_as_
     optimize_texture(replace(old, iterations=3), detector, tmp_path / "old", body_model=body, progress=False,
                      resume=True)
     assert [r["lr"] for r in _log(tmp_path / "old" / "log.jsonl")[0]] == [0.05] * 3
+
+
+def test_the_test_sensor_is_drawn_inside_the_training_distribution():
+    mixed, noisy = EoTConfig(), EoTConfig(test_sensor_probability=0.0)
+    assert mixed.test_sensor_probability == 0.5
+    draws = [(draw_scene(mixed, s, 24), draw_scene(noisy, s, 24)) for s in range(200)]
+    test = [m[1] for m, _ in draws if m[1]["test_sensor"]]
+    assert 70 < len(test) < 130  # about half
+    assert all(t["threshold"] == 0.2 and t["threshold_sigma"] == 0.0 and t["noise_rate_hz"] == 0.0 for t in test)
+    assert all(m[0] == n[0] for m, n in draws)  # the scenes are the same draws whatever the probability
+    assert all(m[1] == n[1] for m, n in draws if not m[1]["test_sensor"])
+    with pytest.raises(ValueError, match="test_sensor_probability"):
+        EoTConfig(test_sensor_probability=1.5)
+
+
+def test_validation_scores_as_trained_and_as_tested_batched(body, detector):
+    from davis_rig.attack.optimize import validate
+
+    ideal = replace(TINY_EOT, test_sensor_probability=1.0)
+    clips = [ClipPool(eot, body, 4, size=1, base_seed=3).clips[0] for eot in (ideal, TINY_EOT, TINY_EOT)]
+    assert clips[1].noise_cell.numel() > 0  # a noisy training sensor
+    grid = np.ones((4, 4), np.float32)
+    train = ("dvs", "interval")
+    same = validate(grid, clips[:1], detector, 0.25, train_path=train)
+    assert same["transfer_gap"] == same["mean_top_score"] - same["train_top_score"]
+    both = validate(grid, clips, detector, 0.25, train_path=train, batch=2)
+    alone = [validate(grid, [c], detector, 0.25, train_path=train, batch=1) for c in clips]
+    for key in ("mean_top_score", "train_top_score"):
+        assert both[key] == pytest.approx(np.mean([a[key] for a in alone]), abs=1e-5)
+    assert validate(grid, clips[:1], detector, 0.25)["mean_top_score"] == pytest.approx(same["mean_top_score"])
+    assert set(validate(grid, clips[:1], detector, 0.25, train_path=train, test_path=False)) == {
+        "train_SeqASR", "train_top_score"}
+
+
+def test_validation_records_carry_the_transfer_gap_and_selection_uses_the_training_path(detector, body, tmp_path):
+    cfg = _tiny(iterations=2, validate_every=1, num_validation_clips=2, eot=replace(TINY_EOT,
+                                                                                  test_sensor_probability=0.5))
+    result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    vals = _log(tmp_path / "log.jsonl")[1]
+    for v in vals:
+        assert v["transfer_gap"] == pytest.approx(v["mean_top_score"] - v["train_top_score"])
+    assert result.final_validation == vals[-1]
+    assert _better({"SeqASR": 0.0, "mean_top_score": 0.9, "train_SeqASR": 0.5, "train_top_score": 0.1},
+                   {"SeqASR": 1.0, "mean_top_score": 0.1, "train_SeqASR": 0.0, "train_top_score": 0.9})
