@@ -615,6 +615,8 @@ _FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_ev
 #: Fields whose default changed after runs were written without them: the value such a run used. A checkpoint
 #: that lacks another field counts it as its (unchanged) default.
 _LEGACY_VALUES = {"lr_schedule": "constant"}
+#: The same for the fields of ``eot``.
+_LEGACY_EOT_VALUES = {"test_sensor_probability": 0.0}
 
 
 def _check_resume_config(state: dict, config: AttackConfig, path: Path) -> None:
@@ -627,7 +629,8 @@ def _check_resume_config(state: dict, config: AttackConfig, path: Path) -> None:
     defaults = json.loads(json.dumps({f.name: f.default for f in fields(AttackConfig) if f.default is not MISSING},
                                      default=str))
     saved = {**defaults, **_LEGACY_VALUES, **dict(state["config"])}
-    saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **dict(saved["eot"])}
+    saved["eot"] = {**json.loads(json.dumps(asdict(EoTConfig()), default=str)), **_LEGACY_EOT_VALUES,
+                    **dict(saved["eot"])}
     for name in _FREE_ON_RESUME:
         saved.pop(name, None)
         current.pop(name, None)

@@ -25,6 +25,7 @@ from davis_rig.cli._common import (
     non_negative_int,
     positive_float,
     positive_int,
+    probability,
 )
 
 OPTIMIZE_EPILOG = """\
@@ -173,6 +174,10 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "checkpoint is also written after the last step of a call and on Ctrl-C / SIGTERM, "
                         "which then stops with exit code 130")
     p.add_argument("--val-clips", type=positive_int, default=16, help="validation clips (default: 16)")
+    p.add_argument("--test-sensor-probability", type=probability, default=0.5, metavar="P",
+                   help="share of the training and validation clips whose sensor is the evaluation's ideal one "
+                        "(theta 0.2, no mismatch, no noise) instead of the EoT's noisy sensors (default 0.5; 0: the "
+                        "former EoT)")
     p.add_argument("--box-margin", type=non_negative_float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
     p.add_argument("--loss", choices=["mean", "top"], default="mean",
@@ -358,7 +363,8 @@ def _attack_config(args, grid_n: int, parts):
     # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed); they take
     # one threshold per clip, so the EoT's per-pixel threshold mismatch is off
     relaxed = args.events == "official_relaxed"
-    eot = make(playback_speed=args.playback_speed, **({"threshold_sigma": 0.0} if relaxed else {}))
+    eot = make(playback_speed=args.playback_speed, test_sensor_probability=args.test_sensor_probability,
+               **({"threshold_sigma": 0.0} if relaxed else {}))
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,

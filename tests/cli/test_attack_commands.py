@@ -29,7 +29,8 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
 
     def fake(config, detector, out, **kw):
         calls["run"] = (config, detector, out, kw)
-        return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan)
+        return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan,
+                               final_validation=None)
 
     monkeypatch.setattr(opt, "optimize_texture", fake)
     args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--cells", "20", "--parts", "torso",
@@ -61,7 +62,8 @@ def test_mocap_folders_map_onto_the_split_loaders(monkeypatch, tmp_path, capsys)
 
     def fake(config, detector, out, **kw):
         seen.update(kw)
-        return SimpleNamespace(out_dir=Path(out), steps=0, seconds_per_step=0.0, best_step=0, best_seq_asr=math.nan)
+        return SimpleNamespace(out_dir=Path(out), steps=0, seconds_per_step=0.0, best_step=0, best_seq_asr=math.nan,
+                               final_validation=None)
 
     monkeypatch.setattr(opt, "optimize_texture", fake)
     base = ["optimize", "--out", str(tmp_path), "--device", "cpu", "--no-progress"]
