@@ -9,7 +9,8 @@ One step (:func:`attack_loss` + Adam)::
         hist  = V2E(video) + noise        [W, 20, H, W] ("dvs" counts with the clip's per-pixel thresholds;
                                           backward: relaxed-count surrogate or the paper's STE, clip_histograms)
     RVT over the W windows with recurrent states, batched over the clips (frozen, eval mode)
-    L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss)
+    L = lambda_1 mean(obj) + lambda_2 mean(p_ped) over all anchors of all windows (davis_rig.attack.loss;
+        loss_anchors="person": only the anchors whose cell overlaps the person's box)
     backward; (DDP: gradients all-reduced and averaged over ranks); Adam step at lr(step)
                                           (cosine annealing with warm restarts, the official default, or constant;
                                           davis_rig.attack.lr_schedule)
@@ -59,7 +60,15 @@ import numpy as np
 from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detections
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN, lr_at
-from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_REDUCTIONS, AdversarialLoss, adversarial_loss
+from davis_rig.attack.loss import (
+    DEFAULT_LAMBDA,
+    LOSS_ANCHORS,
+    LOSS_REDUCTIONS,
+    AdversarialLoss,
+    adversarial_loss,
+    anchor_cells,
+    anchors_on_boxes,
+)
 from davis_rig.attack.stop import StopOnSignal
 from davis_rig.attack.texture import (
     ALPHA_SCHEDULES,
@@ -132,7 +141,10 @@ class AttackConfig:
             ``"relaxed"`` (default) or ``"ste"`` (the paper's straight-through floor).
         events: the event model that scores validation and refinement
             (:data:`~davis_rig.attack.evaluate.EVENT_MODELS`; ``"exact"`` by default).
-        box_margin_px: ``None`` = score all anchors (paper); else only anchors near the person's box.
+        box_margin_px: ``None`` = score all anchors (paper); else only anchors whose predicted centre lies within
+            this margin of the person's box.
+        loss_anchors: :data:`~davis_rig.attack.loss.LOSS_ANCHORS`: ``"all"`` (paper) or ``"person"``: only the
+            anchors whose cell overlaps the person's box in that window (:func:`~davis_rig.attack.loss.anchors_on_boxes`).
         loss_reduction: ``"mean"`` over the scored anchors (paper) or ``"top"``: the highest-confidence scored
             anchor per window and clip (:func:`davis_rig.attack.loss.adversarial_loss`).
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the detector's forward and backward; texture, V2E and
@@ -175,6 +187,7 @@ class AttackConfig:
     v2e_gradient: str = "relaxed"
     events: str = "exact"
     box_margin_px: float | None = None
+    loss_anchors: str = "all"
     loss_reduction: str = "mean"
     precision: str = "fp32"
     refine_passes: int = 0
@@ -212,7 +225,8 @@ class AttackConfig:
             refuse("lr_period", "expected an integer >= 1 or None")
         for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("v2e_gradient", V2E_GRADIENTS),
                               ("lr_schedule", LR_SCHEDULES),
-                              ("loss_reduction", LOSS_REDUCTIONS), ("precision", ("fp32", "bf16")),
+                              ("loss_reduction", LOSS_REDUCTIONS), ("loss_anchors", LOSS_ANCHORS),
+                              ("precision", ("fp32", "bf16")),
                               ("select_by", SELECTION_RULES), ("events", EVENT_MODELS)):
             if getattr(self, name) not in allowed:
                 refuse(name, f"expected one of {allowed}")
@@ -394,11 +408,15 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
         for w in range(x.shape[0]):
             out, states = detector(pad_to_input(x[w], detector.config.in_res_hw), states)
             decoded.append(out.float())
-    boxes = None
-    if config.box_margin_px is not None:
-        boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=device)  # [W, B, 4]
-    return adversarial_loss(decoded, config.lambda_obj, config.lambda_cls, boxes=boxes,
-                            box_margin_px=config.box_margin_px or 0.0, reduction=config.loss_reduction)
+    boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=device)  # [W, B, 4]
+    on_person = None
+    if config.loss_anchors == "person":
+        cells = anchor_cells(detector.config.in_res_hw, detector.config.head_strides, device=device)
+        on_person = anchors_on_boxes(cells, boxes)  # [W, B, A]
+    return adversarial_loss(decoded, config.lambda_obj, config.lambda_cls,
+                            boxes=boxes if config.box_margin_px is not None else None,
+                            box_margin_px=config.box_margin_px or 0.0, reduction=config.loss_reduction,
+                            anchor_mask=on_person)
 
 
 def _step_seed(seed: int, step: int) -> int:

@@ -180,6 +180,9 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "former EoT)")
     p.add_argument("--box-margin", type=non_negative_float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
+    p.add_argument("--loss-anchors", choices=["all", "person"], default="all",
+                   help="anchors the loss scores: all (paper; on the detectors trained here > 98 %% of it is the "
+                        "background anchors' p_ped) or person (the anchors whose cell overlaps the person's box)")
     p.add_argument("--loss", choices=["mean", "top"], default="mean",
                    help="mean: obj and p_ped averaged over all scored anchors (paper); top: the highest-confidence "
                         "anchor per window and clip (stronger signal on detectors with busy backgrounds)")
@@ -371,7 +374,7 @@ def _attack_config(args, grid_n: int, parts):
                         lr_min=args.lr_min, lr_period=args.lr_period, alpha_schedule=args.alpha_schedule,
                         validate_every=args.validate_every, num_validation_clips=args.val_clips,
                         checkpoint_every=args.checkpoint_every,
-                        box_margin_px=args.box_margin, loss_reduction=args.loss,
+                        box_margin_px=args.box_margin, loss_anchors=args.loss_anchors, loss_reduction=args.loss,
                         v2e_mode="official_relaxed" if relaxed else "dvs",
                         v2e_gradient="ste" if relaxed else args.v2e_gradient, events=args.events,
                         precision=args.precision, refine_passes=args.refine_passes,

@@ -746,3 +746,20 @@ def test_validation_records_carry_the_transfer_gap_and_selection_uses_the_traini
     assert result.final_validation == vals[-1]
     assert _better({"SeqASR": 0.0, "mean_top_score": 0.9, "train_SeqASR": 0.5, "train_top_score": 0.1},
                    {"SeqASR": 1.0, "mean_top_score": 0.1, "train_SeqASR": 0.0, "train_top_score": 0.9})
+
+
+def test_person_anchor_loss_scores_the_anchors_on_the_persons_box(detector, body):
+    from davis_rig.attack.loss import anchor_cells, anchors_on_boxes
+    from davis_rig.attack.optimize import attack_loss
+
+    clips = ClipPool(TINY_EOT, body, 4, size=2, base_seed=3).sample(0, 2)
+    grid = torch.full((4, 4), 0.5)
+    every, person = (attack_loss(grid, clips, detector, _tiny(pool_size=2, clips_per_step=2, loss_anchors=anchors))
+                     for anchors in ("all", "person"))
+    cells = anchor_cells(detector.config.in_res_hw, detector.config.head_strides)
+    boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1))
+    expected = int(anchors_on_boxes(cells, boxes).sum())
+    assert 0 < int(person.num_anchors) == expected < int(every.num_anchors)
+    assert person.total.item() != every.total.item()
+    with pytest.raises(ValueError, match="loss_anchors"):
+        AttackConfig(loss_anchors="box")
