@@ -3,8 +3,9 @@
 Protocol (paper, Experiments; official code where the paper is silent):
 
 - **Test scenes**: body shapes of the test split (:func:`davis_rig.attack.eot.split_shapes`, never used in
-  training) and their walk cycles (or given test motions, e.g. the AMASS test split of
-  :mod:`davis_rig.scene.mocap.splits`), several headings and start phases, each at the three camera scales
+  training) and their walks (the gait generator's natural walk by default, ``walk``), or given test motions (e.g.
+  the AMASS test split of :mod:`davis_rig.scene.mocap.splits`), several headings and start phases, each at the
+  three camera scales
   (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`: large / middle / small); the person walks across a blank
   grey background under the toolkit's default light. :meth:`EvalConfig.official` is the official renders' scene
   instead: blank white background (PyTorch3D's default), its light, the body walking in place. Every scene is
@@ -40,7 +41,7 @@ from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
 from davis_rig.scene.camera import PinholeCamera
-from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
@@ -100,8 +101,10 @@ class EvalConfig:
         nms_threshold: class-wise NMS IoU threshold.
         background: uniform background level (default 0.5 grey; the official renders are blank white, 1.0).
         light: the scene light (``None`` = the toolkit's default :class:`~davis_rig.scene.shading.Light`).
-        walk_in_place: the walk cycle stays in place (the official code drops the global translation); False =
+        walk_in_place: the walk stays in place (the official code drops the global translation); False =
             the person walks forward across the view.
+        walk: the walk without test motions (:data:`~davis_rig.scene.scene.WALKS`): ``"natural"`` (default, the
+            gait generator's 1.3 m/s) or ``"bundled"`` (the asset's cycle, the walk of the tables measured before).
         render_rate_hz, supersample: rendering.
         simulator: the exact simulator's settings (ideal sensor by default; its thresholds are θ of the relaxed
             model too).
@@ -123,6 +126,7 @@ class EvalConfig:
     background: float = 0.5
     light: Light | None = None
     walk_in_place: bool = False
+    walk: str = "natural"
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     simulator: SimulatorConfig = field(default_factory=SimulatorConfig)
@@ -155,6 +159,8 @@ class EvalConfig:
             refuse("scales", f"expected names from {tuple(TEST_SCALES_PX)} or heights in px > 0")
         if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
             refuse("playback_speed", "expected a finite number > 0")
+        if self.walk not in WALKS:
+            refuse("walk", f"expected one of {WALKS}")
 
     @property
     def num_windows(self) -> int:
@@ -223,6 +229,7 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
                         out.append((scale, SceneSpec(
                             shape_index=int(shape), motion=motion, motion_start_s=float(phase),
                             playback_speed=float(config.playback_speed), advance=not config.walk_in_place,
+                            walk=config.walk,
                             heading_rad=float(heading), scale=scale,
                             camera=config.camera, light=config.light, background=float(config.background),
                             render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,

@@ -177,7 +177,7 @@ class AttackConfig:
     refresh_every: int = 50
     refresh_fraction: float = 0.25
     validate_every: int = 1000
-    num_validation_clips: int = 16
+    num_validation_clips: int = 64
     validation_threshold: float = 0.25
     checkpoint_every: int | None = None
     checkpoint_interval_s: float = 300.0
@@ -634,7 +634,7 @@ _FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_ev
 #: that lacks another field counts it as its (unchanged) default.
 _LEGACY_VALUES = {"lr_schedule": "constant"}
 #: The same for the fields of ``eot``.
-_LEGACY_EOT_VALUES = {"test_sensor_probability": 0.0}
+_LEGACY_EOT_VALUES = {"test_sensor_probability": 0.0, "walk": "bundled"}
 
 
 def _check_resume_config(state: dict, config: AttackConfig, path: Path) -> None:

@@ -173,7 +173,8 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                    help="write checkpoints/last.pt every STEPS steps (default: every 5 minutes of work); a "
                         "checkpoint is also written after the last step of a call and on Ctrl-C / SIGTERM, "
                         "which then stops with exit code 130")
-    p.add_argument("--val-clips", type=positive_int, default=16, help="validation clips (default: 16)")
+    p.add_argument("--val-clips", type=positive_int, default=64,
+                   help="validation clips (default: 64), each scored as trained and as tested")
     p.add_argument("--test-sensor-probability", type=probability, default=0.5, metavar="P",
                    help="share of the training and validation clips whose sensor is the evaluation's ideal one "
                         "(theta 0.2, no mismatch, no noise) instead of the EoT's noisy sensors (default 0.5; 0: the "
@@ -217,6 +218,10 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
                         "in training and test, as the paper's numbers were made; not events; training takes the "
                         "straight-through gradient of the relaxed counts, replacing --v2e-gradient, and one "
                         "threshold per clip: no per-pixel threshold mismatch)")
+    p.add_argument("--walk", choices=["natural", "bundled"], default="natural",
+                   help="the walk of training and test scenes without --amass/--bvh: natural (default: the gait "
+                        "generator's 1.3 m/s, ~2 steps/s, feet on the ground in every frame) or bundled (the body "
+                        "asset's cycle: 0.53 m/s, 1.2 steps/s, crouched; the walk of every table measured before)")
     p.add_argument("--playback-speed", type=positive_float, default=1.0,
                    help="motion seconds per clip second in training and test (default 1: real time; the official "
                         "code's 10 frames of 120 fps motion per 50 ms window are 1.667)")
@@ -245,7 +250,7 @@ def _eval_config(args, default_thresholds):
     make = EvalConfig.official if args.scene == "official" else EvalConfig
     return make(scales=tuple(args.scales), thresholds=tuple(args.threshold or default_thresholds),
                 headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases), events=args.events,
-                playback_speed=args.playback_speed)
+                playback_speed=args.playback_speed, walk=args.walk)
 
 
 def _subparser(subparsers, name: str, help: str, description: str, examples: str) -> argparse.ArgumentParser:
@@ -367,6 +372,7 @@ def _attack_config(args, grid_n: int, parts):
     # one threshold per clip, so the EoT's per-pixel threshold mismatch is off
     relaxed = args.events == "official_relaxed"
     eot = make(playback_speed=args.playback_speed, test_sensor_probability=args.test_sensor_probability,
+               walk=args.walk,
                **({"threshold_sigma": 0.0} if relaxed else {}))
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,

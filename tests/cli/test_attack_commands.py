@@ -105,6 +105,11 @@ def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
 BAD_VALUES = [  # (argv after the subcommand, the option the one-line message must name)
+    (["optimize", "--lr-min", "1"], "--lr-min"),  # above --lr: ConfigError of AttackConfig
+    (["optimize", "--lr-period", "0"], "--lr-period"),
+    (["optimize", "--test-sensor-probability", "2"], "--test-sensor-probability"),
+    (["optimize", "--walk", "run"], "--walk"),
+    (["optimize", "--loss-anchors", "box"], "--loss-anchors"),
     (["optimize", "--cells", "0"], "--cells"),
     (["optimize", "--cells", "300"], "--cells"),  # ConfigError of AttackConfig, mapped onto the option
     (["optimize", "--iterations", "-1"], "--iterations"),
@@ -429,3 +434,22 @@ def test_ctrl_c_on_a_real_run_exits_130_after_a_checkpoint_and_resume_continues(
     assert done.returncode == 0, done.stderr
     logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
     assert logged == list(range(1, step + 3))
+
+
+def test_optimizer_fidelity_options_map_onto_the_configs(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "-q"])
+    assert args.func(args) == 0
+    attack, scenes = seen["kw"]["attack"], seen["kw"]["eval_config"]
+    # the defaults: the official schedule, 64 validation clips, the test sensor in half the clips, natural walk
+    assert (attack.lr_schedule, attack.lr_min, attack.lr_period) == ("cosine_restarts", 1e-7, None)
+    assert attack.num_validation_clips == 64 and attack.loss_anchors == "all"
+    assert (attack.eot.test_sensor_probability, attack.eot.walk, scenes.walk) == (0.5, "natural", "natural")
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "-q", "--lr-schedule",
+                                 "constant", "--lr-period", "300", "--lr-min", "0", "--val-clips", "16",
+                                 "--loss-anchors", "person", "--test-sensor-probability", "0", "--walk", "bundled"])
+    assert args.func(args) == 0
+    attack, scenes = seen["kw"]["attack"], seen["kw"]["eval_config"]
+    assert (attack.lr_schedule, attack.lr_min, attack.lr_period) == ("constant", 0.0, 300)
+    assert attack.num_validation_clips == 16 and attack.loss_anchors == "person"
+    assert (attack.eot.test_sensor_probability, attack.eot.walk, scenes.walk) == (0.0, "bundled", "bundled")
