@@ -870,7 +870,6 @@ def optimize_texture(
     created = not out.exists()
     pool, val_clips = None, []
     wrote_checkpoint = state is not None
-    last_checkpoint_s = time.monotonic()
 
     def checkpoint(next_step: int, pending_validation: bool = False) -> None:
         nonlocal wrote_checkpoint, last_checkpoint_s
@@ -948,6 +947,7 @@ def optimize_texture(
         elif rank == 0:
             _clear_outputs(out)
         t_start = time.perf_counter()
+        last_checkpoint_s = time.monotonic()  # the period counts the steps' work, not the clip preparation
         try:
             log = open(out / "log.jsonl", "a") if rank == 0 else None
             bar = tqdm(total=config.iterations, initial=start, disable=not progress or rank != 0,

@@ -194,13 +194,13 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
     p.add_argument("--refine-passes", type=non_negative_int, default=0,
                    help="after the last step, sweeps of greedy cell flips starting from the better of the best "
-                        "texture and plain white, each flip scored with the exact simulator (default 0: none, the "
-                        "paper)")
+                        "texture and plain white, each flip scored as validation selects (the clips' own sensors) "
+                        "(default 0: none, the paper)")
     p.add_argument("--refine-clips", type=positive_int, default=8,
                    help="EoT clips that score the refinement's flips (default 8)")
     p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
-                   help="best texture on validation: seqasr (paper: SeqASR, then mean top score) or score (mean "
-                        "top score alone; finer with few validation clips)")
+                   help="best texture on validation, scored as trained: seqasr (paper: SeqASR, then mean top "
+                        "score) or score (mean top score alone; finer with few validation clips)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of init, dropout, pool and sampling")
 
 
