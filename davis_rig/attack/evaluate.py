@@ -237,21 +237,27 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
     return out
 
 
-def prepare_scenes(specs: Sequence[tuple[object, SceneSpec]], model, config: EvalConfig) -> list[EvalScene]:
+def prepare_scenes(specs: Sequence[tuple[object, SceneSpec]], model, config: EvalConfig, *,
+                   progress: bool = False) -> list[EvalScene]:
     """Pose and rasterize the test scenes once (no autograd).
 
     Args:
         specs: ``(scale, SceneSpec)`` pairs (:func:`evaluation_scenes`).
         model: :class:`~davis_rig.scene.body.BodyModel`.
         config: the evaluation settings.
+        progress: show a tqdm bar (stderr).
 
     Returns:
         list of :class:`EvalScene`.
     """
+    import sys
+
+    from tqdm import tqdm
+
     from davis_rig.scene.scene import render_clip
 
     scenes = []
-    for scale, spec in specs:
+    for scale, spec in tqdm(specs, disable=not progress, desc="preparing test scenes", unit="scene", file=sys.stderr):
         with torch.no_grad():
             clip = render_clip(spec, None, model=model)
         t_us = np.asarray(clip.t_us, dtype=np.int64)
@@ -589,7 +595,7 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
     for n in sorted(optimized, reverse=True):
         grid = np.asarray(optimized[n], dtype=np.float32)
         textures[f"ours {n}x{n}"] = TextureSpec(grid, tuple(parts) if parts else None)
-    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config, progress=progress)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table1",
                        f"Table 1: baselines vs optimized textures (digital, {EVENT_MODEL_NAMES[config.events]})",
@@ -615,7 +621,7 @@ def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *
     model = model or BodyModel()
     textures = {key: TextureSpec(np.asarray(grid, dtype=np.float32), tuple(key.split("+")))
                 for key, grid in optimized.items()}
-    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config, progress=progress)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table2",
                        f"Table 2: body-part combinations (10x10, {EVENT_MODEL_NAMES[config.events]})",

@@ -494,7 +494,8 @@ def evaluate_command(args) -> int:
             specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
         else:
             specs = {k: ev.TextureSpec(g, parts) for k, g in grids.items()}
-            scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config)
+            scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config,
+                                       progress=not args.quiet)
             rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.quiet)
             res = ev.write_table(rows, config.thresholds, args.out, "evaluation",
                                  f"Digital evaluation ({ev.EVENT_MODEL_NAMES[config.events]})", command=command)
