@@ -57,7 +57,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.attack.evaluate import EVENT_MODELS, detect_windows, score_detections
+from davis_rig.attack.evaluate import EVENT_MODELS, score_detections
 from davis_rig.attack.eot import ClipPool, EoTConfig, PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN, lr_at
 from davis_rig.attack.loss import (
@@ -479,7 +479,8 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
     """Validation SeqASR and top scores of a hard texture on pre-rasterized clips, as tested and as trained.
 
     The **test path** is the evaluation's: events of the exact simulator (or ``events``) from the ideal sensor
-    (:class:`~davis_rig.events.simulator.SimulatorConfig`). The **training path** (with ``train_path``) is what
+    (:class:`~davis_rig.events.simulator.SimulatorConfig`), simulated on the clip's active box only (the ideal
+    sensor is per pixel and nothing changes outside the box: the same histograms as the whole frame). The **training path** (with ``train_path``) is what
     the optimisation sees: the forward of :func:`clip_histograms`, i.e. each clip's own sensor (its threshold,
     per-pixel mismatch and noise events). On a clip drawn with the test sensor both give the same counts. The
     detector runs on ``batch`` clips at once.
@@ -518,11 +519,14 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
         for clip in chunk:
             _check_stop(stop)
             with torch.no_grad():
-                video = clip.video(g)
-                if test_path:
-                    hists["test"].append(torch.as_tensor(window_histograms(
-                        video, clip.t_us, clip.window_end_us, events=events, device=video.device,
-                        window_us=clip.window_us)))
+                if test_path:  # the ideal sensor is per pixel and the video is constant outside the active box
+                    y0, y1, x0, x1 = clip.active_box
+                    video = clip.active_video(g)
+                    crop = torch.as_tensor(window_histograms(video, clip.t_us, clip.window_end_us, events=events,
+                                                             device=video.device, window_us=clip.window_us))
+                    hist = torch.zeros((*crop.shape[:2], *clip.threshold.shape), dtype=crop.dtype)
+                    hist[..., y0:y1, x0:x1] = crop
+                    hists["test"].append(hist)
                 if train_path is not None:
                     hists["train"].append(clip_histograms(g, clip, train_path[0], train_path[1], gradient="ste"))
         for name, (decoded, tops) in paths.items():

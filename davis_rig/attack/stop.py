@@ -57,7 +57,7 @@ class StopOnSignal:
             signal.signal(signum, handler)
         self._previous = {}
 
-    def __enter__(self) -> "StopOnSignal":
+    def __enter__(self) -> StopOnSignal:
         if self.enabled and threading.current_thread() is threading.main_thread():
             for signum in _SIGNALS:
                 self._previous[signum] = signal.signal(signum, self._handle)

@@ -47,8 +47,8 @@ from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 __all__ = [
     "MIN_RENDER_RATE_HZ",
-    "WALKS",
     "OFFICIAL_PLAYBACK_SPEED",
+    "WALKS",
     "Clip",
     "RenderBody",
     "SceneSpec",

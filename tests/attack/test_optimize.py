@@ -510,9 +510,9 @@ def _signal_at(monkeypatch, when: str, count: int) -> None:
     import os
     import signal
 
-    import davis_rig.attack.eot as eot
     import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt
+    from davis_rig.attack import eot
 
     target = {"attack_loss": opt, "validate": ev, "clip": eot}[when]
     name = {"attack_loss": "attack_loss", "validate": "window_histograms", "clip": "prepare_clip"}[when]
@@ -771,3 +771,17 @@ def test_person_anchor_loss_scores_the_anchors_on_the_persons_box(detector, body
     assert person.total.item() != every.total.item()
     with pytest.raises(ValueError, match="loss_anchors"):
         AttackConfig(loss_anchors="box")
+
+
+@pytest.mark.parametrize("events", ["exact", "official_relaxed"])
+def test_validation_simulates_the_active_box_only_with_the_whole_frames_result(body, detector, events):
+    from davis_rig.attack.evaluate import detect_windows
+    from davis_rig.attack.optimize import validate
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    grid = (np.random.default_rng(1).random((4, 4)) > 0.5).astype(np.float32)
+    with torch.no_grad():
+        decoded, _ = detect_windows(detector, clip.video(torch.as_tensor(grid)), clip.t_us, clip.window_end_us,
+                                    events=events)
+    whole_frame = np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded])
+    assert validate(grid, [clip], detector, 0.25, events)["mean_top_score"] == pytest.approx(whole_frame, abs=1e-6)
