@@ -27,7 +27,7 @@ HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
 ORDER = ("decode", "usb_pipeline", "io", "representation", "model", "rvt_eager", "evaluation", "body", "motion",
-         "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
+         "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step", "attack_validation")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
@@ -46,6 +46,7 @@ QUICK_ARGS = {
     "synthetic": ["--scenes", "2", "--seconds", "0.5"],
     "train_step": ["--repeats", "2"],
     "attack_step": ["--repeats", "2"],
+    "attack_validation": ["--clips", "4", "--repeats", "1"],
 }
 
 

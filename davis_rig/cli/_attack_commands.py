@@ -93,6 +93,18 @@ CONFIG_OPTIONS = {
 }  # fmt: skip
 
 
+#: Largest --cells (:data:`davis_rig.attack.texture.MAX_CELLS`).
+MAX_CELLS = 256
+
+
+def _cells(text: str) -> int:
+    """``--cells``: grid cells per side, an integer in [1, :data:`MAX_CELLS`]."""
+    value = positive_int(text)
+    if value > MAX_CELLS:
+        raise argparse.ArgumentTypeError(f"expected an integer in [1, {MAX_CELLS}], got {text!r}")
+    return value
+
+
 def _device_name(text: str) -> str:
     """``--device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is checked when the command runs)."""
     kind, _, index = text.partition(":")
@@ -263,7 +275,7 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     p = _subparser(subparsers, "optimize", "optimise an adversarial texture (EoT, resumable, DDP)",
                    "Optimise a black/white adversarial texture against a frozen RVT.", OPTIMIZE_EPILOG)
     add_out(p, required=True, metavar="RUN_DIR", help="run folder")
-    p.add_argument("--cells", type=positive_int, default=10,
+    p.add_argument("--cells", type=_cells, default=10,
                    help="grid cells per side n (paper: 10 ... 60; default 10)")
     p.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
                    help="painted body parts: torso, arms, legs, head, hands, feet (default: torso arms legs); "
@@ -276,7 +288,7 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
                    help="continue RUN_DIR/checkpoints/last.pt at the step it holds (a clean new run when RUN_DIR "
                         "holds no run); without it RUN_DIR must not hold a run")
     _common_run_args(p)
-    p.set_defaults(func=optimize_command, check=_check_parts)
+    p.set_defaults(func=optimize_command, check=_check_optimize)
     return p
 
 
@@ -305,15 +317,28 @@ def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
                    "Reproduce the paper's Table 1 or 2 with an explicit budget.", REPRODUCE_EPILOG)
     p.add_argument("--table", type=int, choices=[1, 2], required=True, help="Table 1 (grid sizes) or 2 (body parts)")
     add_out(p, required=True, metavar="DIR", help="output folder (runs/ + table files)")
-    p.add_argument("--grids", type=positive_int, nargs="+", default=None, metavar="N",
+    p.add_argument("--grids", type=_cells, nargs="+", default=None, metavar="N",
                    help="Table 1 grid sizes (default: 60 50 40 30 20 10)")
     p.add_argument("--combinations", type=_combination, nargs="+", default=None, metavar="PARTS",
                    help="Table 2 part combinations joined by '+', e.g. legs torso+legs (default: all 7)")
     _budget_args(p)
     _scene_args(p)
     _common_run_args(p)
-    p.set_defaults(func=reproduce_command)
+    p.set_defaults(func=reproduce_command, check=_check_budget)
     return p
+
+
+def _check_budget(parser: argparse.ArgumentParser, args) -> None:
+    """Options of ``optimize`` and ``reproduce`` that must agree (checked before anything is loaded)."""
+    if args.clips_per_step > args.pool_size:
+        parser.error(f"argument --clips-per-step: {args.clips_per_step} exceeds --pool-size {args.pool_size}")
+    if args.lr_min > args.lr:
+        parser.error(f"argument --lr-min: {args.lr_min:g} exceeds --lr {args.lr:g}")
+
+
+def _check_optimize(parser: argparse.ArgumentParser, args) -> None:
+    _check_budget(parser, args)
+    _check_parts(parser, args)
 
 
 def _check_parts(parser: argparse.ArgumentParser, args) -> None:

@@ -452,3 +452,9 @@ def test_optimizer_fidelity_options_map_onto_the_configs(monkeypatch, tmp_path):
     assert (attack.lr_schedule, attack.lr_min, attack.lr_period) == ("constant", 0.0, 300)
     assert attack.num_validation_clips == 16 and attack.loss_anchors == "person"
     assert (attack.eot.test_sensor_probability, attack.eot.walk, scenes.walk) == (0.0, "bundled", "bundled")
+
+
+def test_cli_limits_match_the_library():
+    from davis_rig.attack.texture import MAX_CELLS
+
+    assert cmd.MAX_CELLS == MAX_CELLS
