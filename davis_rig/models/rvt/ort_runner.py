@@ -23,7 +23,7 @@ from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatErr
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US, stacked_histograms
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.postprocess import postprocess
-from davis_rig.types import RVT_HW
+from davis_rig.types import RVT_HW, RVT_NMS_IOU
 
 __all__ = ["RVTOnnxRunner", "GraphSignature", "SplitStep"]
 
@@ -348,7 +348,7 @@ class RVTOnnxRunner:
         window_end_us,
         conf_threshold: float = 0.1,
         *,
-        nms_threshold: float = 0.45,
+        nms_threshold: float = RVT_NMS_IOU,
         window_us: int = WINDOW_US,
         states: States | None = None,
         return_states: bool = False,

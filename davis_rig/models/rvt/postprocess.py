@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from davis_rig.errors import ShapeError
+from davis_rig.types import RVT_NMS_IOU
 
 __all__ = ["batched_nms", "nms", "postprocess", "postprocess_thresholds", "torch_cpu_unstable_argsort_desc"]
 
@@ -453,7 +454,7 @@ def _image_thresholds(detections: np.ndarray, scores: np.ndarray, thresholds: li
 def postprocess_thresholds(
     decoded,
     conf_thresholds,
-    nms_threshold: float = 0.45,
+    nms_threshold: float = RVT_NMS_IOU,
     *,
     num_classes: int | None = None,
 ) -> dict[float, list[np.ndarray | None]]:
@@ -498,7 +499,7 @@ def postprocess_thresholds(
 def postprocess(
     decoded,
     conf_threshold: float,
-    nms_threshold: float = 0.45,
+    nms_threshold: float = RVT_NMS_IOU,
     *,
     num_classes: int | None = None,
 ) -> list[np.ndarray | None]:
