@@ -347,12 +347,9 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
             ``settings.crop_origin_xy`` not the labels' crop origin.
         ShapeError: the crop at the origin does not fit the sensor.
     """
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
     from contextlib import closing
 
     from davis_rig.evaluation.prefetch import prefetch
-    from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
     path = Path(path)
     wall = time.perf_counter()
@@ -365,52 +362,21 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         t_events_end = t0 + 1000 * len(reader.ms_to_idx)
         t_last = max(t_events_end, int(labels["t"].max()) if len(labels) else 0)
         ends = window_grid(t0, t_last, settings.window_us)
-        n_windows = len(ends)
         thresholds = sorted({float(th) for th in settings.thresholds})
-        detections = {th: [] for th in thresholds}
         split = _split_or_none(runner, settings)
-
-        def post(decoded):
-            tic = time.perf_counter()
-            out = postprocess_thresholds(decoded, thresholds, settings.nms_threshold)
-            timings["postprocess"] += time.perf_counter() - tic
-            return out
-
-        def collect(future) -> None:
-            out = future.result()
-            for th in thresholds:
-                detections[th].append(out[th][0])
-
-        def whole_steps(windows):
-            states = None
-            for x in windows:
-                tic = time.perf_counter()
-                decoded, states = runner.step(x, states)
-                busy["step"] += time.perf_counter() - tic
-                yield decoded
-
         gif: list = []
         totals = {"events": 0}
         busy = {"step": 0.0, "pre": 0.0, "recur": 0.0, "head": 0.0}
-        pending = deque()
-        bar = progress(total=n_windows, desc=path.name) if progress is not None else None
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool, \
-                closing(prefetch(event_chunks(reader, ends, origin, window_us=settings.window_us,
-                                             chunk_windows=settings.chunk_windows,
-                                             gif_windows=settings.gif_windows, timings=timings),
-                                depth=2)) as chunks:
+        bar = progress(total=len(ends), desc=path.name) if progress is not None else None
+        chunks = event_chunks(reader, ends, origin, window_us=settings.window_us, chunk_windows=settings.chunk_windows,
+                              gif_windows=settings.gif_windows, timings=timings)
+        with closing(prefetch(chunks, depth=2)) as chunks:
             windows = _windows(chunks, runner, totals, gif)
-            steps = (whole_steps(windows) if split is None
+            steps = (_whole_steps(windows, runner, busy) if split is None
                      else _pipelined_decoded(windows, split, runner.initial_states(1), busy))
             with closing(steps):
-                for decoded in steps:
-                    pending.append(post_pool.submit(post, decoded))
-                    while len(pending) > settings.chunk_windows or (pending and pending[0].done()):
-                        collect(pending.popleft())
-                    if bar is not None:
-                        bar.update(1)
-            while pending:
-                collect(pending.popleft())
+                detections = _postprocessed(steps, thresholds, settings.nms_threshold, settings.chunk_windows,
+                                            timings, bar)
         timings["inference"] = sum(busy.values())
         if bar is not None:
             bar.close()
@@ -421,6 +387,57 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
                          crop_origin_xy=tuple(int(v) for v in origin), num_events=totals["events"],
                          timings_s=timings, event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW),
                          labels_attrs=labels_attrs)
+
+
+def _whole_steps(windows, runner, busy_s: dict):
+    """Decoded outputs of consecutive windows, whole RVT steps in the caller's thread (states carried from zero);
+    adds their busy seconds to ``busy_s["step"]``."""
+    states = None
+    for x in windows:
+        tic = time.perf_counter()
+        decoded, states = runner.step(x, states)
+        busy_s["step"] += time.perf_counter() - tic
+        yield decoded
+
+
+def _postprocessed(steps, thresholds: list[float], nms_threshold: float, backlog: int, timings: dict,
+                   bar) -> dict:
+    """Post-process every decoded step at all ``thresholds`` at once in a background thread, at most ``backlog``
+    steps behind the model.
+
+    Returns:
+        ``{threshold: [one entry per window, in order: float32 [K, 7] or None]}``. Adds the busy seconds to
+        ``timings["postprocess"]`` and advances ``bar`` (or ``None``) by one per step.
+    """
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    from davis_rig.models.rvt.postprocess import postprocess_thresholds
+
+    detections = {th: [] for th in thresholds}
+
+    def post(decoded):
+        tic = time.perf_counter()
+        out = postprocess_thresholds(decoded, thresholds, nms_threshold)
+        timings["postprocess"] += time.perf_counter() - tic
+        return out
+
+    def collect(future) -> None:
+        out = future.result()
+        for th in thresholds:
+            detections[th].append(out[th][0])
+
+    pending = deque()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool:
+        for decoded in steps:
+            pending.append(post_pool.submit(post, decoded))
+            while len(pending) > backlog or (pending and pending[0].done()):
+                collect(pending.popleft())
+            if bar is not None:
+                bar.update(1)
+        while pending:
+            collect(pending.popleft())
+    return detections
 
 
 def _split_or_none(runner, settings: EvalSettings):
