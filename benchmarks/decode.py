@@ -160,12 +160,12 @@ def time_cpu_and_wall(fns: Mapping[str, Callable[[], object]], repeats: int) -> 
 
 def first_use_ms() -> float:
     """Milliseconds to load the compiled kernel's shared library in a fresh interpreter: its first-use cost."""
-    from davis_rig.protocol import decoder
+    import importlib.util
 
     code = ("import importlib.util, sys, time; t = time.perf_counter(); "
             "spec = importlib.util.spec_from_file_location('_decode_kernel', sys.argv[1]); "
             "spec.loader.exec_module(importlib.util.module_from_spec(spec)); print((time.perf_counter() - t) * 1e3)")
-    command = [sys.executable, "-c", code, decoder._decode_kernel.__file__]
+    command = [sys.executable, "-c", code, importlib.util.find_spec("davis_rig.protocol._decode_kernel").origin]
     return float(subprocess.run(command, capture_output=True, text=True, check=True).stdout)
 
 

@@ -33,10 +33,12 @@ import torch
 from _common import REPO_ROOT, bptt_case, metadata_line, random_detector, time_interleaved_ms, time_ms
 
 from davis_rig.evaluation.physical import PAPER_THRESHOLDS
+from davis_rig.models.rvt.config import GEN1_INPUT_HW
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
 from davis_rig.models.rvt.onnx_export import export_step_onnx
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 from davis_rig.models.rvt.postprocess import postprocess, postprocess_thresholds
+from davis_rig.types import RVT_HW
 
 RVT_T_FIXTURE = (REPO_ROOT / ".." / "shared" / "rvt" / "rvt_t_fixture.safetensors").resolve()
 
@@ -95,8 +97,8 @@ def _histograms(rng: np.random.Generator) -> list[np.ndarray]:
     """Three padded random histograms, float32 [1, 20, 256, 320] (Poisson counts clipped at 10 in the crop)."""
     hists = []
     for _ in range(3):
-        hist = np.zeros((1, 20, 256, 320), np.float32)
-        hist[:, :, :240, :304] = np.minimum(rng.poisson(0.3, size=(1, 20, 240, 304)), 10)
+        hist = np.zeros((1, 20, *GEN1_INPUT_HW), np.float32)
+        hist[:, :, :RVT_HW[0], :RVT_HW[1]] = np.minimum(rng.poisson(0.3, size=(1, 20, *RVT_HW)), 10)
         hists.append(hist)
     return hists
 

@@ -82,7 +82,7 @@ def _bench_model(data: Path, run: Path, model: str, args) -> dict[str, float]:
 
     @torch.no_grad()
     def forward_loss():
-        hist, labels = trainer._augment(batch)
+        hist, labels = trainer.augment_batch(batch)
         states, feats, targets = None, {2: [], 3: [], 4: []}, []
         for t in range(hist.shape[0]):
             features, states = trainer.model.forward_backbone(pad_to_input(hist[t]), states)

@@ -227,18 +227,6 @@ def threshold_list(text: str) -> list[float]:
     return [probability(item) for item in items]
 
 
-def crop_origin_error(origin_xy: Sequence[int]) -> str | None:
-    """Why ``--crop-origin X Y`` does not fit (the 304x240 RVT crop inside the 346x260 DAVIS346), or ``None``."""
-    from davis_rig.types import DAVIS346_HW, RVT_HW
-
-    (height, width), (sensor_h, sensor_w) = RVT_HW, DAVIS346_HW
-    x0, y0 = (int(v) for v in origin_xy)
-    if 0 <= x0 <= sensor_w - width and 0 <= y0 <= sensor_h - height:
-        return None
-    return (f"the {width}x{height} crop at ({x0}, {y0}) leaves the {sensor_w}x{sensor_h} sensor; X must be in "
-            f"[0, {sensor_w - width}] and Y in [0, {sensor_h - height}]")
-
-
 # --- running ----------------------------------------------------------------------------------
 def exit_code_for(exc: BaseException) -> int:
     """Map an exception onto the command's exit code (see the ``EXIT_*`` constants)."""

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from davis_rig.cli._common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold,
-                                   crop_origin_error, new_parser, non_negative_float, non_negative_int, positive_int,
+                                   new_parser, non_negative_float, non_negative_int, positive_int,
                                    probability, run_main)
 
 NAME = "davis-eval"
@@ -87,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message)."""
+    from davis_rig.events.crop import crop_origin_error
+
     if args.names is not None:
         names = [n.strip() for n in args.names.split(",")]
         if len(names) != len(args.sessions):

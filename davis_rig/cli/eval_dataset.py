@@ -14,6 +14,7 @@ from pathlib import Path
 
 from davis_rig.cli._common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold, new_parser,
                                    non_negative_float, positive_int, run_main)
+from davis_rig.metrics.ap import SKIP_FIRST_US
 
 NAME = "davis-eval-dataset"
 
@@ -44,8 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--split", default="test", help="split to score (default: test)")
     add_threshold(parser, default=(0.25,), help="SeqASR confidence threshold(s), in (0, 1)")
     parser.add_argument("--seq-len", type=positive_int, default=3, help="windows per SeqASR sequence (default: 3)")
-    parser.add_argument("--skip-first-ms", type=non_negative_float, default=500.0, metavar="MS",
-                        help="ignore the first MS of every sequence (RVT protocol: 500)")
+    parser.add_argument("--skip-first-ms", type=non_negative_float, default=SKIP_FIRST_US / 1000, metavar="MS",
+                        help=f"ignore the first MS of every sequence (RVT protocol: {SKIP_FIRST_US // 1000})")
     parser.add_argument("--lanes", type=positive_int, default=8, help="sequences streamed side by side (default: 8)")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     add_out(parser, metavar="JSON", aliases=("--json",), type=Path, help="write the full result as JSON here")

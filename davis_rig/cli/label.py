@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_quiet, add_threads, crop_origin_error,
+from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_quiet, add_threads,
                                    new_parser, non_negative_int, probability, run_main)
 
 NAME = "davis-label"
@@ -56,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Cross-option rules (exit 2 with argparse's message)."""
+    from davis_rig.events.crop import crop_origin_error
+
     if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):
         parser.error(f"argument --crop-origin: {message}")
     if args.classes is not None and not [c for c in args.classes.split(",") if c.strip()]:

@@ -13,6 +13,7 @@ import sys
 from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
                                    non_negative_float, non_negative_int, positive_float, positive_int,
                                    removing_new_empty_dirs, run_main)
+from davis_rig.metrics.ap import SKIP_FIRST_US
 from davis_rig.models.rvt.config import RVTConfig  # pure Python: keeps --help fast
 
 NAME = "davis-train"
@@ -61,8 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--val-batch", type=positive_int, default=8, help="streaming lanes for validation (default: 8)")
     parser.add_argument("--val-max-sequences", type=positive_int, default=None,
                         help="validate on the first N val sequences")
-    parser.add_argument("--val-skip-first-ms", type=non_negative_float, default=500.0,
-                        help="ignore labels/detections in the first ms of each val sequence (RVT: 500)")
+    parser.add_argument("--val-skip-first-ms", type=non_negative_float, default=SKIP_FIRST_US / 1000,
+                        help=f"ignore labels/detections in the first ms of each val sequence (RVT: "
+                             f"{SKIP_FIRST_US // 1000})")
     parser.add_argument("--min-box-side", type=non_negative_float, default=0.0, metavar="PX",
                         help="drop training boxes with a side <= PX after clipping to the frame (default: 0)")
     parser.add_argument("--ckpt-every", type=non_negative_int, default=1_000,

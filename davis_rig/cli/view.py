@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-from davis_rig.cli._common import (EXIT_OK, add_detector, add_quiet, add_threads, add_threshold, crop_origin_error,
+from davis_rig.cli._common import (EXIT_OK, add_detector, add_quiet, add_threads, add_threshold,
                                    int_in, new_parser, non_negative_float, non_negative_int, positive_float,
                                    positive_int, probability, run_main)
 
@@ -105,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message)."""
+    from davis_rig.events.crop import crop_origin_error
     from davis_rig.viewer.server import is_loopback
 
     if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):

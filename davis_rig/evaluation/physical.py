@@ -2,9 +2,10 @@
 
 Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
 
-1. **Windows.** Window ends on a fixed grid ``t0 + k · 50 ms`` (k = 1, 2, …) from the session's ``t_offset``
-   (the first event's millisecond) to past the last event and the last label; each window holds the events
-   with ``end − 50 ms ≤ t ≤ end`` (RVT's inclusive windows, :mod:`davis_rig.events.histogram`).
+1. **Windows** (:mod:`davis_rig.evaluation.windows`). Window ends on a fixed grid ``t0 + k · 50 ms`` (k = 1, 2, …)
+   from the session's ``t_offset`` (the first event's millisecond) to past the last event and the last label;
+   each window holds the events with ``end − 50 ms ≤ t ≤ end`` (RVT's inclusive windows,
+   :mod:`davis_rig.events.histogram`).
 2. **Events.** Read chunk by chunk (``chunk_windows`` windows per read), cropped to 304×240 at the labels'
    crop origin (default: centred; the origin stored by ``davis-label`` is used so events and labels share one
    frame), timestamps made non-decreasing like RVT's reader, stacked histograms (10 bins, cutoff 10).
@@ -39,11 +40,14 @@ from typing import Callable, Sequence
 import numpy as np
 
 from davis_rig.errors import ConfigError, FormatError, ModelFormatError, SessionError, ShapeError
-from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
+from davis_rig.evaluation.windows import event_chunks, label_windows, window_grid
+from davis_rig.events.histogram import WINDOW_US
+from davis_rig.metrics.ap import MIN_DIAG_PX, MIN_SIDE_PX, SKIP_FIRST_US
+from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW, RVT_NMS_IOU
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
-           "distinct_names", "evaluate_sessions", "is_labelled", "labels_crop_origin", "labels_provenance",
-           "score_session"]
+           "distinct_names", "evaluate_sessions", "is_labelled", "labels_provenance", "score_session",
+           "scoring_crop_origin"]
 
 #: The paper's confidence thresholds (Tables 2 and 3).
 PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
@@ -80,13 +84,13 @@ class EvalSettings:
     thresholds: tuple[float, ...] = PAPER_THRESHOLDS
     seq_len: int = 10
     seq_stride: int | None = None
-    window_us: int = 50_000
+    window_us: int = WINDOW_US
     crop_origin_xy: tuple[int, int] | None = None
-    skip_first_us: int | None = 500_000
+    skip_first_us: int | None = SKIP_FIRST_US
     time_tol_us: int = 0
-    min_diag_px: float = 30.0
-    min_side_px: float = 10.0
-    nms_threshold: float = 0.45
+    min_diag_px: float = float(MIN_DIAG_PX)
+    min_side_px: float = float(MIN_SIDE_PX)
+    nms_threshold: float = RVT_NMS_IOU
     strict_iou: float = 0.5
     coco_backend: str = "faster_coco_eval"
     chunk_windows: int = 20
@@ -158,13 +162,6 @@ class RecordingResult:
         """JSON-ready dict (thresholds as string keys)."""
         return {"name": self.name, "path": self.path, "info": self.info,
                 "metrics": {repr(float(t)): m for t, m in self.metrics.items()}}
-
-
-def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
-    """The crop origin ``davis-label`` stored with the labels, or ``None``."""
-    if "crop_origin_x" in attrs and "crop_origin_y" in attrs:
-        return int(attrs["crop_origin_x"]), int(attrs["crop_origin_y"])
-    return None
 
 
 def labels_provenance(attrs: dict) -> dict:
@@ -247,72 +244,32 @@ def distinct_names(paths: Sequence[str | Path]) -> list[str]:
     return out
 
 
-def _crop_origin(path: Path, settings: EvalSettings, labels_attrs: dict) -> tuple[int, int]:
-    """The crop origin to score ``path`` with: ``settings.crop_origin_xy``, else the labels' stored one, else centred.
+def scoring_crop_origin(path, requested: tuple[int, int] | None, labels_attrs: dict) -> tuple[int, int]:
+    """The crop origin to score ``path`` with: ``requested``, else the labels' stored one, else centred.
+
+    Args:
+        path: the session (named in the messages).
+        requested: the caller's origin (``EvalSettings.crop_origin_xy``, ``davis-view --crop-origin``) or ``None``.
+        labels_attrs: the session's ``/labels`` attributes; the stored origin is read with
+            :func:`~davis_rig.session.labels.labels_crop_origin` (both spellings).
 
     Raises:
-        SessionError: ``settings.crop_origin_xy`` differs from the origin the labels were made for.
+        SessionError: ``requested`` differs from the origin the labels were made for, or the stored origin is
+            unreadable.
         ShapeError: the 304x240 crop at that origin does not fit the DAVIS346 sensor.
     """
-    from davis_rig.events.crop import center_crop_origin
+    from davis_rig.events.crop import center_crop_origin, crop_origin_error
+    from davis_rig.session.labels import labels_crop_origin
 
     stored = labels_crop_origin(labels_attrs)
-    if settings.crop_origin_xy is not None and stored is not None and tuple(settings.crop_origin_xy) != stored:
+    if requested is not None and stored is not None and tuple(requested) != stored:
         raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
-                           f"{tuple(settings.crop_origin_xy)}; re-label with davis-label --crop-origin or drop "
+                           f"{tuple(requested)}; re-label with davis-label --crop-origin or drop "
                            "the crop origin")
-    x0, y0 = (int(v) for v in (settings.crop_origin_xy or stored or center_crop_origin()))
-    (height, width), (sensor_h, sensor_w) = RVT_HW, DAVIS346_HW
-    if x0 < 0 or y0 < 0 or x0 + width > sensor_w or y0 + height > sensor_h:
-        raise ShapeError(f"{path}: crop origin ({x0}, {y0}): the {width}x{height} crop (x in [{x0}, {x0 + width}), "
-                         f"y in [{y0}, {y0 + height})) does not fit the sensor {sensor_w}x{sensor_h} (w x h); the "
-                         f"origin must lie in [0, {sensor_w - width}] x [0, {sensor_h - height}]")
+    x0, y0 = (int(v) for v in (requested or stored or center_crop_origin()))
+    if (reason := crop_origin_error((x0, y0))) is not None:
+        raise ShapeError(f"{path}: crop origin ({x0}, {y0}): {reason}")
     return x0, y0
-
-
-def _event_chunks(reader, ends: np.ndarray, origin, settings: EvalSettings, timings: dict):
-    """Producer: per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images, events read)``.
-
-    Reads the recording once, front to back, in consecutive pieces (each up to its chunk's last window end),
-    crops them and makes their timestamps non-decreasing across the whole recording like RVT's reader (the
-    running maximum carries from piece to piece); the corrected events the next chunk's first window still
-    holds (the boundary events, and events a step back in time lifted past the boundary) are carried over.
-    So every window holds exactly the events of RVT's whole-recording correction, whatever ``chunk_windows``.
-    Adds its busy seconds to ``timings["read"]`` and ``timings["histogram"]``.
-    """
-    from davis_rig.events.crop import crop_events
-    from davis_rig.events.histogram import stacked_histograms
-
-    window_us = int(settings.window_us)
-    running_max = np.iinfo(np.int64).min
-    carried = np.zeros(0, EVENT_DTYPE)
-    t_read = int(ends[0]) - window_us
-    gif_left = settings.gif_windows
-    for i0 in range(0, len(ends), settings.chunk_windows):
-        chunk_ends = ends[i0 : i0 + settings.chunk_windows]
-        tic = time.perf_counter()
-        t_next = int(chunk_ends[-1]) + 1
-        events = reader.events_between(t_read, t_next)
-        t_read = t_next
-        num_read = len(events)
-        events = crop_events(events, origin, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
-        if len(events):
-            t = np.maximum.accumulate(np.maximum(events["t"], running_max))
-            running_max = int(t[-1])
-            events["t"] = t
-        if len(carried):
-            events = np.concatenate([carried, events])
-        next_start = int(ends[min(i0 + settings.chunk_windows, len(ends) - 1)]) - window_us
-        carried = events[np.searchsorted(events["t"], next_start, side="left"):]
-        tac = time.perf_counter()
-        hists = stacked_histograms(events, chunk_ends, window_us=window_us)
-        gif = hists[:max(gif_left, 0)]
-        half = hists.shape[1] // 2
-        gif = gif[:, half:].sum(1, dtype=np.int16) - gif[:, :half].sum(1, dtype=np.int16)
-        gif_left -= len(gif)
-        timings["read"] += tac - tic
-        timings["histogram"] += time.perf_counter() - tac
-        yield chunk_ends, hists, gif, num_read
 
 
 def _windows(chunks, runner, totals: dict, gif: list):
@@ -390,12 +347,9 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
             ``settings.crop_origin_xy`` not the labels' crop origin.
         ShapeError: the crop at the origin does not fit the sensor.
     """
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
     from contextlib import closing
 
     from davis_rig.evaluation.prefetch import prefetch
-    from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
     path = Path(path)
     wall = time.perf_counter()
@@ -403,55 +357,26 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     timings = {"read": 0.0, "histogram": 0.0, "inference": 0.0, "postprocess": 0.0}
     try:
         labels_attrs = reader.labels_attrs()
-        origin = _crop_origin(path, settings, labels_attrs)
-        window_us = int(settings.window_us)
+        origin = scoring_crop_origin(path, settings.crop_origin_xy, labels_attrs)
         t0 = int(reader.t_offset_us)
         t_events_end = t0 + 1000 * len(reader.ms_to_idx)
         t_last = max(t_events_end, int(labels["t"].max()) if len(labels) else 0)
-        n_windows = max(1, -(-(t_last - t0) // window_us))
-        ends = t0 + window_us * np.arange(1, n_windows + 1, dtype=np.int64)
+        ends = window_grid(t0, t_last, settings.window_us)
         thresholds = sorted({float(th) for th in settings.thresholds})
-        detections = {th: [] for th in thresholds}
         split = _split_or_none(runner, settings)
-
-        def post(decoded):
-            tic = time.perf_counter()
-            out = postprocess_thresholds(decoded, thresholds, settings.nms_threshold)
-            timings["postprocess"] += time.perf_counter() - tic
-            return out
-
-        def collect(future) -> None:
-            out = future.result()
-            for th in thresholds:
-                detections[th].append(out[th][0])
-
-        def whole_steps(windows):
-            states = None
-            for x in windows:
-                tic = time.perf_counter()
-                decoded, states = runner.step(x, states)
-                busy["step"] += time.perf_counter() - tic
-                yield decoded
-
         gif: list = []
         totals = {"events": 0}
         busy = {"step": 0.0, "pre": 0.0, "recur": 0.0, "head": 0.0}
-        pending = deque()
-        bar = progress(total=n_windows, desc=path.name) if progress is not None else None
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool, \
-                closing(prefetch(_event_chunks(reader, ends, origin, settings, timings), depth=2)) as chunks:
+        bar = progress(total=len(ends), desc=path.name) if progress is not None else None
+        chunks = event_chunks(reader, ends, origin, window_us=settings.window_us, chunk_windows=settings.chunk_windows,
+                              gif_windows=settings.gif_windows, timings=timings)
+        with closing(prefetch(chunks, depth=2)) as chunks:
             windows = _windows(chunks, runner, totals, gif)
-            steps = (whole_steps(windows) if split is None
+            steps = (_whole_steps(windows, runner, busy) if split is None
                      else _pipelined_decoded(windows, split, runner.initial_states(1), busy))
             with closing(steps):
-                for decoded in steps:
-                    pending.append(post_pool.submit(post, decoded))
-                    while len(pending) > settings.chunk_windows or (pending and pending[0].done()):
-                        collect(pending.popleft())
-                    if bar is not None:
-                        bar.update(1)
-            while pending:
-                collect(pending.popleft())
+                detections = _postprocessed(steps, thresholds, settings.nms_threshold, settings.chunk_windows,
+                                            timings, bar)
         timings["inference"] = sum(busy.values())
         if bar is not None:
             bar.close()
@@ -464,6 +389,57 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
                          labels_attrs=labels_attrs)
 
 
+def _whole_steps(windows, runner, busy_s: dict):
+    """Decoded outputs of consecutive windows, whole RVT steps in the caller's thread (states carried from zero);
+    adds their busy seconds to ``busy_s["step"]``."""
+    states = None
+    for x in windows:
+        tic = time.perf_counter()
+        decoded, states = runner.step(x, states)
+        busy_s["step"] += time.perf_counter() - tic
+        yield decoded
+
+
+def _postprocessed(steps, thresholds: list[float], nms_threshold: float, backlog: int, timings: dict,
+                   bar) -> dict:
+    """Post-process every decoded step at all ``thresholds`` at once in a background thread, at most ``backlog``
+    steps behind the model.
+
+    Returns:
+        ``{threshold: [one entry per window, in order: float32 [K, 7] or None]}``. Adds the busy seconds to
+        ``timings["postprocess"]`` and advances ``bar`` (or ``None``) by one per step.
+    """
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    from davis_rig.models.rvt.postprocess import postprocess_thresholds
+
+    detections = {th: [] for th in thresholds}
+
+    def post(decoded):
+        tic = time.perf_counter()
+        out = postprocess_thresholds(decoded, thresholds, nms_threshold)
+        timings["postprocess"] += time.perf_counter() - tic
+        return out
+
+    def collect(future) -> None:
+        out = future.result()
+        for th in thresholds:
+            detections[th].append(out[th][0])
+
+    pending = deque()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool:
+        for decoded in steps:
+            pending.append(post_pool.submit(post, decoded))
+            while len(pending) > backlog or (pending and pending[0].done()):
+                collect(pending.popleft())
+            if bar is not None:
+                bar.update(1)
+        while pending:
+            collect(pending.popleft())
+    return detections
+
+
 def _split_or_none(runner, settings: EvalSettings):
     """``runner.split(...)`` when ``settings.pipeline`` asks for it and the graph splits, else ``None``."""
     if not settings.pipeline:
@@ -472,15 +448,6 @@ def _split_or_none(runner, settings: EvalSettings):
         return runner.split(1, settings.intra_op_threads or min(2, os.cpu_count() or 1), 1)
     except ModelFormatError:  # a graph of another layout: run it whole
         return None
-
-
-def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int) -> np.ndarray:
-    """Window index of every label: the window with ``end − window_us < t ≤ end``; int64 [L] (−1 outside)."""
-    t = labels["t"].astype(np.int64)
-    index = np.searchsorted(window_end_us, t, side="left")
-    inside = (index < len(window_end_us))
-    inside[inside] &= window_end_us[index[inside]] - window_us < t[inside]
-    return np.where(inside, index, -1)
 
 
 def compute_metrics(scores: SessionScores, settings: EvalSettings) -> dict:
@@ -569,7 +536,7 @@ def evaluate_sessions(
     for p in paths:  # validate every file and its crop origin before the (slow) scoring starts
         reader, _ = _open_checked(p)
         try:
-            _crop_origin(p, settings, reader.labels_attrs())
+            scoring_crop_origin(p, settings.crop_origin_xy, reader.labels_attrs())
         finally:
             reader.close()
     model_path = Path(model) if model is not None else default_detector_path()

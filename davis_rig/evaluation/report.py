@@ -126,7 +126,8 @@ def write_gif(scores, threshold: float, path: Path, *, frame_ms: int = 50) -> Pa
         from PIL import Image, ImageDraw
     except ImportError as exc:
         raise MissingDependencyError('the GIF needs Pillow: pip install "davis_rig[report]"') from exc
-    from davis_rig.evaluation.physical import label_windows
+    from davis_rig.evaluation.windows import label_windows
+    from davis_rig.events.histogram import WINDOW_US
     from davis_rig.types import PEDESTRIAN_CLASS_ID
 
     images = scores.event_images
@@ -134,7 +135,7 @@ def write_gif(scores, threshold: float, path: Path, *, frame_ms: int = 50) -> Pa
         raise ValueError("no event images kept: score with gif_windows > 0")
     labels = scores.labels
     label_win = label_windows(labels, scores.window_end_us, int(scores.window_end_us[1] - scores.window_end_us[0])
-                              if len(scores.window_end_us) > 1 else 50_000)
+                              if len(scores.window_end_us) > 1 else WINDOW_US)
     dets = scores.detections[float(threshold)]
     frames = []
     for i, img in enumerate(images):

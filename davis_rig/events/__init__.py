@@ -14,7 +14,7 @@ v2e_torch) are loaded on first access.
 from __future__ import annotations
 
 from davis_rig._lazy import lazy_exports
-from davis_rig.events.crop import center_crop_origin, crop_events
+from davis_rig.events.crop import center_crop_origin, crop_events, crop_origin_error
 from davis_rig.events.histogram import (
     COUNT_CUTOFF,
     NUM_BINS,
@@ -74,6 +74,7 @@ __all__ = [
     "WINDOW_US",
     "center_crop_origin",
     "crop_events",
+    "crop_origin_error",
     "event_columns",
     "lin_log",
     "monotonic_timestamps",

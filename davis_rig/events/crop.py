@@ -11,7 +11,7 @@ import numpy as np
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
 
-__all__ = ["center_crop_origin", "crop_events"]
+__all__ = ["center_crop_origin", "crop_events", "crop_origin_error"]
 
 
 def center_crop_origin(sensor_hw: tuple[int, int] = DAVIS346_HW, frame_hw: tuple[int, int] = RVT_HW) -> tuple[int, int]:
@@ -30,6 +30,31 @@ def center_crop_origin(sensor_hw: tuple[int, int] = DAVIS346_HW, frame_hw: tuple
     if frame_hw[0] > sensor_hw[0] or frame_hw[1] > sensor_hw[1]:
         raise ShapeError(f"crop {frame_hw} (h, w) does not fit the sensor {sensor_hw}")
     return (sensor_hw[1] - frame_hw[1]) // 2, (sensor_hw[0] - frame_hw[0]) // 2
+
+
+def crop_origin_error(
+    origin_xy, *, frame_hw: tuple[int, int] = RVT_HW, sensor_hw: tuple[int, int] = DAVIS346_HW
+) -> str | None:
+    """Why the ``frame_hw`` crop at ``origin_xy`` leaves the sensor, or ``None`` when it fits.
+
+    The one check of a crop origin: the commands, the labeler, the evaluation, the viewer and the exports all ask it
+    and raise their own error type with this text.
+
+    Args:
+        origin_xy: crop top-left ``(x0, y0)`` on the sensor, px.
+        frame_hw: crop (height, width), px; default the RVT frame (240, 304).
+        sensor_hw: sensor (height, width), px; default the DAVIS346 (260, 346).
+
+    Returns:
+        ``None`` when ``0 <= x0 <= W - w`` and ``0 <= y0 <= H - h``, else a sentence naming the crop, the sensor and
+        the origins that fit.
+    """
+    x0, y0 = (int(v) for v in origin_xy)
+    (height, width), (sensor_h, sensor_w) = frame_hw, sensor_hw
+    if 0 <= x0 <= sensor_w - width and 0 <= y0 <= sensor_h - height:
+        return None
+    return (f"the {width}x{height} crop at ({x0}, {y0}) leaves the {sensor_w}x{sensor_h} sensor; X must be in "
+            f"[0, {sensor_w - width}] and Y in [0, {sensor_h - height}]")
 
 
 def crop_events(
@@ -61,11 +86,8 @@ def crop_events(
     if origin_xy is None:
         origin_xy = center_crop_origin(sensor_hw, frame_hw)
     x0, y0 = (int(v) for v in origin_xy)
-    if x0 < 0 or y0 < 0 or x0 + frame_hw[1] > sensor_hw[1] or y0 + frame_hw[0] > sensor_hw[0]:
-        raise ShapeError(
-            f"crop window x in [{x0}, {x0 + frame_hw[1]}), y in [{y0}, {y0 + frame_hw[0]}) does not fit the "
-            f"sensor {sensor_hw[1]}x{sensor_hw[0]} (w x h)"
-        )
+    if (reason := crop_origin_error((x0, y0), frame_hw=frame_hw, sensor_hw=sensor_hw)) is not None:
+        raise ShapeError(reason)
     x = events["x"].astype(np.int64)
     y = events["y"].astype(np.int64)
     inside = (x >= x0) & (x < x0 + frame_hw[1]) & (y >= y0) & (y < y0 + frame_hw[0])

@@ -141,30 +141,13 @@ def stacked_histogram(
         >>> h.shape, int(h[2, 0, 0]), int(h[1, 0, 1])
         ((4, 2, 2), 1, 1)
     """
-    t_us = _column("t_us", t_us, None)
+    x, y, t_us, p = _window_columns(x, y, t_us, p, height=height, width=width, num_bins=num_bins)
     n = t_us.shape[0]
-    x = _column("x", x, n)
-    y = _column("y", y, n)
-    p = _column("p", p, n)
-    if num_bins < 1 or height < 1 or width < 1:
-        raise ShapeError(f"expected num_bins, height, width >= 1, got {num_bins}, {height}, {width}")
-    size = 2 * num_bins * height * width
     if n == 0:
         return np.zeros((2 * num_bins, height, width), dtype=np.uint8)
-
-    t_us = t_us.astype(np.int64, copy=False)  # (unsigned input: differences must be able to go negative)
-    x_min, x_max, y_min, y_max = int(x.min()), int(x.max()), int(y.min()), int(y.max())
-    if x_min < 0 or x_max >= width or y_min < 0 or y_max >= height:
-        raise ShapeError(
-            f"event coordinates outside the frame: expected 0 <= x < {width} and 0 <= y < {height}, "
-            f"got x in [{x_min}, {x_max}], y in [{y_min}, {y_max}] (crop the events first)"
-        )
-    if int(p.max()) > 1:
-        raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
-    _check_non_decreasing(t_us, "within a window")
-
     # cell index x + W·y (int32 unless the frame is huge); polarities < 0 count as 0 like the official reader
     plane = height * width
+    size = 2 * num_bins * plane
     index_dtype = np.int32 if size < 2**31 else np.int64
     pixel = y.astype(index_dtype)
     pixel *= width
@@ -176,26 +159,66 @@ def stacked_histogram(
     # uint8 accumulation wraps modulo 256 (torch put_(accumulate=True) on a uint8 tensor), then the clip.
     # The integer -> uint8 cast keeps the low byte, i.e. exactly that wrap.
     if n * _SPARSE_FRACTION < size:
-        # sparse window: add 1 per event straight into the uint8 cells (np.add.at on uint8 wraps modulo 256 like
-        # the official accumulation), then clip the touched cells only
-        polarity *= num_bins
-        polarity += bins.astype(index_dtype, copy=False)
-        cells = pixel + polarity * plane
-        flat = out.reshape(-1)
-        np.add.at(flat, cells, np.uint8(1))
-        flat[cells] = np.minimum(flat[cells], cutoff)
+        _add_sparse(out, pixel, polarity, bins, cutoff)
     else:
-        # dense window: timestamps are sorted, so each time bin is a contiguous run of events; one np.bincount
-        # per bin over the 2·H·W pixel-polarity cells keeps its counters cache-resident (one bincount over all
-        # 2·B·H·W cells scatters into an int64 array B times larger)
-        pixel += polarity * plane
-        bounds = np.searchsorted(bins, np.arange(num_bins + 1)).tolist()
-        for b in range(num_bins):
-            if bounds[b] < bounds[b + 1]:
-                counts = np.bincount(pixel[bounds[b] : bounds[b + 1]], minlength=2 * plane).astype(np.uint8)
-                np.minimum(counts, cutoff, out=counts)
-                out[:, b] = counts.reshape(2, plane)
+        _add_dense(out, pixel, polarity, bins, cutoff)
     return out.reshape(2 * num_bins, height, width)
+
+
+def _window_columns(x, y, t_us, p, *, height: int, width: int, num_bins: int):
+    """:func:`stacked_histogram`'s checked columns ``(x, y, t_us, p)`` (``t_us`` as int64 when not empty).
+
+    Raises:
+        ShapeError, FormatError: as :func:`stacked_histogram` tells.
+    """
+    t_us = _column("t_us", t_us, None)
+    n = t_us.shape[0]
+    x = _column("x", x, n)
+    y = _column("y", y, n)
+    p = _column("p", p, n)
+    if num_bins < 1 or height < 1 or width < 1:
+        raise ShapeError(f"expected num_bins, height, width >= 1, got {num_bins}, {height}, {width}")
+    if n == 0:
+        return x, y, t_us, p
+    t_us = t_us.astype(np.int64, copy=False)  # (unsigned input: differences must be able to go negative)
+    x_min, x_max, y_min, y_max = int(x.min()), int(x.max()), int(y.min()), int(y.max())
+    if x_min < 0 or x_max >= width or y_min < 0 or y_max >= height:
+        raise ShapeError(
+            f"event coordinates outside the frame: expected 0 <= x < {width} and 0 <= y < {height}, "
+            f"got x in [{x_min}, {x_max}], y in [{y_min}, {y_max}] (crop the events first)"
+        )
+    if int(p.max()) > 1:
+        raise FormatError(f"polarity: expected values in {{0, 1}}, got max {int(p.max())}")
+    _check_non_decreasing(t_us, "within a window")
+    return x, y, t_us, p
+
+
+def _add_sparse(out: np.ndarray, pixel: np.ndarray, polarity: np.ndarray, bins: np.ndarray, cutoff) -> None:
+    """A sparse window into ``out`` (uint8 [2, B, H·W], zeros): 1 per event straight into the uint8 cells
+    (np.add.at on uint8 wraps modulo 256 like the official accumulation), then the touched cells clipped.
+    ``pixel``: x + W·y per event; ``polarity``: 0/1 per event (modified in place)."""
+    num_bins, plane = out.shape[1], out.shape[2]
+    polarity *= num_bins
+    polarity += bins.astype(polarity.dtype, copy=False)
+    cells = pixel + polarity * plane
+    flat = out.reshape(-1)
+    np.add.at(flat, cells, np.uint8(1))
+    flat[cells] = np.minimum(flat[cells], cutoff)
+
+
+def _add_dense(out: np.ndarray, pixel: np.ndarray, polarity: np.ndarray, bins: np.ndarray, cutoff) -> None:
+    """A dense window into ``out`` (uint8 [2, B, H·W], zeros): timestamps are sorted, so each time bin is a
+    contiguous run of events; one np.bincount per bin over the 2·H·W pixel-polarity cells keeps its counters
+    cache-resident (one bincount over all 2·B·H·W cells scatters into an int64 array B times larger); the
+    integer -> uint8 cast keeps the low byte (the official wrap), then the clip. ``pixel`` is modified in place."""
+    num_bins, plane = out.shape[1], out.shape[2]
+    pixel += polarity * plane
+    bounds = np.searchsorted(bins, np.arange(num_bins + 1)).tolist()
+    for b in range(num_bins):
+        if bounds[b] < bounds[b + 1]:
+            counts = np.bincount(pixel[bounds[b] : bounds[b + 1]], minlength=2 * plane).astype(np.uint8)
+            np.minimum(counts, cutoff, out=counts)
+            out[:, b] = counts.reshape(2, plane)
 
 
 def window_indices(t_us, window_end_us, window_us: int = WINDOW_US):

@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig.events.histogram import NUM_BINS, WINDOW_US
 from davis_rig.types import RVT_HW
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -32,7 +33,7 @@ def _torch():
     return torch
 
 
-def time_bins_torch(t_us: "torch.Tensor", num_bins: int = 10) -> "torch.Tensor":
+def time_bins_torch(t_us: "torch.Tensor", num_bins: int = NUM_BINS) -> "torch.Tensor":
     """Official time-bin index (int64 [N]) of the events of one window, computed like RVT in torch.
 
     Args:
@@ -61,7 +62,7 @@ def stacked_histogram_torch(
     *,
     height: int = RVT_HW[0],
     width: int = RVT_HW[1],
-    num_bins: int = 10,
+    num_bins: int = NUM_BINS,
     dtype: "torch.dtype | None" = None,
 ) -> "torch.Tensor":
     """Float stacked histogram of one window, differentiable w.r.t. per-event weights.
@@ -136,10 +137,10 @@ def stacked_histograms_torch(
     window_end_us,
     weights: "torch.Tensor | None" = None,
     *,
-    window_us: int = 50_000,
+    window_us: int = WINDOW_US,
     height: int = RVT_HW[0],
     width: int = RVT_HW[1],
-    num_bins: int = 10,
+    num_bins: int = NUM_BINS,
     dtype: "torch.dtype | None" = None,
 ) -> "torch.Tensor":
     """Float stacked histograms of a time-sorted stream for several windows, differentiable w.r.t. weights.
@@ -199,7 +200,7 @@ class StackedHistogramTorch:
 
     __slots__ = ("height", "width", "num_bins")
 
-    def __init__(self, height: int = RVT_HW[0], width: int = RVT_HW[1], num_bins: int = 10):
+    def __init__(self, height: int = RVT_HW[0], width: int = RVT_HW[1], num_bins: int = NUM_BINS):
         self.height = height
         self.width = width
         self.num_bins = num_bins

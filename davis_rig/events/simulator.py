@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from davis_rig._lazy import optional_import
-from davis_rig.errors import FormatError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.events.intensity import DEFAULT_THRESHOLD, INTENSITY_SCALE, LIN_LOG_THRESHOLD, lin_log, rgb_to_luma
 from davis_rig.types import EVENT_DTYPE
 
@@ -80,6 +80,9 @@ class SimulatorConfig:
         cutoff_hz: low-pass 3 dB cutoff at full intensity, Hz (0 = no low-pass).
         seed: seed of the noise generator (threshold mismatch, shot noise, leak phases).
         dtype: torch dtype name of the computation, ``"float64"`` (default, exact comparisons) or ``"float32"``.
+
+    Raises:
+        ConfigError: a value out of its range (its ``field`` names the attribute).
     """
 
     threshold_on: float = DEFAULT_THRESHOLD
@@ -97,17 +100,16 @@ class SimulatorConfig:
     dtype: str = "float64"
 
     def __post_init__(self) -> None:
-        if not (self.threshold_on > 0 and self.threshold_off > 0):
-            raise ValueError(f"thresholds must be > 0, got on={self.threshold_on}, off={self.threshold_off}")
+        for name in ("threshold_on", "threshold_off", "intensity_scale", "lin_log_threshold", "min_threshold"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(name, f"must be > 0, got {getattr(self, name)}")
         if self.timestamps not in ("interpolate", "frame_end"):
-            raise ValueError(f"timestamps: expected 'interpolate' or 'frame_end', got {self.timestamps!r}")
+            raise ConfigError("timestamps", f"expected 'interpolate' or 'frame_end', got {self.timestamps!r}")
         for name in ("threshold_sigma", "refractory_us", "shot_noise_rate_hz", "leak_rate_hz", "cutoff_hz"):
             if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.intensity_scale <= 0 or self.lin_log_threshold <= 0 or self.min_threshold <= 0:
-            raise ValueError("intensity_scale, lin_log_threshold and min_threshold must be > 0")
+                raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype: expected 'float32' or 'float64', got {self.dtype!r}")
+            raise ConfigError("dtype", f"expected 'float32' or 'float64', got {self.dtype!r}")
 
     @property
     def ideal(self) -> bool:

@@ -46,7 +46,7 @@ Binning frame pairs into windows (``binning``) — the boundary rules, and how t
 Use in the digital attack (one window per RVT step; the windows' ends on the frame grid)::
 
     clip = render_clip(spec, texture)                                  # clip.video [T, 240, 304], grad to texture
-    ends = clip.t_us[0] + 50_000 * np.arange(1, n_windows + 1)
+    ends = clip.t_us[0] + WINDOW_US * np.arange(1, n_windows + 1)
     hist = v2e_histograms(clip.video, clip.t_us, ends)                 # [n_windows, 20, 240, 304]
     x = pad_to_input(hist)                                             # davis_rig.models.rvt.detector
 

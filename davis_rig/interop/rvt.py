@@ -40,6 +40,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import ConfigError, FormatError
+from davis_rig.evaluation.windows import label_windows, window_grid
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US
 from davis_rig.interop.source import ExportSource
 from davis_rig.interop.summary import ExportSummary
@@ -66,8 +67,6 @@ def labelled_frames(labels: np.ndarray, window_end_us: np.ndarray, window_us: in
         the window of each frame (int64 [F], increasing); each frame's time (int64 [F]); each frame's first index
         into ``frame_labels`` (int64 [F]).
     """
-    from davis_rig.evaluation.physical import label_windows
-
     labels = labels[np.argsort(labels["t"], kind="stable")]
     window = label_windows(labels, window_end_us, window_us)
     t = labels["t"].astype(np.int64)
@@ -111,19 +110,18 @@ def _write_histograms(path: Path, source: ExportSource, ends: np.ndarray,
     ``event_representations.h5``; returns the session events read."""
     import h5py
 
-    from davis_rig.evaluation.physical import EvalSettings, _event_chunks
+    from davis_rig.evaluation.windows import event_chunks
     from davis_rig.session.schema import import_hdf5plugin
 
     hdf5plugin = import_hdf5plugin()
-    settings = EvalSettings(window_us=WINDOW_US, chunk_windows=CHUNK_WINDOWS)
     events_read = 0
     with h5py.File(path, "w") as h5f:
         shape = (NUM_CHANNELS, *RVT_HW)
         data = h5f.create_dataset("data", shape=(0, *shape), maxshape=(None, *shape), dtype="u1",
                                   chunks=(1, *shape), **hdf5plugin.Blosc(cname="zstd", clevel=1,
                                                                         shuffle=hdf5plugin.Blosc.SHUFFLE))
-        timings = {"read": 0.0, "histogram": 0.0}  # filled by _event_chunks; not reported here
-        for chunk_ends, hists, _, n_read in _event_chunks(source.reader, ends, source.origin_xy, settings, timings):
+        for chunk_ends, hists, _, n_read in event_chunks(source.reader, ends, source.origin_xy, window_us=WINDOW_US,
+                                                         chunk_windows=CHUNK_WINDOWS):
             start = data.shape[0]
             data.resize(start + len(chunk_ends), axis=0)
             data[start:] = hists
@@ -182,7 +180,7 @@ def export_rvt(source: ExportSource, out: str | os.PathLike, *, split: str = "te
     name, labels, seq_dir = _check_request(source, out, split, name, overwrite)
     t0 = source.t_offset_us
     t_last = max(t0 + 1000 * len(source.reader.ms_to_idx), int(labels["t"].max()))
-    ends = t0 + WINDOW_US * np.arange(1, max(1, -(-(t_last - t0) // WINDOW_US)) + 1, dtype=np.int64)
+    ends = window_grid(t0, t_last, WINDOW_US)
     frame_labels, frame_window, frame_t, frame_start = labelled_frames(labels, ends)
     frame_labels = frame_labels.copy()
     frame_labels["t"] = frame_labels["t"].astype(np.int64) - t0

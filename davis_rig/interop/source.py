@@ -23,7 +23,7 @@ from typing import Final
 import numpy as np
 
 from davis_rig.errors import ConfigError, FormatError, ShapeError
-from davis_rig.events.crop import center_crop_origin, crop_events
+from davis_rig.events.crop import center_crop_origin, crop_events, crop_origin_error
 from davis_rig.session import SessionReader
 from davis_rig.session.info import dvs_hw_from_device_info
 from davis_rig.session.labels import labels_crop_origin, shift_boxes
@@ -93,9 +93,8 @@ class ExportSource:
                               f"{RVT_HW[1]}x{RVT_HW[0]} window the crop asks for")
         origin = self.requested_origin or stored or centred
         x0, y0 = origin
-        if x0 < 0 or y0 < 0 or x0 + RVT_HW[1] > self.sensor_hw[1] or y0 + RVT_HW[0] > self.sensor_hw[0]:
-            raise ConfigError("crop_origin_xy", f"the {RVT_HW[1]}x{RVT_HW[0]} window at ({x0}, {y0}) does not fit the "
-                                                f"{self.sensor_hw[1]}x{self.sensor_hw[0]} sensor")
+        if (reason := crop_origin_error(origin, sensor_hw=self.sensor_hw)) is not None:
+            raise ConfigError("crop_origin_xy", reason)
         if self.requested_origin is not None and stored is not None and self.requested_origin != stored:
             raise ConfigError("crop_origin_xy", f"the labels were made for the crop at {stored}, not "
                                                 f"{self.requested_origin}: leave the origin out or re-label")

@@ -142,7 +142,7 @@ def _check_settings(conf_threshold: float, iou_threshold: float, intra_op_thread
     Raises:
         ConfigError: as :func:`label_session` tells.
     """
-    from davis_rig.events.crop import center_crop_origin
+    from davis_rig.events.crop import center_crop_origin, crop_origin_error
 
     for name, value in (("conf_threshold", conf_threshold), ("iou_threshold", iou_threshold)):
         if not 0.0 <= float(value) <= 1.0:  # also refuses NaN
@@ -150,9 +150,8 @@ def _check_settings(conf_threshold: float, iou_threshold: float, intra_op_thread
     if intra_op_threads is not None and int(intra_op_threads) < 1:
         raise ConfigError("intra_op_threads", f"expected >= 1 or None, got {intra_op_threads}")
     origin = center_crop_origin(DAVIS346_HW, RVT_HW) if crop_origin_xy is None else tuple(map(int, crop_origin_xy))
-    if origin[0] < 0 or origin[1] < 0 or origin[0] + RVT_HW[1] > DAVIS346_HW[1] or origin[1] + RVT_HW[0] > DAVIS346_HW[0]:
-        raise ConfigError("crop_origin_xy", f"{origin} puts the {RVT_HW[1]}x{RVT_HW[0]} crop outside the "
-                                            f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]} sensor")
+    if (reason := crop_origin_error(origin)) is not None:
+        raise ConfigError("crop_origin_xy", reason)
     return origin
 
 

@@ -11,42 +11,36 @@ writes the events and lists the control words with their times) and the numpy on
 where no C compiler was present). In the numpy kernel, per block of words, the timestamp base is a cumulative sum
 of wrap increments segmented at resets, the 15-bit timestamp and the last row address are forward-filled with
 ``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with masks. With either
-kernel, control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
-APS columns (column start, expected rows of samples, column end, ...), which are recognised with numpy and applied in
-bulk. APS ADC samples are never looped over: they are queued as column segments (their values kept in a bounded
-store across transfers) and written into the frame buffers once per frame — runs of whole columns as one rectangular
-slice, anything irregular with one vectorised scatter per group of same-type segments.
+kernel, control words (specials, misc8, misc10, big wraps) run through a compact Python loop
+(:mod:`davis_rig.protocol.control_words`), except runs of whole APS columns (column start, expected rows of samples,
+column end, ...), which are recognised with numpy and applied in bulk. APS ADC samples are never looped over: they
+are queued as column segments (their values kept in a bounded store across transfers) and written into the frame
+buffers once per frame (:mod:`davis_rig.protocol.aps_assembly`) — runs of whole columns as one rectangular slice,
+anything irregular with one vectorised scatter per group of same-type segments. IMU samples:
+:mod:`davis_rig.protocol.imu_assembly`; the output types: :mod:`davis_rig.protocol.decoded`.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from typing import Final, NamedTuple
 
 import numpy as np
 
 from davis_rig.errors import ConfigError, MissingDependencyError, ProtocolError
-from davis_rig.protocol.frames import ApsFrame
+from davis_rig.protocol.control_words import ControlPass
+from davis_rig.protocol.decoded import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, DecoderStats
 from davis_rig.protocol.layout import SensorLayout
 from davis_rig.protocol.words import (
-    APS_PIXEL_MAX,
-    APS_PIXEL_SHIFT,
-    APS_RESET_MIN,
     CODE_SHIFT,
     DATA_MASK,
-    IMU_TOTAL_COUNT,
-    MISC8_BYTE_MASK,
-    MISC8_SUB_SHIFT,
-    MISC10_SUB_SHIFT,
     OVERFLOW_SHIFT,
     TIMESTAMP_FLAG,
     TIMESTAMP_MASK,
     Code,
-    Misc8,
     Special,
-    SpecialType,
 )
 from davis_rig.types import EVENT_DTYPE
 
@@ -68,23 +62,6 @@ __all__ = [
     "compiled_kernel_available",
 ]
 
-#: A special event: time (µs, int64) and libcaer special type id (see :class:`~davis_rig.protocol.words.SpecialType`).
-SPECIAL_DTYPE: Final = np.dtype([("t", "<i8"), ("type", "u1")])
-
-#: One IMU6 sample: time µs; acceleration in g; angular rate in °/s; temperature in °C.
-IMU6_DTYPE: Final = np.dtype(
-    [
-        ("t", "<i8"),
-        ("accel_x_g", "<f4"),
-        ("accel_y_g", "<f4"),
-        ("accel_z_g", "<f4"),
-        ("gyro_x_dps", "<f4"),
-        ("gyro_y_dps", "<f4"),
-        ("gyro_z_dps", "<f4"),
-        ("temperature_c", "<f4"),
-    ]
-)
-
 #: Words decoded per vectorised block; bounds temporary memory (about 40 bytes per word) and keeps it in cache.
 _BLOCK_WORDS: Final = 1 << 15
 #: Words per call of the compiled kernel: it needs no temporaries (its event buffer, 13 bytes per word, is shrunk to
@@ -103,9 +80,6 @@ _POLARITY_SHIFT: Final = CODE_SHIFT
 _Y_WORD_BASE: Final = np.uint16(int(Code.Y_ADDR) << CODE_SHIFT)
 #: Largest 16-bit word value.
 _WORD_MAX: Final = 0xFFFF
-#: ROI and IMU values arrive as big-endian byte pairs (misc8 payloads); IMU values are signed 16-bit.
-_BYTE_BITS: Final = MISC8_BYTE_MASK.bit_length()
-_INT16_SPAN: Final = 1 << 16
 
 # Plain ints of the word codes: numpy compares arrays with an IntEnum member as int64 (about 10x slower than
 # with a plain int), and the per-control-word loop avoids enum attribute lookups.
@@ -116,9 +90,6 @@ _MISC8: Final = int(Code.MISC8)
 _MISC10: Final = int(Code.MISC10)
 _TS_WRAP: Final = int(Code.TS_WRAP)
 _TS_RESET_WORD: Final = int(Special.TIMESTAMP_RESET)  # the whole word: code 0, sub-code 1
-_RESET_COLUMN: Final = int(Special.APS_RESET_COLUMN_START)
-_SIGNAL_COLUMN: Final = int(Special.APS_SIGNAL_COLUMN_START)
-_COLUMN_END: Final = int(Special.APS_COLUMN_END)
 
 #: Decoder kernels: the compiled DVS/timestamp pass, or the vectorised numpy path (the reference and fallback).
 KERNELS: Final = ("compiled", "numpy")
@@ -138,183 +109,6 @@ _LOSS_COUNTERS: Final = (
     "imu_samples_dropped",
     "non_monotonic_timestamps",
 )
-
-#: Queued ADC samples are written out at the latest when this many are stored (about 3 full DAVIS346 frames).
-_STORE_FLUSH_SAMPLES: Final = 1 << 19
-
-#: Whole-column runs at least this long are written as one rectangular slice; shorter ones by one scatter.
-_MIN_BLOCK_COLUMNS: Final = 16
-
-_READOUT_RESET: Final = 0
-_READOUT_SIGNAL: Final = 1
-
-_SPECIAL_TYPE_OF_WIRE: Final = {
-    Special.EXT_INPUT_FALLING: SpecialType.EXTERNAL_INPUT_FALLING_EDGE,
-    Special.EXT_INPUT_RISING: SpecialType.EXTERNAL_INPUT_RISING_EDGE,
-    Special.EXT_INPUT_PULSE: SpecialType.EXTERNAL_INPUT_PULSE,
-    Special.EXT_GENERATOR_FALLING: SpecialType.EXTERNAL_GENERATOR_FALLING_EDGE,
-    Special.EXT_GENERATOR_RISING: SpecialType.EXTERNAL_GENERATOR_RISING_EDGE,
-}
-
-# IMU present-sensor bits of the misc8 scale byte (bits 7-5 → values 4/2/1).
-_IMU_ACCEL: Final = 4
-_IMU_GYRO: Final = 2
-_IMU_TEMP: Final = 1
-
-
-@dataclass
-class DecoderStats:
-    """Cumulative decoder counters (never reset by :meth:`StreamDecoder.feed`).
-
-    Attributes:
-        words: 16-bit words decoded.
-        odd_bytes_dropped: trailing bytes of odd-length transfers that were discarded (libcaer behaviour).
-        unknown_words: words with an unhandled code/sub-code (reserved special 0, IMU9 start, specials ≥ 18,
-            misc8 sub-codes ≥ 4, misc10 sub-codes ≠ 0).
-        dvs_out_of_range: DVS address words outside the raw sensor size (Y ignored, X event dropped).
-        aps_frames_dropped: frames started but never delivered (invalid column count at frame end, interrupted by a
-            new frame start, a timestamp reset or a big wrap).
-        aps_samples_dropped: ADC samples discarded (APS in ignore mode, or beyond the expected column/row counts).
-        imu_samples_dropped: IMU samples started but not delivered (byte count ≠ 14 at IMU end, or interrupted).
-        timestamp_resets: timestamp-reset specials seen.
-        big_wraps: wraps that overflowed the 31-bit timestamp (libcaer TIMESTAMP_WRAP).
-        non_monotonic_timestamps: DVS events earlier than the previous DVS event (a timestamp reset between the
-            two restarts the comparison); the events are delivered unchanged.
-    """
-
-    words: int = 0
-    odd_bytes_dropped: int = 0
-    unknown_words: int = 0
-    dvs_out_of_range: int = 0
-    aps_frames_dropped: int = 0
-    aps_samples_dropped: int = 0
-    imu_samples_dropped: int = 0
-    timestamp_resets: int = 0
-    big_wraps: int = 0
-    non_monotonic_timestamps: int = 0
-
-    def copy(self) -> "DecoderStats":
-        """Return an independent snapshot."""
-        return DecoderStats(**self.as_dict())
-
-    def as_dict(self) -> dict[str, int]:
-        """Return the counters as a plain ``dict``."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-
-@dataclass
-class DecodedChunk:
-    """Everything decoded from one :meth:`StreamDecoder.feed` call.
-
-    Attributes:
-        events: DVS events, :data:`~davis_rig.types.EVENT_DTYPE` [N], in stream order.
-        frames: completed valid APS frames, in order of their frame-end word.
-        specials: :data:`SPECIAL_DTYPE` [M], in stream order.
-        imu: :data:`IMU6_DTYPE` [K], in stream order.
-    """
-
-    events: np.ndarray = field(default_factory=lambda: np.empty(0, EVENT_DTYPE))
-    frames: list[ApsFrame] = field(default_factory=list)
-    specials: np.ndarray = field(default_factory=lambda: np.empty(0, SPECIAL_DTYPE))
-    imu: np.ndarray = field(default_factory=lambda: np.empty(0, IMU6_DTYPE))
-
-    def __len__(self) -> int:
-        return int(self.events.shape[0])
-
-    @staticmethod
-    def concatenate(chunks) -> "DecodedChunk":
-        """Join several chunks into one (arrays concatenated, frame lists joined)."""
-        chunks = list(chunks)
-        if not chunks:
-            return DecodedChunk()
-        return DecodedChunk(
-            events=np.concatenate([c.events for c in chunks]),
-            frames=[f for c in chunks for f in c.frames],
-            specials=np.concatenate([c.specials for c in chunks]),
-            imu=np.concatenate([c.imu for c in chunks]),
-        )
-
-
-class _ApsState:
-    """APS frame assembly state (PROTOCOL.md §11); ADC samples arrive as queued column segments."""
-
-    def __init__(self, layout: SensorLayout):
-        self.width = layout.aps_width
-        self.height = layout.aps_height
-        self.invert_xy = layout.aps_invert_xy
-        self.flip_x = layout.aps_flip_x
-        self.flip_y = layout.aps_flip_y
-        self.ignore = True
-        self.in_frame = False
-        self.readout = _READOUT_RESET
-        self.count_x = [0, 0]
-        self.count_y = [0, 0]
-        self.expected_x = 0
-        self.expected_y = 0
-        self.size_x = 0
-        self.size_y = 0
-        self.position_x = 0
-        self.position_y = 0
-        self.roi_counter = 0
-        self.roi_high = 0
-        self.roi_values = [0, 0, 0, 0]
-        self.t_sof = 0
-        self.t_soe = 0
-        self.t_eoe = 0
-        npix = self.width * self.height
-        self.reset_buffer = np.zeros(npix, np.int32)
-        self.pixel_buffer = np.zeros(npix, np.uint16)
-        # queued column segments (readout, count_x, first_row, start, stop) indexing the sample store: single
-        # tuples from the per-word path, (k, 5) int64 arrays from the whole-column bulk path. The store keeps the
-        # ADC values of the blocks since the last write, so a frame split over many transfers is written at once.
-        self.pending: list = []
-        self.store: list[np.ndarray] = []
-        self.store_len = 0
-
-    def set_roi(self) -> None:
-        start_col, start_row, end_col, end_row = self.roi_values
-        size_x = end_col + 1 - start_col
-        size_y = end_row + 1 - start_row
-        pos_x, pos_y = start_col, start_row
-        if size_x <= 0 or size_x > self.width:
-            size_x = self.width
-        if size_y <= 0 or size_y > self.height:
-            size_y = self.height
-        if pos_x + size_x > self.width:
-            pos_x = 0
-        if pos_y + size_y > self.height:
-            pos_y = 0
-        self.size_x, self.size_y = size_x, size_y
-        self.position_x, self.position_y = pos_x, pos_y
-        if self.invert_xy:
-            self.expected_x, self.expected_y = size_y, size_x
-        else:
-            self.expected_x, self.expected_y = size_x, size_y
-
-
-class _ImuState:
-    """IMU6 assembly state (PROTOCOL.md §12)."""
-
-    def __init__(self, layout: SensorLayout):
-        self.ignore = True
-        self.in_sample = False
-        self.count = 0
-        self.present = 0
-        self.high_byte = 0
-        self.values = [0.0] * 7  # ax, ay, az, temp, gx, gy, gz
-        self.accel_lsb_per_g = 65536.0 / (4 * 2)
-        self.gyro_lsb_per_dps = 65536.0 / (500 * 2)
-        if layout.imu_type == 2:
-            self.temp_scale, self.temp_offset = 333.87, 21.0
-        else:
-            self.temp_scale, self.temp_offset = 340.0, 35.0
-        self.flip = (
-            -1.0 if layout.imu_flip_x else 1.0,
-            -1.0 if layout.imu_flip_y else 1.0,
-            -1.0 if layout.imu_flip_z else 1.0,
-        )
-
-
 
 def compiled_kernel_available() -> bool:
     """Whether the compiled decoder kernel was built (``pip install`` with a C compiler) and imports."""
@@ -435,58 +229,6 @@ def _wrap_base(w: np.ndarray, kinds: _WordKinds, base_prev: int) -> _WrapBase:
     return _WrapBase(base_prev, int(change_base[-1]), changes, change_base, increments, change_is_reset)
 
 
-class _ControlBlock:
-    """State of one block's control-word pass: the ADC samples' cursor and the specials and IMU rows found.
-
-    Args:
-        aps: the decoder's APS state (receives the queued column segments).
-        stats: the decoder's counters.
-        ctrl_words: uint16 [C] the control words in stream order.
-        cut_array: int64 [C] number of the block's ADC samples before each control word.
-        n_adc: ADC samples in the block.
-        store_base: index of the block's first ADC sample in the APS sample store.
-    """
-
-    __slots__ = ("aps", "stats", "ctrl_words", "cut_array", "cuts", "n_adc", "store_base", "adc_done", "specials",
-                 "imu_rows")
-
-    def __init__(self, aps: _ApsState, stats: DecoderStats, ctrl_words: np.ndarray, cut_array: np.ndarray,
-                 n_adc: int, store_base: int):
-        self.aps = aps
-        self.stats = stats
-        self.ctrl_words = ctrl_words
-        self.cut_array = cut_array
-        self.cuts = cut_array.tolist()
-        self.n_adc = n_adc
-        self.store_base = store_base
-        self.adc_done = 0
-        self.specials: list[tuple[int, int]] = []
-        self.imu_rows: list[tuple] = []
-
-    def take_samples(self, upto: int) -> None:
-        """Queue the ADC samples before block sample ``upto`` as a column segment of the current readout."""
-        k = upto - self.adc_done
-        if k <= 0:
-            return
-        start = self.adc_done
-        self.adc_done = upto
-        aps = self.aps
-        if aps.ignore:
-            self.stats.aps_samples_dropped += k
-            return
-        r = aps.readout
-        cx = aps.count_x[r]
-        cy = aps.count_y[r]
-        if cx >= aps.expected_x:
-            self.stats.aps_samples_dropped += k
-            return
-        take = min(k, max(aps.expected_y - cy, 0))
-        self.stats.aps_samples_dropped += k - take
-        if take:
-            aps.pending.append((r, cx, cy, self.store_base + start, self.store_base + start + take))
-            aps.count_y[r] = cy + take
-
-
 class StreamDecoder:
     """Stateful DAVIS word-stream decoder; feed it USB bulk transfers in arrival order.
 
@@ -545,8 +287,7 @@ class StreamDecoder:
         self._last_y = 0
         self._last_event_t: int | None = None
         self._odd_byte: int | None = None
-        self._aps = _ApsState(layout)
-        self._imu = _ImuState(layout)
+        self._control_pass = ControlPass(layout, self._stats)  # specials, APS frames, IMU samples
         # work buffers reused by every block (fresh large allocations cost page faults on each call)
         self._idx15 = np.empty(0, np.int64)
         self._idx12 = np.empty(0, np.int64)
@@ -744,7 +485,7 @@ class StreamDecoder:
         big_wrap_pos = base.big_wrap_positions()
         if kinds.n_rare or big_wrap_pos is not None:
             ctrl_pos, times = self._control_times(codes, key_t, offset_in, base, big_wrap_pos)
-            self._control(w, codes, ctrl_pos, times, chunk)
+            self._control_pass.run(w, codes, ctrl_pos, times, chunk)
             if kinds.n_reset and xi.shape[0] and int(np.count_nonzero(kinds.is_reset[xi[-1]:])):
                 self._last_event_t = None  # a reset after the block's last event
 
@@ -771,7 +512,7 @@ class StreamDecoder:
         if n_ctrl or n_adc:
             ctrl_pos = np.frombuffer(positions, np.int64, n_ctrl) if n_ctrl else np.empty(0, np.int64)
             ctrl_times = np.frombuffer(times, np.int64, n_ctrl) if n_ctrl else np.empty(0, np.int64)
-            self._control(w, w >> CODE_SHIFT, ctrl_pos, ctrl_times, chunk)
+            self._control_pass.run(w, w >> CODE_SHIFT, ctrl_pos, ctrl_times, chunk)
         return chunk
 
     def _last_row_keys(self, w: np.ndarray, codes: np.ndarray, idx12: np.ndarray) -> np.ndarray:
@@ -841,445 +582,3 @@ class StreamDecoder:
         times = np.maximum(key_t[ctrl_pos], offset_in) & TIMESTAMP_MASK
         times += base.at(ctrl_pos)
         return ctrl_pos, times
-
-    def _control(self, w, codes, ctrl_pos: np.ndarray, times: np.ndarray, chunk: DecodedChunk) -> None:
-        """Run the control words of a block in stream order (specials, misc8/misc10, big wraps, ADC segments).
-
-        Args:
-            w: uint16 [n] the block's words; codes: ``w >> CODE_SHIFT``.
-            ctrl_pos: int64 [C] positions of the control words; times: int64 [C] stream time right after each, µs.
-            chunk: receives the specials, IMU samples and frames.
-        """
-        block = self._control_block(w, codes, ctrl_pos)
-        words_list = block.ctrl_words.tolist()
-        times_list = times.tolist()
-        n_ctrl = len(words_list)
-        i = -1
-        while i + 1 < n_ctrl:
-            i += 1
-            word = words_list[i]
-            cut = block.cuts[i]
-            if (word == _RESET_COLUMN or word == _SIGNAL_COLUMN) and self._column_run_starts(block, words_list, i):
-                # a run of whole columns (start, expected_y samples, end, start, ...): handled in bulk
-                pairs = self._column_run(block.ctrl_words, block.cut_array, i)
-                if pairs >= 2:
-                    block.take_samples(cut)
-                    block.adc_done = self._bulk_columns(word, pairs, block.cut_array, i, block.store_base)
-                    i += 2 * pairs - 1
-                    continue
-            code = word >> CODE_SHIFT
-            if code == _SPECIAL:
-                self._special(block, word & DATA_MASK, times_list[i], cut, chunk)
-            elif code == _MISC8:
-                self._misc8(block, word & DATA_MASK, cut)
-            elif code == _MISC10:
-                if (word & DATA_MASK) >> MISC10_SUB_SHIFT:
-                    self._stats.unknown_words += 1
-                # sub-code 0 = exposure value parts, only used by libcaer's auto-exposure: consumed.
-            else:  # big wrap (code 7)
-                self._big_wrap(block, times_list[i], cut)
-        self._finish_control(block, chunk)
-
-    def _control_block(self, w: np.ndarray, codes: np.ndarray, ctrl_pos: np.ndarray) -> _ControlBlock:
-        """Start a block's control pass: its ADC samples go to the APS sample store, cut at each control word."""
-        aps = self._aps
-        adc_pos = np.flatnonzero(codes == _ADC_SAMPLE)
-        if adc_pos.shape[0]:
-            adc_vals = (w[adc_pos] & DATA_MASK).astype(np.int32)
-            cut_array = np.searchsorted(adc_pos, ctrl_pos)
-        else:
-            adc_vals = np.empty(0, np.int32)
-            cut_array = np.zeros(ctrl_pos.shape[0], np.int64)
-        store_base = aps.store_len  # block ADC index i is store index store_base + i
-        if adc_vals.shape[0]:
-            aps.store.append(adc_vals)
-            aps.store_len += adc_vals.shape[0]
-        return _ControlBlock(aps, self._stats, w[ctrl_pos], cut_array, adc_vals.shape[0], store_base)
-
-    def _column_run_starts(self, block: "_ControlBlock", words_list: list, i: int) -> bool:
-        """Whether the column start at control ``i`` begins at least two whole columns (cheap scalar pre-check)."""
-        aps = self._aps
-        return (
-            not aps.ignore
-            and i + 3 < len(words_list)
-            and words_list[i + 1] == _COLUMN_END
-            and words_list[i + 2] == words_list[i]
-            and block.cuts[i + 1] - block.cuts[i] == aps.expected_y
-        )
-
-    def _finish_control(self, block: "_ControlBlock", chunk: DecodedChunk) -> None:
-        """Queue the block's trailing ADC samples, bound the sample store, and attach specials and IMU rows."""
-        aps = self._aps
-        block.take_samples(block.n_adc)
-        if aps.pending and aps.store_len > _STORE_FLUSH_SAMPLES:  # bound memory on streams that never end a frame
-            self._flush_aps()
-        if not aps.pending:  # nothing refers to the stored samples any more
-            aps.store = []
-            aps.store_len = 0
-        if block.specials:
-            chunk.specials = np.array(block.specials, dtype=SPECIAL_DTYPE)
-        if block.imu_rows:
-            chunk.imu = np.array(block.imu_rows, dtype=IMU6_DTYPE)
-
-    def _special(self, block: "_ControlBlock", sub: int, t: int, cut: int, chunk: DecodedChunk) -> None:
-        """One special word (code 0, PROTOCOL.md §8.1) at stream time ``t`` µs."""
-        aps = self._aps
-        imu = self._imu
-        if sub == Special.TIMESTAMP_RESET:
-            block.take_samples(cut)
-            self._flush_aps()
-            self._stats.timestamp_resets += 1
-            self._interrupt(aps, imu)
-            block.specials.append((t, SpecialType.TIMESTAMP_RESET))
-        elif sub in _SPECIAL_TYPE_OF_WIRE:
-            block.specials.append((t, _SPECIAL_TYPE_OF_WIRE[sub]))
-        elif sub == Special.IMU_START_6:
-            if imu.in_sample and not imu.ignore:
-                self._stats.imu_samples_dropped += 1
-            imu.ignore = False
-            imu.in_sample = True
-            imu.count = 0
-            imu.present = 0
-            imu.values = [0.0] * 7
-        elif sub == Special.IMU_END:
-            self._imu_end(block, t)
-        elif sub == Special.APS_FRAME_START_GS or sub == Special.APS_FRAME_START_RS:
-            block.take_samples(cut)
-            self._flush_aps()
-            self._aps_frame_start(t)
-            block.specials.append((t, SpecialType.APS_FRAME_START))
-        elif Special.APS_FRAME_END <= sub <= Special.APS_EXPOSURE_END:
-            if not aps.ignore:
-                self._aps_readout(block, sub, t, cut, chunk)
-        else:
-            self._stats.unknown_words += 1
-
-    def _imu_end(self, block: "_ControlBlock", t: int) -> None:
-        """IMU end special: deliver the sample if exactly :data:`IMU_TOTAL_COUNT` bytes came, else count a drop."""
-        imu = self._imu
-        if imu.ignore:
-            return
-        if imu.count == IMU_TOTAL_COUNT:
-            v = imu.values
-            block.imu_rows.append((t, v[0], v[1], v[2], v[4], v[5], v[6], v[3]))
-        else:
-            self._stats.imu_samples_dropped += 1
-        imu.in_sample = False
-
-    def _aps_frame_start(self, t: int) -> None:
-        """APS frame start (global or rolling shutter): a frame still in progress is dropped."""
-        aps = self._aps
-        if aps.in_frame and not aps.ignore:
-            self._stats.aps_frames_dropped += 1
-        aps.ignore = False
-        aps.in_frame = True
-        aps.roi_counter = 0
-        aps.readout = _READOUT_RESET
-        aps.count_x = [0, 0]
-        aps.count_y = [0, 0]
-        aps.t_sof = t
-        aps.pixel_buffer.fill(0)
-
-    def _aps_readout(self, block: "_ControlBlock", sub: int, t: int, cut: int, chunk: DecodedChunk) -> None:
-        """APS frame end, column start/end and exposure start/end specials of a frame being read."""
-        aps = self._aps
-        if sub == Special.APS_EXPOSURE_START:
-            aps.t_soe = t
-            block.specials.append((t, SpecialType.APS_EXPOSURE_START))
-            return
-        if sub == Special.APS_EXPOSURE_END:
-            aps.t_eoe = t
-            block.specials.append((t, SpecialType.APS_EXPOSURE_END))
-            return
-        block.take_samples(cut)
-        if sub == Special.APS_RESET_COLUMN_START:
-            aps.readout = _READOUT_RESET
-            aps.count_y[_READOUT_RESET] = 0
-        elif sub == Special.APS_SIGNAL_COLUMN_START:
-            aps.readout = _READOUT_SIGNAL
-            aps.count_y[_READOUT_SIGNAL] = 0
-        elif sub == Special.APS_COLUMN_END:
-            aps.count_x[aps.readout] += 1
-        else:  # frame end
-            self._flush_aps()
-            block.specials.append((t, SpecialType.APS_FRAME_END))
-            self._end_frame(t, chunk)
-
-    def _misc8(self, block: "_ControlBlock", data: int, cut: int) -> None:
-        """One misc 8-bit word (code 5): IMU data/scale byte or APS ROI byte."""
-        aps = self._aps
-        imu = self._imu
-        misc = data >> MISC8_SUB_SHIFT
-        byte = data & MISC8_BYTE_MASK
-        if misc == Misc8.IMU_DATA:
-            if not imu.ignore:
-                self._imu_byte(imu, byte)
-        elif misc == Misc8.APS_ROI_HIGH:
-            aps.roi_high = byte
-        elif misc == Misc8.APS_ROI_LOW:
-            slot = aps.roi_counter & 3
-            aps.roi_values[slot] = (aps.roi_high << _BYTE_BITS) | byte
-            aps.roi_counter += 1
-            if slot == 3:
-                block.take_samples(cut)
-                self._flush_aps()
-                aps.set_roi()
-        elif misc == Misc8.IMU_SCALE:
-            if not imu.ignore:
-                self._imu_scale(imu, byte)
-        else:
-            self._stats.unknown_words += 1
-
-    def _big_wrap(self, block: "_ControlBlock", t: int, cut: int) -> None:
-        """A wrap that overflowed the 31-bit timestamp: interrupt APS/IMU and emit TIMESTAMP_WRAP at ``t``."""
-        block.take_samples(cut)
-        self._flush_aps()
-        self._stats.big_wraps += 1
-        self._interrupt(self._aps, self._imu)
-        block.specials.append((t, SpecialType.TIMESTAMP_WRAP))
-
-    def _column_run(self, ctrl_words: np.ndarray, cuts: np.ndarray, i: int) -> int:
-        """Number of consecutive whole-column (start, end) pairs of the same readout type starting at control i."""
-        expected_y = self._aps.expected_y
-        pairs = min((ctrl_words.shape[0] - i) // 2, 2 * max(self._aps.expected_x, 1) + 2)
-        words = ctrl_words[i : i + 2 * pairs].reshape(pairs, 2)
-        starts = cuts[i : i + 2 * pairs : 2]
-        ends = cuts[i + 1 : i + 2 * pairs : 2]
-        ok = (words[:, 0] == words[0, 0]) & (words[:, 1] == _COLUMN_END) & (ends - starts == expected_y)
-        ok[1:] &= starts[1:] == ends[:-1]  # no samples between a column end and the next column start
-        return pairs if ok.all() else int(np.argmin(ok))
-
-    def _bulk_columns(self, start_word: int, pairs: int, cuts: np.ndarray, i: int, store_base: int) -> int:
-        """Apply ``pairs`` whole columns at once (same effect as the per-word path); return the ADC index done."""
-        aps = self._aps
-        readout = _READOUT_RESET if start_word == Special.APS_RESET_COLUMN_START else _READOUT_SIGNAL
-        aps.readout = readout
-        first_col = aps.count_x[readout]
-        accepted = max(0, min(pairs, aps.expected_x - first_col))
-        if accepted:
-            starts = cuts[i : i + 2 * accepted : 2] + store_base
-            segments = np.empty((accepted, 5), np.int64)
-            segments[:, 0] = readout
-            segments[:, 1] = first_col + np.arange(accepted)
-            segments[:, 2] = 0
-            segments[:, 3] = starts
-            segments[:, 4] = starts + aps.expected_y
-            aps.pending.append(segments)
-        self._stats.aps_samples_dropped += (pairs - accepted) * aps.expected_y
-        aps.count_x[readout] = first_col + pairs
-        aps.count_y[readout] = aps.expected_y if accepted == pairs else 0
-        return int(cuts[i + 2 * pairs - 1])
-
-    def _interrupt(self, aps: _ApsState, imu: _ImuState) -> None:
-        """Timestamp reset or big wrap: drop the frame / IMU sample in progress and ignore until the next start."""
-        if aps.in_frame and not aps.ignore:
-            self._stats.aps_frames_dropped += 1
-        if imu.in_sample and not imu.ignore:
-            self._stats.imu_samples_dropped += 1
-        aps.ignore = True
-        aps.in_frame = False
-        imu.ignore = True
-        imu.in_sample = False
-
-    def _end_frame(self, t_us: int, chunk: DecodedChunk) -> None:
-        aps = self._aps
-        if not aps.in_frame:  # a second frame end without a new frame start delivers nothing
-            return
-        valid = aps.count_x[_READOUT_RESET] == aps.count_x[_READOUT_SIGNAL] == aps.expected_x and aps.expected_x > 0
-        if valid:
-            npix = aps.size_x * aps.size_y
-            pixels = aps.pixel_buffer[:npix].reshape(aps.size_y, aps.size_x).copy()
-            chunk.frames.append(
-                ApsFrame(
-                    pixels=pixels,
-                    position_x=aps.position_x,
-                    position_y=aps.position_y,
-                    t_start_of_frame_us=aps.t_sof,
-                    t_start_exposure_us=aps.t_soe,
-                    t_end_exposure_us=aps.t_eoe,
-                    t_end_of_frame_us=t_us,
-                )
-            )
-        else:
-            self._stats.aps_frames_dropped += 1
-        aps.in_frame = False
-
-    def _flush_aps(self) -> None:
-        """Write queued ADC column segments into the reset/pixel buffers, one vectorised write per same-type run."""
-        aps = self._aps
-        pending = aps.pending
-        if not pending:
-            return
-        aps.pending = []
-        if len(aps.store) > 1:
-            aps.store = [np.concatenate(aps.store)]
-        adc_vals = aps.store[0]
-        # rows: readout, count_x, first_row, adc start, adc stop; items are single tuples or bulk (k, 5) arrays
-        blocks: list[np.ndarray] = []
-        singles: list[tuple] = []
-        for item in pending:
-            if isinstance(item, tuple):
-                singles.append(item)
-            else:
-                if singles:
-                    blocks.append(np.array(singles, dtype=np.int64))
-                    singles = []
-                blocks.append(item)
-        if singles:
-            blocks.append(np.array(singles, dtype=np.int64))
-        seg = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-        seg = self._merge_split_columns(seg)
-        readout = seg[:, 0]
-        cuts = [0, *(np.flatnonzero(readout[1:] != readout[:-1]) + 1).tolist(), seg.shape[0]]
-        expected_y = aps.expected_y
-        for lo, hi in zip(cuts[:-1], cuts[1:]):
-            group = seg[lo:hi]
-            # a transfer boundary can leave a partial column at either end of a run of whole columns
-            head = 0 if group[0, 2] == 0 and group[0, 4] - group[0, 3] == expected_y else 1
-            tail = group.shape[0] - (0 if group[-1, 2] == 0 and group[-1, 4] - group[-1, 3] == expected_y else 1)
-            if tail - head >= _MIN_BLOCK_COLUMNS and self._is_full_column_run(group[head:tail]):
-                self._write_segments(group[:head], adc_vals)
-                self._write_column_block(group[head:tail], adc_vals)
-                self._write_segments(group[tail:], adc_vals)
-            else:
-                self._write_segments(group, adc_vals)
-
-    @staticmethod
-    def _merge_split_columns(seg: np.ndarray) -> np.ndarray:
-        """Join consecutive segments that continue the same column (a column cut by a transfer boundary)."""
-        if seg.shape[0] < 2:
-            return seg
-        prev, cur = seg[:-1], seg[1:]
-        continues = (
-            (cur[:, 0] == prev[:, 0])
-            & (cur[:, 1] == prev[:, 1])
-            & (cur[:, 2] == prev[:, 2] + prev[:, 4] - prev[:, 3])
-            & (cur[:, 3] == prev[:, 4])
-        )
-        if not continues.any():
-            return seg
-        keep = np.ones(seg.shape[0], bool)
-        keep[1:] = ~continues
-        merged = seg[keep]
-        last_of_group = np.flatnonzero(np.append(keep[1:], True))
-        merged[:, 4] = seg[last_of_group, 4]
-        return merged
-
-    def _is_full_column_run(self, group: np.ndarray) -> bool:
-        """True when the segments are whole, consecutive columns of consecutive samples (the normal case)."""
-        k = group.shape[0]
-        expected_y = self._aps.expected_y
-        steps = np.arange(k)
-        return bool(
-            np.all(group[:, 2] == 0)
-            and np.all(group[:, 4] - group[:, 3] == expected_y)
-            and np.all(group[:, 1] == group[0, 1] + steps)
-            and np.all(group[:, 3] == group[0, 3] + steps * expected_y)
-        )
-
-    def _write_column_block(self, group: np.ndarray, adc_vals: np.ndarray) -> None:
-        """Fast path: k whole device columns → one rectangular slice of the ROI buffers."""
-        aps = self._aps
-        k = group.shape[0]
-        first_col = int(group[0, 1])
-        start = int(group[0, 3])
-        device = adc_vals[start : start + k * aps.expected_y].reshape(k, aps.expected_y)  # [column, sample]
-        if aps.flip_y:
-            device = device[:, ::-1]
-        if aps.flip_x:
-            device = device[::-1, :]
-            lo = aps.expected_x - first_col - k
-        else:
-            lo = first_col
-        npix = aps.size_x * aps.size_y
-        reset2d = aps.reset_buffer[:npix].reshape(aps.size_y, aps.size_x)
-        pixel2d = aps.pixel_buffer[:npix].reshape(aps.size_y, aps.size_x)
-        if aps.invert_xy:  # device columns are output rows
-            region = (slice(lo, lo + k), slice(None))
-            values = device
-        else:
-            region = (slice(None), slice(lo, lo + k))
-            values = device.T
-        if group[0, 0] == _READOUT_RESET:
-            reset2d[region] = values
-        else:
-            pixel2d[region] = self._cds(reset2d[region], values)
-
-    def _write_segments(self, group: np.ndarray, adc_vals: np.ndarray) -> None:
-        """General path: arbitrary (partial, repeated) segments, scattered sample by sample (vectorised)."""
-        aps = self._aps
-        if group.shape[0] == 0:
-            return
-        lengths = group[:, 4] - group[:, 3]
-        total = int(lengths.sum())
-        if total == 0:
-            return
-        first = np.cumsum(lengths) - lengths
-        within = np.arange(total) - np.repeat(first, lengths)
-        sample = np.repeat(group[:, 3], lengths) + within
-        pos_y = np.repeat(group[:, 2], lengths) + within
-        pos_x = np.repeat(group[:, 1], lengths)
-        if aps.flip_x:
-            pos_x = aps.expected_x - 1 - pos_x
-        if aps.flip_y:
-            pos_y = aps.expected_y - 1 - pos_y
-        if aps.invert_xy:
-            pos_x, pos_y = pos_y, pos_x
-        index = pos_y * aps.size_x + pos_x
-        values = adc_vals[sample]
-        if group[0, 0] == _READOUT_RESET:
-            aps.reset_buffer[index] = values
-        else:
-            aps.pixel_buffer[index] = self._cds(aps.reset_buffer[index], values)
-
-    @staticmethod
-    def _cds(reset: np.ndarray, signal: np.ndarray) -> np.ndarray:
-        """libcaer CDS: clamp(reset - signal, 0, 1023), forced to 1023 if reset < 384 or signal == 0; << 6."""
-        cds = reset - signal
-        np.maximum(cds, 0, out=cds)
-        np.minimum(cds, APS_PIXEL_MAX, out=cds)
-        np.putmask(cds, (reset < APS_RESET_MIN) | (signal == 0), APS_PIXEL_MAX)
-        np.left_shift(cds, APS_PIXEL_SHIFT, out=cds)
-        return cds.astype(np.uint16)
-
-    # ------------------------------------------------------------------ IMU
-    @staticmethod
-    def _imu_scale(imu: _ImuState, byte: int) -> None:
-        imu.present = (byte >> 5) & 7
-        accel_fs = (byte >> 2) & 3
-        gyro_fs = byte & 3
-        imu.accel_lsb_per_g = 65536.0 / (4 * (1 << accel_fs))
-        imu.gyro_lsb_per_dps = 65536.0 / (500 * (1 << gyro_fs))
-        if imu.present & _IMU_ACCEL:
-            imu.count = 0
-        elif imu.present & _IMU_TEMP:
-            imu.count = 6
-        elif imu.present & _IMU_GYRO:
-            imu.count = 8
-        else:
-            imu.count = IMU_TOTAL_COUNT
-
-    @staticmethod
-    def _imu_byte(imu: _ImuState, byte: int) -> None:
-        count = imu.count
-        if count >= IMU_TOTAL_COUNT:
-            imu.count = count + 1
-            return
-        if count % 2 == 0:
-            imu.high_byte = byte
-        else:
-            raw = (imu.high_byte << _BYTE_BITS) | byte
-            if raw >= _INT16_SPAN >> 1:  # signed 16-bit
-                raw -= _INT16_SPAN
-            slot = count // 2  # 0-2 accel, 3 temperature, 4-6 gyro
-            if slot < 3:
-                imu.values[slot] = imu.flip[slot] * raw / imu.accel_lsb_per_g
-                if slot == 2 and not imu.present & _IMU_TEMP:
-                    count += 2 if imu.present & _IMU_GYRO else 8
-            elif slot == 3:
-                imu.values[3] = raw / imu.temp_scale + imu.temp_offset
-                if not imu.present & _IMU_GYRO:
-                    count += 6
-            else:
-                imu.values[slot] = imu.flip[slot - 4] * raw / imu.gyro_lsb_per_dps
-        imu.count = count + 1

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from davis_rig.errors import FormatError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.protocol.frames import ApsFrame
 
 __all__ = ["ApsConfig", "aps_frame_times", "synthesize_aps_frames", "to_adc"]
@@ -44,6 +44,9 @@ class ApsConfig:
         read_noise_dn: read-noise standard deviation, DN.
         shot_noise: apply Poisson shot noise.
         seed: seed of the noise generator.
+
+    Raises:
+        ConfigError: a value out of its range (its ``field`` names the attribute).
     """
 
     frame_rate_hz: float = 25.0
@@ -59,15 +62,17 @@ class ApsConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.frame_rate_hz <= 0 or self.exposure_us < 1 or self.full_well_e <= 0:
-            raise ValueError(
-                f"expected frame_rate_hz > 0, exposure_us >= 1, full_well_e > 0, got {self.frame_rate_hz}, "
-                f"{self.exposure_us}, {self.full_well_e}"
-            )
-        if self.reset_readout_us < 0 or self.signal_readout_us < 0 or self.read_noise_dn < 0:
-            raise ValueError("reset_readout_us, signal_readout_us and read_noise_dn must be >= 0")
+        for name in ("frame_rate_hz", "full_well_e"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(name, f"expected > 0, got {getattr(self, name)}")
+        if not self.exposure_us >= 1:
+            raise ConfigError("exposure_us", f"expected >= 1, got {self.exposure_us}")
+        for name in ("reset_readout_us", "signal_readout_us", "read_noise_dn"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"expected >= 0, got {getattr(self, name)}")
         if self.reset_readout_us + self.exposure_us + self.signal_readout_us >= self.frame_interval_us:
-            raise ValueError(
+            raise ConfigError(
+                "exposure_us",
                 f"frame does not fit its interval: reset {self.reset_readout_us} + exposure {self.exposure_us} + "
                 f"signal {self.signal_readout_us} µs >= interval {self.frame_interval_us} µs"
             )

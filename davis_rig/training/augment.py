@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from davis_rig.errors import ShapeError
+from davis_rig.errors import ConfigError, ShapeError
 from davis_rig.models.rvt._torch import F, torch
 
 __all__ = ["AugmentConfig", "AugmentParams", "sample_params", "apply_augment", "hflip", "zoom_in", "zoom_out"]
@@ -24,7 +24,11 @@ __all__ = ["AugmentConfig", "AugmentParams", "sample_params", "apply_augment", "
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """Augmentation probabilities and ranges (defaults: RVT ``data_augmentation.random``)."""
+    """Augmentation probabilities and ranges (defaults: RVT ``data_augmentation.random``).
+
+    Raises:
+        ConfigError: a value out of its range (its ``field`` names the attribute).
+    """
 
     prob_hflip: float = 0.5
     zoom_prob: float = 0.8
@@ -45,13 +49,18 @@ class AugmentConfig:
         return cls(prob_hflip=0.0, zoom_prob=0.0)
 
     def __post_init__(self):
-        if not (0 <= self.prob_hflip <= 1 and 0 <= self.zoom_prob <= 1):
-            raise ValueError(f"probabilities must lie in [0, 1], got {self.prob_hflip}, {self.zoom_prob}")
-        if self.zoom_in_weight < 0 or self.zoom_out_weight < 0 or self.zoom_in_weight + self.zoom_out_weight <= 0:
-            raise ValueError("zoom weights must be ≥ 0 with a positive sum")
-        for lo, hi in (self.zoom_in_range, self.zoom_out_range):
+        for name in ("prob_hflip", "zoom_prob"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(name, f"expected a probability in [0, 1], got {getattr(self, name)}")
+        for name in ("zoom_in_weight", "zoom_out_weight"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"expected ≥ 0, got {getattr(self, name)}")
+        if self.zoom_in_weight + self.zoom_out_weight <= 0:
+            raise ConfigError("zoom_in_weight", "the zoom weights must have a positive sum, got 0 and 0")
+        for name in ("zoom_in_range", "zoom_out_range"):
+            lo, hi = getattr(self, name)
             if not 1 <= lo <= hi:
-                raise ValueError(f"zoom factor ranges must satisfy 1 ≤ min ≤ max, got {(lo, hi)}")
+                raise ConfigError(name, f"zoom factors must satisfy 1 ≤ min ≤ max, got {(lo, hi)}")
 
 
 @dataclass(frozen=True)

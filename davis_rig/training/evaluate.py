@@ -29,11 +29,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from davis_rig.errors import ConfigError, FormatError, ShapeError
-from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
+from davis_rig.events.histogram import WINDOW_US
+from davis_rig.metrics.ap import SKIP_FIRST_US, coco_ap, detections_to_boxes, filter_boxes, match_times
 from davis_rig.metrics.seqasr import label_sequences, windows_detected
 from davis_rig.training.batches import labels_to_tensor
 from davis_rig.training.dataset import SequenceData, list_sequences
-from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
+from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID, RVT_NMS_IOU
 
 __all__ = ["SplitScoreConfig", "SequenceDetections", "detect_sequences", "evaluate_split", "format_scores",
            "score_sequences"]
@@ -59,9 +60,9 @@ class SplitScoreConfig:
     split: str = "test"
     seqasr_thresholds: tuple[float, ...] = (0.25,)
     seq_len: int = 3
-    skip_first_us: int = 500_000
+    skip_first_us: int = SKIP_FIRST_US
     lanes: int = 8
-    nms_threshold: float = 0.45
+    nms_threshold: float = RVT_NMS_IOU
 
     def __post_init__(self):
         for name in ("seq_len", "lanes"):
@@ -116,7 +117,7 @@ def _subset_of(path: Path) -> str:
 
 
 def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], *, lanes: int = 8,
-                     nms_threshold: float = 0.45, device: str = "cpu",
+                     nms_threshold: float = RVT_NMS_IOU, device: str = "cpu",
                      progress: Callable | None = None) -> list[SequenceDetections]:
     """Stream sequences through an RVT detector (zero states at each sequence start) and post-process.
 
@@ -194,7 +195,7 @@ def score_sequences(records: Sequence[SequenceDetections], config: SplitScoreCon
     m = {t: 0 for t in config.seqasr_thresholds}
     n = {t: 0 for t in config.seqasr_thresholds}
     for rec in records:
-        skip_until = int(rec.window_end_us[0]) - 50_000 + config.skip_first_us
+        skip_until = int(rec.window_end_us[0]) - WINDOW_US + config.skip_first_us
         labelled = [w for w, lab in enumerate(rec.labels) if lab is not None]
         if labelled:
             gt = filter_boxes(np.concatenate([rec.labels[w] for w in labelled]), skip_until_us=skip_until)

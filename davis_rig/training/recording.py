@@ -266,6 +266,7 @@ def _checked_times(t_us, num_frames: int) -> np.ndarray:
 def _write_directly(path: Path, events: np.ndarray, frames: list, config: dict, overwrite: bool) -> None:
     """Write events and frames straight into a session file (no encoder, no camera)."""
     from davis_rig.protocol.layout import SensorLayout
+    from davis_rig.session.record import StopReason
     from davis_rig.session.writer import SessionWriter
 
     info = {"serial": "SYNTH001", "synthetic": True, "layout": SensorLayout.davis346()}
@@ -274,7 +275,7 @@ def _write_directly(path: Path, events: np.ndarray, frames: list, config: dict, 
             writer.append_events(events[start:start + (1 << 20)])
         for frame in frames:
             writer.append_frame(frame)
-        writer.set_stats({"stopped_by": "end", "synthetic": {"events": len(events), "frames": len(frames)}})
+        writer.set_stats({"stopped_by": StopReason.END, "synthetic": {"events": len(events), "frames": len(frames)}})
 
 
 def _write_ground_truth(path: Path, crop_labels: np.ndarray) -> None:

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping
 
 from davis_rig.errors import ConfigError
+from davis_rig.metrics.ap import SKIP_FIRST_US
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.training.augment import AugmentConfig
 
@@ -64,7 +65,7 @@ class TrainConfig:
     val_batch_size: int = 8
     val_seq_len: int = 21
     val_conf_threshold: float = 0.001
-    val_skip_first_us: int = 500_000
+    val_skip_first_us: int = SKIP_FIRST_US
     val_max_sequences: int | None = None
     min_box_side_px: float = 0.0
     sampling: str = "mixed"

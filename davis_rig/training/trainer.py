@@ -205,10 +205,15 @@ class Trainer:
             stream_items = self.stream.next_items() if self.stream is not None else []
             yield collate_chunks(stream_items + items)
 
-    def _augment(self, batch: ChunkBatch) -> tuple[torch.Tensor, list[list[torch.Tensor | None]]]:
-        """Move a batch to the device as float and augment each chunk; returns hist [L, B, 20, H, W], labels.
+    def augment_batch(self, batch: ChunkBatch) -> tuple[torch.Tensor, list[list[torch.Tensor | None]]]:
+        """Move a batch to the device as float and augment each chunk: the inputs :meth:`train_step` learns from.
 
-        Random-access chunks get a fresh draw each; streaming lanes keep the draw of their current sequence.
+        Random-access chunks get a fresh draw each; streaming lanes keep the draw of their current sequence (the
+        draws advance the trainer's augmentation generator).
+
+        Returns:
+            ``(hist, labels)``: float tensor [L, B, 20, H, W] on the device, and ``labels[t][b]`` (the chunk's
+            boxes at window ``t`` after the augmentation, or ``None`` for an unlabelled window).
         """
         hist = batch.histograms.to(self.device, non_blocking=True).float()
         labels = [[b for b in row] for row in batch.labels]
@@ -243,7 +248,7 @@ class Trainer:
             Scalar floats: loss, iou_loss, conf_loss, cls_loss, l1_loss, num_fg, lr, grad_norm, labelled.
         """
         self.model.train()
-        hist, labels = self._augment(batch)
+        hist, labels = self.augment_batch(batch)
         states = reset_states(self._states, batch.is_first)
         autocast = torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
         lr = self.optimizer.param_groups[0]["lr"]

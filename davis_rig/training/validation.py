@@ -19,7 +19,8 @@ from davis_rig.models.rvt._torch import torch
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.batches import StreamingBatches
 from davis_rig.training.dataset import list_sequences
-from davis_rig.types import BBOX_DTYPE
+from davis_rig.metrics.ap import SKIP_FIRST_US
+from davis_rig.types import BBOX_DTYPE, RVT_NMS_IOU
 
 __all__ = ["reset_states", "validate_detector"]
 
@@ -72,7 +73,7 @@ def _stream_detections(model, stream: StreamingBatches, conf_threshold: float, a
             index = torch.tensor(lanes, device=device)
             with autocast:
                 decoded = model.forward_detect({k: v.index_select(0, index) for k, v in features.items()})
-            detections = postprocess(decoded.float().cpu(), conf_threshold, 0.45)
+            detections = postprocess(decoded.float().cpu(), conf_threshold, RVT_NMS_IOU)
             for det, b in zip(detections, lanes):
                 seq, t_us = batch.sequence[b], int(batch.window_end_us[t, b])
                 gt.setdefault(seq, []).append(_boxes_to_bbox(batch.labels[t][b], t_us))
@@ -82,7 +83,7 @@ def _stream_detections(model, stream: StreamingBatches, conf_threshold: float, a
 
 @torch.no_grad()
 def validate_detector(model, data_dir: str | Path, split: str = "val", *, seq_len: int = 21, batch_size: int = 8,
-                      conf_threshold: float = 0.001, skip_first_us: int | None = 500_000,
+                      conf_threshold: float = 0.001, skip_first_us: int | None = SKIP_FIRST_US,
                       max_sequences: int | None = None, amp_dtype=None) -> dict[str, Any]:
     """Stream a split through ``model`` and compute COCO AP with the RVT protocol.
 

@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import ProtocolError, ShapeError
+from davis_rig.errors import ConfigError, ProtocolError, ShapeError
 from davis_rig.types import EVENT_DTYPE
 
 #: Default size of one device transfer, bytes (libcaer's buffer size).
@@ -44,6 +44,9 @@ class Faults:
         seed: seed of the garbage generator.
         open_errno: ``open_device`` fails with this errno (e.g. ``errno.EACCES`` = missing udev rule).
         claim_errno: ``claim_interface`` fails with this errno (e.g. ``errno.EBUSY`` = another process).
+
+    Raises:
+        ConfigError: a value out of its range (its ``field`` names the attribute).
     """
 
     disconnect_after_transfers: int | None = None
@@ -60,9 +63,9 @@ class Faults:
         for name in ("disconnect_after_transfers", "stall_every", "timeout_every", "short_transfer_bytes", "odd_length"):
             value = getattr(self, name)
             if value is not None and int(value) < 1:
-                raise ValueError(f"Faults.{name} must be >= 1 (or None), got {value}")
+                raise ConfigError(name, f"must be >= 1 (or None), got {value}")
         if not 0.0 <= self.garbage_rate <= 1.0:
-            raise ValueError(f"Faults.garbage_rate must be in [0, 1], got {self.garbage_rate}")
+            raise ConfigError("garbage_rate", f"must be in [0, 1], got {self.garbage_rate}")
 
 
 class DataSource:

@@ -57,7 +57,7 @@ def labelled_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: i
     Returns:
         ``(bool [T], T float64 arrays [L_i, 4] of x1, y1, x2, y2)``.
     """
-    from davis_rig.evaluation.physical import label_windows
+    from davis_rig.evaluation.windows import label_windows
     from davis_rig.metrics.ap import filter_boxes
     from davis_rig.metrics.seqasr import windows_with_labels
 

@@ -1,6 +1,6 @@
 """One recording opened for viewing: its window grid, and what each window shows (events, APS, labels, boxes).
 
-The viewer steps through a recording on ``davis-eval``'s window grid (:mod:`davis_rig.evaluation.physical`):
+The viewer steps through a recording on ``davis-eval``'s window grid (:mod:`davis_rig.evaluation.windows`):
 window ``k`` ends at ``t0 + (k + 1) · window_us`` (``t0`` = the session's ``t_offset``) and holds the events with
 ``end − window_us ≤ t ≤ end``; the grid runs past the last event and the last label. So a displayed frame is
 exactly one RVT input window, its boxes are that window's detections and its labels those with
@@ -14,48 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from davis_rig.errors import SessionError, ShapeError
+from davis_rig.errors import SessionError
+from davis_rig.evaluation.windows import label_windows, window_grid
 from davis_rig.events.histogram import WINDOW_US
-from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, RVT_HW
+from davis_rig.types import BBOX_DTYPE, DAVIS346_HW
 from davis_rig.viewer.render import LAYERS, ViewContent, event_counts, render_view
 
-__all__ = ["RecordingView", "window_grid"]
-
-
-def window_grid(t0_us: int, t_last_us: int, window_us: int = WINDOW_US) -> np.ndarray:
-    """``davis-eval``'s window ends: ``t0 + k · window_us`` for ``k = 1 .. max(1, ceil((t_last − t0) / window_us))``.
-
-    Args:
-        t0_us: start of the grid, device µs.
-        t_last_us: the grid reaches at least this time, device µs.
-        window_us: window length, µs (> 0).
-
-    Returns:
-        int64 [T] window ends, device µs.
-    """
-    n_windows = max(1, -(-(int(t_last_us) - int(t0_us)) // int(window_us)))
-    return int(t0_us) + int(window_us) * np.arange(1, n_windows + 1, dtype=np.int64)
-
-
-def _crop_origin(path: Path, requested: tuple[int, int] | None, labels_attrs: dict) -> tuple[int, int]:
-    """``davis-eval``'s crop origin: ``requested``, else the labels' stored one, else centred.
-
-    Raises:
-        SessionError: ``requested`` differs from the origin the labels were made for.
-        ShapeError: the 304x240 crop does not fit the DAVIS346 sensor there.
-    """
-    from davis_rig.evaluation.physical import labels_crop_origin
-    from davis_rig.events.crop import center_crop_origin
-
-    stored = labels_crop_origin(labels_attrs)
-    if requested is not None and stored is not None and tuple(requested) != stored:
-        raise SessionError(f"{path}: the labels were made for crop origin {stored}, not {tuple(requested)}")
-    x0, y0 = (int(v) for v in (requested or stored or center_crop_origin()))
-    if not (0 <= x0 <= DAVIS346_HW[1] - RVT_HW[1] and 0 <= y0 <= DAVIS346_HW[0] - RVT_HW[0]):
-        raise ShapeError(f"crop origin ({x0}, {y0}): the {RVT_HW[1]}x{RVT_HW[0]} crop must lie on the "
-                         f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]} sensor: origin in [0, {DAVIS346_HW[1] - RVT_HW[1]}] x "
-                         f"[0, {DAVIS346_HW[0] - RVT_HW[0]}]")
-    return x0, y0
+__all__ = ["RecordingView"]
 
 
 class RecordingView:
@@ -77,7 +42,7 @@ class RecordingView:
     """
 
     def __init__(self, path, *, window_us: int = WINDOW_US, crop_origin_xy: tuple[int, int] | None = None):
-        from davis_rig.evaluation.physical import label_windows
+        from davis_rig.evaluation.physical import scoring_crop_origin
         from davis_rig.session import SessionReader
 
         self.path = Path(path)
@@ -107,7 +72,7 @@ class RecordingView:
                 t_last = max(t_last, int(self.labels["t"].max()))
             self.t0_us = t0
             self.window_end_us = window_grid(t0, t_last, self.window_us)
-            self.crop_origin_xy = _crop_origin(self.path, crop_origin_xy, self.labels_attrs)
+            self.crop_origin_xy = scoring_crop_origin(self.path, crop_origin_xy, self.labels_attrs)
             self._label_window = label_windows(self.labels, self.window_end_us, self.window_us)
             self.sensor_hw = tuple(reader.frames.data.shape[1:]) if len(frames) else DAVIS346_HW
         except BaseException:

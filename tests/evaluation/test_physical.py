@@ -17,9 +17,9 @@ from davis_rig.evaluation.physical import (
     SessionScores,
     compute_metrics,
     evaluate_sessions,
-    label_windows,
     labels_provenance,
     score_session,
+    scoring_crop_origin,
     settings_dict,
 )
 from davis_rig.labelers.session_labels import label_session
@@ -208,10 +208,20 @@ def test_labels_provenance_decodes_davis_label_settings_and_keeps_foreign_text()
     assert labels_provenance({}) == {}
 
 
-def test_label_windows_assignment():
-    labels = np.zeros(4, BBOX_DTYPE)
-    labels["t"] = [1, 50_000, 50_001, 400_000]
-    assert label_windows(labels, np.array([50_000, 100_000]), 50_000).tolist() == [0, 0, 1, -1]
+def test_scoring_crop_origin_reads_both_stored_spellings():
+    from davis_rig.errors import ShapeError
+
+    assert scoring_crop_origin("s.h5", None, {}) == (21, 10)  # nothing stored: centred
+    assert scoring_crop_origin("s.h5", (5, 6), {}) == (5, 6)
+    for attrs in ({"crop_origin_x": 0, "crop_origin_y": 3}, {"crop_origin_xy": "[0, 3]"}, {"crop_origin_xy": [0, 3]}):
+        assert scoring_crop_origin("s.h5", None, attrs) == (0, 3)  # davis-label's and the synthetic recordings'
+        assert scoring_crop_origin("s.h5", (0, 3), attrs) == (0, 3)
+        with pytest.raises(SessionError, match=r"s.h5: the labels were made for crop origin \(0, 3\), not \(21, 10\)"):
+            scoring_crop_origin("s.h5", (21, 10), attrs)
+    with pytest.raises(ShapeError, match=r"s.h5: crop origin \(43, 0\): the 304x240 crop at \(43, 0\) leaves"):
+        scoring_crop_origin("s.h5", None, {"crop_origin_xy": [43, 0]})
+    with pytest.raises(SessionError, match="unreadable crop origin"):
+        scoring_crop_origin("s.h5", None, {"crop_origin_xy": "[1]"})
 
 
 def test_time_tolerance_matches_a_detection_of_a_neighbouring_label_time_only_when_set():
@@ -276,7 +286,7 @@ def test_crop_origin_conflict_and_bounds_are_checked_for_every_session_before_an
     with pytest.raises(SessionError, match=r"other_origin.h5: the labels were made for crop origin \(0, 0\), not "
                                            r"\(21, 10\)"):
         evaluate_sessions([labelled, other], model, EvalSettings(seq_len=5, crop_origin_xy=(21, 10)))
-    with pytest.raises(ShapeError, match=r"outside.h5: crop origin \(100, 10\): .* does not fit the sensor 346x260"):
+    with pytest.raises(ShapeError, match=r"outside.h5: crop origin \(100, 10\): .* leaves the 346x260 sensor"):
         evaluate_sessions([labelled, outside], model, SETTINGS)
     unset = tmp_path / "no_stored_origin.h5"
     unset.write_bytes(labelled.read_bytes())

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.events import center_crop_origin, crop_events, monotonic_timestamps, stacked_histogram
+from davis_rig.events import (center_crop_origin, crop_events, crop_origin_error, monotonic_timestamps,
+                              stacked_histogram)
 from davis_rig.types import EVENT_DTYPE, make_events
 
 
@@ -40,10 +41,20 @@ def test_crop_with_explicit_origin_and_errors():
     events = make_events([0, 1], [0, 303], [0, 239], [0, 1])
     out = crop_events(events, (0, 0))
     assert len(out) == 2
-    with pytest.raises(ShapeError, match="does not fit the sensor"):
+    with pytest.raises(ShapeError, match=r"the 304x240 crop at \(50, 0\) leaves the 346x260 sensor"):
         crop_events(events, (50, 0))
     with pytest.raises(FormatError, match="structured"):
         crop_events(np.zeros(3))
+
+
+def test_crop_origin_error_bounds_are_inclusive():
+    assert crop_origin_error((0, 0)) is None and crop_origin_error((42, 20)) is None  # 346 - 304, 260 - 240
+    assert crop_origin_error((43, 0)) == ("the 304x240 crop at (43, 0) leaves the 346x260 sensor; X must be in "
+                                          "[0, 42] and Y in [0, 20]")
+    for origin in ((-1, 0), (0, -1), (0, 21)):
+        assert crop_origin_error(origin) is not None
+    assert crop_origin_error((1, 1), frame_hw=(2, 2), sensor_hw=(3, 3)) is None
+    assert crop_origin_error((2, 1), frame_hw=(2, 2), sensor_hw=(3, 3)) is not None
 
 
 def test_monotonic_timestamps_like_rvt_reader():

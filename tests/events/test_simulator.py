@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from davis_rig.errors import FormatError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.events.intensity import lin_log
 from davis_rig.events.simulator import EventSimulator, SimulatorConfig, simulate_events
 from davis_rig.types import EVENT_DTYPE
@@ -268,10 +268,11 @@ def test_validation_errors():
         simulate_events(video, np.array([0, 5, 5]))
     with pytest.raises(FormatError):
         simulate_events(np.zeros((3, 2, 2), dtype=np.int32), np.arange(3))
-    with pytest.raises(ValueError):
-        SimulatorConfig(threshold_on=0.0)
-    with pytest.raises(ValueError):
-        SimulatorConfig(timestamps="start")
+    for kwargs, field in (({"threshold_on": 0.0}, "threshold_on"), ({"timestamps": "start"}, "timestamps"),
+                          ({"min_threshold": 0.0}, "min_threshold"), ({"leak_rate_hz": -1.0}, "leak_rate_hz")):
+        with pytest.raises(ConfigError) as info:
+            SimulatorConfig(**kwargs)
+        assert info.value.field == field
     sim = EventSimulator(2, 2)
     sim.feed(video, np.arange(3))
     with pytest.raises(FormatError):

@@ -90,7 +90,7 @@ def test_refusals_and_nothing_left_behind(tmp_path, rich_session, monkeypatch):
         yield from ()
         raise OSError("disk full")
 
-    monkeypatch.setattr("davis_rig.evaluation.physical._event_chunks", broken)
+    monkeypatch.setattr("davis_rig.evaluation.windows.event_chunks", broken)
     with pytest.raises(OSError, match="disk full"):
         export_session(path, "rvt", tmp_path / "ds", overwrite=True)
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # the old sequence is intact

@@ -67,7 +67,8 @@ def test_origin_rules(tmp_path, rng):
             ExportSource(placed, crop=True, crop_origin_xy=(21, 10)):
         pass
     assert err.value.field == "crop_origin_xy"
-    with pytest.raises(ConfigError, match="does not fit"), ExportSource(no_labels, crop=True, crop_origin_xy=(50, 0)):
+    with pytest.raises(ConfigError, match=r"crop at \(50, 0\) leaves the 346x260 sensor"), \
+            ExportSource(no_labels, crop=True, crop_origin_xy=(50, 0)):
         pass
 
 

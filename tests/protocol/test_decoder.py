@@ -379,7 +379,7 @@ def test_bulk_column_path_equals_word_by_word_path(davis346, proto, stream, tran
     transfers = [data[i : i + 2 * transfer_words] for i in range(0, len(data), 2 * transfer_words)]
     fast, fast_decoder = proto.decode_all(davis346, transfers)
     slow_decoder = StreamDecoder(davis346)
-    slow_decoder._column_run = lambda *args: 0  # disable the bulk path
+    slow_decoder._control_pass.aps.column_run = lambda *args: 0  # disable the bulk path
     slow = DecodedChunk.concatenate([slow_decoder.feed(t) for t in transfers])
     assert fast.frames == slow.frames
     np.testing.assert_array_equal(fast.specials, slow.specials)

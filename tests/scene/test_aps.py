@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from davis_rig.errors import FormatError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.scene.aps import ApsConfig, aps_frame_times, synthesize_aps_frames, to_adc
 
 NOISELESS = dict(shot_noise=False, read_noise_dn=0.0)
@@ -75,10 +75,11 @@ def test_position_and_torch_input():
 
 
 def test_validation():
-    with pytest.raises(ValueError):
-        ApsConfig(frame_rate_hz=200.0, exposure_us=5000)  # frame does not fit its interval
-    with pytest.raises(ValueError):
-        ApsConfig(exposure_us=0)
+    for kwargs, field in (({"frame_rate_hz": 200.0, "exposure_us": 5000}, "exposure_us"),  # does not fit its interval
+                          ({"exposure_us": 0}, "exposure_us"), ({"read_noise_dn": -1.0}, "read_noise_dn")):
+        with pytest.raises(ConfigError) as info:
+            ApsConfig(**kwargs)
+        assert info.value.field == field
     with pytest.raises(ShapeError):
         synthesize_aps_frames(np.zeros((3, 2)), np.arange(3))
     with pytest.raises(ShapeError):

@@ -80,7 +80,8 @@ def test_encoder_virtual_camera_record_session_round_trip(tmp_path, rng, usb_bac
     assert not journal_path(tmp_path / "s.h5").exists()
 
 
-def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
+def scene_replay(tmp_path, rng):
+    """A 20k-event, 2-frame scene written as ``scene.replay`` (8 KiB transfers 1 ms apart): events, frames, path."""
     events, frames = scene(rng, n_events=20_000, n_frames=2)
     data = StreamEncoder(LAYOUT).encode(events, frames)
     replay = tmp_path / "scene.replay"
@@ -88,6 +89,11 @@ def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
                                            logic_version=18, logic_patch=1)) as writer:
         for i, transfer in enumerate(split_transfers(data, 8192)):
             writer.write(transfer, host_time_ns=i * 1_000_000)
+    return events, frames, replay
+
+
+def test_davis_record_subprocess_with_a_replay_file(tmp_path, rng):
+    events, frames, replay = scene_replay(tmp_path, rng)
     out = tmp_path / "s.h5"
     result = subprocess.run(
         [sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay), "--exposure", "4000"],
@@ -170,13 +176,7 @@ def test_davis_record_on_the_emulated_camera_ends_cleanly(tmp_path, rng, monkeyp
 def test_davis_record_fake_replay_over_the_emulated_libusb(tmp_path, rng, monkeypatch, capsys, emulated_usb_backend):
     from davis_rig.cli import record as cli
 
-    events, frames = scene(rng, n_events=20_000, n_frames=2)
-    data = StreamEncoder(LAYOUT).encode(events, frames)
-    replay = tmp_path / "scene.replay"
-    with ReplayWriter(replay, ReplayHeader(device_info=LAYOUT.to_dict(), serial="RPLY0001", firmware_version=6,
-                                           logic_version=18, logic_patch=1)) as writer:
-        for i, transfer in enumerate(split_transfers(data, 8192)):
-            writer.write(transfer, host_time_ns=i * 1_000_000)
+    events, frames, replay = scene_replay(tmp_path, rng)
 
     def fake_backend(path, fast=False):
         device = VirtualDavis346.from_replay(path, paced=not fast)

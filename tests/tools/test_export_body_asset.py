@@ -1,4 +1,5 @@
-"""tools/export_body_asset.py: the walk-settling helpers that run without anny (``--settle-walk-only``)."""
+"""tools/export_body_asset.py: the walk-settling helpers that run without anny (``--settle-walk-only``), in
+tools/body_asset/settle.py."""
 
 import importlib.util
 from pathlib import Path
@@ -11,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("export_body_asset", ROOT / "tools" / "export_body_asset.py")
+    spec = importlib.util.spec_from_file_location("body_asset_settle", ROOT / "tools" / "body_asset" / "settle.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

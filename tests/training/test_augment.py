@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from davis_rig.errors import ShapeError
+from davis_rig.errors import ConfigError, ShapeError
 from davis_rig.training.augment import (
     AugmentConfig,
     AugmentParams,
@@ -109,5 +109,8 @@ def test_bad_inputs():
         apply_augment(torch.zeros(2, 20, H, W), [None], AugmentParams())
     with pytest.raises(ShapeError):
         zoom_in(torch.zeros(1, 20, H, W), [None], 2.0, x0=200, y0=0)
-    with pytest.raises(ValueError):
-        AugmentConfig(zoom_in_range=(0.5, 1.0))
+    for kwargs, field in (({"zoom_in_range": (0.5, 1.0)}, "zoom_in_range"), ({"zoom_prob": 1.5}, "zoom_prob"),
+                          ({"zoom_in_weight": 0.0, "zoom_out_weight": 0.0}, "zoom_in_weight")):
+        with pytest.raises(ConfigError) as info:
+            AugmentConfig(**kwargs)
+        assert info.value.field == field

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from davis_rig.device.camera import Davis346
-from davis_rig.errors import ProtocolError, ShapeError
+from davis_rig.errors import ConfigError, ProtocolError, ShapeError
 from davis_rig.protocol.decoder import DecodedChunk
 from davis_rig.protocol.frames import ApsFrame
 from davis_rig.protocol.layout import SensorLayout
@@ -81,7 +81,8 @@ def test_encoded_source_validates_inputs():
 
 
 def test_faults_validate():
-    with pytest.raises(ValueError, match="stall_every must be >= 1"):
+    with pytest.raises(ConfigError, match="stall_every: must be >= 1") as info:
         Faults(stall_every=0)
-    with pytest.raises(ValueError, match=r"garbage_rate must be in \[0, 1\]"):
+    assert info.value.field == "stall_every"
+    with pytest.raises(ConfigError, match=r"garbage_rate: must be in \[0, 1\]"):
         Faults(garbage_rate=1.5)

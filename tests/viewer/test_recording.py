@@ -1,21 +1,14 @@
-"""RecordingView: davis-eval's window grid, and what each window shows."""
+"""RecordingView: a recording on davis-eval's window grid, and what each window shows."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from davis_rig.errors import SessionError, ShapeError
-from davis_rig.viewer.recording import RecordingView, window_grid
+from davis_rig.viewer.recording import RecordingView
 from davis_rig.viewer.render import LABEL_RGB
 
 from tests.helpers.viewer_data import CROP, FRAME_T0, FRAME_US, person_box, write_scene
-
-
-def test_window_grid_covers_the_last_time():
-    np.testing.assert_array_equal(window_grid(1000, 101_000, 50_000), [51_000, 101_000])
-    np.testing.assert_array_equal(window_grid(1000, 101_001, 50_000), [51_000, 101_000, 151_000])
-    np.testing.assert_array_equal(window_grid(1000, 1000, 50_000), [51_000])
 
 
 def test_windows_events_aps_and_labels(scene):

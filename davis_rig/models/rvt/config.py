@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any, Mapping
+from typing import Any, Final, Mapping
 
 from davis_rig.errors import FormatError
 from davis_rig.types import RVT_HW
@@ -35,6 +35,10 @@ def padded_input_hw(dataset_hw: tuple[int, int] = RVT_HW, partition_split_32: in
     """
     multiple = 32 * partition_split_32
     return tuple(int(math.ceil(size / multiple) * multiple) for size in dataset_hw)
+
+
+#: The released Gen1 models' input, (height, width) px: the 240x304 frame zero-padded to (256, 320).
+GEN1_INPUT_HW: Final = padded_input_hw(RVT_HW)
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,7 @@ class RVTConfig:
     fpn_depth: float = 0.33
     input_channels: int = 20
     num_classes: int = 2
-    in_res_hw: tuple[int, int] = (256, 320)
+    in_res_hw: tuple[int, int] = GEN1_INPUT_HW
     partition_split_32: int = 1
     mlp_ratio: int = 4
     ls_init_value: float = 1e-5
@@ -332,7 +336,7 @@ def _from_nested(d: Mapping[str, Any]) -> dict[str, Any]:
     num_classes = _get(d, "head", "num_classes", default=None)
     if num_classes is None:
         num_classes = d.get("num_classes", 2)
-    in_res_hw = backbone.get("in_res_hw") or d.get("in_res_hw") or (256, 320)
+    in_res_hw = backbone.get("in_res_hw") or d.get("in_res_hw") or GEN1_INPUT_HW
     stem_patch = _get(backbone, "stem", "patch_size", default=None) or backbone.get("stem_patch_size", 4)
     fpn_depth = _get(d, "fpn", "depth", default=None)
     if fpn_depth is None:

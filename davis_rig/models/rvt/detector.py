@@ -23,13 +23,13 @@ import numpy as np
 from davis_rig.errors import ShapeError
 from davis_rig.models.rvt._torch import F, nn, torch
 from davis_rig.models.rvt.backbone import LstmState, RVTBackbone
-from davis_rig.models.rvt.config import RVTConfig
+from davis_rig.models.rvt.config import GEN1_INPUT_HW, RVTConfig
 from davis_rig.models.rvt.fpn import PAFPN
 from davis_rig.models.rvt.head import YOLOXHead
 from davis_rig.types import RVT_HW
 
 
-def pad_to_input(hist, in_res_hw: tuple[int, int] = (256, 320)) -> torch.Tensor:
+def pad_to_input(hist, in_res_hw: tuple[int, int] = GEN1_INPUT_HW) -> torch.Tensor:
     """Zero-pad a histogram at the bottom and right to the network input size (official ``InputPadderFromShape``).
 
     Args:

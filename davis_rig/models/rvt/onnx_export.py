@@ -92,9 +92,25 @@ def export_step_onnx(
     """
     torch, onnx = _import_export_deps()
     path = Path(path)
+    _trace_step(torch, model, path, opset=opset, batch_dynamic=batch_dynamic, example_batch=example_batch)
+    proto = onnx.load(str(path))
+    _write_static_output_dims(proto, model.config, "batch" if batch_dynamic else example_batch, example_batch)
+    _write_metadata(proto, model.config, f"davis_rig onnx_export (torch {torch.__version__}, opset {opset})")
+    onnx.save(proto, str(path))
+    if check:
+        try:
+            onnx.checker.check_model(str(path), full_check=True)
+        except onnx.checker.ValidationError as exc:
+            raise ModelFormatError(f"{path}: exported graph fails onnx.checker: {exc}") from exc
+    return path
+
+
+def _trace_step(torch, model: "RVTDetector", path: Path, *, opset: int, batch_dynamic: bool,
+                example_batch: int) -> None:
+    """Trace ``model.step_flat`` in eval mode on zero inputs of batch ``example_batch`` and write the ONNX graph
+    (TorchScript exporter, constant folding); the model's training flag is restored."""
     config = model.config
-    reference = next(model.parameters())
-    device = reference.device
+    device = next(model.parameters()).device
 
     class _Step(torch.nn.Module):
         def __init__(self, detector):
@@ -136,9 +152,10 @@ def export_step_onnx(
     finally:
         model.train(was_training)
 
-    proto = onnx.load(str(path))
-    # The tracer leaves some output dims symbolic ("Concatdetections_dim_2"); write the known static sizes.
-    batch_dim: int | str = "batch" if batch_dynamic else example_batch
+
+def _write_static_output_dims(proto, config, batch_dim: int | str, example_batch: int) -> None:
+    """Write the known output sizes into ``proto`` (the tracer leaves some symbolic: ``Concatdetections_dim_2``);
+    ``batch_dim`` is ``"batch"`` or the fixed batch size."""
     output_shapes = {OUTPUT_NAME: (batch_dim, config.num_anchors, config.num_outputs)}
     for name, (shape, _) in zip(state_output_names()[0::2], config.state_shapes(example_batch)):
         output_shapes[name] = output_shapes[name.replace("h", "c", 1)] = (batch_dim, *shape[1:])
@@ -149,21 +166,18 @@ def export_step_onnx(
                 dim.dim_param = value
             else:
                 dim.dim_value = value
+
+
+def _write_metadata(proto, config, producer: str) -> None:
+    """Replace ``proto``'s ``metadata_props`` with the step graph's: config, format, state names, input size."""
     metadata = {
         "config": config.to_json(),
         "format": ONNX_FORMAT,
         "state_names": json.dumps(list(state_input_names())),
         "in_res_hw": json.dumps(list(config.in_res_hw)),
-        "producer": f"davis_rig onnx_export (torch {torch.__version__}, opset {opset})",
+        "producer": producer,
     }
     del proto.metadata_props[:]
     for key, value in metadata.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
-    onnx.save(proto, str(path))
-    if check:
-        try:
-            onnx.checker.check_model(str(path), full_check=True)
-        except onnx.checker.ValidationError as exc:
-            raise ModelFormatError(f"{path}: exported graph fails onnx.checker: {exc}") from exc
-    return path

@@ -26,14 +26,15 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from davis_rig.errors import MissingDependencyError, ModelFormatError
+from davis_rig.models.rvt.onnx_export import INPUT_NAME, OUTPUT_NAME, state_input_names
 
 if TYPE_CHECKING:  # pragma: no cover
     import onnx
 
 __all__ = ["StepParts", "split_step_file", "split_step_graph"]
 
-_STATES = tuple(f"{kind}{stage}" for stage in range(1, 5) for kind in ("h", "c"))
-_HEAD_INPUTS = ("h2_out", "h3_out", "h4_out")
+_STATES = state_input_names()
+_HEAD_INPUTS = ("h2_out", "h3_out", "h4_out")  # the new h states of the stages the FPN reads
 
 
 @dataclass(frozen=True)
@@ -161,17 +162,17 @@ def split_step_graph(model) -> StepParts:
                                "input): it cannot be split")
     x1 = next(name for name in concats[0].input if name != "h1")
     declared = {value.name: value for value in list(graph.input) + list(graph.output)}
-    missing = [name for name in ("histogram", "detections", *_STATES, *_HEAD_INPUTS) if name not in declared]
+    missing = [name for name in (INPUT_NAME, OUTPUT_NAME, *_STATES, *_HEAD_INPUTS) if name not in declared]
     if missing:
         raise ModelFormatError(f"the RVT step graph lacks {missing}: it cannot be split")
     # x1 has the shape of h1: the ConvLSTM concatenates two maps of C_1 channels
     x1_info = onnx.ValueInfoProto()
     x1_info.CopyFrom(declared["h1"])
     x1_info.name = x1
-    pre = _extract(model, {"histogram": declared["histogram"]}, [x1], "pre", known={x1: x1_info})
+    pre = _extract(model, {INPUT_NAME: declared[INPUT_NAME]}, [x1], "pre", known={x1: x1_info})
     recur = _extract(model, {x1: x1_info, **{name: declared[name] for name in _STATES}},
                      [f"{name}_out" for name in _STATES], "recur")
-    head = _extract(model, {name: declared[name] for name in _HEAD_INPUTS}, ["detections"], "head")
+    head = _extract(model, {name: declared[name] for name in _HEAD_INPUTS}, [OUTPUT_NAME], "head")
     for part in (pre, recur, head):
         try:
             onnx.checker.check_model(part)

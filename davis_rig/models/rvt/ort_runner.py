@@ -21,16 +21,15 @@ import numpy as np
 
 from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US, stacked_histograms
-from davis_rig.models.rvt.config import RVTConfig
+from davis_rig.models.rvt.config import STAGE_STRIDES, RVTConfig
+from davis_rig.models.rvt.onnx_export import INPUT_NAME, OUTPUT_NAME, state_input_names, state_output_names
 from davis_rig.models.rvt.postprocess import postprocess
-from davis_rig.types import RVT_HW
+from davis_rig.types import RVT_HW, RVT_NMS_IOU
 
 __all__ = ["RVTOnnxRunner", "GraphSignature", "SplitStep"]
 
-_INPUT_NAME = "histogram"
-_OUTPUT_NAME = "detections"
-_STATE_NAMES = tuple(f"{kind}{stage}" for stage in range(1, 5) for kind in ("h", "c"))
-_STATE_OUT_NAMES = tuple(f"{name}_out" for name in _STATE_NAMES)
+_STATE_NAMES = state_input_names()
+_STATE_OUT_NAMES = state_output_names()
 _INPUT_CHANNELS = 2 * NUM_BINS
 
 #: One recurrent state: 4 × (h, c), float32 numpy arrays [B, C_s, H_s, W_s].
@@ -70,69 +69,17 @@ def _read_signature(session, path: Path) -> GraphSignature:
     """Check the graph's inputs/outputs against the RVT step signature; raise ModelFormatError otherwise."""
     inputs = {arg.name: arg for arg in session.get_inputs()}
     outputs = {arg.name: arg for arg in session.get_outputs()}
-    want_in = [_INPUT_NAME, *_STATE_NAMES]
-    want_out = [_OUTPUT_NAME, *_STATE_OUT_NAMES]
-    if sorted(inputs) != sorted(want_in) or not set(want_out) <= set(outputs):
-        raise ModelFormatError(
-            f"{path}: not an RVT step graph: expected inputs {want_in} and outputs {want_out}, "
-            f"got inputs {list(inputs)} and outputs {list(outputs)}"
-        )
-    problems = []
-    for name, arg in list(inputs.items()) + [(n, outputs[n]) for n in want_out]:
-        if arg.type != "tensor(float)":
-            problems.append(f"{name}: expected tensor(float), got {arg.type}")
-        if len(arg.shape) != (3 if name == _OUTPUT_NAME else 4):
-            problems.append(f"{name}: expected rank {3 if name == _OUTPUT_NAME else 4}, got shape {arg.shape}")
-    if problems:
-        raise ModelFormatError(f"{path}: wrong RVT step graph: " + "; ".join(problems))
-
-    config = None
-    meta = session.get_modelmeta().custom_metadata_map
-    if "config" in meta:
-        try:
-            config = RVTConfig.from_dict(json.loads(meta["config"]))
-        except (json.JSONDecodeError, FormatError) as exc:
-            raise ModelFormatError(f"{path}: unreadable config in the ONNX metadata: {exc}") from exc
-
-    hist_shape = _dims(inputs[_INPUT_NAME].shape)
-    if config is not None:
-        channels, height, width = config.input_channels, *config.in_res_hw
-    else:
-        channels, height, width = hist_shape[1:]
-    if None in (channels, height, width):
-        raise ModelFormatError(
-            f"{path}: histogram input {inputs[_INPUT_NAME].shape} has symbolic C/H/W and no config metadata"
-        )
-    expected_hist = [channels, height, width]
-    if [d for d in hist_shape[1:]] != expected_hist:
-        problems.append(f"histogram: expected [B, {channels}, {height}, {width}], got {inputs[_INPUT_NAME].shape}")
-    if channels != _INPUT_CHANNELS:  # what stacked_histograms makes: 2 polarities x NUM_BINS bins
-        problems.append(f"histogram: {channels} input channels, expected {_INPUT_CHANNELS} (2 polarities x "
-                        f"{NUM_BINS} time bins, the stacked histogram)")
-    if height < RVT_HW[0] or width < RVT_HW[1]:
-        problems.append(f"histogram: input {height}x{width} (h x w) is smaller than the {RVT_HW[0]}x{RVT_HW[1]} "
-                        "event frame (RVT pads it up, e.g. to 256x320)")
-    strides = (4, 8, 16, 32)
-    state_channels, state_hw = [], []
-    for stage, stride in enumerate(strides, start=1):
-        hw = (height // stride, width // stride)
-        expected_c = config.stage_dims[stage - 1] if config is not None else None
-        for name in (f"h{stage}", f"c{stage}", f"h{stage}_out", f"c{stage}_out"):
-            arg = inputs.get(name) or outputs[name]
-            dims = _dims(arg.shape)
-            if expected_c is None:
-                expected_c = dims[1]
-            if dims[1:] != [expected_c, *hw]:
-                problems.append(f"{name}: expected [B, {expected_c}, {hw[0]}, {hw[1]}], got {arg.shape}")
-        if expected_c is None:
-            problems.append(f"h{stage}: symbolic channel dimension and no config metadata")
-        state_channels.append(expected_c)
-        state_hw.append(hw)
-    num_anchors = sum((height // s) * (width // s) for s in (8, 16, 32))
-    num_outputs = config.num_outputs if config is not None else _dims(outputs[_OUTPUT_NAME].shape)[2]
-    out_dims = _dims(outputs[_OUTPUT_NAME].shape)
+    want_out = [OUTPUT_NAME, *_STATE_OUT_NAMES]
+    _check_names_and_types(inputs, outputs, path)
+    config = _metadata_config(session, path)
+    problems: list[str] = []
+    channels, height, width = _input_size(inputs[INPUT_NAME], config, path, problems)
+    state_channels, state_hw = _state_sizes(inputs, outputs, config, (height, width), problems)
+    num_anchors = sum((height // s) * (width // s) for s in STAGE_STRIDES[1:])  # the head's levels: stages 2-4
+    num_outputs = config.num_outputs if config is not None else _dims(outputs[OUTPUT_NAME].shape)[2]
+    out_dims = _dims(outputs[OUTPUT_NAME].shape)
     if out_dims[1] not in (None, num_anchors) or out_dims[2] not in (None, num_outputs) or (num_outputs or 0) < 6:
-        problems.append(f"detections: expected [B, {num_anchors}, 5 + classes], got {outputs[_OUTPUT_NAME].shape}")
+        problems.append(f"detections: expected [B, {num_anchors}, 5 + classes], got {outputs[OUTPUT_NAME].shape}")
     batches = {_dims(arg.shape)[0] for arg in list(inputs.values()) + [outputs[n] for n in want_out]}
     if len(batches) != 1:
         problems.append(f"inconsistent batch dimensions {sorted(map(str, batches))}")
@@ -148,6 +95,79 @@ def _read_signature(session, path: Path) -> GraphSignature:
         batch=batches.pop(),
         config=config,
     )
+
+
+def _check_names_and_types(inputs: dict, outputs: dict, path: Path) -> None:
+    """The step graph's input and output names, float tensors of rank 4 (rank 3: detections); ModelFormatError."""
+    want_in = [INPUT_NAME, *_STATE_NAMES]
+    want_out = [OUTPUT_NAME, *_STATE_OUT_NAMES]
+    if sorted(inputs) != sorted(want_in) or not set(want_out) <= set(outputs):
+        raise ModelFormatError(
+            f"{path}: not an RVT step graph: expected inputs {want_in} and outputs {want_out}, "
+            f"got inputs {list(inputs)} and outputs {list(outputs)}"
+        )
+    problems = []
+    for name, arg in list(inputs.items()) + [(n, outputs[n]) for n in want_out]:
+        if arg.type != "tensor(float)":
+            problems.append(f"{name}: expected tensor(float), got {arg.type}")
+        if len(arg.shape) != (3 if name == OUTPUT_NAME else 4):
+            problems.append(f"{name}: expected rank {3 if name == OUTPUT_NAME else 4}, got shape {arg.shape}")
+    if problems:
+        raise ModelFormatError(f"{path}: wrong RVT step graph: " + "; ".join(problems))
+
+
+def _metadata_config(session, path: Path) -> RVTConfig | None:
+    """The :class:`RVTConfig` stored in the graph's ``config`` metadata, or ``None``; ModelFormatError if unreadable."""
+    meta = session.get_modelmeta().custom_metadata_map
+    if "config" not in meta:
+        return None
+    try:
+        return RVTConfig.from_dict(json.loads(meta["config"]))
+    except (json.JSONDecodeError, FormatError) as exc:
+        raise ModelFormatError(f"{path}: unreadable config in the ONNX metadata: {exc}") from exc
+
+
+def _input_size(histogram, config: RVTConfig | None, path: Path, problems: list[str]) -> tuple[int, int, int]:
+    """``(channels, height, width)`` of the histogram input (from the config when there is one); what is wrong
+    with it is appended to ``problems`` (ModelFormatError when its C/H/W are symbolic and there is no config)."""
+    hist_shape = _dims(histogram.shape)
+    if config is not None:
+        channels, height, width = config.input_channels, *config.in_res_hw
+    else:
+        channels, height, width = hist_shape[1:]
+    if None in (channels, height, width):
+        raise ModelFormatError(f"{path}: histogram input {histogram.shape} has symbolic C/H/W and no config metadata")
+    if hist_shape[1:] != [channels, height, width]:
+        problems.append(f"histogram: expected [B, {channels}, {height}, {width}], got {histogram.shape}")
+    if channels != _INPUT_CHANNELS:  # what stacked_histograms makes: 2 polarities x NUM_BINS bins
+        problems.append(f"histogram: {channels} input channels, expected {_INPUT_CHANNELS} (2 polarities x "
+                        f"{NUM_BINS} time bins, the stacked histogram)")
+    if height < RVT_HW[0] or width < RVT_HW[1]:
+        problems.append(f"histogram: input {height}x{width} (h x w) is smaller than the {RVT_HW[0]}x{RVT_HW[1]} "
+                        "event frame (RVT pads it up, e.g. to 256x320)")
+    return channels, height, width
+
+
+def _state_sizes(inputs: dict, outputs: dict, config: RVTConfig | None, input_hw: tuple[int, int],
+                 problems: list[str]) -> tuple[list, list[tuple[int, int]]]:
+    """Channels C_s and map sizes (H/s, W/s) of the 4 stages' states, checked on every ``h``/``c`` input and
+    output (the channels from the config, else from the graph); mismatches are appended to ``problems``."""
+    state_channels, state_hw = [], []
+    for stage, stride in enumerate(STAGE_STRIDES, start=1):
+        hw = (input_hw[0] // stride, input_hw[1] // stride)
+        expected_c = config.stage_dims[stage - 1] if config is not None else None
+        for name in (f"h{stage}", f"c{stage}", f"h{stage}_out", f"c{stage}_out"):
+            arg = inputs.get(name) or outputs[name]
+            dims = _dims(arg.shape)
+            if expected_c is None:
+                expected_c = dims[1]
+            if dims[1:] != [expected_c, *hw]:
+                problems.append(f"{name}: expected [B, {expected_c}, {hw[0]}, {hw[1]}], got {arg.shape}")
+        if expected_c is None:
+            problems.append(f"h{stage}: symbolic channel dimension and no config metadata")
+        state_channels.append(expected_c)
+        state_hw.append(hw)
+    return state_channels, state_hw
 
 
 def _session_options(ort, intra_op_threads: int | None, allow_spinning: bool):
@@ -185,7 +205,7 @@ class SplitStep:
 
     def pre(self, x: np.ndarray) -> np.ndarray:
         """Stage 1 before its LSTM: padded float32 histogram [B, 20, H, W] → float32 [B, C_1, H/4, W/4]."""
-        return self._sessions[0].run(None, {_INPUT_NAME: x})[0]
+        return self._sessions[0].run(None, {INPUT_NAME: x})[0]
 
     def recur(self, x1: np.ndarray, states: States) -> States:
         """The recurrent part: :meth:`pre`'s output and the 4 (h, c) states → the 4 new (h, c) states."""
@@ -199,7 +219,7 @@ class SplitStep:
     def head(self, states: States) -> np.ndarray:
         """PAFPN + YOLOX head of the new states' h2, h3, h4 → decoded float32 [B, A, 5 + classes]."""
         feeds = {f"h{stage}_out": states[stage - 1][0] for stage in (2, 3, 4)}
-        return self._sessions[2].run([_OUTPUT_NAME], feeds)[0]
+        return self._sessions[2].run([OUTPUT_NAME], feeds)[0]
 
 
 class RVTOnnxRunner:
@@ -331,11 +351,11 @@ class RVTOnnxRunner:
         if self.signature.batch is not None and batch != self.signature.batch:
             raise ShapeError(f"histogram: this graph has a fixed batch of {self.signature.batch}, got {batch}")
         states = self.initial_states(batch) if states is None else self._check_states(states, batch)
-        feeds = {_INPUT_NAME: x}
+        feeds = {INPUT_NAME: x}
         for stage, (h_state, c_state) in enumerate(states, start=1):
             feeds[f"h{stage}"] = h_state
             feeds[f"c{stage}"] = c_state
-        results = self._session.run([_OUTPUT_NAME, *_STATE_OUT_NAMES], feeds)
+        results = self._session.run([OUTPUT_NAME, *_STATE_OUT_NAMES], feeds)
         new_states = [(results[1 + 2 * i], results[2 + 2 * i]) for i in range(4)]
         return results[0], new_states
 
@@ -348,7 +368,7 @@ class RVTOnnxRunner:
         window_end_us,
         conf_threshold: float = 0.1,
         *,
-        nms_threshold: float = 0.45,
+        nms_threshold: float = RVT_NMS_IOU,
         window_us: int = WINDOW_US,
         states: States | None = None,
         return_states: bool = False,

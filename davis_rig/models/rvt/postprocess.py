@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from davis_rig.errors import ShapeError
+from davis_rig.types import RVT_NMS_IOU
 
 __all__ = ["batched_nms", "nms", "postprocess", "postprocess_thresholds", "torch_cpu_unstable_argsort_desc"]
 
@@ -221,11 +222,11 @@ def _introsort_desc(values: np.ndarray) -> np.ndarray:
 def _libstdcxx_sort_keys(keys: list) -> list:
     """libstdc++'s ``std::sort`` (introsort) of ``range(len(keys))`` with ``comp(a, b) = keys[a] > keys[b]``.
 
-    Operation for operation the C++ library's algorithm: median-of-three (``first+1``, middle, ``last-1``)
-    quicksort with an unguarded partition down to 16-element ranges, heap sort once ``2·floor(log2 n)`` levels
-    are exceeded, then a final insertion sort — so items whose keys compare equal end up in exactly the order the
-    C++ library gives them. The keys move along with the items in a parallel list, so every comparison is one
-    ``>`` on two list entries (the only operator used on the keys).
+    Operation for operation the C++ library's algorithm (:class:`_Introsort`): median-of-three (``first+1``,
+    middle, ``last-1``) quicksort with an unguarded partition down to 16-element ranges, heap sort once
+    ``2·floor(log2 n)`` levels are exceeded, then a final insertion sort — so items whose keys compare equal end up
+    in exactly the order the C++ library gives them. The keys move along with the items in a parallel list, so
+    every comparison is one ``>`` on two list entries (the only operator used on the keys).
 
     Args:
         keys: the items' keys (ints for speed; any objects with ``>``) for the items ``0 .. n-1``.
@@ -233,10 +234,52 @@ def _libstdcxx_sort_keys(keys: list) -> list:
     Returns:
         The items (indices) in sorted order: larger keys first, ties in libstdc++'s order.
     """
-    k = list(keys)
-    it = list(range(len(k)))
+    return _Introsort(keys).sort()
 
-    def move_median_to_first(result: int, a: int, b: int, c: int) -> None:
+
+class _Introsort:
+    """The steps of libstdc++'s ``std::sort`` (``bits/stl_algo.h``, ``bits/stl_heap.h``) on a key list ``k`` and
+    the parallel item list ``it``; ``first``/``last`` are indices into both, as the C++ iterators."""
+
+    __slots__ = ("k", "it")
+
+    #: libstdc++'s ``_S_threshold``: ranges this short are left to the final insertion sort.
+    THRESHOLD = 16
+
+    def __init__(self, keys: list):
+        self.k = list(keys)
+        self.it = list(range(len(self.k)))
+
+    def sort(self) -> list:
+        """``std::sort``: the introsort loop, then the final insertion sort; returns the sorted items."""
+        n = len(self.k)
+        if n < 2:
+            return self.it
+        self.introsort_loop(0, n, 2 * (n.bit_length() - 1))
+        if n > self.THRESHOLD:
+            self.insertion_sort(0, self.THRESHOLD)
+            for i in range(self.THRESHOLD, n):
+                self.unguarded_linear_insert(i)
+        else:
+            self.insertion_sort(0, n)
+        return self.it
+
+    def introsort_loop(self, first: int, last: int, depth_limit: int) -> None:
+        """``__introsort_loop``: partition until ranges are short, heap sort when too deep."""
+        k = self.k
+        while last - first > self.THRESHOLD:
+            if depth_limit == 0:
+                self.heap_sort(first, last)
+                return
+            depth_limit -= 1
+            self.move_median_to_first(first, first + 1, first + (last - first) // 2, last - 1)
+            cut = self.unguarded_partition(first + 1, last, k[first])
+            self.introsort_loop(cut, last, depth_limit)
+            last = cut
+
+    def move_median_to_first(self, result: int, a: int, b: int, c: int) -> None:
+        """``__move_median_to_first``: swap the median of ``a, b, c`` into ``result``."""
+        k, it = self.k, self.it
         ka, kb, kc = k[a], k[b], k[c]
         if ka > kb:
             pick = b if kb > kc else (c if ka > kc else a)
@@ -249,7 +292,9 @@ def _libstdcxx_sort_keys(keys: list) -> list:
         k[result], k[pick] = k[pick], k[result]
         it[result], it[pick] = it[pick], it[result]
 
-    def unguarded_partition(first: int, last: int, pivot_key) -> int:
+    def unguarded_partition(self, first: int, last: int, pivot_key) -> int:
+        """``__unguarded_partition`` around ``pivot_key``; returns the cut."""
+        k, it = self.k, self.it
         while True:
             while k[first] > pivot_key:
                 first += 1
@@ -262,7 +307,9 @@ def _libstdcxx_sort_keys(keys: list) -> list:
             it[first], it[last] = it[last], it[first]
             first += 1
 
-    def adjust_heap(first: int, hole: int, length: int, value_key, value_item) -> None:
+    def adjust_heap(self, first: int, hole: int, length: int, value_key, value_item) -> None:
+        """``__adjust_heap``: sift the hole down to a leaf, then push the value back up (``__push_heap``)."""
+        k, it = self.k, self.it
         top = hole
         child = hole
         while child < (length - 1) // 2:
@@ -282,12 +329,14 @@ def _libstdcxx_sort_keys(keys: list) -> list:
             parent = (hole - 1) // 2
         k[first + hole], it[first + hole] = value_key, value_item
 
-    def heap_sort(first: int, last: int) -> None:
+    def heap_sort(self, first: int, last: int) -> None:
+        """``__partial_sort(first, last, last)``: ``__make_heap`` then ``__sort_heap``."""
+        k, it = self.k, self.it
         length = last - first
         if length >= 2:
             parent = (length - 2) // 2
             while True:
-                adjust_heap(first, parent, length, k[first + parent], it[first + parent])
+                self.adjust_heap(first, parent, length, k[first + parent], it[first + parent])
                 if parent == 0:
                     break
                 parent -= 1
@@ -295,20 +344,11 @@ def _libstdcxx_sort_keys(keys: list) -> list:
             last -= 1
             value_key, value_item = k[last], it[last]
             k[last], it[last] = k[first], it[first]
-            adjust_heap(first, 0, last - first, value_key, value_item)
+            self.adjust_heap(first, 0, last - first, value_key, value_item)
 
-    def introsort_loop(first: int, last: int, depth_limit: int) -> None:
-        while last - first > 16:
-            if depth_limit == 0:
-                heap_sort(first, last)
-                return
-            depth_limit -= 1
-            move_median_to_first(first, first + 1, first + (last - first) // 2, last - 1)
-            cut = unguarded_partition(first + 1, last, k[first])
-            introsort_loop(cut, last, depth_limit)
-            last = cut
-
-    def unguarded_linear_insert(last: int) -> None:
+    def unguarded_linear_insert(self, last: int) -> None:
+        """``__unguarded_linear_insert``: move the item at ``last`` towards the front while it sorts first."""
+        k, it = self.k, self.it
         value_key, value_item = k[last], it[last]
         nxt = last - 1
         while value_key > k[nxt]:
@@ -317,7 +357,9 @@ def _libstdcxx_sort_keys(keys: list) -> list:
             nxt -= 1
         k[last], it[last] = value_key, value_item
 
-    def insertion_sort(first: int, last: int) -> None:
+    def insertion_sort(self, first: int, last: int) -> None:
+        """``__insertion_sort`` of ``[first, last)``."""
+        k, it = self.k, self.it
         for i in range(first + 1, last):
             if k[i] > k[first]:
                 value_key, value_item = k[i], it[i]
@@ -325,19 +367,7 @@ def _libstdcxx_sort_keys(keys: list) -> list:
                 it[first + 1 : i + 1] = it[first:i]
                 k[first], it[first] = value_key, value_item
             else:
-                unguarded_linear_insert(i)
-
-    n = len(k)
-    if n < 2:
-        return it
-    introsort_loop(0, n, 2 * (n.bit_length() - 1))
-    if n > 16:
-        insertion_sort(0, 16)
-        for i in range(16, n):
-            unguarded_linear_insert(i)
-    else:
-        insertion_sort(0, n)
-    return it
+                self.unguarded_linear_insert(i)
 
 
 def _per_class_keep(boxes: np.ndarray, scores: np.ndarray, idxs: np.ndarray, iou_threshold: float) -> np.ndarray:
@@ -453,7 +483,7 @@ def _image_thresholds(detections: np.ndarray, scores: np.ndarray, thresholds: li
 def postprocess_thresholds(
     decoded,
     conf_thresholds,
-    nms_threshold: float = 0.45,
+    nms_threshold: float = RVT_NMS_IOU,
     *,
     num_classes: int | None = None,
 ) -> dict[float, list[np.ndarray | None]]:
@@ -498,7 +528,7 @@ def postprocess_thresholds(
 def postprocess(
     decoded,
     conf_threshold: float,
-    nms_threshold: float = 0.45,
+    nms_threshold: float = RVT_NMS_IOU,
     *,
     num_classes: int | None = None,
 ) -> list[np.ndarray | None]:

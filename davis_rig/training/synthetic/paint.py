@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from davis_rig.errors import ConfigError
 from davis_rig.training.synthetic.scenes import CLOTHING_KINDS
 
 __all__ = ["clothing_texture", "distractor_layers", "vehicle_layers"]
@@ -45,13 +46,13 @@ def clothing_texture(kind: str, seed: int, label_map: np.ndarray | None = None) 
         shoe parts can be set per texel).
 
     Raises:
-        ValueError: unknown kind.
+        ConfigError: unknown kind (field ``kind``).
     """
     from davis_rig.scene.body import PART_NAMES
     from davis_rig.scene.masks import part_label_map
 
     if kind not in CLOTHING_KINDS:
-        raise ValueError(f"kind: expected one of {CLOTHING_KINDS}, got {kind!r}")
+        raise ConfigError("kind", f"expected one of {CLOTHING_KINDS}, got {kind!r}")
     labels = part_label_map(_CLOTHING_TEXELS) if label_map is None else np.asarray(label_map)
     n = labels.shape[0]
     rng = np.random.default_rng(seed)

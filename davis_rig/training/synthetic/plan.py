@@ -21,7 +21,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from davis_rig._lazy import optional_import
-from davis_rig.errors import FormatError
+from davis_rig.errors import ConfigError, FormatError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.training.synthetic.render import STAGES, render_sequence
 from davis_rig.training.synthetic.scenes import (
@@ -66,13 +66,13 @@ def dataset_plan(split_sizes: dict[str, int]) -> list[SequenceJob]:
         A list of :class:`SequenceJob`.
 
     Raises:
-        ValueError: unknown split or a negative size.
+        ConfigError: unknown split (field ``split``) or a negative size (field ``split_sizes``).
     """
     jobs = []
     for split, size in split_sizes.items():
         check_split(split)
         if int(size) < 0:
-            raise ValueError(f"split size of {split!r} must be >= 0, got {size}")
+            raise ConfigError("split_sizes", f"the size of {split!r} must be >= 0, got {size}")
         for index in range(int(size)):
             if split == "test":
                 clothing, scale = TEST_SUBSETS[index % len(TEST_SUBSETS)]
@@ -290,14 +290,14 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
 
     Raises:
         FormatError: ``root`` holds a dataset generated with other settings.
-        ValueError: bad sizes, workers < 1.
+        ConfigError: bad sizes (field ``split_sizes`` or ``split``), workers < 1 (field ``workers``).
 
     Warns:
         RuntimeWarning: ``root`` holds sequence folders outside this plan (an earlier run with larger sizes);
             they are kept, still read by training, and listed in the card's ``unplanned_sequences``.
     """
     if int(workers) < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise ConfigError("workers", f"must be >= 1, got {workers}")
     config = dataclasses.replace(config or SyntheticSceneConfig(), duration_s=float(duration_s))
     root = Path(root)
     jobs = dataset_plan(split_sizes)

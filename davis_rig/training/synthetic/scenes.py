@@ -285,9 +285,10 @@ class SyntheticSceneConfig:
 
 
 def check_split(split: str) -> None:
-    """Raise ``ValueError`` unless ``split`` is ``"train"``, ``"val"`` or ``"test"``."""
+    """Raise :class:`~davis_rig.errors.ConfigError` (field ``split``) unless ``split`` is ``"train"``, ``"val"`` or
+    ``"test"``."""
     if split not in SPLIT_SHAPES:
-        raise ValueError(f"split: expected one of {tuple(SPLIT_SHAPES)}, got {split!r}")
+        raise ConfigError("split", f"expected one of {tuple(SPLIT_SHAPES)}, got {split!r}")
 
 
 def _seed(rng: np.random.Generator, split: str) -> int:
@@ -411,7 +412,7 @@ def sample_scene(rng: np.random.Generator, split: str = "train",
         A :class:`SyntheticScene`.
 
     Raises:
-        ValueError: unknown split.
+        ConfigError: unknown split (field ``split``).
     """
     check_split(split)
     config = config or SyntheticSceneConfig()
@@ -459,12 +460,12 @@ def held_out_scene(rng: np.random.Generator, clothing: str, scale: str,
         A :class:`SyntheticScene` with ``subset = "clothing/scale"``.
 
     Raises:
-        ValueError: unknown clothing or scale.
+        ConfigError: unknown clothing or scale (field ``clothing`` or ``scale``).
     """
     if clothing not in CLOTHING_KINDS:
-        raise ValueError(f"clothing: expected one of {CLOTHING_KINDS}, got {clothing!r}")
+        raise ConfigError("clothing", f"expected one of {CLOTHING_KINDS}, got {clothing!r}")
     if scale not in TEST_SCALES_PX:
-        raise ValueError(f"scale: expected one of {tuple(TEST_SCALES_PX)}, got {scale!r}")
+        raise ConfigError("scale", f"expected one of {tuple(TEST_SCALES_PX)}, got {scale!r}")
     config = config or SyntheticSceneConfig()
     camera = PinholeCamera.rvt_crop()
     scene_seed = _seed(rng, "test")

@@ -3,6 +3,7 @@
 ``mini_fixture``: ``tests/fixtures/rvt_mini_fixture.safetensors`` (in the repo, a reduced RVT config).
 ``rvt_t_fixture`` / ``rvt_t_grad_fixture``: the RVT-T fixture files in the ``shared/rvt/`` folder beside the
 repository root; the tests that use them are skipped (with the reason) when that folder is absent.
+``mini_onnx``: the mini fixture's model exported as an RVT step graph (``export_step_onnx``), once per run.
 
 Each fixture is a :class:`RVTFixture`: ``fx[key]`` gives a numpy array (no torch needed), ``fx.tensor(key)`` a
 torch tensor, ``fx.state_dict()`` the model weights with the Lightning ``mdl.`` prefix removed, ``fx.metadata``
@@ -104,3 +105,15 @@ def rvt_t_fixture() -> RVTFixture:
 def rvt_t_grad_fixture() -> RVTFixture:
     """The RVT-T input-gradient fixture from ``shared/rvt/`` (skips when absent)."""
     return _load_or_skip(RVT_T_GRAD_FIXTURE_PATH)
+
+
+@pytest.fixture(scope="session")
+def mini_onnx(tmp_path_factory) -> Path:
+    """The mini fixture's detector as an RVT step ONNX file (needs torch and onnx; read it, do not modify it)."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from davis_rig.models.rvt.checkpoint import load_detector
+    from davis_rig.models.rvt.onnx_export import export_step_onnx
+
+    path = tmp_path_factory.mktemp("mini_onnx") / "rvt_mini_step.onnx"
+    return export_step_onnx(load_detector(MINI_FIXTURE_PATH), path)

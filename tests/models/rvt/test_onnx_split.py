@@ -16,17 +16,7 @@ from davis_rig.errors import ModelFormatError  # noqa: E402
 from davis_rig.models.rvt.onnx_split import split_step_graph  # noqa: E402
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner  # noqa: E402
 
-MINI_PATH = Path(__file__).resolve().parents[2] / "fixtures" / "rvt_mini_fixture.safetensors"
 STATE_NAMES = [f"{k}{s}" for s in range(1, 5) for k in ("h", "c")]
-
-
-@pytest.fixture(scope="module")
-def mini_onnx(tmp_path_factory) -> Path:
-    pytest.importorskip("torch")
-    from davis_rig.models.rvt.checkpoint import load_detector
-    from davis_rig.models.rvt.onnx_export import export_step_onnx
-
-    return export_step_onnx(load_detector(MINI_PATH), tmp_path_factory.mktemp("split") / "rvt_mini_step.onnx")
 
 
 def _ops(model) -> set[str]:

@@ -26,15 +26,6 @@ STATE_NAMES = [f"{k}{s}" for s in range(1, 5) for k in ("h", "c")]
 
 
 @pytest.fixture(scope="module")
-def mini_onnx(tmp_path_factory) -> Path:
-    pytest.importorskip("torch")
-    from davis_rig.models.rvt.checkpoint import load_detector
-    from davis_rig.models.rvt.onnx_export import export_step_onnx
-
-    return export_step_onnx(load_detector(MINI_PATH), tmp_path_factory.mktemp("ort") / "rvt_mini_step.onnx")
-
-
-@pytest.fixture(scope="module")
 def runner(mini_onnx) -> RVTOnnxRunner:
     return RVTOnnxRunner(mini_onnx, intra_op_threads=1)
 

@@ -1,0 +1,100 @@
+"""``davis-eval``'s window grid: where the windows end, which window a label falls in, and the per-window histograms.
+
+Window ``k`` (k = 1, 2, …) ends at ``t0 + k · window_us`` from the session's ``t_offset`` (its first event's
+millisecond) and holds the events with ``end − window_us ≤ t ≤ end`` (RVT's inclusive windows,
+:mod:`davis_rig.events.histogram`); a label at time ``t`` belongs to the window with ``end − window_us < t ≤ end``.
+The evaluation, the viewer and the RVT export all step through a recording on this grid, so a viewed frame and an
+exported window are exactly one scored RVT input.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Iterator
+
+import numpy as np
+
+from davis_rig.events.histogram import WINDOW_US
+from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
+
+__all__ = ["event_chunks", "label_windows", "window_grid"]
+
+
+def window_grid(t0_us: int, t_last_us: int, window_us: int = WINDOW_US) -> np.ndarray:
+    """The window ends: ``t0 + k · window_us`` for ``k = 1 .. max(1, ceil((t_last − t0) / window_us))``.
+
+    Args:
+        t0_us: start of the grid, device µs.
+        t_last_us: the grid reaches at least this time, device µs.
+        window_us: window length, µs (> 0).
+
+    Returns:
+        int64 [T] window ends, device µs.
+    """
+    n_windows = max(1, -(-(int(t_last_us) - int(t0_us)) // int(window_us)))
+    return int(t0_us) + int(window_us) * np.arange(1, n_windows + 1, dtype=np.int64)
+
+
+def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int) -> np.ndarray:
+    """Window index of every label: the window with ``end − window_us < t ≤ end``; int64 [L] (−1 outside)."""
+    t = labels["t"].astype(np.int64)
+    index = np.searchsorted(window_end_us, t, side="left")
+    inside = (index < len(window_end_us))
+    inside[inside] &= window_end_us[index[inside]] - window_us < t[inside]
+    return np.where(inside, index, -1)
+
+
+def event_chunks(reader, ends: np.ndarray, origin_xy: tuple[int, int], *, window_us: int, chunk_windows: int,
+                 gif_windows: int = 0, timings: dict | None = None) -> Iterator[tuple]:
+    """Per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images, events read)``.
+
+    Reads the recording once, front to back, in consecutive pieces (each up to its chunk's last window end),
+    crops them and makes their timestamps non-decreasing across the whole recording like RVT's reader (the
+    running maximum carries from piece to piece); the corrected events the next chunk's first window still
+    holds (the boundary events, and events a step back in time lifted past the boundary) are carried over.
+    So every window holds exactly the events of RVT's whole-recording correction, whatever ``chunk_windows``.
+
+    Args:
+        reader: an open :class:`~davis_rig.session.SessionReader` (DAVIS346 events).
+        ends: int64 [T] window ends, device µs (:func:`window_grid`).
+        origin_xy: the 304x240 crop's origin on the sensor, px.
+        window_us: window length, µs.
+        chunk_windows: windows per read (>= 1).
+        gif_windows: the first this many windows also come back as int16 ON − OFF count images [g, 240, 304]
+            (the annotated GIF); the other chunks give empty ones.
+        timings: when given, its ``"read"`` and ``"histogram"`` entries gain this generator's busy seconds.
+    """
+    from davis_rig.events.crop import crop_events
+    from davis_rig.events.histogram import stacked_histograms
+
+    window_us = int(window_us)
+    running_max = np.iinfo(np.int64).min
+    carried = np.zeros(0, EVENT_DTYPE)
+    t_read = int(ends[0]) - window_us
+    gif_left = gif_windows
+    for i0 in range(0, len(ends), chunk_windows):
+        chunk_ends = ends[i0 : i0 + chunk_windows]
+        tic = time.perf_counter()
+        t_next = int(chunk_ends[-1]) + 1
+        events = reader.events_between(t_read, t_next)
+        t_read = t_next
+        num_read = len(events)
+        events = crop_events(events, origin_xy, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
+        if len(events):
+            t = np.maximum.accumulate(np.maximum(events["t"], running_max))
+            running_max = int(t[-1])
+            events["t"] = t
+        if len(carried):
+            events = np.concatenate([carried, events])
+        next_start = int(ends[min(i0 + chunk_windows, len(ends) - 1)]) - window_us
+        carried = events[np.searchsorted(events["t"], next_start, side="left"):]
+        tac = time.perf_counter()
+        hists = stacked_histograms(events, chunk_ends, window_us=window_us)
+        gif = hists[:max(gif_left, 0)]
+        half = hists.shape[1] // 2
+        gif = gif[:, half:].sum(1, dtype=np.int16) - gif[:, :half].sum(1, dtype=np.int16)
+        gif_left -= len(gif)
+        if timings is not None:
+            timings["read"] += tac - tic
+            timings["histogram"] += time.perf_counter() - tac
+        yield chunk_ends, hists, gif, num_read
