@@ -340,7 +340,7 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
     if gradient not in V2E_GRADIENTS:
         raise ValueError(f"gradient must be one of {V2E_GRADIENTS}, got {gradient!r}")
     # events can only fire where the person is: the V2E runs on clip.active_box; the full-frame tensor is built
-    # once (zeros, the crop's counts, the noise events, the clip at COUNT_CUTOFF), in place
+    # once (zeros, the crop's counts, the noise events of PoolClip.add_noise, the clip at COUNT_CUTOFF)
     y0, y1, x0, x1 = clip.active_box
     video = clip.active_video(grid)
     log_video = log_intensity(video)
@@ -357,9 +357,7 @@ def clip_histograms(grid: "torch.Tensor", clip: PoolClip, mode: str = "dvs", bin
     def full_frame(crop: "torch.Tensor") -> "torch.Tensor":
         hist = torch.zeros(shape, dtype=crop.dtype, device=crop.device)
         hist[..., y0:y1, x0:x1] = crop
-        if clip.noise_cell.numel():
-            hist.view(-1).index_add_(0, clip.noise_cell, clip.noise_count.to(hist.dtype))
-        return torch.clamp(hist, max=float(COUNT_CUTOFF))
+        return torch.clamp(clip.add_noise(hist), max=float(COUNT_CUTOFF))
 
     def counts(log: "torch.Tensor", theta) -> "torch.Tensor":
         return log_histograms(log, clip.t_us, clip.window_end_us, mode=mode, binning=binning,

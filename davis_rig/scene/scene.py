@@ -31,7 +31,7 @@ import numpy as np
 
 from davis_rig._lazy import optional_import
 from davis_rig.errors import ShapeError
-from davis_rig.scene.background import random_background, uniform
+from davis_rig.scene.background import random_background, uniform, warp_background
 from davis_rig.scene.camera import (
     DEFAULT_PERSON_HEIGHT_M,
     EgoMotion,
@@ -296,27 +296,6 @@ def scene_camera(spec: SceneSpec, rng: np.random.Generator | None = None) -> tup
     return np.broadcast_to(rotation, (n, 3, 3)).copy(), np.broadcast_to(translation, (n, 3)).copy()
 
 
-def _warp_background(background: np.ndarray, camera: PinholeCamera, rotation, translation, depth_m: float):
-    """Per-frame views of a background plane ``z = depth_m`` of the first frame's camera, float32 [T, H, W]."""
-    import cv2
-
-    k = camera.matrix.copy()
-    k[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
-    k[1, 2] -= 0.5
-    k_inv = np.linalg.inv(k)
-    normal = np.array([0.0, 0.0, 1.0])
-    h, w = camera.hw
-    frames = []
-    for r_k, t_k in zip(rotation, translation):  # one homography per frame
-        r_rel = r_k @ rotation[0].T
-        t_rel = t_k - r_rel @ translation[0]
-        homography = k @ (r_rel + np.outer(t_rel, normal) / depth_m) @ k_inv
-        frames.append(
-            cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        )
-    return np.stack(frames).astype(np.float32)
-
-
 def render_clip(
     spec: SceneSpec,
     texture=None,
@@ -384,7 +363,7 @@ def render_clip(
         depth = spec.background_depth_m
         if depth is None:
             depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
-        background = _warp_background(background, spec.camera, rotation, translation, depth)
+        background = warp_background(background, spec.camera, rotation, translation, depth)
     background = torch.as_tensor(background, device=model.device)
     vertices = scene_vertices(spec, model)
     raster = rasterize_mesh(
