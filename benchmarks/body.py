@@ -71,7 +71,7 @@ def main() -> None:
     if 1 in per_frame and max(per_frame) > 1:
         big = max(per_frame)
         print(f"ratio per-frame pose cost T=1 / T={big}: {per_frame[1] / per_frame[big]:.1f}x (batching gain)")
-    med, iqr, _ = time_ms(lambda: masks._rasterize(model.asset, 1024, 4), 1, max(3, args.repeats // 3))
+    med, iqr, _ = time_ms(lambda: masks.part_label_map(1024, 4, asset=model.asset), 1, max(3, args.repeats // 3))
     print(f"part label map 1024x1024 (rasterise + pad 4): {med:8.1f} ms (IQR {iqr:.1f})")
 
 

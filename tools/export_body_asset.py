@@ -869,7 +869,7 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
     finite differences so that the foot's lowest vertex is SWING_CLEARANCE_M above the planted foot's and its
     mean forward (Y) position is unchanged. Returns ``(motion, {side: angles_rad [T, 2]})``.
     """
-    from davis_rig.scene.motion import Motion, _posed_vertices, foot_vertex_ids, quat_from_rotvec, quat_multiply
+    from davis_rig.scene.motion import Motion, foot_vertex_ids, posed_vertices, quat_from_rotvec, quat_multiply
 
     feet = foot_vertex_ids(model.asset)
     frames = motion.num_frames
@@ -885,7 +885,7 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
                       cycle_advance_m=base.cycle_advance_m, bone_names=base.bone_names, metadata=base.metadata)
 
     def foot(m, side):
-        v = _posed_vertices(m, model, shape, feet[side])
+        v = posed_vertices(m, model, shape, feet[side])
         return v[:, :, 2].min(axis=1), v[:, :, 1].mean(axis=1)
 
     low = {side: foot(motion, side)[0] for side in "LR"}
@@ -919,13 +919,13 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
 def contact_measures(motion, model, shape: int, planted_left: np.ndarray | None = None):
     """Planted-foot slip speed [T] (m/s), lowest vertex height [T] (m) and how far the planted foot's lowest point
     rises above the lowest vertex at most (m) of a walk (``planted_left`` default: the foot that moves less)."""
-    from davis_rig.scene.motion import _posed_vertices, contact_slip, foot_vertex_ids, lowest_vertex_z
+    from davis_rig.scene.motion import contact_slip, foot_vertex_ids, lowest_vertex_z, posed_vertices
 
     slip, left = contact_slip(motion, model, shape, planted_left=planted_left)
     speed = np.linalg.norm(slip, axis=1) * motion.fps_hz
     low = lowest_vertex_z(motion, model, shape)
     feet = foot_vertex_ids(model.asset)
-    planted = np.where(left, *(_posed_vertices(motion, model, shape, feet[side])[:, :, 2].min(axis=1)
+    planted = np.where(left, *(posed_vertices(motion, model, shape, feet[side])[:, :, 2].min(axis=1)
                                for side in "LR"))
     return speed, low, float((planted - low).max())
 

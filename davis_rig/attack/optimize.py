@@ -98,6 +98,7 @@ __all__ = [
     "optimize_texture",
     "read_attack_checkpoint",
     "validate",
+    "validation_clips",
 ]
 
 _VAL_SEED_OFFSET = 1_000_003
@@ -453,10 +454,23 @@ def _write_png(path: Path, grid: np.ndarray) -> None:
     cv2.imwrite(str(path), (np.asarray(grid) > 0.5).astype(np.uint8) * 255)
 
 
-def _validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: int = _VAL_SEED_OFFSET,
-                      motions: Sequence = (), on_clip: Callable[[], None] | None = None) -> list[PoolClip]:
+def validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: int = _VAL_SEED_OFFSET,
+                     motions: Sequence = (), on_clip: Callable[[], None] | None = None) -> list[PoolClip]:
     """``num`` clips of the training distribution (``motions`` included) with their own seeds (validation or
-    refinement, by ``seed_offset``); ``on_clip`` is called after each prepared clip."""
+    refinement, by ``seed_offset``).
+
+    Args:
+        config: the attack settings (EoT distribution, grid size, seed).
+        model: :class:`~davis_rig.scene.body.BodyModel`.
+        mask: bool [1024, 1024] paintable texels, or ``None`` (whole body).
+        num: clips to prepare.
+        seed_offset: added to ``config.seed``: the validation's or the refinement's own seeds.
+        motions: training motions (:func:`~davis_rig.attack.eot.draw_scene`).
+        on_clip: called after each prepared clip (progress, stop requests).
+
+    Returns:
+        ``num`` :class:`~davis_rig.attack.eot.PoolClip`.
+    """
     clips = []
     for i in range(num):
         seed = slot_seed(config.seed + seed_offset, i, 0)
@@ -466,6 +480,9 @@ def _validation_clips(config: AttackConfig, model, mask, num: int, seed_offset: 
             on_clip()
     return clips
 
+
+# the name tools/probe_texture_sensitivity.py imports until it imports validation_clips
+_validation_clips = validation_clips
 
 #: Clips per detector batch in :func:`validate`.
 VALIDATION_BATCH = 8
@@ -758,7 +775,7 @@ def _refine_best(config: AttackConfig, detector, body_model, mask, out: Path, be
     """
     from davis_rig.attack.refine import refine_texture
 
-    clips = _validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET, motions)
+    clips = validation_clips(config, body_model, mask, config.refine_clips, _REFINE_SEED_OFFSET, motions)
 
     def score(grid: np.ndarray) -> float:
         return validate(grid, clips, detector, config.validation_threshold, config.events, test_path=False,
@@ -933,7 +950,7 @@ def optimize_texture(
                     else:
                         prep.total = num_val
                     if rank == 0:
-                        val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips,
+                        val_clips = validation_clips(config, body_model, mask, config.num_validation_clips,
                                                       motions=motions, on_clip=prepared)
                 finally:
                     prep.close()
@@ -1023,7 +1040,7 @@ def optimize_texture(
         _write_png(out / "texture.png", texture)
         if config.refine_passes > 0 and end == config.iterations and not (out / "refine.json").is_file():
             if not val_clips:
-                val_clips = _validation_clips(config, body_model, mask, config.num_validation_clips,
+                val_clips = validation_clips(config, body_model, mask, config.num_validation_clips,
                                               motions=motions)
             start_grid = np.load(out / "best_texture.npy") if (out / "best_texture.npy").is_file() else texture
             best = _refine_best(config, detector, body_model, mask, out, best, val_clips, start_grid, motions)

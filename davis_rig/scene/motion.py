@@ -51,6 +51,7 @@ __all__ = [
     "lock_stance_foot",
     "loop",
     "motion_from_world_rotations",
+    "posed_vertices",
     "quat_conjugate",
     "quat_from_matrix",
     "quat_from_rotvec",
@@ -723,8 +724,18 @@ def foot_vertex_ids(asset) -> dict[str, np.ndarray]:
     return {"L": feet[x > 0], "R": feet[x < 0]}
 
 
-def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray) -> np.ndarray:
-    """Posed positions of the vertices ``ids``, float64 [T, len(ids), 3] (m)."""
+def posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray) -> np.ndarray:
+    """Posed positions of some mesh vertices in every frame of a motion (posed in batches of frames, no grad).
+
+    Args:
+        motion: the motion (over the model's rig).
+        model: :class:`~davis_rig.scene.body.BodyModel`.
+        shape_index: body shape.
+        ids: int [K] vertex indices (e.g. :func:`foot_vertex_ids`).
+
+    Returns:
+        float64 [T, K, 3] (m, Z up).
+    """
     out = np.empty((motion.num_frames, len(ids), 3))
     for start, stop, verts in _pose_batches(motion, model, shape_index):
         out[start:stop] = verts[:, ids].double().cpu().numpy()
@@ -758,7 +769,7 @@ def contact_slip(
     """
     feet = foot_vertices if foot_vertices is not None else foot_vertex_ids(model.asset)
     steps = motion.num_frames if motion.is_cycle else motion.num_frames - 1
-    both = _posed_vertices(motion, model, shape_index, np.concatenate([feet["L"], feet["R"]]))  # pose once
+    both = posed_vertices(motion, model, shape_index, np.concatenate([feet["L"], feet["R"]]))  # pose once
     if motion.is_cycle:
         both = np.concatenate([both, both[:1] + motion.cycle_advance_m])
     t = np.arange(steps)

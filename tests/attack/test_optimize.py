@@ -655,12 +655,12 @@ def test_validation_and_refinement_clips_draw_the_training_motions(body, monkeyp
     drawn = []
     monkeypatch.setattr(opt, "prepare_clip", lambda spec, *a, **kw: drawn.append(spec) or spec)
     cfg = _tiny()
-    opt._validation_clips(cfg, body, None, 8, motions=(motion,))
+    opt.validation_clips(cfg, body, None, 8, motions=(motion,))
     assert any(spec.motion is motion for spec in drawn)
     seeds = [slot_seed(cfg.seed + opt._VAL_SEED_OFFSET, i, 0) for i in range(8)]
     assert drawn == [draw_scene(cfg.eot, s, body.num_shapes, (motion,))[0] for s in seeds]
     drawn.clear()
-    opt._validation_clips(cfg, body, None, 8)
+    opt.validation_clips(cfg, body, None, 8)
     assert drawn == [draw_scene(cfg.eot, s, body.num_shapes)[0] for s in seeds]
     assert all(spec.motion is None for spec in drawn)
 
@@ -671,13 +671,13 @@ def test_optimize_passes_the_training_motions_to_validation_and_refinement(detec
 
     motions = (generate_gait(),)
     seen = []
-    original = opt._validation_clips
+    original = opt.validation_clips
 
     def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=(), on_clip=None):
         seen.append((seed_offset, motions))
         return original(config, model, mask, num, seed_offset, motions, on_clip)
 
-    monkeypatch.setattr(opt, "_validation_clips", recording)
+    monkeypatch.setattr(opt, "validation_clips", recording)
     cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)
     optimize_texture(cfg, detector, tmp_path, body_model=body, motions=motions, progress=False)
     assert seen == [(opt._VAL_SEED_OFFSET, motions), (opt._REFINE_SEED_OFFSET, motions)]
