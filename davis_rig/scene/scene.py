@@ -341,30 +341,10 @@ def render_clip(
     if part_labels and model.face_parts is None:
         raise ValueError(f"{type(model).__name__} has no per-face part labels (SmplBody: face_parts=...); "
                          "render with part_labels=False")
-    rng = np.random.default_rng(spec.seed)
+    rng = np.random.default_rng(spec.seed)  # drawn in this order: camera jitter, light, background
     rotation, translation = scene_camera(spec, rng)
-    light = spec.light
-    if isinstance(light, str):
-        if light != "random":
-            raise ValueError(f"light must be a Light, 'random' or None, got {light!r}")
-        light = Light.random(rng)
-    hw = spec.camera.hw
-    background = spec.background
-    if isinstance(background, str):
-        if background != "random":
-            raise ValueError(f"background must be an array, a scalar or 'random', got {background!r}")
-        background = random_background(hw, rng)
-    elif np.isscalar(background):
-        background = uniform(hw, float(background))
-    background = np.asarray(background, dtype=np.float32)
-    if tuple(background.shape) != hw:
-        raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
-    if spec.ego_motion is not None:
-        depth = spec.background_depth_m
-        if depth is None:
-            depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
-        background = warp_background(background, spec.camera, rotation, translation, depth)
-    background = torch.as_tensor(background, device=model.device)
+    light = _scene_light(spec.light, rng)
+    background = torch.as_tensor(_scene_background(spec, rotation, translation, rng), device=model.device)
     vertices = scene_vertices(spec, model)
     raster = rasterize_mesh(
         vertices,
@@ -396,3 +376,35 @@ def render_clip(
         camera_rotation_w2c=rotation,
         camera_translation_w2c=translation,
     )
+
+
+def _scene_light(light: Light | str | None, rng: np.random.Generator) -> Light | None:
+    """The scene's light: ``"random"`` is drawn from ``rng``, a :class:`Light` or ``None`` (default) as given."""
+    if isinstance(light, str):
+        if light != "random":
+            raise ValueError(f"light must be a Light, 'random' or None, got {light!r}")
+        return Light.random(rng)
+    return light
+
+
+def _scene_background(spec: SceneSpec, rotation: np.ndarray, translation: np.ndarray,
+                      rng: np.random.Generator) -> np.ndarray:
+    """The background, float32 [H, W] (``"random"``: procedural from ``rng``; a scalar: uniform), or [T, H, W] with
+    ego-motion: the background plane ``background_depth_m`` away warped into every frame's camera."""
+    hw = spec.camera.hw
+    background = spec.background
+    if isinstance(background, str):
+        if background != "random":
+            raise ValueError(f"background must be an array, a scalar or 'random', got {background!r}")
+        background = random_background(hw, rng)
+    elif np.isscalar(background):
+        background = uniform(hw, float(background))
+    background = np.asarray(background, dtype=np.float32)
+    if tuple(background.shape) != hw:
+        raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
+    if spec.ego_motion is not None:
+        depth = spec.background_depth_m
+        if depth is None:
+            depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
+        background = warp_background(background, spec.camera, rotation, translation, depth)
+    return background

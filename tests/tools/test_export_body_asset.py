@@ -30,7 +30,8 @@ def test_steady_planted_labels_flip_hand_over_chatter(tool):
 def test_lift_free_feet_raises_the_free_foot_above_the_planted_one(tool):
     pytest.importorskip("torch")
     from davis_rig.scene.body import BodyAsset, BodyModel
-    from davis_rig.scene.motion import Motion, foot_vertex_ids, posed_vertices
+    from davis_rig.scene.contact import foot_vertex_ids, posed_vertices
+    from davis_rig.scene.motion import Motion
 
     asset = BodyAsset.load()
     model = BodyModel(asset)
