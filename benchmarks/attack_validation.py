@@ -21,7 +21,8 @@ import torch
 from _common import metadata_line, set_torch_threads
 
 from davis_rig.attack.eot import EoTConfig, draw_scene, prepare_clip, slot_seed
-from davis_rig.attack.optimize import _VAL_SEED_OFFSET, load_attack_detector, validate
+from davis_rig.attack.optimize import load_attack_detector, validate
+from davis_rig.attack.validation import VAL_SEED_OFFSET
 from davis_rig.scene.body import BodyModel
 from davis_rig.scene.masks import part_mask
 
@@ -55,7 +56,7 @@ def main() -> None:
     start = time.perf_counter()
     clips = []
     for i in range(args.clips):
-        seed = slot_seed(_VAL_SEED_OFFSET, i, 0)
+        seed = slot_seed(VAL_SEED_OFFSET, i, 0)
         spec, sensor = draw_scene(eot, seed, body.num_shapes)
         clips.append(prepare_clip(spec, sensor, body, 10, mask, config=eot, seed=seed))
     prepare_s = (time.perf_counter() - start) / args.clips

@@ -1,9 +1,9 @@
 """The attack step's detector part as one fixed-shape function, to record as a CUDA graph or compile.
 
-One step of :func:`~davis_rig.attack.optimize.attack_loss` has two parts:
+One step of :func:`~davis_rig.attack.step.attack_loss` has two parts:
 
 1. **texture → RVT input** (variable shapes): per clip, the texture lookup and compose on the person's active box
-   and the differentiable V2E there (:func:`~davis_rig.attack.optimize.clip_histograms`), stacked into
+   and the differentiable V2E there (:func:`~davis_rig.attack.step.clip_histograms`), stacked into
    ``x`` float [W, B, 20, 240, 304] (W windows, B clips);
 2. **RVT input → loss** (fixed shapes for a whole run): zero-pad to the detector's input, RVT over the W windows
    with recurrent states (batched over the B clips), ``L_adv`` (:func:`~davis_rig.attack.loss.adversarial_loss`).
@@ -51,7 +51,7 @@ class DetectorLoss(torch.nn.Module):
 
     Args:
         detector: the frozen :class:`~davis_rig.models.rvt.detector.RVTDetector` (eval mode, no parameter grads).
-        config: the :class:`~davis_rig.attack.optimize.AttackConfig` (loss weights, reduction, box margin,
+        config: the :class:`~davis_rig.attack.config.AttackConfig` (loss weights, reduction, box margin,
             precision: ``"bf16"`` autocasts the detector, with the autocast cache off as CUDA graphs need).
 
     ``forward(x)`` or, with ``config.box_margin_px`` set or ``config.loss_anchors == "person"``, ``forward(x, boxes)``
@@ -97,7 +97,7 @@ class FixedShapeAttackLoss:
 
     Args:
         detector: the frozen detector (its device is where part 2 runs).
-        config: :class:`~davis_rig.attack.optimize.AttackConfig`.
+        config: :class:`~davis_rig.attack.config.AttackConfig`.
         mode: one of :data:`STEP_MODES`.
 
     Raises:
@@ -126,12 +126,12 @@ class FixedShapeAttackLoss:
             self._run = torch.compile(self.module, dynamic=False, **options)
 
     def __call__(self, grid: "torch.Tensor", clips: Sequence) -> AdversarialLoss:
-        """``L_adv`` of ``grid`` over ``clips`` (see :func:`~davis_rig.attack.optimize.attack_loss`).
+        """``L_adv`` of ``grid`` over ``clips`` (see :func:`~davis_rig.attack.step.attack_loss`).
 
         Raises:
             ShapeError: a graph mode gets inputs of other shapes than at its first call.
         """
-        from davis_rig.attack.optimize import clip_histograms
+        from davis_rig.attack.step import clip_histograms
 
         config = self.config
         x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning, config.v2e_gradient)

@@ -9,7 +9,7 @@ Layout of ``out_dir``::
     runs/<n>x<n>_<parts>/   one optimize run per texture (davis_rig.attack.optimize layout); an existing run is
                             resumed, a finished one only re-read, so a second call continues where one stopped
                             and Table 2's full-body run is Table 1's 10 x 10 run
-    table1.{md,json,png} or table2.{md,json,png}    (davis_rig.attack.evaluate.table1 / table2)
+    table1.{md,json,png} or table2.{md,json,png}    (davis_rig.attack.report.table1 / table2)
     reproduce_table1.json or reproduce_table2.json  budget, detector, configs and per-run timing and validation
 
 Table 1 (paper): white / black / random 60 x 60 baselines vs optimized full-body textures of grid 60, 50, 40, 30,
@@ -27,8 +27,9 @@ from typing import Sequence
 
 import numpy as np
 
-from davis_rig.attack.evaluate import EVENT_MODEL_NAMES, TABLE2_THRESHOLD, EvalConfig, config_dict, table1, table2
+from davis_rig.attack.evaluate import EVENT_MODEL_NAMES, TABLE2_THRESHOLD, EvalConfig, config_dict
 from davis_rig.attack.optimize import AttackConfig, optimize_texture
+from davis_rig.attack.report import table1, table2
 from davis_rig.scene.masks import PAINTABLE_COMBINATIONS, PAINTABLE_PARTS
 
 __all__ = ["TABLE1_GRIDS", "TABLE2_GRID", "reproduce_table", "run_key", "table_runs"]

@@ -6,7 +6,8 @@ finishes the unit it is in, saves its state and stops. A second signal restores 
 :class:`KeyboardInterrupt` at once (the last saved state stays as it was: it is written atomically).
 
 Handlers can only be installed from the main thread; elsewhere (or with ``enabled=False``) the context manager
-installs nothing and the flag stays unset.
+installs nothing and the flag stays unset. Work that runs in many small units inside a step (preparing or validating
+clips) polls the flag with :func:`check_stop`, which raises :class:`StopRequested` to abandon that work.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import signal
 import threading
 
-__all__ = ["StopOnSignal"]
+__all__ = ["StopOnSignal", "StopRequested", "check_stop"]
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -65,3 +66,13 @@ class StopOnSignal:
 
     def __exit__(self, *exc) -> None:
         self._restore()
+
+
+class StopRequested(Exception):
+    """Raised by :func:`check_stop` between the clips of a preparation or validation when a stop was requested."""
+
+
+def check_stop(stop: StopOnSignal | None) -> None:
+    """Raise :class:`StopRequested` if ``stop`` (``None``: never) has a stop request."""
+    if stop is not None and stop.requested:
+        raise StopRequested

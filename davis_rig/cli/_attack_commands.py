@@ -489,6 +489,7 @@ def evaluate_command(args) -> int:
 
     _starting("evaluate", args)
     from davis_rig.attack import evaluate as ev
+    from davis_rig.attack import report
     from davis_rig.attack.export import load_texture_grid
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.scene.body import BodyModel
@@ -509,12 +510,12 @@ def evaluate_command(args) -> int:
     motions = _motions(args, "test")
     with removing_new_empty_dirs(args.out):
         if args.table == 1:
-            res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
+            res = report.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
                             motions=motions, progress=not args.quiet)
             specs = {**ev.baseline_textures(parts),
                      **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
         elif args.table == 2:
-            res = ev.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
+            res = report.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
                             progress=not args.quiet)
             specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
         else:
@@ -522,11 +523,11 @@ def evaluate_command(args) -> int:
             scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config,
                                        progress=not args.quiet)
             rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.quiet)
-            res = ev.write_table(rows, config.thresholds, args.out, "evaluation",
+            res = report.write_table(rows, config.thresholds, args.out, "evaluation",
                                  f"Digital evaluation ({ev.EVENT_MODEL_NAMES[config.events]})", command=command)
         summary = {"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"])}
         if args.visualise:
-            vis = ev.write_visualisations(specs, detector, args.out, config=config, model=model)
+            vis = report.write_visualisations(specs, detector, args.out, config=config, model=model)
             summary.update(frames=[str(p) for p in vis["frames"]], gif=str(vis["gif"]))
     print(res["markdown"].read_text())
     print(json.dumps(summary))

@@ -6,8 +6,10 @@ numpy modules (imported with the package):
   shapes, rig, skinning weights, part labels, walk cycle) and :class:`BodyModel` (torch FK + LBS, torch
   imported when it is built).
 - :mod:`~davis_rig.scene.skeleton`: the rig's rest geometry and numpy sole kinematics.
-- :mod:`~davis_rig.scene.motion`: :class:`Motion` and its kernels (slerp sampling, loops, heading, ground contact).
-- :mod:`~davis_rig.scene.gait`: the parametric walk/run generator :func:`generate_gait`.
+- :mod:`~davis_rig.scene.motion`: :class:`Motion` and its kernels (slerp sampling, loops, heading, concatenation);
+  :mod:`~davis_rig.scene.quaternion`: the quaternion kernels; :mod:`~davis_rig.scene.contact`: ground contact.
+- :mod:`~davis_rig.scene.gait`: the parametric walk/run generator :func:`generate_gait`;
+  :mod:`~davis_rig.scene.gait_curves`: its normative joint-angle curves.
 - :mod:`~davis_rig.scene.camera`: the DAVIS346 pinhole camera, test scales, EoT jitter, ego-motion.
 - :mod:`~davis_rig.scene.masks`: 1024 x 1024 UV masks of the body parts with seam padding.
 - :mod:`~davis_rig.scene.background`: procedural backgrounds.
@@ -63,17 +65,16 @@ from davis_rig.scene.camera import (
     look_at,
     rotation_from_vector,
 )
-from davis_rig.scene.gait import (
+from davis_rig.scene.contact import contact_slip, foot_vertex_ids, ground_contact, lock_stance_foot
+from davis_rig.scene.gait import GaitParams, generate_gait, natural_walk
+from davis_rig.scene.gait_curves import (
     FIT_MAX_ERROR_DEG,
     FOURIER_COEFFICIENTS,
     NATIVE_STANCE_FRACTION,
     NORMATIVE_TABLES,
-    GaitParams,
     evaluate_fourier,
     fit_fourier,
-    generate_gait,
     joint_angles_deg,
-    natural_walk,
 )
 from davis_rig.scene.masks import (
     DEFAULT_PADDING_PX,
@@ -90,11 +91,7 @@ from davis_rig.scene.motion import (
     MOTION_FORMAT_VERSION,
     Motion,
     concatenate,
-    contact_slip,
-    foot_vertex_ids,
-    ground_contact,
     in_place,
-    lock_stance_foot,
     loop,
     motion_from_world_rotations,
     quat_conjugate,

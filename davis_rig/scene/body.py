@@ -30,6 +30,8 @@ import numpy as np
 from davis_rig._lazy import optional_import
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.scene._npz import read_npz
+from davis_rig.scene.quaternion import quaternion_to_matrix
+from davis_rig.scene.skeleton import depth_levels
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -315,31 +317,6 @@ def _check_shape_index(shape_index: int, num_shapes: int) -> None:
         raise IndexError(f"shape_index {shape_index} outside [0, {num_shapes})")
 
 
-def quaternion_to_matrix(quaternions_wxyz: "torch.Tensor") -> "torch.Tensor":
-    """Rotation matrices of (w, x, y, z) quaternions (normalised first).
-
-    Args:
-        quaternions_wxyz: float tensor [..., 4].
-
-    Returns:
-        float tensor [..., 3, 3] (column-vector convention, ``R @ x``).
-
-    Raises:
-        ShapeError: the last dimension is not 4.
-    """
-    torch = _torch()
-    if quaternions_wxyz.shape[-1] != 4:
-        raise ShapeError(f"quaternions must have shape [..., 4], got {tuple(quaternions_wxyz.shape)}")
-    q = quaternions_wxyz / torch.linalg.norm(quaternions_wxyz, dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
 class BodyModel:
     """Pure-torch rigged body: forward kinematics and linear blend skinning, batched over frames.
 
@@ -384,7 +361,7 @@ class BodyModel:
         np.add.at(weights, (np.arange(a.num_vertices)[:, None], a.skin_indices.astype(np.int64)), a.skin_weights)
         weights /= weights.sum(axis=1, keepdims=True)  # float32 storage: make each row sum to 1 again
         self.skin_weights_dense = torch.as_tensor(weights, **kw)
-        self._levels = _depth_levels(a.bone_parents)
+        self._levels = depth_levels(a.bone_parents)
         self._level_tensors = [
             (torch.as_tensor(bones, device=self.device), torch.as_tensor(parent_pos, device=self.device))
             for bones, parent_pos in self._levels
@@ -582,23 +559,3 @@ def _homogeneous(rotation: "torch.Tensor", translation: "torch.Tensor") -> "torc
     bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=top.dtype, device=top.device)
     bottom[..., 0, 3] = 1
     return torch.cat([top, bottom], dim=-2)
-
-
-def _depth_levels(parents: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Bones grouped by depth: per level (bone indices, position of each parent in the previous level)."""
-    parents = np.asarray(parents, dtype=np.int64)
-    depth = np.zeros(len(parents), dtype=np.int64)
-    for bone in range(1, len(parents)):  # parents precede children (validated at load)
-        depth[bone] = depth[parents[bone]] + 1
-    levels = []
-    previous = np.array([0])
-    for level in range(depth.max() + 1):
-        bones = np.flatnonzero(depth == level)
-        if level == 0:
-            parent_pos = np.zeros(1, dtype=np.int64)
-        else:
-            lookup = {bone: i for i, bone in enumerate(previous)}
-            parent_pos = np.array([lookup[p] for p in parents[bones]], dtype=np.int64)
-        levels.append((bones, parent_pos))
-        previous = bones
-    return levels

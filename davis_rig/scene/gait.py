@@ -1,23 +1,7 @@
 """Parametric gait generator: walking to running on the asset's rig, from normative joint-angle curves.
 
-Sagittal hip / knee / ankle angles versus gait-cycle % are Fourier series (order 6) fitted by
-:func:`fit_fourier` to key values of published normative curves (tables :data:`NORMATIVE_TABLES`):
-
-- **Walking** (self-selected speed, ~1.3 m/s, toe-off at 62 %): the rounded event values of Perry &
-  Burnfield, *Gait Analysis: Normal and Pathological Function*, 2nd ed. (SLACK, 2010), chapters on the hip,
-  knee and ankle (hip 30° flexion at initial contact, ~10° apparent hyperextension at 50 %, 0° at toe-off,
-  ~33° peak flexion in terminal swing; knee 5° at contact, ~18° loading-response flexion at 15 %, ~3° at
-  40 %, 40° at toe-off, 60° peak at 73 %; ankle 0° at contact, 5° plantarflexion at 10 %, 10°
-  dorsiflexion at 48 %, 20° plantarflexion at 62 %, neutral from mid swing), with intermediate points read
-  off the same normative curves (±2°).
-- **Running** (~3.2 m/s, toe-off at 39 %): values read off the mean curves of Novacheck, "The biomechanics
-  of running", *Gait & Posture* 7 (1998) 77-95, Fig. 4 (hip ~38° at contact, ~-8° at toe-off, ~50° peak in
-  late swing; knee ~20° at contact, ~42° stance peak, ~18° at toe-off, ~95° swing peak; ankle ~20° stance
-  dorsiflexion, ~-22° at toe-off), ±3°.
-
-The curves are approximations of population means (values rounded / read from figures), not a
-re-publication of the tables; the fit errors at the tabulated points are ≤ 0.4° (:data:`FIT_MAX_ERROR_DEG`).
-Angles: flexion / dorsiflexion positive, degrees; phase 0 = heel strike of the leg.
+Sagittal hip / knee / ankle angles versus gait-cycle % are the normative curves of
+:mod:`davis_rig.scene.gait_curves` (Perry & Burnfield 2010 walking, Novacheck 1998 running, as Fourier series).
 
 Other degrees of freedom are single harmonics with textbook amplitudes: pelvic rotation ±4°, obliquity
 ±4°, tilt ±2° (Perry & Burnfield 2010), shoulder swing ±16° about -8° and elbow 20 ± 8° for walking
@@ -66,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from davis_rig.scene.gait_curves import joint_angles_deg, stance_fraction
 from davis_rig.scene.motion import (
     Motion,
     loop,
@@ -76,18 +61,7 @@ from davis_rig.scene.motion import (
 )
 from davis_rig.scene.skeleton import Rig, sole_points
 
-__all__ = [
-    "FIT_MAX_ERROR_DEG",
-    "FOURIER_COEFFICIENTS",
-    "NORMATIVE_TABLES",
-    "NATIVE_STANCE_FRACTION",
-    "GaitParams",
-    "evaluate_fourier",
-    "fit_fourier",
-    "generate_gait",
-    "joint_angles_deg",
-    "natural_walk",
-]
+__all__ = ["GaitParams", "generate_gait", "natural_walk"]
 
 GRAVITY_M_S2 = 9.81
 #: Thigh angle from the vertical = hip angle + this offset (deg): the normative hip angles are measured
@@ -107,113 +81,6 @@ SWING_CLEARANCE_M = 0.013
 CLEARANCE_PASSES = 3
 #: Height band (m) above the lowest foot within which a foot shares the support (hand-over at double support).
 CONTACT_BAND_M = 0.01
-
-#: Key values (gait-cycle %, angle in degrees) of the normative curves; see the module docstring for sources.
-NORMATIVE_TABLES: dict[str, tuple[tuple[float, float], ...]] = {
-    "walk_hip": ((0, 30), (10, 28), (20, 20), (30, 10), (40, 0), (50, -10), (56, -7), (62, 0), (75, 20), (87, 33),
-                 (95, 31)),
-    "walk_knee": ((0, 5), (7, 13), (15, 18), (25, 12), (40, 3), (50, 8), (56, 22), (62, 40), (73, 60), (80, 52),
-                  (87, 30), (94, 8)),
-    "walk_ankle": ((0, 0), (10, -5), (20, 2), (30, 5), (40, 8), (48, 10), (55, 0), (62, -20), (75, -5), (87, 0),
-                   (95, 0)),
-    "run_hip": ((0, 38), (10, 28), (20, 15), (30, 3), (39, -8), (50, 0), (60, 20), (75, 40), (85, 50), (93, 45)),
-    "run_knee": ((0, 20), (8, 35), (15, 42), (25, 32), (39, 18), (50, 50), (60, 80), (70, 95), (80, 80), (90, 40)),
-    "run_ankle": ((0, 5), (8, 15), (15, 20), (25, 12), (39, -22), (50, -12), (60, -5), (70, 3), (80, 8), (90, 7)),
-}  # fmt: skip
-
-#: Fourier order and ridge weight (on harmonic k: lambda * k^4) of the fits.
-FOURIER_ORDER = 6
-FOURIER_RIDGE = 1e-3
-
-#: Coefficients ``(a0, a1, b1, ..., a6, b6)`` of ``a0 + sum_k a_k cos(2 pi k p) + b_k sin(2 pi k p)``
-#: (p = phase in cycles, result in degrees) = ``fit_fourier(NORMATIVE_TABLES[name])``.
-FOURIER_COEFFICIENTS: dict[str, tuple[float, ...]] = {
-    "walk_hip": (14.7588, 19.8274, -2.0375, -3.5960, -2.0639, -0.0869, 0.6359, -1.0005, 0.3692, 0.2042, 0.1317,
-                 -0.1165, 0.1663),
-    "walk_knee": (21.9099, -0.7706, -20.3690, -14.6498, 6.9949, -0.9177, 3.6025, -0.7942, 0.7446, 0.1320, 0.2901,
-                  0.0573, 0.2656),
-    "walk_ankle": (-1.1935, -0.7545, 6.4560, 2.4033, -7.4391, -3.8638, 0.9057, 3.1723, 0.6848, 0.0327, -0.9169,
-                   0.0808, 0.5868),
-    "run_hip": (22.3933, 19.5387, -17.5703, -2.9243, 1.5278, -0.3950, -1.8263, -0.5584, 1.0231, -0.1493, 0.3387,
-                0.1041, -0.0882),
-    "run_knee": (48.5031, -9.3285, -28.7805, -13.2831, 14.8104, -4.7458, 1.4865, 0.0116, 0.9511, -0.7852, 0.2712,
-                 -0.1600, -0.1075),
-    "run_ankle": (1.8251, 13.3022, 0.3755, -6.1699, 7.0011, -3.7720, -2.0901, 0.9509, 0.3527, -0.9097, 0.3809,
-                  -0.1023, -0.0330),
-}  # fmt: skip
-
-#: Largest |fit - table| over the tabulated points (degrees), per curve, as measured when fitting.
-FIT_MAX_ERROR_DEG: dict[str, float] = {
-    "walk_hip": 0.10, "walk_knee": 0.22, "walk_ankle": 0.34, "run_hip": 0.09, "run_knee": 0.21, "run_ankle": 0.16,
-}  # fmt: skip
-
-#: Toe-off (end of stance) as a fraction of the cycle in the source curves.
-NATIVE_STANCE_FRACTION = {"walk": 0.62, "run": 0.39}
-
-
-def _design(phase: np.ndarray, order: int) -> np.ndarray:
-    p = np.asarray(phase, dtype=np.float64)
-    cols = [np.ones_like(p)]
-    for k in range(1, order + 1):
-        cols += [np.cos(2 * np.pi * k * p), np.sin(2 * np.pi * k * p)]
-    return np.stack(cols, axis=-1)
-
-
-def fit_fourier(
-    table: tuple[tuple[float, float], ...], order: int = FOURIER_ORDER, ridge: float = FOURIER_RIDGE
-) -> np.ndarray:
-    """Least-squares Fourier series through periodic samples, with a ridge penalty ``ridge * k^4`` on harmonic k.
-
-    Args:
-        table: ``(percent of cycle, value)`` pairs.
-        order: number of harmonics.
-        ridge: smoothness weight (keeps the curve from oscillating between sparse points).
-
-    Returns:
-        float64 [2 * order + 1] coefficients ``(a0, a1, b1, ..., a_order, b_order)``.
-    """
-    pts = np.asarray(table, dtype=np.float64)
-    a = _design((pts[:, 0] / 100.0) % 1.0, order)
-    penalty = np.concatenate([[0.0], np.repeat(np.arange(1, order + 1, dtype=np.float64) ** 4, 2)])
-    return np.linalg.solve(a.T @ a + ridge * np.diag(penalty), a.T @ pts[:, 1])
-
-
-def evaluate_fourier(coefficients, phase) -> np.ndarray:
-    """Value of a Fourier series at ``phase`` (cycles, any real), float64 with the shape of ``phase``."""
-    c = np.asarray(coefficients, dtype=np.float64)
-    order = (len(c) - 1) // 2
-    return _design(phase, order) @ c
-
-
-def _warp(phase: np.ndarray, stance: float, native: float) -> np.ndarray:
-    """Map a cycle with toe-off at ``stance`` onto a source curve with toe-off at ``native`` (piecewise linear)."""
-    p = np.mod(phase, 1.0)
-    return np.where(p < stance, p * native / stance, native + (p - stance) * (1 - native) / (1 - stance))
-
-
-def joint_angles_deg(phase, run: float = 0.0, stance_fraction: float | None = None) -> dict[str, np.ndarray]:
-    """Sagittal hip / knee / ankle angles of one leg, blended between walking and running.
-
-    Args:
-        phase: gait phase of the leg (cycles; 0 = its heel strike), float [N].
-        run: 0 = walking curves, 1 = running curves, in between = blend (after aligning toe-off).
-        stance_fraction: toe-off of the blended cycle (default: blend of the native 0.62 / 0.39).
-
-    Returns:
-        ``{"hip", "knee", "ankle"}`` -> float64 [N] degrees (flexion / dorsiflexion positive).
-    """
-    run = float(np.clip(run, 0.0, 1.0))
-    s = stance_fraction if stance_fraction is not None else _stance_fraction(run)
-    out = {}
-    for joint in ("hip", "knee", "ankle"):
-        walk = evaluate_fourier(FOURIER_COEFFICIENTS[f"walk_{joint}"], _warp(phase, s, NATIVE_STANCE_FRACTION["walk"]))
-        running = evaluate_fourier(FOURIER_COEFFICIENTS[f"run_{joint}"], _warp(phase, s, NATIVE_STANCE_FRACTION["run"]))
-        out[joint] = (1 - run) * walk + run * running
-    return out
-
-
-def _stance_fraction(run: float) -> float:
-    return (1 - run) * NATIVE_STANCE_FRACTION["walk"] + run * NATIVE_STANCE_FRACTION["run"]
 
 
 @dataclass(frozen=True)
@@ -334,7 +201,7 @@ def _world_rotations(rig: Rig, params: GaitParams, phase: np.ndarray, hip_scale:
     ``lift_m``: optional side -> [T] ankle lift (m) of the swing-clearance correction.
     """
     run = params.run
-    s = _stance_fraction(run)
+    s = stance_fraction(run)
     t = len(phase)
     v = rng_values
     swing = params.arm_swing_deg if params.arm_swing_deg is not None else 16.0 + 14.0 * run
@@ -526,22 +393,53 @@ def generate_gait(
     if num_cycles < 1:
         raise ValueError(f"num_cycles must be >= 1, got {num_cycles}")
     rig = Rig.from_asset(asset, shape_index)
-    v = _variation(params)
-    speed = params.speed_m_s
-    if params.stride_m is not None:
-        cadence = 120.0 * speed / params.stride_m
-    elif params.cadence_steps_min is not None:
-        cadence = params.cadence_steps_min
-    else:
-        h = rig.hip_height_m
-        stride = 2.3 * h * (speed**2 / (GRAVITY_M_S2 * h)) ** 0.3
-        stride *= (1 - params.run) * STRIDE_CALIBRATION["walk"] + params.run * STRIDE_CALIBRATION["run"]
-        cadence = 120.0 * speed / stride * v["cadence"]
-    s = _stance_fraction(params.run)
+    builder = _CycleBuilder(rig, params, _variation(params), fps_hz)
+    hip_scale, cadence = _fit_stride(builder, _default_cadence(params, rig, builder.variation))
+    period, frames, g, root, info = builder.build(cadence, hip_scale)
+    # align the net advance with -Y (random asymmetry can add a small sideways drift)
+    adv = info["advance_xy_m"]
+    drift = math.atan2(adv[0], -adv[1])
+    motion = motion_from_world_rotations(
+        g, root, rig.rest, rig.parents, frames / period,
+        name=f"gait(run={params.run:.2f}, {params.speed_m_s:.2f} m/s)",
+        source=f"davis_rig.scene.gait.generate_gait({params})",
+        cycle_advance_m=np.array([adv[0], adv[1], 0.0]),
+        bone_names=rig.names,
+        metadata={
+            "cadence_steps_min": float(cadence), "stride_m": float(np.linalg.norm(adv)), "period_s": float(period),
+            "stance_fraction": float(builder.stance), "hip_scale": float(hip_scale),
+            "flight_frames": info["flight_frames"], "shape_index": int(shape_index), "seed": int(params.seed),
+            "heading_rad": 0.0,
+        },
+    )
+    return _orient(motion, params, rig.rest[0], drift, num_cycles)
 
-    def build(cad: float, hip_scale: float, clearance: bool = True):
-        period = 120.0 / cad
-        frames = max(8, int(round(period * fps_hz)))
+
+@dataclass(frozen=True)
+class _CycleBuilder:
+    """One gait cycle of a rig at a cadence and a hip-amplitude scale (rotations, root path, swing clearance).
+
+    Attributes:
+        rig: the shape's rig; params: the gait; variation: its seeded variation (:func:`_variation`);
+        fps_hz: the requested frame rate.
+    """
+
+    rig: Rig
+    params: GaitParams
+    variation: dict
+    fps_hz: float
+
+    @property
+    def stance(self) -> float:
+        """Toe-off as a fraction of the cycle."""
+        return stance_fraction(self.params.run)
+
+    def build(self, cadence: float, hip_scale: float, clearance: bool = True):
+        """``(period_s, frames, world rotations [T, J, 3, 3], root [T, 3], root-path info)`` of one cycle; with
+        ``clearance`` up to :data:`CLEARANCE_PASSES` passes raise the swing feet to the minimum toe clearance."""
+        rig, params, v, s = self.rig, self.params, self.variation, self.stance
+        period = 120.0 / cadence
+        frames = max(8, int(round(period * self.fps_hz)))
         phase = np.arange(frames) / frames
         g = _world_rotations(rig, params, phase, hip_scale, v)
         root, info = _root_path(rig, g, phase, s, period)
@@ -555,19 +453,40 @@ def generate_gait(
             root, info = _root_path(rig, g, phase, s, period)
         return period, frames, g, root, info
 
-    def stride_of(hip_scale: float, cad: float) -> float:
+    def stride_m(self, hip_scale: float, cadence: float) -> float:
+        """The stride (m) of the cycle at ``hip_scale`` and ``cadence``."""
         # the clearance lift only moves swing feet: the stride does not depend on it
-        return float(np.linalg.norm(build(cad, hip_scale, clearance=False)[4]["advance_xy_m"]))
+        return float(np.linalg.norm(self.build(cadence, hip_scale, clearance=False)[4]["advance_xy_m"]))
 
+
+def _default_cadence(params: GaitParams, rig: Rig, variation: dict) -> float:
+    """Steps per minute: from ``stride_m`` or ``cadence_steps_min``, else Alexander's relation at the hip height
+    (times :data:`STRIDE_CALIBRATION` and the seeded variation)."""
+    speed = params.speed_m_s
+    if params.stride_m is not None:
+        return 120.0 * speed / params.stride_m
+    if params.cadence_steps_min is not None:
+        return params.cadence_steps_min
+    h = rig.hip_height_m
+    stride = 2.3 * h * (speed**2 / (GRAVITY_M_S2 * h)) ** 0.3
+    stride *= (1 - params.run) * STRIDE_CALIBRATION["walk"] + params.run * STRIDE_CALIBRATION["run"]
+    return 120.0 * speed / stride * variation["cadence"]
+
+
+def _fit_stride(builder: _CycleBuilder, cadence: float) -> tuple[float, float]:
+    """``(hip_scale, cadence)`` whose stride gives the requested speed: a secant search on the hip amplitude scale
+    in :data:`HIP_SCALE_RANGE`; beyond it the cadence changes (with a warning when the user fixed it)."""
+    params = builder.params
+    speed = params.speed_m_s
     target = speed * 120.0 / cadence
     lo_scale, hi_scale = HIP_SCALE_RANGE
     x0, x1 = 1.0, 1.2
-    f0, f1 = stride_of(x0, cadence) - target, stride_of(x1, cadence) - target
+    f0, f1 = builder.stride_m(x0, cadence) - target, builder.stride_m(x1, cadence) - target
     for _ in range(12):  # secant on the hip amplitude scale
         if abs(f1) < 1e-4 or f1 == f0:
             break
         x0, x1, f0 = x1, float(np.clip(x1 - f1 * (x1 - x0) / (f1 - f0), lo_scale, hi_scale)), f1
-        f1 = stride_of(x1, cadence) - target
+        f1 = builder.stride_m(x1, cadence) - target
     hip_scale = x1
     if abs(f1) > 1e-3:  # amplitude limit reached: keep the speed by changing the cadence
         achieved = f1 + target
@@ -576,28 +495,16 @@ def generate_gait(
             warnings.warn(
                 f"gait: stride {target:.3f} m not reachable (hip scale {hip_scale:.2f} gives {achieved:.3f} m); "
                 f"cadence changed from {cadence:.1f} to {new_cadence:.1f} steps/min to keep {speed} m/s",
-                stacklevel=2,
+                stacklevel=3,  # the caller of generate_gait
             )
         cadence = new_cadence
-    period, frames, g, root, info = build(cadence, hip_scale)
-    # align the net advance with -Y (random asymmetry can add a small sideways drift)
-    adv = info["advance_xy_m"]
-    drift = math.atan2(adv[0], -adv[1])
-    motion = motion_from_world_rotations(
-        g, root, rig.rest, rig.parents, frames / period,
-        name=f"gait(run={params.run:.2f}, {speed:.2f} m/s)",
-        source=f"davis_rig.scene.gait.generate_gait({params})",
-        cycle_advance_m=np.array([adv[0], adv[1], 0.0]),
-        bone_names=rig.names,
-        metadata={
-            "cadence_steps_min": float(cadence), "stride_m": float(np.linalg.norm(adv)), "period_s": float(period),
-            "stance_fraction": float(s), "hip_scale": float(hip_scale), "flight_frames": info["flight_frames"],
-            "shape_index": int(shape_index), "seed": int(params.seed), "heading_rad": 0.0,
-        },
-    )
-    root_rest = rig.rest[0]
-    if drift != 0.0:
-        motion = rotate_heading(motion, -drift, root_rest_pose=root_rest)
+    return hip_scale, cadence
+
+
+def _orient(motion: Motion, params: GaitParams, root_rest: np.ndarray, drift_rad: float, num_cycles: int) -> Motion:
+    """The cycle with its drift removed, turned to ``params.heading_rad``, looped and bent by the turning rate."""
+    if drift_rad != 0.0:
+        motion = rotate_heading(motion, -drift_rad, root_rest_pose=root_rest)
     if params.heading_rad:
         motion = rotate_heading(motion, params.heading_rad, root_rest_pose=root_rest)
     if num_cycles > 1:

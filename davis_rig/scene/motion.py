@@ -17,38 +17,40 @@ Kernels (all return new motions, none mutates its input):
 - :func:`rotate_heading`, :func:`turn`: rotate the whole motion about the vertical axis, at once or at a
   constant turning rate (the root path bends; local limb motion is unchanged).
 - :func:`concatenate`: join motions end to start (the root path continues), optionally cross-faded.
-- :func:`ground_contact`: shift the root vertically so that the lowest mesh vertex touches z = 0, per
-  frame (walking: a foot is always on the ground), per cycle or per clip (running: keeps flight phases).
 - :meth:`Motion.save` / :meth:`Motion.load`: a pickle-free ``.npz`` (cache retargeted mocap or generated gaits).
 - :func:`motion_from_world_rotations`: the converter every generator/importer uses — per-bone *world*
   rotations relative to the rest pose (``W_c = G_c R_c``) to the rig's local rotations
   (``L_c = R_c^T G_p^T G_c R_c``).
 
-Quaternion helpers (``quat_*``) work on float64 numpy arrays ``[..., 4]`` in ``(w, x, y, z)`` order.
+Quaternion helpers (``quat_*``, :mod:`davis_rig.scene.quaternion`, importable from here too) work on float64 numpy
+arrays ``[..., 4]`` in ``(w, x, y, z)`` order. Ground contact on a posed body
+(:func:`~davis_rig.scene.contact.ground_contact`, foot slip, stance-foot locking) is :mod:`davis_rig.scene.contact`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from davis_rig.errors import ShapeError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from davis_rig.scene.body import BodyModel
+from davis_rig.scene.quaternion import (
+    quat_conjugate,
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_slerp,
+    quat_to_matrix,
+    rotation_about_z,
+)
 
 __all__ = [
     "MOTION_FORMAT_VERSION",
     "Motion",
     "concatenate",
-    "contact_slip",
-    "foot_vertex_ids",
-    "ground_contact",
     "in_place",
-    "lock_stance_foot",
     "loop",
     "motion_from_world_rotations",
     "quat_conjugate",
@@ -63,122 +65,6 @@ __all__ = [
     "sample",
     "turn",
 ]
-
-
-# ---------------------------------------------------------------------------------------------- quaternions
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` (rotation ``b`` first, then ``a``), float64 [..., 4] (w, x, y, z)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Conjugate (= inverse of a unit quaternion), float64 [..., 4]."""
-    q = np.array(q, dtype=np.float64)
-    q[..., 1:] *= -1
-    return q
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of (w, x, y, z) quaternions (normalised first), float64 [..., 3, 3]."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    m = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )  # fmt: skip
-    return m.reshape(q.shape[:-1] + (3, 3))
-
-
-def quat_from_matrix(m: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w >= 0) of rotation matrices [..., 3, 3], float64 [..., 4] (branch-free-ish, stable)."""
-    m = np.asarray(m, dtype=np.float64)
-    if m.shape[-2:] != (3, 3):
-        raise ShapeError(f"rotation matrices must be [..., 3, 3], got {m.shape}")
-    flat = m.reshape(-1, 3, 3)
-    m00, m11, m22 = flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2]
-    # four candidate solutions; pick, per matrix, the one with the largest (well-conditioned) divisor
-    cand = np.stack(
-        [
-            np.stack([1 + m00 + m11 + m22, flat[:, 2, 1] - flat[:, 1, 2], flat[:, 0, 2] - flat[:, 2, 0],
-                      flat[:, 1, 0] - flat[:, 0, 1]], -1),
-            np.stack([flat[:, 2, 1] - flat[:, 1, 2], 1 + m00 - m11 - m22, flat[:, 0, 1] + flat[:, 1, 0],
-                      flat[:, 0, 2] + flat[:, 2, 0]], -1),
-            np.stack([flat[:, 0, 2] - flat[:, 2, 0], flat[:, 0, 1] + flat[:, 1, 0], 1 - m00 + m11 - m22,
-                      flat[:, 1, 2] + flat[:, 2, 1]], -1),
-            np.stack([flat[:, 1, 0] - flat[:, 0, 1], flat[:, 0, 2] + flat[:, 2, 0], flat[:, 1, 2] + flat[:, 2, 1],
-                      1 - m00 - m11 + m22], -1),
-        ],
-        axis=1,
-    )  # [N, 4 candidates, 4]
-    best = np.argmax(np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
-                               1 - m00 - m11 + m22], -1), axis=-1)
-    q = cand[np.arange(len(flat)), best]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q.reshape(m.shape[:-2] + (4,))
-
-
-def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
-    """Quaternions of axis-angle vectors (axis * angle in rad), float64 [..., 3] -> [..., 4]."""
-    v = np.asarray(rotvec, dtype=np.float64)
-    if v.shape[-1] != 3:
-        raise ShapeError(f"rotation vectors must be [..., 3], got {v.shape}")
-    angle = np.linalg.norm(v, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    # sin(a/2)/a with its series near 0
-    scale = np.where(angle > 1e-8, np.sin(half) / np.where(angle > 1e-8, angle, 1.0), 0.5 - angle**2 / 48.0)
-    return np.concatenate([np.cos(half), v * scale], axis=-1)
-
-
-def quat_slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Spherical linear interpolation along the shortest arc.
-
-    Args:
-        q0, q1: float [..., 4] unit quaternions (w, x, y, z).
-        alpha: float [...] (broadcast against ``q0[..., 0]``), 0 -> q0, 1 -> q1 (sign-aligned).
-
-    Returns:
-        float64 [..., 4] unit quaternions; exactly ``q0`` at alpha = 0.
-    """
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    a = np.asarray(alpha, dtype=np.float64)[..., None]
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.clip(np.abs(dot), 0.0, 1.0)
-    theta = np.arccos(dot)
-    sin_theta = np.sin(theta)
-    small = sin_theta < 1e-6
-    safe = np.where(small, 1.0, sin_theta)
-    w0 = np.where(small, 1.0 - a, np.sin((1.0 - a) * theta) / safe)
-    w1 = np.where(small, a, np.sin(a * theta) / safe)
-    out = w0 * q0 + w1 * q1
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
-
-
-def rotation_about_z(angle_rad: np.ndarray | float) -> np.ndarray:
-    """Rotation matrices about +Z (counter-clockwise seen from above), float64 [..., 3, 3]."""
-    a = np.asarray(angle_rad, dtype=np.float64)
-    c, s = np.cos(a), np.sin(a)
-    zero, one = np.zeros_like(a), np.ones_like(a)
-    return np.stack([c, -s, zero, s, c, zero, zero, zero, one], axis=-1).reshape(a.shape + (3, 3))
 
 
 # ---------------------------------------------------------------------------------------------- Motion
@@ -640,170 +526,6 @@ def concatenate(motions: Sequence[Motion], *, blend_frames: int = 0) -> Motion:
     return Motion(rotations_wxyz=rot, root_translation_m=root, fps_hz=fps, name=names,
                   source="concatenate(" + ", ".join(m.source for m in motions) + ")",
                   bone_names=motions[0].bone_names, metadata={"parts": [m.name for m in motions]})
-
-
-# ---------------------------------------------------------------------------------------------- ground contact
-def _pose_batches(motion: Motion, model: "BodyModel", shape_index: int, batch_frames: int = 64):
-    """Posed vertices batch by batch (no grad): yields ``(start, stop, vertices tensor [stop - start, V, 3])``."""
-    import torch
-
-    motion.check_rig(model.asset.bone_names)
-    with torch.no_grad():
-        for start in range(0, motion.num_frames, batch_frames):
-            stop = min(start + batch_frames, motion.num_frames)
-            rot = torch.as_tensor(motion.rotations_wxyz[start:stop].copy(), device=model.device)
-            root = torch.as_tensor(motion.root_translation_m[start:stop].copy(), device=model.device)
-            yield start, stop, model.pose(shape_index, rot, root)
-
-
-def lowest_vertex_z(motion: Motion, model: "BodyModel", shape_index: int = 0, batch_frames: int = 64) -> np.ndarray:
-    """Height of the lowest skinned vertex per frame, float64 [T] (m), computed with ``model`` (FK + LBS)."""
-    out = np.empty(motion.num_frames)
-    for start, stop, verts in _pose_batches(motion, model, shape_index, batch_frames):
-        out[start:stop] = verts[..., 2].amin(dim=1).double().cpu().numpy()
-    return out
-
-
-def ground_contact(
-    motion: Motion,
-    model: "BodyModel",
-    shape_index: int = 0,
-    *,
-    mode: str = "frame",
-    cycle_frames: int | None = None,
-    ground_z_m: float = 0.0,
-) -> Motion:
-    """Shift the root vertically so that the body stands on the ground plane ``z = ground_z_m``.
-
-    Modes (the lowest skinned mesh vertex is measured with ``model``):
-
-    - ``"frame"``: per frame, the lowest vertex is put exactly on the ground. Right for walking (one foot is
-      always on the ground); it removes flight phases, so do not use it for running.
-    - ``"cycle"``: one offset per block of ``cycle_frames`` frames (default: the whole motion when it is a
-      cycle): the lowest vertex *of the cycle* touches the ground; vertical bob and flight are kept.
-    - ``"clip"``: one offset for the whole motion.
-
-    Args:
-        motion: the motion (bone order of ``model``'s asset).
-        model: :class:`~davis_rig.scene.body.BodyModel` (any device).
-        shape_index: body shape to measure.
-        mode: ``"frame"``, ``"cycle"`` or ``"clip"``.
-        cycle_frames: block length for ``"cycle"``.
-        ground_z_m: ground height (m).
-
-    Returns:
-        The motion with corrected root heights (metadata ``ground_contact`` records the mode).
-
-    Raises:
-        ValueError: unknown mode, or ``"cycle"`` without a cycle length. ShapeError: rig mismatch.
-    """
-    low = lowest_vertex_z(motion, model, shape_index)
-    if mode == "frame":
-        offset = ground_z_m - low
-    elif mode == "clip":
-        offset = np.full_like(low, ground_z_m - low.min())
-    elif mode == "cycle":
-        n = cycle_frames if cycle_frames is not None else (motion.num_frames if motion.is_cycle else None)
-        if n is None or n < 1:
-            raise ValueError("mode='cycle' needs cycle_frames (or a cyclic motion)")
-        block = np.arange(motion.num_frames) // n
-        block_min = np.minimum.reduceat(low, np.arange(0, motion.num_frames, n))
-        offset = ground_z_m - block_min[block]
-    else:
-        raise ValueError(f"unknown ground contact mode {mode!r}; expected 'frame', 'cycle' or 'clip'")
-    root = motion.root_translation_m.astype(np.float64).copy()
-    root[:, 2] += offset
-    return replace(motion, root_translation_m=root, metadata={**motion.metadata, "ground_contact": mode})
-
-
-def foot_vertex_ids(asset) -> dict[str, np.ndarray]:
-    """Mesh vertices of each foot, ``{"L": int64 [K], "R": int64 [K]}`` (the ``feet`` part, split by rest X sign)."""
-    feet = np.unique(asset.faces[asset.face_part_mask(["feet"])])
-    x = asset.rest_vertices_m[0, feet, 0]
-    return {"L": feet[x > 0], "R": feet[x < 0]}
-
-
-def _posed_vertices(motion: Motion, model: "BodyModel", shape_index: int, ids: np.ndarray) -> np.ndarray:
-    """Posed positions of the vertices ``ids``, float64 [T, len(ids), 3] (m)."""
-    out = np.empty((motion.num_frames, len(ids), 3))
-    for start, stop, verts in _pose_batches(motion, model, shape_index):
-        out[start:stop] = verts[:, ids].double().cpu().numpy()
-    return out
-
-
-def contact_slip(
-    motion: Motion,
-    model: "BodyModel",
-    shape_index: int = 0,
-    foot_vertices: dict[str, np.ndarray] | None = None,
-    planted_left: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal slip of the planted foot per frame step.
-
-    At each step ``t -> t + 1`` the planted foot is the one whose lowest vertex moves least in X/Y (the
-    other one swings forward); its slip is how far that lowest vertex moves in X/Y. A cyclic motion has
-    ``S = T`` steps (the last one wraps to frame 0 of the next period, shifted by ``cycle_advance_m``), a clip
-    ``S = T - 1``. The motion must already advance roughly (an in-place cycle has no planted foot: give it
-    an estimated ``cycle_advance_m`` first).
-
-    Args:
-        motion: the motion (bone order of ``model``'s asset).
-        model: :class:`~davis_rig.scene.body.BodyModel`.
-        shape_index: body shape.
-        foot_vertices: vertex ids per foot (default :func:`foot_vertex_ids` of the model's asset).
-        planted_left: bool [S], which foot is planted at each step (default: the one that moves less).
-
-    Returns:
-        ``(slip float64 [S, 2] in m per step — multiply by fps_hz for m/s, planted_left bool [S])``.
-    """
-    feet = foot_vertices if foot_vertices is not None else foot_vertex_ids(model.asset)
-    steps = motion.num_frames if motion.is_cycle else motion.num_frames - 1
-    both = _posed_vertices(motion, model, shape_index, np.concatenate([feet["L"], feet["R"]]))  # pose once
-    if motion.is_cycle:
-        both = np.concatenate([both, both[:1] + motion.cycle_advance_m])
-    t = np.arange(steps)
-    moves = []
-    for v in np.split(both, [len(feet["L"])], axis=1):
-        low = np.argmin(v[:steps, :, 2], axis=1)
-        moves.append(v[t + 1, low, :2] - v[t, low, :2])
-    if planted_left is None:
-        left = np.linalg.norm(moves[0], axis=1) <= np.linalg.norm(moves[1], axis=1)
-    else:
-        left = np.asarray(planted_left, dtype=bool)
-        if left.shape != (steps,):
-            raise ShapeError(f"planted_left must be [{steps}], got {left.shape}")
-    return np.where(left[:, None], moves[0], moves[1]), left
-
-
-def lock_stance_foot(
-    motion: Motion,
-    model: "BodyModel",
-    shape_index: int = 0,
-    foot_vertices: dict[str, np.ndarray] | None = None,
-    planted_left: np.ndarray | None = None,
-) -> Motion:
-    """Move the root horizontally so that the ground contact does not slide (no foot skating).
-
-    The root's X/Y path is rebuilt from :func:`contact_slip`: each step's root displacement loses the slip
-    of the planted foot, so its lowest vertex stays put from one frame to the next (a rolling contact:
-    heel, then ball, then toe). Heights, rotations and frame 0 are unchanged; for a cycle,
-    ``cycle_advance_m`` becomes the distance the body then covers per period. Meant for walks (one foot always
-    down); flight phases of a run are not contacts. ``planted_left`` (bool [S]) fixes which foot is planted at
-    each step instead of :func:`contact_slip`'s guess.
-
-    Returns:
-        The corrected motion (metadata ``stance_locked`` is True).
-    """
-    slip, _ = contact_slip(motion, model, shape_index, foot_vertices, planted_left)
-    root = motion.root_translation_m.astype(np.float64).copy()
-    steps = np.diff(root[:, :2], axis=0) - slip[: motion.num_frames - 1]
-    root[1:, :2] = root[0, :2] + np.cumsum(steps, axis=0)
-    advance = None
-    if motion.is_cycle:
-        advance = np.array(motion.cycle_advance_m, dtype=np.float64)
-        advance[:2] -= slip.sum(axis=0)
-    return replace(motion, root_translation_m=root, cycle_advance_m=advance,
-                   metadata={**motion.metadata, "stance_locked": True})
 
 
 # ---------------------------------------------------------------------------------------------- retargeting core

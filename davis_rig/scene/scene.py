@@ -31,7 +31,7 @@ import numpy as np
 
 from davis_rig._lazy import optional_import
 from davis_rig.errors import ShapeError
-from davis_rig.scene.background import random_background, uniform
+from davis_rig.scene.background import random_background, uniform, warp_background
 from davis_rig.scene.camera import (
     DEFAULT_PERSON_HEIGHT_M,
     EgoMotion,
@@ -296,27 +296,6 @@ def scene_camera(spec: SceneSpec, rng: np.random.Generator | None = None) -> tup
     return np.broadcast_to(rotation, (n, 3, 3)).copy(), np.broadcast_to(translation, (n, 3)).copy()
 
 
-def _warp_background(background: np.ndarray, camera: PinholeCamera, rotation, translation, depth_m: float):
-    """Per-frame views of a background plane ``z = depth_m`` of the first frame's camera, float32 [T, H, W]."""
-    import cv2
-
-    k = camera.matrix.copy()
-    k[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
-    k[1, 2] -= 0.5
-    k_inv = np.linalg.inv(k)
-    normal = np.array([0.0, 0.0, 1.0])
-    h, w = camera.hw
-    frames = []
-    for r_k, t_k in zip(rotation, translation):  # one homography per frame
-        r_rel = r_k @ rotation[0].T
-        t_rel = t_k - r_rel @ translation[0]
-        homography = k @ (r_rel + np.outer(t_rel, normal) / depth_m) @ k_inv
-        frames.append(
-            cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        )
-    return np.stack(frames).astype(np.float32)
-
-
 def render_clip(
     spec: SceneSpec,
     texture=None,
@@ -362,30 +341,10 @@ def render_clip(
     if part_labels and model.face_parts is None:
         raise ValueError(f"{type(model).__name__} has no per-face part labels (SmplBody: face_parts=...); "
                          "render with part_labels=False")
-    rng = np.random.default_rng(spec.seed)
+    rng = np.random.default_rng(spec.seed)  # drawn in this order: camera jitter, light, background
     rotation, translation = scene_camera(spec, rng)
-    light = spec.light
-    if isinstance(light, str):
-        if light != "random":
-            raise ValueError(f"light must be a Light, 'random' or None, got {light!r}")
-        light = Light.random(rng)
-    hw = spec.camera.hw
-    background = spec.background
-    if isinstance(background, str):
-        if background != "random":
-            raise ValueError(f"background must be an array, a scalar or 'random', got {background!r}")
-        background = random_background(hw, rng)
-    elif np.isscalar(background):
-        background = uniform(hw, float(background))
-    background = np.asarray(background, dtype=np.float32)
-    if tuple(background.shape) != hw:
-        raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
-    if spec.ego_motion is not None:
-        depth = spec.background_depth_m
-        if depth is None:
-            depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
-        background = _warp_background(background, spec.camera, rotation, translation, depth)
-    background = torch.as_tensor(background, device=model.device)
+    light = _scene_light(spec.light, rng)
+    background = torch.as_tensor(_scene_background(spec, rotation, translation, rng), device=model.device)
     vertices = scene_vertices(spec, model)
     raster = rasterize_mesh(
         vertices,
@@ -417,3 +376,35 @@ def render_clip(
         camera_rotation_w2c=rotation,
         camera_translation_w2c=translation,
     )
+
+
+def _scene_light(light: Light | str | None, rng: np.random.Generator) -> Light | None:
+    """The scene's light: ``"random"`` is drawn from ``rng``, a :class:`Light` or ``None`` (default) as given."""
+    if isinstance(light, str):
+        if light != "random":
+            raise ValueError(f"light must be a Light, 'random' or None, got {light!r}")
+        return Light.random(rng)
+    return light
+
+
+def _scene_background(spec: SceneSpec, rotation: np.ndarray, translation: np.ndarray,
+                      rng: np.random.Generator) -> np.ndarray:
+    """The background, float32 [H, W] (``"random"``: procedural from ``rng``; a scalar: uniform), or [T, H, W] with
+    ego-motion: the background plane ``background_depth_m`` away warped into every frame's camera."""
+    hw = spec.camera.hw
+    background = spec.background
+    if isinstance(background, str):
+        if background != "random":
+            raise ValueError(f"background must be an array, a scalar or 'random', got {background!r}")
+        background = random_background(hw, rng)
+    elif np.isscalar(background):
+        background = uniform(hw, float(background))
+    background = np.asarray(background, dtype=np.float32)
+    if tuple(background.shape) != hw:
+        raise ShapeError(f"background must be {hw} (H, W), got {tuple(background.shape)}")
+    if spec.ego_motion is not None:
+        depth = spec.background_depth_m
+        if depth is None:
+            depth = (spec.distance_m or distance_for_height(spec.scale, spec.camera)) + 10.0
+        background = warp_background(background, spec.camera, rotation, translation, depth)
+    return background

@@ -17,7 +17,7 @@ import numpy as np
 
 from davis_rig.errors import ShapeError
 
-__all__ = ["SOLE_BAND_M", "Rig", "descendants", "sole_points"]
+__all__ = ["SOLE_BAND_M", "Rig", "depth_levels", "descendants", "sole_points"]
 
 #: Height band above a foot's lowest rest vertex whose vertices count as its sole (m).
 SOLE_BAND_M = 0.015
@@ -114,3 +114,30 @@ def sole_points(rig: Rig, world_rotations: np.ndarray, side: str) -> np.ndarray:
         heads[:, c] = heads[:, p] + g[:, p] @ (rest_heads[c] - rest_heads[p])
     pts, bones = rig.soles[side]
     return heads[:, bones] + np.einsum("tpij,pj->tpi", g[:, bones], pts - rest_heads[bones])
+
+
+def depth_levels(parents: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Bones grouped by depth in the tree, for forward kinematics one level at a time.
+
+    Args:
+        parents: int [J] parent of each bone (-1 for the root, bone 0); parents precede their children.
+
+    Returns:
+        Per level, ``(bone indices int64 [K], position of each bone's parent in the previous level's indices)``.
+    """
+    parents = np.asarray(parents, dtype=np.int64)
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for bone in range(1, len(parents)):  # parents precede children (validated at load)
+        depth[bone] = depth[parents[bone]] + 1
+    levels = []
+    previous = np.array([0])
+    for level in range(depth.max() + 1):
+        bones = np.flatnonzero(depth == level)
+        if level == 0:
+            parent_pos = np.zeros(1, dtype=np.int64)
+        else:
+            lookup = {bone: i for i, bone in enumerate(previous)}
+            parent_pos = np.array([lookup[p] for p in parents[bones]], dtype=np.int64)
+        levels.append((bones, parent_pos))
+        previous = bones
+    return levels

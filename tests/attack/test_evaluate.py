@@ -8,19 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from davis_rig.attack.evaluate import (
-    PAPER_THRESHOLDS,
-    EvalConfig,
-    TextureSpec,
-    baseline_textures,
-    results_markdown,
-    score_detections,
-    table1,
-    table2,
-    evaluation_scenes,
-    window_histograms,
-    write_visualisations,
-)
+from davis_rig.attack.evaluate import PAPER_THRESHOLDS, EvalConfig, TextureSpec, baseline_textures, evaluation_scenes
+from davis_rig.attack.report import results_markdown, table1, table2, write_visualisations
+from davis_rig.attack.scoring import score_detections, window_histograms
 from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.scene.body import BodyModel
 

@@ -106,7 +106,8 @@ def test_tiles_join_only_printed_neighbours(tmp_path):
     # registration marks and a "joins" label on an edge whose neighbour was dropped
     import re
 
-    from davis_rig.attack.export import Tile, _joined_neighbours
+    from davis_rig.attack.export import Tile
+    from davis_rig.attack.export.pdf import _joined_neighbours
 
     tile = Tile(0, 1, 1, 3, 3, 0.0, 0.0, 100.0, 100.0, False)
     kept = {(0, 0, 1), (0, 1, 1), (0, 1, 2), (1, 2, 1)}  # (1, 2, 1) belongs to another piece

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from davis_rig.attack.export import _islands
+from davis_rig.attack.export.pattern import _islands
 
 
 def _components_by_search(faces: np.ndarray) -> list[list[int]]:

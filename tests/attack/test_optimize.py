@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from davis_rig.attack.eot import ClipPool, EoTConfig, draw_scene, prepare_clip, slot_seed, split_shapes
-from davis_rig.attack.optimize import AttackConfig, _better, load_attack_detector, optimize_texture
+from davis_rig.attack.optimize import AttackConfig, load_attack_detector, optimize_texture
+from davis_rig.attack.validation import REFINE_SEED_OFFSET, VAL_SEED_OFFSET, better
 from davis_rig.errors import CheckpointError
 from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.scene.body import BodyModel
@@ -181,7 +182,7 @@ def test_best_on_validation_selection(detector, body, tmp_path):
     assert [v["step"] for v in vals] == [1, 2, 3]
     best = vals[0]
     for v in vals[1:]:
-        if _better(v, best):
+        if better(v, best):
             best = v
     saved = json.loads((tmp_path / "best.json").read_text())
     assert saved == best and result.best_step == best["step"]
@@ -190,15 +191,15 @@ def test_best_on_validation_selection(detector, body, tmp_path):
 
 
 def test_better_rule():
-    assert _better({"SeqASR": 0.5, "mean_top_score": 0.9}, None)
-    assert _better({"SeqASR": 0.5, "mean_top_score": 0.9}, {"SeqASR": 0.25, "mean_top_score": 0.1})
-    assert _better({"SeqASR": 0.5, "mean_top_score": 0.2}, {"SeqASR": 0.5, "mean_top_score": 0.3})
-    assert not _better({"SeqASR": 0.5, "mean_top_score": 0.3}, {"SeqASR": 0.5, "mean_top_score": 0.3})
-    assert not _better({"SeqASR": float("nan"), "mean_top_score": 0.0}, {"SeqASR": 0.0, "mean_top_score": 0.5})
+    assert better({"SeqASR": 0.5, "mean_top_score": 0.9}, None)
+    assert better({"SeqASR": 0.5, "mean_top_score": 0.9}, {"SeqASR": 0.25, "mean_top_score": 0.1})
+    assert better({"SeqASR": 0.5, "mean_top_score": 0.2}, {"SeqASR": 0.5, "mean_top_score": 0.3})
+    assert not better({"SeqASR": 0.5, "mean_top_score": 0.3}, {"SeqASR": 0.5, "mean_top_score": 0.3})
+    assert not better({"SeqASR": float("nan"), "mean_top_score": 0.0}, {"SeqASR": 0.0, "mean_top_score": 0.5})
     # select_by="score": the mean top score alone, so one more missed sequence of 8 no longer outranks it
-    assert _better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37}, "score")
-    assert not _better({"SeqASR": 0.125, "mean_top_score": 0.37}, {"SeqASR": 0.0, "mean_top_score": 0.30}, "score")
-    assert not _better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37})
+    assert better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37}, "score")
+    assert not better({"SeqASR": 0.125, "mean_top_score": 0.37}, {"SeqASR": 0.0, "mean_top_score": 0.30}, "score")
+    assert not better({"SeqASR": 0.0, "mean_top_score": 0.30}, {"SeqASR": 0.125, "mean_top_score": 0.37})
     with pytest.raises(ValueError, match="select_by"):
         AttackConfig(select_by="ap")
 
@@ -510,11 +511,11 @@ def _signal_at(monkeypatch, when: str, count: int) -> None:
     import os
     import signal
 
-    import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt
+    import davis_rig.attack.validation as val
     from davis_rig.attack import eot
 
-    target = {"attack_loss": opt, "validate": ev, "clip": eot}[when]
+    target = {"attack_loss": opt, "validate": val, "clip": eot}[when]
     name = {"attack_loss": "attack_loss", "validate": "window_histograms", "clip": "prepare_clip"}[when]
     original = getattr(target, name)
     calls = []
@@ -600,8 +601,8 @@ def test_checkpoint_period_in_steps_or_wall_time(detector, body, tmp_path, monke
     import davis_rig.attack.optimize as opt
 
     saved = []
-    original = opt._atomic_save
-    monkeypatch.setattr(opt, "_atomic_save", lambda state, path: saved.append(state["step"]) or original(state, path))
+    original = opt.atomic_save
+    monkeypatch.setattr(opt, "atomic_save", lambda state, path: saved.append(state["step"]) or original(state, path))
     optimize_texture(_tiny(iterations=5, checkpoint_every=2), detector, tmp_path / "steps", body_model=body,
                      progress=False)
     assert saved == [2, 4, 5]  # every 2 steps and after the last one
@@ -648,19 +649,19 @@ def test_validation_and_refinement_clips_draw_the_training_motions(body, monkeyp
     # with --amass/--bvh the pool uses a training motion in half of its clips; validation and the refinement's
     # clips must come from the same distribution (they used to be walk cycles only); without motions they are
     # the same draws as before
-    import davis_rig.attack.optimize as opt
+    import davis_rig.attack.validation as val
     from davis_rig.scene.gait import generate_gait
 
     motion = generate_gait()
     drawn = []
-    monkeypatch.setattr(opt, "prepare_clip", lambda spec, *a, **kw: drawn.append(spec) or spec)
+    monkeypatch.setattr(val, "prepare_clip", lambda spec, *a, **kw: drawn.append(spec) or spec)
     cfg = _tiny()
-    opt._validation_clips(cfg, body, None, 8, motions=(motion,))
+    val.validation_clips(cfg, body, None, 8, motions=(motion,))
     assert any(spec.motion is motion for spec in drawn)
-    seeds = [slot_seed(cfg.seed + opt._VAL_SEED_OFFSET, i, 0) for i in range(8)]
+    seeds = [slot_seed(cfg.seed + VAL_SEED_OFFSET, i, 0) for i in range(8)]
     assert drawn == [draw_scene(cfg.eot, s, body.num_shapes, (motion,))[0] for s in seeds]
     drawn.clear()
-    opt._validation_clips(cfg, body, None, 8)
+    val.validation_clips(cfg, body, None, 8)
     assert drawn == [draw_scene(cfg.eot, s, body.num_shapes)[0] for s in seeds]
     assert all(spec.motion is None for spec in drawn)
 
@@ -671,16 +672,16 @@ def test_optimize_passes_the_training_motions_to_validation_and_refinement(detec
 
     motions = (generate_gait(),)
     seen = []
-    original = opt._validation_clips
+    original = opt.validation_clips
 
-    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=(), on_clip=None):
+    def recording(config, model, mask, num, seed_offset=VAL_SEED_OFFSET, motions=(), on_clip=None):
         seen.append((seed_offset, motions))
         return original(config, model, mask, num, seed_offset, motions, on_clip)
 
-    monkeypatch.setattr(opt, "_validation_clips", recording)
+    monkeypatch.setattr(opt, "validation_clips", recording)
     cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)
     optimize_texture(cfg, detector, tmp_path, body_model=body, motions=motions, progress=False)
-    assert seen == [(opt._VAL_SEED_OFFSET, motions), (opt._REFINE_SEED_OFFSET, motions)]
+    assert seen == [(VAL_SEED_OFFSET, motions), (REFINE_SEED_OFFSET, motions)]
 
 
 def test_the_official_lr_schedule_is_the_default_and_a_run_before_it_resumes_as_constant(detector, body, tmp_path):
@@ -752,7 +753,7 @@ def test_validation_records_carry_the_transfer_gap_and_selection_uses_the_traini
     for v in vals:
         assert v["transfer_gap"] == pytest.approx(v["mean_top_score"] - v["train_top_score"])
     assert result.final_validation == vals[-1]
-    assert _better({"SeqASR": 0.0, "mean_top_score": 0.9, "train_SeqASR": 0.5, "train_top_score": 0.1},
+    assert better({"SeqASR": 0.0, "mean_top_score": 0.9, "train_SeqASR": 0.5, "train_top_score": 0.1},
                    {"SeqASR": 1.0, "mean_top_score": 0.1, "train_SeqASR": 0.0, "train_top_score": 0.9})
 
 

@@ -77,8 +77,9 @@ def test_mocap_folders_map_onto_the_split_loaders(monkeypatch, tmp_path, capsys)
 
 
 def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
-    import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt
+    import davis_rig.attack.report as report
+    from davis_rig.attack.evaluate import PAPER_THRESHOLDS
 
     np.save(tmp_path / "t10.npy", np.eye(10, dtype=np.float32))
     monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
@@ -91,14 +92,14 @@ def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
         md.write_text("| Texture |\n")
         return {"markdown": md, "json": md, "plot": md, "rows": []}
 
-    monkeypatch.setattr(ev, "table1", fake_table1)
+    monkeypatch.setattr(report, "table1", fake_table1)
     args = _parser().parse_args(["evaluate", "--table", "1", "--out", str(tmp_path / "o"), "--texture",
                                  f"10={tmp_path / 't10.npy'}", "--scales", "middle", "--headings", "1",
                                  "--no-progress"])
     assert args.func(args) == 0
     assert list(seen["grids"]) == [10] and np.array_equal(seen["grids"][10], np.eye(10, dtype=np.float32))
     config = seen["kw"]["config"]
-    assert config.thresholds == ev.PAPER_THRESHOLDS and config.scales == ("middle",)
+    assert config.thresholds == PAPER_THRESHOLDS and config.scales == ("middle",)
     assert config.headings_rad == (math.pi / 2,) and seen["kw"]["parts"] == ("torso", "arms", "legs")
 
 
@@ -344,7 +345,7 @@ def test_reproduce_examples_share_a_folder_only_with_the_same_budget():
     # refinement's may change): two examples writing to one folder with different --lr made the second one fail
     import shlex
 
-    from davis_rig.attack.optimize import _FREE_ON_RESUME as free
+    from davis_rig.attack.checkpoint import FREE_ON_RESUME as free
 
     configs: dict[str, list[dict]] = {}
     for line in cmd.REPRODUCE_EPILOG.splitlines():
@@ -362,8 +363,8 @@ def test_reproduce_examples_share_a_folder_only_with_the_same_budget():
 def test_evaluate_cells_sets_the_grid_size_of_every_texture_map(monkeypatch, tmp_path):
     import cv2
 
-    import davis_rig.attack.evaluate as ev
     import davis_rig.attack.optimize as opt
+    import davis_rig.attack.report as report
     from davis_rig.attack.export import upsample
 
     coarse = (np.random.default_rng(0).random((5, 5)) > 0.5).astype(np.float32)
@@ -379,7 +380,7 @@ def test_evaluate_cells_sets_the_grid_size_of_every_texture_map(monkeypatch, tmp
         md.write_text("| Texture |\n")
         return {"markdown": md, "json": md, "plot": md, "rows": []}
 
-    monkeypatch.setattr(ev, "table2", fake_table2)
+    monkeypatch.setattr(report, "table2", fake_table2)
     base = ["evaluate", "--table", "2", "--out", str(tmp_path / "o"), "--texture", f"torso={tmp_path / 'map.png'}",
             "--texture", f"legs={tmp_path / 'map.png'}", "--no-progress"]
     args = _parser().parse_args(base)

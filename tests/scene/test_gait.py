@@ -5,15 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from davis_rig.scene.gait import (
+from davis_rig.scene.gait import GaitParams, generate_gait
+from davis_rig.scene.gait_curves import (
     FIT_MAX_ERROR_DEG,
     FOURIER_COEFFICIENTS,
     NATIVE_STANCE_FRACTION,
     NORMATIVE_TABLES,
-    GaitParams,
     evaluate_fourier,
     fit_fourier,
-    generate_gait,
     joint_angles_deg,
 )
 

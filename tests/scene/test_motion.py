@@ -7,14 +7,10 @@ import numpy as np
 import pytest
 
 from davis_rig.errors import ShapeError
+from davis_rig.scene.contact import contact_slip, foot_vertex_ids, ground_contact, lock_stance_foot, lowest_vertex_z
 from davis_rig.scene.motion import (
     Motion,
     concatenate,
-    contact_slip,
-    foot_vertex_ids,
-    ground_contact,
-    lock_stance_foot,
-    lowest_vertex_z,
     loop,
     motion_from_world_rotations,
     quat_from_matrix,

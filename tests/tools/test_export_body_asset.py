@@ -31,7 +31,8 @@ def test_steady_planted_labels_flip_hand_over_chatter(tool):
 def test_lift_free_feet_raises_the_free_foot_above_the_planted_one(tool):
     pytest.importorskip("torch")
     from davis_rig.scene.body import BodyAsset, BodyModel
-    from davis_rig.scene.motion import Motion, _posed_vertices, foot_vertex_ids
+    from davis_rig.scene.contact import foot_vertex_ids, posed_vertices
+    from davis_rig.scene.motion import Motion
 
     asset = BodyAsset.load()
     model = BodyModel(asset)
@@ -39,11 +40,11 @@ def test_lift_free_feet_raises_the_free_foot_above_the_planted_one(tool):
     walk = Motion(walk.rotations_wxyz[::4], walk.root_translation_m[::4], walk.fps_hz / 4,
                   cycle_advance_m=walk.cycle_advance_m, bone_names=walk.bone_names)  # 10 frames: fast
     feet = foot_vertex_ids(asset)
-    low = {s: _posed_vertices(walk, model, 0, feet[s])[:, :, 2].min(axis=1) for s in "LR"}
+    low = {s: posed_vertices(walk, model, 0, feet[s])[:, :, 2].min(axis=1) for s in "LR"}
     planted_left = low["L"] <= low["R"]
     planted_left[[2, 7]] = ~planted_left[[2, 7]]  # the lower foot swings there: it must be lifted
     lifted, angles = tool.lift_free_feet(walk, model, 0, planted_left)
-    new = {s: _posed_vertices(lifted, model, 0, feet[s])[:, :, 2].min(axis=1) for s in "LR"}
+    new = {s: posed_vertices(lifted, model, 0, feet[s])[:, :, 2].min(axis=1) for s in "LR"}
     planted = np.where(planted_left, new["L"], new["R"])
     free = np.where(planted_left, new["R"], new["L"])
     assert (free >= planted + tool.SWING_CLEARANCE_M - 1e-3).all()

@@ -46,7 +46,8 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
     finite differences so that the foot's lowest vertex is SWING_CLEARANCE_M above the planted foot's and its
     mean forward (Y) position is unchanged. Returns ``(motion, {side: angles_rad [T, 2]})``.
     """
-    from davis_rig.scene.motion import Motion, _posed_vertices, foot_vertex_ids, quat_from_rotvec, quat_multiply
+    from davis_rig.scene.contact import foot_vertex_ids, posed_vertices
+    from davis_rig.scene.motion import Motion, quat_from_rotvec, quat_multiply
 
     feet = foot_vertex_ids(model.asset)
     frames = motion.num_frames
@@ -62,7 +63,7 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
                       cycle_advance_m=base.cycle_advance_m, bone_names=base.bone_names, metadata=base.metadata)
 
     def foot(m, side):
-        v = _posed_vertices(m, model, shape, feet[side])
+        v = posed_vertices(m, model, shape, feet[side])
         return v[:, :, 2].min(axis=1), v[:, :, 1].mean(axis=1)
 
     low = {side: foot(motion, side)[0] for side in "LR"}
@@ -96,13 +97,13 @@ def lift_free_feet(motion, model, shape: int, planted_left: np.ndarray, iteratio
 def contact_measures(motion, model, shape: int, planted_left: np.ndarray | None = None):
     """Planted-foot slip speed [T] (m/s), lowest vertex height [T] (m) and how far the planted foot's lowest point
     rises above the lowest vertex at most (m) of a walk (``planted_left`` default: the foot that moves less)."""
-    from davis_rig.scene.motion import _posed_vertices, contact_slip, foot_vertex_ids, lowest_vertex_z
+    from davis_rig.scene.contact import contact_slip, foot_vertex_ids, lowest_vertex_z, posed_vertices
 
     slip, left = contact_slip(motion, model, shape, planted_left=planted_left)
     speed = np.linalg.norm(slip, axis=1) * motion.fps_hz
     low = lowest_vertex_z(motion, model, shape)
     feet = foot_vertex_ids(model.asset)
-    planted = np.where(left, *(_posed_vertices(motion, model, shape, feet[side])[:, :, 2].min(axis=1)
+    planted = np.where(left, *(posed_vertices(motion, model, shape, feet[side])[:, :, 2].min(axis=1)
                                for side in "LR"))
     return speed, low, float((planted - low).max())
 
@@ -123,7 +124,7 @@ def settle_shape(walk, model, shape: int):
     Returns:
         ``(settled motion, planted_left bool [T], largest added free-leg flexion (deg))``.
     """
-    from davis_rig.scene.motion import contact_slip, ground_contact, lock_stance_foot
+    from davis_rig.scene.contact import contact_slip, ground_contact, lock_stance_foot
 
     _, guessed = contact_slip(lock_stance_foot(walk, model, shape), model, shape)
     planted_left = steady_planted_labels(guessed)
@@ -140,7 +141,7 @@ def contact_summary(before: dict, after: dict, lift_max_deg: float, speed_all: n
         "method": "planted foot per step = the one that moves less, hand-over chatter (runs < "
                   f"{MIN_SUPPORT_FRAMES} frames) removed; the free foot lifted {SWING_CLEARANCE_M} m above the "
                   "planted one by knee + hip flexion where the walk had it lower (lift_free_feet); the root follows "
-                  "the planted foot's lowest vertex (davis_rig.scene.motion.lock_stance_foot); per-frame ground "
+                  "the planted foot's lowest vertex (davis_rig.scene.contact.lock_stance_foot); per-frame ground "
                   "contact (ground_contact mode 'frame'); stored back as an in-place cycle + walk_speed_m_s; the "
                   "small lateral drift per cycle is dropped",
         "planted_foot_slip_m_s": {"before": {k: max(v) if k != "slip_median" else float(np.median(v))
