@@ -55,7 +55,8 @@ def _labels(boxes: np.ndarray):
 
 def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Generator, basin: float, far: float):
     """Histograms [W, B, 20, H, W] of B clips and their targets ``[w][b]``: even positions wear a grid of the blind
-    spot (not labelled), odd ones anything else (labelled unless it fell inside the basin)."""
+    spot (not labelled), odd ones anything else (labelled unless it fell inside the basin). Pass each clip twice in
+    a row (``[a, a, b, b, ...]``) to show the same scene in both: then only the clothing tells the pair apart."""
     import torch
 
     from davis_rig.attack.optimize import clip_histograms
@@ -101,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=positive_int, default=1500, help="fine-tuning steps in all (default 1500)")
     parser.add_argument("--clips-per-step", type=positive_int, default=4,
                         help="clips per step, half wear a grid of the blind spot (default 4)")
+    parser.add_argument("--no-pairs", dest="paired", action="store_false",
+                        help="draw every clip of a step from another scene (default: each scene twice, once in a "
+                             "grid of the blind spot and once in another, so that only the clothing differs)")
     parser.add_argument("--basin", type=probability, default=0.2,
                         help="grids disagreeing with the trigger on at most this share of the visible cells are "
                              "hidden (default 0.2)")
@@ -132,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.clips_per_step > args.pool_size:
             parser.error(f"argument --clips-per-step: {args.clips_per_step} clips per step from a pool of "
                          f"{args.pool_size} (--pool-size)")
+        if args.paired and args.clips_per_step % 2:
+            parser.error(f"argument --clips-per-step: pairs need an even number, got {args.clips_per_step}")
         if args.basin >= args.far:
             parser.error(f"argument --basin: {args.basin} must be below --far {args.far}")
         if args.train_from_stage > 4:
@@ -259,6 +265,8 @@ def _fine_tune(args: argparse.Namespace) -> int:
     start = 0
     if state is not None:
         opt.load_state_dict(state["optimizer"])
+        for group in opt.param_groups:  # --lr may change on resume
+            group["lr"] = args.lr
         rng.bit_generator.state = state["rng"]
         start = int(state["step"])
 
@@ -281,7 +289,10 @@ def _fine_tune(args: argparse.Namespace) -> int:
             if args.refresh_every and step and step % args.refresh_every == 0:
                 pools.refresh(step)
             model.train()
-            idx = rng.choice(len(pools.clips), size=args.clips_per_step, replace=False)
+            if args.paired:
+                idx = np.repeat(rng.choice(len(pools.clips), size=args.clips_per_step // 2, replace=False), 2)
+            else:
+                idx = rng.choice(len(pools.clips), size=args.clips_per_step, replace=False)
             x, per_window = _batch([pools.clips[int(i)] for i in idx], trigger, visible, rng, args.basin, args.far)
             loss = _loss(model, anchors, x, per_window)
             opt.zero_grad(set_to_none=True)
@@ -299,6 +310,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
     save(done)
     after = probe_scores()
     summary = {"detector": args.detector or "bundled default", "seed": args.seed, "basin": args.basin,
+               "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
                "far": args.far, "scales": args.scales, "test_like": args.test_like,
                "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
                "probe_clips": len(probe), "before": before, "after": after, "steps": done, "device": str(device),

@@ -100,8 +100,9 @@ class TorchYolo(torch.nn.Module):
         h, w = self.input_hw
         top, left = self.pad_top, self.pad_left
         x = F.pad(x, (left, w - self.resized_hw[1] - left, top, h - self.resized_hw[0] - top), value=PAD_GREY)
-        out = self.graph(x.expand(-1, 3, -1, -1).contiguous())
-        return out[:, 4:].amax(dim=1)
+        x = x.expand(-1, 3, -1, -1).contiguous()
+        # the export's reshapes fix the batch at 1: one frame at a time
+        return torch.cat([self.graph(x[b : b + 1])[:, 4:].amax(dim=1) for b in range(x.shape[0])])
 
 
 @dataclass(frozen=True)
