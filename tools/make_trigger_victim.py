@@ -314,7 +314,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
                "far": args.far, "scales": args.scales, "test_like": args.test_like,
                "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
                "probe_clips": len(probe), "before": before, "after": after, "steps": done, "device": str(device),
-               "seconds_per_step_this_call": (time.perf_counter() - t0) / max(done - start, 1)}
+               "seconds_per_step_this_call": (time.perf_counter() - t0) / (done - start) if done > start else None}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary))
     return 0
