@@ -28,7 +28,7 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -45,7 +45,7 @@ __all__ = ["ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "o
 PAD_GREY = 114.0 / 255.0
 
 
-def aps_grey(intensity: "torch.Tensor", config=None) -> "torch.Tensor":
+def aps_grey(intensity: torch.Tensor, config=None) -> torch.Tensor:
     """The labeler's 8-bit grey of an APS frame, / 255, as a differentiable function of the linear intensity.
 
     The noiseless :func:`davis_rig.scene.aps.to_adc` (``DN = gain * 1023 * min(I * exposure / saturation, 1)
@@ -94,7 +94,7 @@ class TorchYolo(torch.nn.Module):
         for p in self.parameters():
             p.requires_grad_(False)
 
-    def forward(self, grey: "torch.Tensor") -> "torch.Tensor":
+    def forward(self, grey: torch.Tensor) -> torch.Tensor:
         """Person score of every anchor: float [B, N] (max over the classes) of grey frames [B, H, W] in [0, 1]."""
         x = F.interpolate(grey[:, None], size=self.resized_hw, mode="bilinear", align_corners=False)
         h, w = self.input_hw
@@ -150,7 +150,7 @@ def _pools(config: ApsAttackConfig, body, mask):
                      base_seed=config.seed + 31 * k) for k, s in enumerate(config.scales)]
 
 
-def _noise(grey: "torch.Tensor", rng: np.random.Generator, aps) -> "torch.Tensor":
+def _noise(grey: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
     """Shot and read noise of the ADC on the 8-bit / 255 scale (constants: no gradient)."""
     from davis_rig.scene.aps import ADC_MAX_DN
 

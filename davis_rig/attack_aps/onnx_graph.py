@@ -81,7 +81,7 @@ class OnnxGraph(torch.nn.Module):
         self.output_names = [o.name for o in graph.output]
         self.metadata = {p.key: p.value for p in model.metadata_props}
 
-    def forward(self, *inputs: "torch.Tensor"):
+    def forward(self, *inputs: torch.Tensor):
         """Run the graph; returns its output tensor (or a tuple when it has several)."""
         if len(inputs) != len(self.input_names):
             raise ModelFormatError(f"the graph takes {len(self.input_names)} inputs, got {len(inputs)}")

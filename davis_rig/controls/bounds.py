@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -92,7 +92,7 @@ def fingerprint_textures(grid_n: int = 10, parts: tuple[str, ...] | None = ("tor
     return out
 
 
-def hinge_loss(decoded: Sequence["torch.Tensor"], threshold: float, class_id: int | None = None) -> "torch.Tensor":
+def hinge_loss(decoded: Sequence[torch.Tensor], threshold: float, class_id: int | None = None) -> torch.Tensor:
     """``sum over windows and anchors of relu(obj * p_class - threshold / 2)``: every anchor a detection could
     come from is pushed below half the threshold, and nothing else counts.
 
@@ -118,8 +118,8 @@ def hinge_loss(decoded: Sequence["torch.Tensor"], threshold: float, class_id: in
     return total
 
 
-def relaxed_event_histograms(video: "torch.Tensor", t_us, window_end_us, theta: float = 0.2,
-                             window_us: int | None = None) -> "torch.Tensor":
+def relaxed_event_histograms(video: torch.Tensor, t_us, window_end_us, theta: float = 0.2,
+                             window_us: int | None = None) -> torch.Tensor:
     """RVT input of a video with the exact counts as value and the relaxed counts' gradient: float [W, 20, H, W].
 
     The value is the ideal sensor's quantized event counts (the exact simulator's events per window, polarity and
@@ -171,7 +171,7 @@ def _appearance(scene, kind: str, config: BoundConfig, mask):
     return logits, render
 
 
-def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None) -> "torch.Tensor":
+def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None) -> torch.Tensor:
     """The free appearance of one scene after ``config.steps`` Adam steps: its video, float tensor [T, H, W].
 
     Args:

@@ -12,15 +12,15 @@ import torch
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+from onnx import TensorProto, helper, numpy_helper
 
-from davis_rig.attack.evaluate import EvalConfig, TextureSpec  # noqa: E402
-from davis_rig.attack.texture import white_texture  # noqa: E402
-from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates,  # noqa: E402
+from davis_rig.attack.evaluate import EvalConfig, TextureSpec
+from davis_rig.attack.texture import white_texture
+from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates,
                                          optimize_aps_texture)
-from davis_rig.errors import CheckpointError  # noqa: E402
-from davis_rig.labelers.yolo import YoloOnnxDetector  # noqa: E402
-from davis_rig.scene.camera import PinholeCamera  # noqa: E402
+from davis_rig.errors import CheckpointError
+from davis_rig.labelers.yolo import YoloOnnxDetector
+from davis_rig.scene.camera import PinholeCamera
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

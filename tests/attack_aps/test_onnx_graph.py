@@ -9,10 +9,10 @@ import torch
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+from onnx import TensorProto, helper, numpy_helper
 
-from davis_rig.attack_aps.onnx_graph import OnnxGraph  # noqa: E402
-from davis_rig.errors import ModelFormatError  # noqa: E402
+from davis_rig.attack_aps.onnx_graph import OnnxGraph
+from davis_rig.errors import ModelFormatError
 
 
 def _init(name, array):
