@@ -12,20 +12,32 @@ values, and random weights are the post-processing worst case: every one of the 
 threshold) and trained RVT step graphs (``--onnx``; default: the bundled detector when it exists), whose few
 confident boxes are the realistic post-processing load.
 
-Per model: a warm-up run on a 2 s session, then ``--repeats`` full runs of
-:func:`davis_rig.evaluation.physical.score_session` + :func:`compute_metrics` at the paper's four thresholds.
-``score_session`` overlaps its stages in three threads, so the table gives each stage's **busy** seconds (read =
-h5 read + crop, histogram, inference = ORT steps, postprocess = all four thresholds) next to the **scoring wall**
-time; then **metrics** (COCO AP + SeqASR), the **total** wall time and the real-time factor (session seconds /
-total seconds; > 1 = faster than real time). Medians over the repeats.
+Per model: a warm-up run on a 2 s session, then ``--repeats`` rounds of full runs of
+:func:`davis_rig.evaluation.physical.score_session` + :func:`compute_metrics` at the paper's four thresholds, one
+run per ``--modes`` entry in each round, the order reversed every other round (so load drift on a shared machine
+hits the modes alike):
+
+* ``pipelined`` (davis-eval's default): the step split into three parts of consecutive windows running side by
+  side (``EvalSettings(pipeline=True)``: the recurrent part on 2 onnxruntime threads, the others on 1);
+* ``whole``: one session of ``--threads`` intra-op threads runs whole steps (the previous default).
+
+``score_session`` overlaps its stages in threads, so the table gives each stage's **busy** seconds (read = h5
+read + crop, histogram, inference = all model parts, postprocess = all four thresholds) next to the **scoring
+wall** time; then **metrics** (COCO AP + SeqASR), the **total** wall time, the real-time factor (session seconds
+/ total seconds; > 1 = faster than real time), the process **CPU** seconds (all threads) per window and the
+**CPU bound** real-time factor a quiet machine with ``os.cpu_count()`` cores cannot exceed at that CPU cost
+(session seconds / (CPU seconds / cores)). Medians over the repeats; the load average before each run is in its
+line. Last, whether each mode's detections equal the first mode's bit for bit and the AP is the same.
 
 Run: ``python benchmarks/evaluation.py [--duration-s 60] [--rate-mevs 0.5] [--models tiny base] [--onnx M.onnx ...]
-[--threads 2] [--repeats 1] [--session S.h5]`` (torch is needed only to export the random-weight models).
+[--threads 2] [--repeats 1] [--modes pipelined whole] [--session S.h5]`` (torch is needed only to export the
+random-weight models).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import tempfile
 import time
@@ -108,9 +120,11 @@ def export_model(variant: str, directory: Path) -> Path:
 
 
 def run_once(session: Path, runner, settings) -> dict:
-    """One scoring + metrics run; stage seconds, totals and detection counts."""
+    """One scoring + metrics run; stage seconds, totals, CPU seconds, detections and AP."""
     from davis_rig.evaluation.physical import compute_metrics, score_session
 
+    load = os.getloadavg()[0]
+    cpu = time.process_time()
     tic = time.perf_counter()
     scores = score_session(session, runner, settings)
     tac = time.perf_counter()
@@ -119,11 +133,23 @@ def run_once(session: Path, runner, settings) -> dict:
     out = dict(scores.timings_s)
     out["metrics"] = toc - tac
     out["total"] = toc - tic
+    out["cpu"] = time.process_time() - cpu
+    out["load"] = load
     out["windows"] = len(scores.window_end_us)
     lowest = min(scores.detections)
     out["boxes_lowest"] = sum(0 if d is None else len(d) for d in scores.detections[lowest])
-    out["AP_lowest"] = metrics[min(metrics)]["AP"]
+    out["AP"] = {th: m["AP"] for th, m in metrics.items()}
+    out["detections"] = scores.detections
     return out
+
+
+def same_detections(a: dict, b: dict) -> bool:
+    """Whether two ``SessionScores.detections`` are equal bit for bit (thresholds, windows, rows)."""
+    if a.keys() != b.keys():
+        return False
+    return all(len(a[th]) == len(b[th]) and all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+        for x, y in zip(a[th], b[th])) for th in a)
 
 
 def bundled_detector() -> list[Path]:
@@ -138,6 +164,7 @@ def bundled_detector() -> list[Path]:
 
 
 STAGES = ("read", "histogram", "inference", "postprocess", "wall", "metrics", "total")
+MODES = {"pipelined": True, "whole": False}
 
 
 def main() -> None:
@@ -147,7 +174,8 @@ def main() -> None:
     parser.add_argument("--models", nargs="*", default=["tiny", "base"], help="random-weight presets")
     parser.add_argument("--onnx", nargs="*", type=Path, default=None,
                         help="trained RVT step graphs (default: the bundled detector, if present)")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads of the whole step")
+    parser.add_argument("--modes", nargs="+", choices=list(MODES), default=list(MODES))
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--session", type=Path, default=None,
                         help="reuse this benchmark session (written first if missing)")
@@ -156,6 +184,7 @@ def main() -> None:
     from davis_rig.evaluation.physical import EvalSettings
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 
+    cores = os.cpu_count() or 1
     print(metadata_line(("numpy", "onnxruntime", "h5py"), intra_op_threads=args.threads, repeats=args.repeats))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -172,23 +201,39 @@ def main() -> None:
                   f"session write {synth['write_s']:.2f} s")
         warm = tmp / "warm.h5"
         synthesize_session(warm, min(2.0, args.duration_s), args.rate_mevs, seed=1)
-        settings = EvalSettings(intra_op_threads=args.threads)
+        settings = {mode: EvalSettings(intra_op_threads=None if MODES[mode] else args.threads, pipeline=MODES[mode])
+                    for mode in args.modes}
         models = [(f"{variant} (random)", lambda v=variant: export_model(v, tmp)) for variant in args.models]
         trained = bundled_detector() if args.onnx is None else args.onnx
         models += [(f"{path.parent.name}/{path.name}", lambda p=path: p) for path in trained]
-        print("stage seconds: busy time per stage (the stages overlap), wall = scoring wall time")
-        print(f"{'model':28s} " + " ".join(f"{s:>11s}" for s in STAGES)
-              + "   real time  ms/window (inference)  boxes/window at lowest threshold")
+        print(f"stage seconds: busy time per stage (the stages overlap), wall = scoring wall time; CPU = process "
+              f"CPU seconds; CPU bound = session s / (CPU s / {cores} cores)")
         for name, make in models:
             runner = RVTOnnxRunner(make(), intra_op_threads=args.threads)
-            run_once(warm, runner, settings)  # warm-up
-            runs = [run_once(session, runner, settings) for _ in range(args.repeats)]
-            med = {s: statistics.median(r[s] for r in runs) for s in STAGES}
-            windows = runs[0]["windows"]
-            duration_s = windows * settings.window_us / 1e6
-            print(f"{name:28s} " + " ".join(f"{med[s]:10.2f}s" for s in STAGES)
-                  + f"   {duration_s / med['total']:6.2f}x    {1000 * med['inference'] / windows:6.1f} "
-                    f"({windows} windows)          {runs[0]['boxes_lowest'] / windows:7.1f}")
+            for mode in args.modes:
+                run_once(warm, runner, settings[mode])  # warm-up
+            runs = {mode: [] for mode in args.modes}
+            for round_index in range(args.repeats):
+                for mode in args.modes if round_index % 2 == 0 else args.modes[::-1]:
+                    run = run_once(session, runner, settings[mode])
+                    runs[mode].append(run)
+                    print(f"  {name} {mode}: total {run['total']:.1f} s, CPU {run['cpu']:.1f} s, load average "
+                          f"{run['load']:.2f} before the run", flush=True)
+            print(f"{name:28s} {'mode':9s} " + " ".join(f"{s:>10s}" for s in STAGES)
+                  + "  real time  CPU ms/window  CPU bound  inference ms/window  boxes/window (lowest threshold)")
+            first = args.modes[0]
+            for mode in args.modes:
+                med = {s: statistics.median(r[s] for r in runs[mode]) for s in (*STAGES, "cpu")}
+                windows = runs[mode][0]["windows"]
+                duration_s = windows * settings[mode].window_us / 1e6
+                print(f"{name:28s} {mode:9s} " + " ".join(f"{med[s]:9.2f}s" for s in STAGES)
+                      + f"  {duration_s / med['total']:8.2f}x  {1000 * med['cpu'] / windows:13.1f}"
+                        f"  {duration_s * cores / med['cpu']:8.2f}x  {1000 * med['inference'] / windows:19.1f}"
+                        f"  {runs[mode][0]['boxes_lowest'] / windows:10.1f}")
+            for mode in args.modes[1:]:
+                same = all(same_detections(r["detections"], runs[first][0]["detections"]) for r in runs[mode])
+                same_ap = all(r["AP"] == runs[first][0]["AP"] for r in runs[mode])
+                print(f"{name}: {mode} vs {first}: detections bit-identical {same}, AP identical {same_ap}")
 
 
 if __name__ == "__main__":

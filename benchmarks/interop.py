@@ -73,6 +73,12 @@ def run_child(*args: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _print_result(direction: str, fmt: str, result: dict) -> None:
+    """One line of the table: events, seconds, rate and peak RSS of one child run."""
+    print(f"{direction} {fmt:14s} {result['events'] / 1e6:6.1f} M events  {result['seconds']:7.2f} s  "
+          f"{result['events'] / result['seconds'] / 1e6:6.2f} M ev/s  peak RSS {result['peak_rss_mib']:5.0f} MiB")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--events", type=float, default=30e6, help="events in the synthetic session")
@@ -90,16 +96,10 @@ def main(argv: list[str] | None = None) -> int:
         write_session(session, int(args.events), args.rate)
         for fmt in formats:
             out = Path(tmp) / OUTPUT_NAMES[fmt]
-            result = run_child("export", fmt, str(session), str(out))
-            print(f"export {fmt:14s} {result['events'] / 1e6:6.1f} M events  {result['seconds']:7.2f} s  "
-                  f"{result['events'] / result['seconds'] / 1e6:6.2f} M ev/s  peak RSS "
-                  f"{result['peak_rss_mib']:5.0f} MiB")
+            _print_result("export", fmt, run_child("export", fmt, str(session), str(out)))
             if fmt in IMPORTERS:
                 back = Path(tmp) / f"back_{fmt}.h5"
-                result = run_child("import", fmt, str(out), str(back), IMPORTERS[fmt])
-                print(f"import {fmt:14s} {result['events'] / 1e6:6.1f} M events  {result['seconds']:7.2f} s  "
-                      f"{result['events'] / result['seconds'] / 1e6:6.2f} M ev/s  peak RSS "
-                      f"{result['peak_rss_mib']:5.0f} MiB")
+                _print_result("import", fmt, run_child("import", fmt, str(out), str(back), IMPORTERS[fmt]))
     return 0
 
 

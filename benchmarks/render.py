@@ -152,6 +152,63 @@ def _compare_warp(model, camera, vertices, rotation, translation, supersample_li
         )
 
 
+def _time_camera(model, vertices, name: str, camera, threads: int, first_threads: bool, args, sync,
+                 results: dict) -> None:
+    """Time rasterization, texture lookup and one optimiser step for one camera at each supersampling factor
+    (ms per frame into ``results[(threads, name, s, "raster" | "step")]``) and print them."""
+    import torch
+
+    from davis_rig.scene.camera import distance_for_height, look_at
+    from davis_rig.scene.masks import part_mask
+    from davis_rig.scene.renderer import rasterize_mesh
+
+    device = vertices.device
+    mask = part_mask(("torso", "arms", "legs"))
+    grid = torch.rand(10, 10, device=device)
+    d = distance_for_height("middle", camera)
+    rotation, translation = look_at([0.0, -d, 0.875], [0.0, 0.0, 0.875])
+    r = torch.as_tensor(rotation, dtype=torch.float32, device=device)
+    t = torch.as_tensor(translation, dtype=torch.float32, device=device)
+    for s in args.supersample:
+        raster_fn = lambda: rasterize_mesh(vertices, model.faces, model.face_uvs, camera, r, t, supersample=s)  # noqa: E731
+        med, iqr, low = time_ms(raster_fn, args.warmup, args.repeats, sync)
+        raster = raster_fn()
+        results[(threads, name, s, "raster")] = med / args.frames
+        lk_med, _, _ = time_ms(lambda: raster.lookup(1024, "nearest", grid_n=10, mask=mask), 1, args.repeats, sync)
+        lookup = raster.lookup(1024, "nearest", grid_n=10, mask=mask)
+        background = torch.full(camera.hw, 0.5, device=device)
+
+        def step():
+            g = grid.clone().requires_grad_()
+            raster.compose(lookup.sample(g), background).sum().backward()
+
+        st_med, st_iqr, st_low = time_ms(step, args.warmup, args.repeats, sync)
+        results[(threads, name, s, "step")] = st_med / args.frames
+        pairs = _pairs_per_sample(camera.project(vertices[:1], r, t), model.faces, camera.hw, s) if first_threads else float("nan")
+        print(
+            f"[threads {threads}] {name} s={s}  raster {med / args.frames:7.2f} ms/frame (IQR {iqr / args.frames:.2f}, min {low / args.frames:.2f})"
+            f" | lookup {lk_med / args.frames:6.2f} | step (lookup+compose+backward) {st_med / args.frames:6.2f} ms/frame (min {st_low / args.frames:.2f})"
+            f" | samples/frame {raster.face.numel() // args.frames}"
+            + (f" | bbox pairs per covered sample {pairs:.2f}" if np.isfinite(pairs) else "")
+        )
+
+
+def _print_ratios(results: dict, thread_list: list[int], supersample: list[int]) -> None:
+    """Thread scaling, the cost of supersampling and the step / rasterization ratio per camera."""
+    print("ratios:")
+    for name in ("346x260", "304x240"):
+        for s in supersample:
+            if len(thread_list) > 1 and (thread_list[-1], name, s, "raster") in results:
+                a, b = results[(thread_list[0], name, s, "raster")], results[(thread_list[-1], name, s, "raster")]
+                print(f"  {name} s={s}: raster {thread_list[-1]} threads / {thread_list[0]} thread = {b / a:.2f}")
+            base = results.get((thread_list[-1], name, 1, "raster"))
+            if s != 1 and base:
+                print(f"  {name} s={s}: raster vs s=1 = {results[(thread_list[-1], name, s, 'raster')] / base:.2f}")
+        s = supersample[-1]
+        ratio = results[(thread_list[-1], name, s, "step")] / results[(thread_list[-1], name, s, "raster")]
+        print(f"  {name} s={s}: optimiser step / rasterization = {ratio:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=7)
@@ -167,8 +224,6 @@ def main() -> None:
 
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.camera import PinholeCamera, distance_for_height, look_at
-    from davis_rig.scene.masks import part_mask
-    from davis_rig.scene.renderer import rasterize_mesh
 
     device = torch.device(args.device)
     sync = cuda_sync(device)
@@ -177,8 +232,6 @@ def main() -> None:
                         repeats=f"{args.repeats} (+{args.warmup} warm-up)"))
     model = BodyModel(device=device)
     times = np.arange(args.frames) / 200.0
-    mask = part_mask(("torso", "arms", "legs"))
-    grid = torch.rand(10, 10, device=device)
     thread_list = args.threads if device.type == "cpu" else [torch.get_num_threads()]
     results = {}
     for threads in thread_list:
@@ -189,32 +242,7 @@ def main() -> None:
         c, s_ = np.cos(np.pi / 2), np.sin(np.pi / 2)
         vertices = vertices @ torch.tensor([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], dtype=vertices.dtype, device=device).T
         for name, camera in (("346x260", PinholeCamera.davis346()), ("304x240", PinholeCamera.rvt_crop())):
-            d = distance_for_height("middle", camera)
-            rotation, translation = look_at([0.0, -d, 0.875], [0.0, 0.0, 0.875])
-            r = torch.as_tensor(rotation, dtype=torch.float32, device=device)
-            t = torch.as_tensor(translation, dtype=torch.float32, device=device)
-            for s in args.supersample:
-                raster_fn = lambda: rasterize_mesh(vertices, model.faces, model.face_uvs, camera, r, t, supersample=s)  # noqa: E731
-                med, iqr, low = time_ms(raster_fn, args.warmup, args.repeats, sync)
-                raster = raster_fn()
-                results[(threads, name, s, "raster")] = med / args.frames
-                lk_med, _, _ = time_ms(lambda: raster.lookup(1024, "nearest", grid_n=10, mask=mask), 1, args.repeats, sync)
-                lookup = raster.lookup(1024, "nearest", grid_n=10, mask=mask)
-                background = torch.full(camera.hw, 0.5, device=device)
-
-                def step():
-                    g = grid.clone().requires_grad_()
-                    raster.compose(lookup.sample(g), background).sum().backward()
-
-                st_med, st_iqr, st_low = time_ms(step, args.warmup, args.repeats, sync)
-                results[(threads, name, s, "step")] = st_med / args.frames
-                pairs = _pairs_per_sample(camera.project(vertices[:1], r, t), model.faces, camera.hw, s) if threads == thread_list[0] else float("nan")
-                print(
-                    f"[threads {threads}] {name} s={s}  raster {med / args.frames:7.2f} ms/frame (IQR {iqr / args.frames:.2f}, min {low / args.frames:.2f})"
-                    f" | lookup {lk_med / args.frames:6.2f} | step (lookup+compose+backward) {st_med / args.frames:6.2f} ms/frame (min {st_low / args.frames:.2f})"
-                    f" | samples/frame {raster.face.numel() // args.frames}"
-                    + (f" | bbox pairs per covered sample {pairs:.2f}" if np.isfinite(pairs) else "")
-                )
+            _time_camera(model, vertices, name, camera, threads, threads == thread_list[0], args, sync, results)
     if args.warp:
         set_torch_threads(thread_list[0])
         camera = PinholeCamera.rvt_crop()
@@ -222,18 +250,7 @@ def main() -> None:
         rotation, translation = look_at([0.0, -d, 0.875], [0.0, 0.0, 0.875])
         _compare_warp(model, camera, vertices, torch.as_tensor(rotation, dtype=torch.float32, device=device),
                       torch.as_tensor(translation, dtype=torch.float32, device=device), args.supersample, args.repeats, device)
-    print("ratios:")
-    for name in ("346x260", "304x240"):
-        for s in args.supersample:
-            if len(thread_list) > 1 and (thread_list[-1], name, s, "raster") in results:
-                a, b = results[(thread_list[0], name, s, "raster")], results[(thread_list[-1], name, s, "raster")]
-                print(f"  {name} s={s}: raster {thread_list[-1]} threads / {thread_list[0]} thread = {b / a:.2f}")
-            base = results.get((thread_list[-1], name, 1, "raster"))
-            if s != 1 and base:
-                print(f"  {name} s={s}: raster vs s=1 = {results[(thread_list[-1], name, s, 'raster')] / base:.2f}")
-        s = args.supersample[-1]
-        ratio = results[(thread_list[-1], name, s, "step")] / results[(thread_list[-1], name, s, "raster")]
-        print(f"  {name} s={s}: optimiser step / rasterization = {ratio:.2f}")
+    _print_ratios(results, thread_list, args.supersample)
 
 
 if __name__ == "__main__":

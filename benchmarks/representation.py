@@ -21,9 +21,8 @@ import argparse
 import numpy as np
 from _common import metadata_line, time_ms
 
-from davis_rig.events import stacked_histogram, stacked_histograms
+from davis_rig.events import WINDOW_US, stacked_histogram, stacked_histograms
 
-WINDOW_US = 50_000
 HEIGHT, WIDTH = 240, 304
 
 
@@ -100,7 +99,7 @@ def main() -> None:
             print(f"{'':30s} torch_fwd_bwd  median {median:8.2f} ms  IQR {iqr:6.2f} ms  min {min_ms:8.2f} ms")
 
         xs, ys, ts, ps = synthetic_events(rate, 1_000_000, seed=int(rate * 10) + 1)
-        ends = np.arange(50_000, 1_000_001, 50_000)
+        ends = np.arange(WINDOW_US, 1_000_001, WINDOW_US)
         median, iqr, min_ms = time_ms(lambda: stacked_histograms((xs, ys, ts, ps), ends), 1, max(3, args.repeats // 4))
         results["windows_1s_per_window"] = median / len(ends)
         print(

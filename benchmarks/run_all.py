@@ -26,19 +26,22 @@ from _common import REPO_ROOT, git_commit
 HERE = Path(__file__).resolve().parent
 
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
-ORDER = ("decode", "usb_pipeline", "io", "interop", "representation", "model", "rvt_eager", "evaluation", "body",
-         "motion", "render", "v2e", "digital_cost", "synthetic", "train_step", "attack_step")
+ORDER = ("decode", "usb_pipeline", "io", "fuzz_capture", "interop", "representation", "model", "rvt_eager",
+         "evaluation", "view_live", "body", "motion", "render", "v2e", "digital_cost", "synthetic", "train_step",
+         "attack_step")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
     "decode": ["--repeats", "3", "--seconds", "1.0"],
     "usb_pipeline": ["--repeats", "3"],
     "io": ["--seconds", "1", "--repeats", "2"],
+    "fuzz_capture": ["--seeds", "70", "--garbage-seeds", "1"],
     "interop": ["--events", "3e6"],
     "representation": ["--repeats", "3"],
     "model": ["--repeats", "3"],
     "rvt_eager": ["--repeats", "3"],
     "evaluation": ["--duration-s", "10"],
+    "view_live": ["--seconds", "1"],
     "body": ["--repeats", "3"],
     "motion": ["--repeats", "3"],
     "render": ["--repeats", "3"],

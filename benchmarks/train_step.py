@@ -23,12 +23,14 @@ import numpy as np
 import torch
 from _common import metadata_line
 
+from davis_rig.events.histogram import WINDOW_US
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.augment import AugmentConfig
-from davis_rig.training.dataset import DatasetWriter, collate_chunks
-from davis_rig.training.losses import yolox_loss
-from davis_rig.training.trainer import TrainConfig, Trainer, _to_cxcywh
+from davis_rig.training.batches import collate_chunks
+from davis_rig.training.dataset import DatasetWriter
+from davis_rig.training.losses import yolox_loss, yolox_targets
+from davis_rig.training.trainer import TrainConfig, Trainer
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 
@@ -39,7 +41,7 @@ def _write_dataset(root: Path, num_sequences: int, num_windows: int) -> None:
             hist = np.zeros((num_windows, 20, 240, 304), np.uint8)
             mask = rng.random(hist.shape) < 0.01
             hist[mask] = rng.integers(1, 11, size=int(mask.sum()), dtype=np.uint8)
-            ends = (np.arange(num_windows, dtype=np.int64) + 1) * 50_000
+            ends = (np.arange(num_windows, dtype=np.int64) + 1) * WINDOW_US
             labels = []
             for end in ends.tolist():
                 k = int(rng.integers(1, 4))
@@ -86,7 +88,7 @@ def _bench_model(data: Path, run: Path, model: str, args) -> dict[str, float]:
             features, states = trainer.model.forward_backbone(pad_to_input(hist[t]), states)
             for level in feats:
                 feats[level].append(features[level])
-            targets.extend(_to_cxcywh(lab) for lab in labels[t])
+            targets.extend(yolox_targets(lab) for lab in labels[t])
         raw = trainer.model.forward_raw_head({k: torch.cat(v) for k, v in feats.items()})
         yolox_loss(raw, targets, trainer.anchors)
         if trainer.device.type == "cuda":

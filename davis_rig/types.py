@@ -1,4 +1,4 @@
-"""Canonical data types shared by every layer: the event dtype and sensor geometry.
+"""Canonical data types shared by every layer: the event dtype, sensor geometry and the Gen1 protocol's numbers.
 
 Conventions used throughout the toolkit:
 
@@ -41,6 +41,10 @@ BBOX_DTYPE: Final = np.dtype(
 GEN1_CLASSES: Final = {0: "car", 1: "pedestrian"}
 PEDESTRIAN_CLASS_ID: Final = 1
 CAR_CLASS_ID: Final = 0
+
+#: IoU above which RVT's post-processing suppresses a box of the same class (class-wise NMS, RVT's ``nms_thre``),
+#: in evaluation, training validation, the attack and the viewer alike.
+RVT_NMS_IOU: Final = 0.45
 
 
 def empty_events(n: int = 0) -> np.ndarray:

@@ -1,14 +1,14 @@
-"""Fixtures and helper modules shared by every test folder.
+"""Fixtures shared by every test folder.
 
 ``one_torch_thread``: a module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``.
 Torch is imported only when a test uses it. ``fresh_python``: run a snippet in a new interpreter (import checks).
 ``load_tool``: import a script of ``tools/`` as a module.
 
-Helper modules (:data:`HELPER_MODULES`) are imported by name from any test, ``from eval_data import ...``, under
-any pytest import mode and without ``sys.path`` changes: a finder loads them from their files on first import.
+Helper modules shared by tests live in the package :mod:`tests.helpers` and are imported like any module
+(``from tests.helpers.eval_data import person_yolo``): ``tests`` is a regular package and pytest puts the
+repository root on ``sys.path`` (``pythonpath = ["."]`` in pyproject.toml).
 """
 
-import importlib.abc
 import importlib.util
 import subprocess
 import sys
@@ -17,37 +17,6 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-TESTS = REPO_ROOT / "tests"
-
-#: Helper modules shared by tests, by top-level module name.
-HELPER_MODULES = {
-    # read a camera over the virtual DAVIS346 until drained (tests/usb, tests/device)
-    "camera_reads": TESTS / "camera_reads.py",
-    # an emulated libusb-1.0 below pyusb playing VirtualDavis346 models; the `usb_backend` fixture (tests/usb,
-    # tests/device, tests/session)
-    "libusb_emu": TESTS / "usb" / "libusb_emu" / "libusb_emu.py",
-    # the committed DAVIS346 test vectors and the full decode-vs-vector comparison (tests/protocol, tests/device)
-    "davis346_vectors": TESTS / "davis346_vectors.py",
-    # tiny ONNX graphs with known outputs, sessions recorded through the virtual camera (evaluation, labelers, cli)
-    "eval_data": TESTS / "evaluation" / "eval_data.py",
-    # synthetic events, frames and fake cameras of the session tests
-    "session_data": TESTS / "session" / "session_data.py",
-    # tiny synthetic AMASS .npz / CMU BVH files (tests/scene/mocap, tests/attack)
-    "mocap_files": TESTS / "scene" / "mocap" / "mocap_files.py",
-}
-
-
-class _HelperModuleFinder(importlib.abc.MetaPathFinder):
-    """Finds the top-level modules named in :data:`HELPER_MODULES` at their files."""
-
-    def find_spec(self, fullname, path, target=None):
-        if path is None and fullname in HELPER_MODULES:
-            return importlib.util.spec_from_file_location(fullname, HELPER_MODULES[fullname])
-        return None
-
-
-if not any(isinstance(finder, _HelperModuleFinder) for finder in sys.meta_path):
-    sys.meta_path.insert(0, _HelperModuleFinder())
 
 
 @pytest.fixture(scope="module")

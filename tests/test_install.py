@@ -23,7 +23,7 @@ from davis_rig.cli._common import EXIT_CODES_TEXT
 REPO = Path(__file__).resolve().parents[1]
 
 #: Top-level import names that only an optional extra of pyproject.toml installs -> that extra.
-OPTIONAL_IMPORTS = {"torch": "torch", "onnx": "torch", "dv_processing": "aedat4", "matplotlib": "report",
+OPTIONAL_IMPORTS = {"torch": "torch", "dv_processing": "aedat4", "matplotlib": "report",
                     "PIL": "report", "reportlab": "export", "smplx": "smpl"}
 
 MODULES = sorted(info.name for info in pkgutil.walk_packages(davis_rig.__path__, prefix="davis_rig."))

@@ -64,41 +64,10 @@ def capture_replay(
         if frame_interval_us is not None:
             cam.set_frame_interval(frame_interval_us)
         cam.set_imu_enabled(imu)
-        info = cam.info.to_dict()
-        header = ReplayHeader(
-            device_info=info["device_info"],
-            serial=info["serial"],
-            firmware_version=info["firmware_version"],
-            logic_version=info["logic_version"],
-            logic_patch=info["logic_patch"],
-            clocks=info["clocks"],
-            extra={
-                "tool": "tools/capture_replay.py",
-                "features": info["features"],
-                "product_id": info["product_id"],
-                "chip_id": info["chip_id"],
-                "exposure_us": cam.exposure_us,
-                "frame_interval_us": cam.frame_interval_us,
-                "producers": cam.producers,
-                "started_utc": dt.datetime.now(dt.timezone.utc).isoformat(),
-            },
-        )
-        counts = {"events": 0, "frames": 0}
-        with ReplayWriter(path, header) as writer:
+        with ReplayWriter(path, _replay_header(cam)) as writer:
             cam.add_raw_listener(writer.write)
             cam.start()
-            try:
-                deadline = clock() + duration_s
-                while clock() < deadline and not (until is not None and until()):
-                    chunk = cam.read(timeout_s=0.2)
-                    if chunk is not None:
-                        counts["events"] += len(chunk.events)
-                        counts["frames"] += len(chunk.frames)
-            finally:
-                cam.stop()
-                while (chunk := cam.read(timeout_s=0.2)) is not None:  # what was read before the stop
-                    counts["events"] += len(chunk.events)
-                    counts["frames"] += len(chunk.frames)
+            counts = _count_until(cam, clock() + duration_s, clock, until)
             stats = cam.stats
             return {
                 "records": writer.records,
@@ -107,6 +76,51 @@ def capture_replay(
                 "dropped_transfers": stats.dropped_transfers,
                 **counts,
             }
+
+
+def _replay_header(cam: Davis346) -> ReplayHeader:
+    """The replay header of a configured camera: its read-outs, settings and the start time."""
+    info = cam.info.to_dict()
+    return ReplayHeader(
+        device_info=info["device_info"],
+        serial=info["serial"],
+        firmware_version=info["firmware_version"],
+        logic_version=info["logic_version"],
+        logic_patch=info["logic_patch"],
+        clocks=info["clocks"],
+        extra={
+            "tool": "tools/capture_replay.py",
+            "features": info["features"],
+            "product_id": info["product_id"],
+            "chip_id": info["chip_id"],
+            "exposure_us": cam.exposure_us,
+            "frame_interval_us": cam.frame_interval_us,
+            "producers": cam.producers,
+            "started_utc": dt.datetime.now(dt.timezone.utc).isoformat(),
+        },
+    )
+
+
+def _count_until(cam: Davis346, deadline: float, clock: Callable[[], float],
+                 until: Callable[[], bool] | None) -> dict[str, int]:
+    """Read a started camera until ``deadline`` (``clock()`` s) or ``until()``, stop it and read what was read
+    before the stop (its raw listener writes the transfers); returns the ``events`` and ``frames`` decoded."""
+    counts = {"events": 0, "frames": 0}
+
+    def count(chunk) -> None:
+        counts["events"] += len(chunk.events)
+        counts["frames"] += len(chunk.frames)
+
+    try:
+        while clock() < deadline and not (until is not None and until()):
+            chunk = cam.read(timeout_s=0.2)
+            if chunk is not None:
+                count(chunk)
+    finally:
+        cam.stop()
+        while (chunk := cam.read(timeout_s=0.2)) is not None:  # what was read before the stop
+            count(chunk)
+    return counts
 
 
 def main(argv: list[str] | None = None) -> int:

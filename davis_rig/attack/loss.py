@@ -149,7 +149,7 @@ def adversarial_loss(
     if reduction == "top":
         keep = (torch.ones_like(obj, dtype=torch.bool) if boxes is None
                 else anchors_near_boxes(x, boxes, box_margin_px))
-        score = torch.where(keep, (obj * cls).detach(), torch.tensor(-1.0, dtype=x.dtype, device=x.device))
+        score = torch.where(keep, (obj * cls).detach(), x.new_full((), -1.0))  # a fill: no host copy (CUDA graphs)
         top = score.argmax(dim=-1, keepdim=True)  # [..., 1]
         has_anchor = keep.any(dim=-1).to(x.dtype)  # [...]
         count = has_anchor.sum()
@@ -158,7 +158,7 @@ def adversarial_loss(
         obj_mean = (obj.gather(-1, top).squeeze(-1) * has_anchor).sum() / denominator
         cls_mean = (cls.gather(-1, top).squeeze(-1) * has_anchor).sum() / denominator
     elif boxes is None:
-        n = torch.tensor(obj.numel(), device=x.device)
+        n = torch.full((), obj.numel(), dtype=torch.int64, device=x.device)  # a fill: no host copy (CUDA graphs)
         obj_mean = obj.mean()
         cls_mean = cls.mean()
     else:

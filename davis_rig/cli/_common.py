@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -33,6 +34,7 @@ EXIT_DEVICE = 3  # camera missing, busy, no permission, unsupported firmware, tr
 EXIT_DATA = 4  # a file or model is missing, malformed or cannot be written (session.h5, replay, checkpoint, ONNX)
 EXIT_MISSING_DEPENDENCY = 5  # an optional extra is not installed
 EXIT_INTERRUPTED = 130  # Ctrl-C (SIGINT) outside a clean stop
+EXIT_BROKEN_PIPE = 141  # the output pipe was closed by its reader (128 + SIGPIPE, as a shell reports it)
 
 #: The exit-code paragraph at the end of every command's ``--help``.
 EXIT_CODES_TEXT = (
@@ -281,6 +283,10 @@ def run_command(name: str, action: Callable[[], int | None], options: Mapping[st
 
     try:
         code = action()
+    except BrokenPipeError:  # the reader went away (`davis-info s.h5 | head`): stop quietly, as Unix tools do
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's final flush does not fail again
+        return EXIT_BROKEN_PIPE
     except (DavisRigError, OSError) as exc:  # OSError: e.g. the output folder cannot be created
         print(f"{name}: error: {error_message(exc, options)}", file=sys.stderr)
         return exit_code_for(exc)

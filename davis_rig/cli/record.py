@@ -12,8 +12,9 @@ import signal
 import sys
 import threading
 
-from davis_rig.cli._common import (EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
+from davis_rig.cli._common import (EXIT_DATA, EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
                                    run_main)
+from davis_rig.cli.view import add_live_view_arguments, check_live_view_arguments, live_view
 from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS
 
 NAME = "davis-record"
@@ -64,12 +65,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--usb-transfers", type=non_negative_int, default=DEFAULT_TRANSFERS, metavar="N",
                         help=f"asynchronous USB transfers kept in flight (default {DEFAULT_TRANSFERS}, like libcaer); "
                              "0 = a thread of synchronous reads")
+    parser.add_argument("--no-imu", action="store_true",
+                        help="do not record the IMU (accelerometer, gyroscope, temperature; on by default, as in DV)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session file")
     parser.add_argument("--no-journal", action="store_true",
                         help="do not keep the raw-transfer journal (no crash recovery)")
     add_quiet(parser, help="no live progress line")
     parser.add_argument("--recover", metavar="SESSION_H5",
                         help="rebuild SESSION_H5 from SESSION_H5.journal after a crash and exit")
+    add_live_view_arguments(parser)
     return parser
 
 
@@ -120,7 +124,7 @@ def _progress_line(progress) -> None:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from davis_rig.session.record import record_session
+    from davis_rig.session.record import StopReason, record_session
 
     stop = threading.Event()
     backend, exhausted = None, None
@@ -129,9 +133,12 @@ def _record(args: argparse.Namespace) -> int:
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
     previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     try:
-        with open_camera(args.serial, backend, args.usb_transfers) as camera:
+        with open_camera(args.serial, backend, args.usb_transfers) as camera, \
+                live_view(args, camera) as source:
+            if args.no_imu:
+                camera.set_imu_enabled(False)
             summary = record_session(
-                camera,
+                source,
                 args.out,
                 duration_s=args.duration,
                 exposure_us=args.exposure,
@@ -147,7 +154,7 @@ def _record(args: argparse.Namespace) -> int:
             print(file=sys.stderr)
     rate = summary.events / summary.duration_s / 1e6 if summary.duration_s > 0 else 0.0
     stopped_by = summary.stopped_by
-    if stopped_by == "stop" and exhausted is not None and exhausted():
+    if stopped_by == StopReason.STOP and exhausted is not None and exhausted():
         stopped_by = "end of replay"
     print(
         f"{summary.path}: {summary.events} events ({rate:.3f} Mev/s), {summary.frames} frames, "
@@ -167,6 +174,11 @@ def _recover(path: str) -> int:
             f"{report.frames} frames (last event t={report.t_last_us} µs; {report.discarded_bytes} damaged bytes "
             "at the journal's end dropped)"
         )
+    elif not report.complete:
+        print(f"{NAME}: error: {report.path}: incomplete (the recording was interrupted) and there is no journal to "
+              f"rebuild it from (recorded with --no-journal?); it holds {report.events} events and "
+              f"{report.frames} frames up to its last flush, nothing more can be recovered", file=sys.stderr)
+        return EXIT_DATA
     else:
         print(f"{report.path}: intact, no journal: nothing to recover ({report.events} events, {report.frames} frames)")
     return EXIT_OK
@@ -174,9 +186,13 @@ def _recover(path: str) -> int:
 
 def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message), all before the camera is opened."""
+    check_live_view_arguments(parser, args)
     if args.recover is not None:
-        if args.out is not None:
-            parser.error("argument --recover: not allowed with --out")
+        recording_only = {"--out": args.out, "--view": args.view, "--fake": args.fake, "--duration": args.duration,
+                          "--no-imu": args.no_imu, "--no-journal": args.no_journal, "--serial": args.serial}
+        for option, value in recording_only.items():
+            if value not in (None, False):
+                parser.error(f"argument --recover: not allowed with {option} (it rebuilds a file, it records nothing)")
         return
     if args.out is None:
         parser.error("the following arguments are required: --out (or --recover SESSION_H5)")

@@ -11,7 +11,8 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
 3. **RVT.** One ONNX step per window, the LSTM states carried from the first window of the recording (zero
    states there), the official post-processing (obj · class ≥ threshold, class-wise NMS 0.45) of each window's
    output at every threshold at once (exactly equal to one run per threshold; NMS work is shared where that is
-   exact). Reading + histograms, inference and post-processing run in three overlapping threads.
+   exact). Reading + histograms, the step (itself split into three parts that run on consecutive windows side by
+   side: only its recurrent middle waits for the previous window) and post-processing overlap in threads.
 4. **Labels → windows.** A label at time ``t`` (APS exposure middle) belongs to the window with
    ``end − 50 ms < t ≤ end`` (the first window ending at or after it). That window's detections are stamped with
    the label time, and label-time matching is exact by default (``time_tol_us = 0``, the right setting for these
@@ -29,6 +30,7 @@ Pipeline of one recording (:func:`score_session`, then :func:`compute_metrics`):
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -36,7 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import ConfigError, FormatError, SessionError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ModelFormatError, SessionError, ShapeError
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, EVENT_DTYPE, PEDESTRIAN_CLASS_ID, RVT_HW
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
@@ -67,7 +69,11 @@ class EvalSettings:
         strict_iou: IoU of the strict SeqASR variant.
         coco_backend: ``"faster_coco_eval"`` or ``"pycocotools"``.
         chunk_windows: windows per event read.
-        intra_op_threads: onnxruntime threads (``None``: its default).
+        intra_op_threads: onnxruntime threads of the recurrent part of the pipelined step (``None``: 2, or 1 on a
+            one-core machine; its other two parts run on one thread each), or of the whole step when it is not
+            pipelined (``None``: onnxruntime's default, the physical cores).
+        pipeline: run the RVT step as three parts of consecutive windows side by side (:func:`score_session`)
+            when the graph splits; ``False``: whole steps, one after the other (same results).
         gif_windows: keep the event images of the first this many windows for the annotated GIF (0: none).
     """
 
@@ -86,6 +92,7 @@ class EvalSettings:
     chunk_windows: int = 20
     intra_op_threads: int | None = None
     gif_windows: int = 0
+    pipeline: bool = True
 
     def __post_init__(self):
         if not self.thresholds or any(not 0.0 <= float(t) <= 1.0 for t in self.thresholds):
@@ -308,13 +315,63 @@ def _event_chunks(reader, ends: np.ndarray, origin, settings: EvalSettings, timi
         yield chunk_ends, hists, gif, num_read
 
 
+def _windows(chunks, runner, totals: dict, gif: list):
+    """Generator over the chunks' windows: each padded float32 histogram [1, 20, H, W] in order.
+
+    Adds each chunk's events read to ``totals["events"]`` and its GIF images to ``gif``.
+    """
+    for _, hists, gif_part, num_read in chunks:
+        totals["events"] += num_read
+        gif.extend(gif_part)
+        for hist in hists:
+            yield runner.prepare_histogram(hist[None])
+
+
+def _pipelined_decoded(windows, split, initial_states, busy_s: dict):
+    """Decoded outputs of consecutive windows, three model parts in three threads (see :func:`score_session`).
+
+    ``pre`` runs in one background thread (which also pulls ``windows``), ``recur`` in a second one, ``head``
+    in the caller's; at most two windows wait between two parts. Adds each part's busy seconds to
+    ``busy_s["pre"]``, ``busy_s["recur"]``, ``busy_s["head"]`` (one thread writes each key).
+    """
+    from contextlib import closing
+
+    from davis_rig.evaluation.prefetch import prefetch
+
+    def timed(name, part, *args):
+        tic = time.perf_counter()
+        out = part(*args)
+        busy_s[name] += time.perf_counter() - tic
+        return out
+
+    def pre():
+        for x in windows:
+            yield timed("pre", split.pre, x)
+
+    def recur():
+        states = initial_states
+        with closing(prefetch(pre(), depth=2)) as x1s:
+            for x1 in x1s:
+                states = timed("recur", split.recur, x1, states)
+                yield states
+
+    with closing(prefetch(recur(), depth=2)) as all_states:
+        for states in all_states:
+            yield timed("head", split.head, states)
+
+
 def score_session(path, runner, settings: EvalSettings, *, progress: Callable | None = None) -> SessionScores:
     """Run RVT over a labelled session window by window (states carried) and post-process per threshold.
 
-    Three stages overlap: a background thread reads and histograms the next chunk of windows, the calling
-    thread runs the ONNX steps (onnxruntime releases the GIL), and a second thread post-processes each step's
-    output at all thresholds at once (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`, exactly
-    equal to one official post-processing per threshold). The results do not depend on the overlap.
+    The stages overlap in threads (onnxruntime releases the GIL): one thread reads and histograms the next chunk
+    of windows; with ``settings.pipeline`` and a graph that splits (:meth:`RVTOnnxRunner.split`), the RVT step
+    runs as three parts — stage 1's non-recurrent front (``pre``) of window k+1, the recurrent part of window k
+    and the PAFPN + head of window k−1 side by side, in two threads and the calling one (one onnxruntime thread
+    each for ``pre`` and ``head``, ``settings.intra_op_threads`` (default 2) for the recurrent part, which alone
+    waits for the previous window); otherwise the calling thread runs whole steps. A last thread post-processes
+    each step's output at all thresholds at once (:func:`~davis_rig.models.rvt.postprocess.postprocess_thresholds`,
+    exactly equal to one official post-processing per threshold). The results do not depend on the overlap: the
+    split parts are the graph's own nodes, chained as in the whole graph.
 
     Args:
         path: session.h5 with ``/labels``.
@@ -325,7 +382,8 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
 
     Returns:
         :class:`SessionScores`; ``timings_s`` holds each stage's busy seconds (``read``, ``histogram``,
-        ``inference``, ``postprocess``) and ``wall`` (the stages overlap, so their sum exceeds it).
+        ``inference`` (all model parts), ``postprocess``) and ``wall`` (the stages overlap, so their sum
+        exceeds it).
 
     Raises:
         SessionError: unreadable or empty (0-byte) session file, no events, no labels, not a DAVIS346 recording,
@@ -354,6 +412,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         ends = t0 + window_us * np.arange(1, n_windows + 1, dtype=np.int64)
         thresholds = sorted({float(th) for th in settings.thresholds})
         detections = {th: [] for th in thresholds}
+        split = _split_or_none(runner, settings)
 
         def post(decoded):
             tic = time.perf_counter()
@@ -366,35 +425,53 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
             for th in thresholds:
                 detections[th].append(out[th][0])
 
-        states = None
-        gif = []
-        num_events = 0
+        def whole_steps(windows):
+            states = None
+            for x in windows:
+                tic = time.perf_counter()
+                decoded, states = runner.step(x, states)
+                busy["step"] += time.perf_counter() - tic
+                yield decoded
+
+        gif: list = []
+        totals = {"events": 0}
+        busy = {"step": 0.0, "pre": 0.0, "recur": 0.0, "head": 0.0}
         pending = deque()
         bar = progress(total=n_windows, desc=path.name) if progress is not None else None
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="postprocess") as post_pool, \
                 closing(prefetch(_event_chunks(reader, ends, origin, settings, timings), depth=2)) as chunks:
-            for chunk_ends, hists, gif_part, num_read in chunks:
-                num_events += num_read
-                gif.extend(gif_part)
-                for hist in hists:
-                    tic = time.perf_counter()
-                    decoded, states = runner.step(hist[None], states)
-                    timings["inference"] += time.perf_counter() - tic
+            windows = _windows(chunks, runner, totals, gif)
+            steps = (whole_steps(windows) if split is None
+                     else _pipelined_decoded(windows, split, runner.initial_states(1), busy))
+            with closing(steps):
+                for decoded in steps:
                     pending.append(post_pool.submit(post, decoded))
                     while len(pending) > settings.chunk_windows or (pending and pending[0].done()):
                         collect(pending.popleft())
-                if bar is not None:
-                    bar.update(len(chunk_ends))
+                    if bar is not None:
+                        bar.update(1)
             while pending:
                 collect(pending.popleft())
+        timings["inference"] = sum(busy.values())
         if bar is not None:
             bar.close()
     finally:
         reader.close()
     timings["wall"] = time.perf_counter() - wall
     return SessionScores(path=path, t0_us=t0, window_end_us=ends, detections=detections, labels=labels,
-                         crop_origin_xy=tuple(int(v) for v in origin), num_events=num_events, timings_s=timings,
-                         event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW), labels_attrs=labels_attrs)
+                         crop_origin_xy=tuple(int(v) for v in origin), num_events=totals["events"],
+                         timings_s=timings, event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW),
+                         labels_attrs=labels_attrs)
+
+
+def _split_or_none(runner, settings: EvalSettings):
+    """``runner.split(...)`` when ``settings.pipeline`` asks for it and the graph splits, else ``None``."""
+    if not settings.pipeline:
+        return None
+    try:
+        return runner.split(1, settings.intra_op_threads or min(2, os.cpu_count() or 1), 1)
+    except ModelFormatError:  # a graph of another layout: run it whole
+        return None
 
 
 def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int) -> np.ndarray:

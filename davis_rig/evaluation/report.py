@@ -179,7 +179,9 @@ def check_report_dependencies(*, plot: bool, gif: bool) -> None:
 
 def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True, gif: bool = True,
                  gif_threshold: float | None = None) -> dict[str, Path]:
-    """Write ``report.json``, ``table.md`` and (optionally) ``ap_seqasr.png`` and a GIF per recording.
+    """Write ``report.json``, ``table.md``, ``<name>.detections.npz`` per recording (every window's detections,
+    :mod:`davis_rig.evaluation.detections`, for ``davis-view --detections``) and (optionally) ``ap_seqasr.png`` and
+    a GIF per recording.
 
     The files are written into a temporary folder beside ``out_dir`` and moved into ``out_dir`` only when all of
     them are complete, so a failure (or Ctrl-C) leaves ``out_dir`` as it was. GIF names come from
@@ -203,6 +205,11 @@ def write_report(results, scores, settings, out_dir: Path, *, plot: bool = True,
         table = staging / "table.md"
         table.write_text(markdown_table(results))
         written["table"] = table
+        from davis_rig.evaluation.detections import write_detections
+
+        for r, s, file_name in zip(results, scores, gif_file_names([r.name for r in results])):
+            written[f"detections:{r.name}"] = write_detections(
+                s, r.name, settings.window_us, staging / f"{file_name[:-len('.gif')]}.detections.npz")
         if plot:
             written["plot"] = write_plot(results, staging / "ap_seqasr.png")
         if gif:

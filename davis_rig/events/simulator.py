@@ -2,10 +2,10 @@
 
 Model (noise-free, the default), per pixel, evaluated for every pair of consecutive frames ``k → k+1``:
 
-* log intensity ``L = lin_log(intensity_scale · I)`` with v2e's lin-log mapping (``intensity_scale = 255`` turns
-  the renderer's linear intensity in [0, 1] into 8-bit-like units): linear ``x · ln(20) / 20`` for ``x ≤ 20``
-  (dark pixels: a pure log would make sensor-noise-sized changes of dark pixels fire storms of events) and
-  ``ln(x)`` above; continuous at 20. v2e's rounding of ``L`` to 1e-8 is not applied.
+* log intensity ``L = lin_log(intensity_scale · I)`` with v2e's lin-log mapping
+  (:func:`davis_rig.events.intensity.lin_log`; ``intensity_scale = 255`` turns the renderer's linear intensity in
+  [0, 1] into 8-bit-like units): linear below 20, ``ln(x)`` above; v2e's rounding of ``L`` to 1e-8 is not applied.
+  RGB video is reduced to luma first (:func:`~davis_rig.events.intensity.rgb_to_luma`).
 * a per-pixel reference ``L_ref`` (initialised to the first frame's ``L``); between two frames ``L`` is linear in
   time (linear interpolation **in log space**), so within one interval it moves monotonically and each crossing of
   ``L_ref + j · θ_on`` (j = 1, 2, ...) fires one ON event, each crossing of ``L_ref − j · θ_off`` one OFF event;
@@ -45,51 +45,20 @@ import numpy as np
 
 from davis_rig._lazy import optional_import
 from davis_rig.errors import FormatError, ShapeError
+from davis_rig.events.intensity import DEFAULT_THRESHOLD, INTENSITY_SCALE, LIN_LOG_THRESHOLD, lin_log, rgb_to_luma
 from davis_rig.types import EVENT_DTYPE
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-__all__ = [
-    "DEFAULT_THRESHOLD",
-    "LIN_LOG_THRESHOLD",
-    "EventSimulator",
-    "SimulatorConfig",
-    "lin_log",
-    "simulate_events",
-]
+__all__ = ["EventSimulator", "SimulatorConfig", "simulate_events"]
 
-#: The paper's contrast threshold θ (log units), both polarities.
-DEFAULT_THRESHOLD = 0.2
-#: v2e's lin-log knee, in ``intensity_scale`` units (8-bit-like DN): linear below, ln above.
-LIN_LOG_THRESHOLD = 20.0
 #: v2e's shot-noise intensity factor: the noise rate at full intensity is this fraction of the dark rate.
 SHOT_NOISE_INTENSITY_FACTOR = 0.25
 
 
 def _torch():
     return optional_import("torch", "the event simulator")
-
-
-def lin_log(x: "torch.Tensor", threshold: float = LIN_LOG_THRESHOLD) -> "torch.Tensor":
-    """v2e's lin-log mapping: ``x · ln(threshold)/threshold`` for ``x ≤ threshold``, else ``ln(x)`` (differentiable).
-
-    Args:
-        x: non-negative intensities in ``intensity_scale`` units (e.g. 0..255), float tensor of any shape.
-        threshold: the knee, same units as ``x``.
-
-    Returns:
-        Float tensor shaped like ``x``, log units; continuous at the knee (both sides give ``ln(threshold)``).
-
-    Example:
-        >>> import torch
-        >>> lin_log(torch.tensor([0.0, 20.0, 255.0])).tolist()  # doctest: +ELLIPSIS
-        [0.0, 2.99..., 5.54...]
-    """
-    torch = _torch()
-    slope = math.log(threshold) / threshold
-    # clamp inside the log so that the unused branch never produces -inf/NaN gradients.
-    return torch.where(x <= threshold, x * slope, torch.log(torch.clamp(x, min=threshold)))
 
 
 @dataclass(frozen=True)
@@ -115,7 +84,7 @@ class SimulatorConfig:
 
     threshold_on: float = DEFAULT_THRESHOLD
     threshold_off: float = DEFAULT_THRESHOLD
-    intensity_scale: float = 255.0
+    intensity_scale: float = INTENSITY_SCALE
     lin_log_threshold: float = LIN_LOG_THRESHOLD
     timestamps: str = "interpolate"
     threshold_sigma: float = 0.0
@@ -156,8 +125,6 @@ def _as_video(video, device, dtype):
     if video.ndim == 4:
         if video.shape[1] != 3:
             raise ShapeError(f"video: expected [T, H, W] or RGB [T, 3, H, W], got {tuple(video.shape)}")
-        from davis_rig.events.v2e_torch import rgb_to_luma
-
         video = rgb_to_luma(video.to(dtype))
     if video.ndim != 3:
         raise ShapeError(f"video: expected [T, H, W] or RGB [T, 3, H, W], got {tuple(video.shape)}")

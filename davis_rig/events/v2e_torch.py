@@ -4,7 +4,7 @@ From a luminance video ``I`` [T, H, W] (linear intensity in [0, 1]; RGB [T, 3, H
 ``Y = 0.299 R + 0.587 G + 0.114 B``) and frame times ``t_us`` [T], every frame pair ``k → k+1`` gets per-pixel ON
 and OFF event counts ``N⁺_k, N⁻_k`` [T-1, H, W], which are summed into RVT's input ``[windows, 2·B, H, W]`` (channel
 ``p·B + b``, B = 10 bins per 50 ms window, counts clipped at 10). Log intensity is v2e's lin-log of ``255 · I``
-(:func:`davis_rig.events.simulator.lin_log`), exactly as in the exact simulator.
+(:func:`davis_rig.events.intensity.lin_log`), exactly as in the exact simulator.
 
 Count modes (``mode``):
 
@@ -72,15 +72,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from davis_rig._lazy import optional_import
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US
-from davis_rig.events.simulator import DEFAULT_THRESHOLD, LIN_LOG_THRESHOLD, _torch, lin_log
+from davis_rig.events.intensity import DEFAULT_THRESHOLD, INTENSITY_SCALE, LIN_LOG_THRESHOLD, lin_log, rgb_to_luma
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
 __all__ = [
-    "LUMA_WEIGHTS",
     "MODES",
     "BINNINGS",
     "OFFICIAL_RELAXED_SCALE",
@@ -89,17 +89,18 @@ __all__ = [
     "log_histograms",
     "log_intensity",
     "pair_bins",
-    "rgb_to_luma",
     "v2e_counts",
     "v2e_histograms",
 ]
 
-#: ITU-R BT.601 luma weights (R, G, B), as in the paper's official code.
-LUMA_WEIGHTS = (0.299, 0.587, 0.114)
 #: The official code's histogram scaling, 10 / floor(ln 255 / 0.2) = 10 / 27.
 OFFICIAL_RELAXED_SCALE = 10.0 / 27.0
 MODES = ("dvs", "floor", "official_relaxed")
 BINNINGS = ("interval", "rvt_frame_end")
+
+
+def _torch():
+    return optional_import("torch", "the differentiable V2E")
 
 
 # The autograd Functions are classes over torch: each is built once, on first use (torch is imported lazily).
@@ -227,28 +228,10 @@ def floor_ste(x: "torch.Tensor") -> "torch.Tensor":
     return _floor_ste_fn().apply(x)
 
 
-def rgb_to_luma(rgb: "torch.Tensor") -> "torch.Tensor":
-    """Luma ``Y = 0.299 R + 0.587 G + 0.114 B`` of RGB frames (differentiable).
-
-    Args:
-        rgb: float tensor [..., 3, H, W] (channel axis third from last).
-
-    Returns:
-        Float tensor [..., H, W].
-
-    Raises:
-        ShapeError: the channel axis does not have 3 entries.
-    """
-    if rgb.ndim < 3 or rgb.shape[-3] != 3:
-        raise ShapeError(f"rgb: expected [..., 3, H, W], got {tuple(rgb.shape)}")
-    r, g, b = rgb.unbind(-3)
-    return LUMA_WEIGHTS[0] * r + LUMA_WEIGHTS[1] * g + LUMA_WEIGHTS[2] * b
-
-
 def log_intensity(
     video,
     *,
-    intensity_scale: float = 255.0,
+    intensity_scale: float = INTENSITY_SCALE,
     lin_log_threshold: float = LIN_LOG_THRESHOLD,
 ) -> "torch.Tensor":
     """The log video the counts are taken from: v2e's lin-log of ``intensity_scale · Y`` (differentiable).
@@ -317,7 +300,7 @@ def v2e_counts(
     mode: str = "dvs",
     threshold_on=DEFAULT_THRESHOLD,
     threshold_off=DEFAULT_THRESHOLD,
-    intensity_scale: float = 255.0,
+    intensity_scale: float = INTENSITY_SCALE,
     lin_log_threshold: float = LIN_LOG_THRESHOLD,
 ) -> tuple["torch.Tensor", "torch.Tensor"]:
     """Per-frame-pair ON / OFF event counts of a video, differentiable w.r.t. the video (see module docstring).
@@ -431,7 +414,7 @@ def v2e_histograms(
     count_cutoff: float | None = COUNT_CUTOFF,
     threshold_on=DEFAULT_THRESHOLD,
     threshold_off=DEFAULT_THRESHOLD,
-    intensity_scale: float = 255.0,
+    intensity_scale: float = INTENSITY_SCALE,
     lin_log_threshold: float = LIN_LOG_THRESHOLD,
 ) -> "torch.Tensor":
     """Differentiable RVT input ``[windows, 2·B, H, W]`` of a video (V2E counts binned per window).
@@ -532,8 +515,8 @@ class DifferentiableV2E:
 
     def __init__(self, *, mode: str = "dvs", binning: str = "interval", window_us: int = WINDOW_US,
                  num_bins: int = NUM_BINS, count_cutoff: float | None = COUNT_CUTOFF,
-                 threshold_on=DEFAULT_THRESHOLD, threshold_off=DEFAULT_THRESHOLD, intensity_scale: float = 255.0,
-                 lin_log_threshold: float = LIN_LOG_THRESHOLD):
+                 threshold_on=DEFAULT_THRESHOLD, threshold_off=DEFAULT_THRESHOLD,
+                 intensity_scale: float = INTENSITY_SCALE, lin_log_threshold: float = LIN_LOG_THRESHOLD):
         if mode not in MODES:
             raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
         if binning not in BINNINGS:

@@ -1,4 +1,5 @@
-"""Export one session into one of :data:`FORMATS` (what ``davis-export`` runs).
+"""Export one session into one of the :class:`~davis_rig.interop.formats.ExportFormat` formats (what
+``davis-export`` runs).
 
 Geometry (:mod:`davis_rig.interop.source`): ``rvt`` always crops to RVT's 304x240 Gen1 window; the other formats
 keep the full sensor (346x260 on a DAVIS346) unless ``crop=True``. Every output is written beside its destination
@@ -10,16 +11,13 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Callable
-from typing import Final
 
 from davis_rig.errors import ConfigError
+from davis_rig.interop.formats import ExportFormat
 from davis_rig.interop.source import ExportSource
 from davis_rig.interop.summary import ExportSummary
 
-__all__ = ["FORMATS", "export_session"]
-
-#: Format names, in the order ``davis-export --to`` lists them.
-FORMATS: Final = ("aedat4", "prophesee-dat", "rvt", "npz")
+__all__ = ["export_session"]
 
 
 def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, crop: bool = False,
@@ -29,7 +27,7 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
 
     Args:
         path: the session.h5.
-        to: one of :data:`FORMATS`.
+        to: an :class:`~davis_rig.interop.formats.ExportFormat` (or its name).
         out: the output file (``aedat4``, ``prophesee-dat``: the ``.dat``, its ``_bbox.npy`` goes beside it;
             ``npz``) or the dataset folder (``rvt``: the sequence goes to ``out/<split>/<session stem>``).
         crop: write only the 304x240 RVT window (implied by ``rvt``).
@@ -50,19 +48,19 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
             71.6 min; RVT: no labels).
         MissingDependencyError: ``aedat4`` without dv-processing.
     """
-    if to not in FORMATS:
-        raise ConfigError("to", f"expected one of {', '.join(FORMATS)}, got {to!r}")
-    crop = crop or to == "rvt" or crop_origin_xy is not None
+    if to not in tuple(ExportFormat):
+        raise ConfigError("to", f"expected one of {', '.join(ExportFormat)}, got {to!r}")
+    crop = crop or to == ExportFormat.RVT or crop_origin_xy is not None
     with ExportSource(path, crop=crop, crop_origin_xy=crop_origin_xy) as source:
-        if to == "aedat4":
+        if to == ExportFormat.AEDAT4:
             from davis_rig.interop.aedat4 import export_aedat4
 
             summary = export_aedat4(source, out, overwrite=overwrite, progress=progress)
-        elif to == "prophesee-dat":
+        elif to == ExportFormat.PROPHESEE_DAT:
             from davis_rig.interop.prophesee import export_prophesee_dat
 
             summary = export_prophesee_dat(source, out, overwrite=overwrite, progress=progress)
-        elif to == "npz":
+        elif to == ExportFormat.NPZ:
             from davis_rig.interop.npz import export_npz
 
             summary = export_npz(source, out, overwrite=overwrite, progress=progress)
@@ -74,4 +72,4 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
                     if crop else f"the full {source.frame_hw[1]}x{source.frame_hw[0]} sensor"
                     + (f"; boxes moved from their crop at {tuple(source.labels_origin_xy)} onto it"
                        if source.labels_origin_xy not in (None, (0, 0)) else ""))
-    return summary if to == "rvt" else dataclasses.replace(summary, notes=(geometry, *summary.notes))
+    return summary if to == ExportFormat.RVT else dataclasses.replace(summary, notes=(geometry, *summary.notes))

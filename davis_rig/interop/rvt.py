@@ -82,6 +82,80 @@ def labelled_frames(labels: np.ndarray, window_end_us: np.ndarray, window_us: in
     return frame_labels, frame_window.astype(np.int64), frame_t, frame_start
 
 
+def _check_request(source: ExportSource, out: Path, split: str, name: str | None,
+                   overwrite: bool) -> tuple[str, np.ndarray, Path]:
+    """Check :func:`export_rvt`'s arguments; returns the sequence name, the session's labels and the folder.
+
+    Raises:
+        ConfigError, FormatError: as :func:`export_rvt` tells.
+    """
+    if split not in SPLITS:
+        raise ConfigError("split", f"expected one of {', '.join(SPLITS)}, got {split!r}")
+    name = name or source.path.stem
+    if not name or name.startswith(".") or "/" in name or os.sep in name:
+        raise ConfigError("name", f"expected a plain folder name, got {name!r}")
+    if not source.crop:
+        raise FormatError("the RVT export needs the 304x240 crop: open the source with crop=True")
+    labels = source.labels()
+    if labels is None or not len(labels):
+        raise FormatError(f"{source.path}: no labels; RVT's layout needs labelled frames (run davis-label first)")
+    seq_dir = out / split / name
+    if seq_dir.exists() and not overwrite:
+        raise FormatError(f"{seq_dir}: sequence exists (pass --overwrite to replace it)")
+    return name, labels, seq_dir
+
+
+def _write_histograms(path: Path, source: ExportSource, ends: np.ndarray,
+                      progress: Callable[[int, int], None] | None) -> int:
+    """Write the stacked histograms of the windows ending at ``ends`` (device µs) as RVT's
+    ``event_representations.h5``; returns the session events read."""
+    import h5py
+
+    from davis_rig.evaluation.physical import EvalSettings, _event_chunks
+    from davis_rig.session.schema import import_hdf5plugin
+
+    hdf5plugin = import_hdf5plugin()
+    settings = EvalSettings(window_us=WINDOW_US, chunk_windows=CHUNK_WINDOWS)
+    events_read = 0
+    with h5py.File(path, "w") as h5f:
+        shape = (NUM_CHANNELS, *RVT_HW)
+        data = h5f.create_dataset("data", shape=(0, *shape), maxshape=(None, *shape), dtype="u1",
+                                  chunks=(1, *shape), **hdf5plugin.Blosc(cname="zstd", clevel=1,
+                                                                        shuffle=hdf5plugin.Blosc.SHUFFLE))
+        timings = {"read": 0.0, "histogram": 0.0}  # filled by _event_chunks; not reported here
+        for chunk_ends, hists, _, n_read in _event_chunks(source.reader, ends, source.origin_xy, settings, timings):
+            start = data.shape[0]
+            data.resize(start + len(chunk_ends), axis=0)
+            data[start:] = hists
+            events_read += n_read
+            if progress is not None:
+                progress(events_read, source.num_events)
+    return events_read
+
+
+def _summary(source: ExportSource, seq_dir: Path, meta: dict, labels: np.ndarray, frame_labels: np.ndarray,
+             frame_window: np.ndarray, ends: np.ndarray, events_read: int, split: str, name: str) -> ExportSummary:
+    """The :class:`ExportSummary` of a written sequence (``meta``: its meta.json)."""
+    reader, t0 = source.reader, meta["t_offset_us"]
+    label_times = meta["label_times"]
+    left_out = label_times - len(frame_window)
+    notes = [f"RVT's Gen1 input is {RVT_HW[1]}x{RVT_HW[0]}: the events are cropped at {tuple(source.origin_xy)}",
+             f"{len(ends)} windows of {WINDOW_US // 1000} ms ending every {WINDOW_US // 1000} ms from the session's "
+             f"first millisecond (device µs {t0}, time 0 of the files), as davis-eval scores them"]
+    if left_out:
+        notes.append(f"{left_out} of {label_times} label times share a window with a later one and are left out "
+                     "(RVT's layout holds one labelled frame per window)")
+    not_exported = {"frames": len(reader.frames), "specials": len(reader.specials()),
+                    "imu": 0 if (imu := reader.imu()) is None else len(imu)}
+    return ExportSummary(
+        format="rvt", session=str(source.path), outputs=(str(seq_dir),), events=events_read, events_read=events_read,
+        labels=len(frame_labels), labels_left_out=len(labels) - len(frame_labels), frame_hw=RVT_HW,
+        origin_xy=tuple(source.origin_xy), t_offset_us=t0,
+        not_exported={k: v for k, v in not_exported.items() if v}, notes=tuple(notes),
+        extra={"windows": len(ends), "labelled_windows": len(frame_window), "label_times": label_times,
+               "label_times_left_out": left_out, "split": split, "sequence": name})
+
+
 def export_rvt(source: ExportSource, out: str | os.PathLike, *, split: str = "test", name: str | None = None,
                overwrite: bool = False, progress: Callable[[int, int], None] | None = None) -> ExportSummary:
     """Write the session as the sequence ``out/<split>/<name>`` (module docstring).
@@ -104,59 +178,25 @@ def export_rvt(source: ExportSource, out: str | os.PathLike, *, split: str = "te
             folder name.
         FormatError: the session has no labels, or the sequence exists (without ``overwrite``).
     """
-    import h5py
-
-    from davis_rig.evaluation.physical import EvalSettings, _event_chunks
-    from davis_rig.session.schema import import_hdf5plugin
-
-    if split not in SPLITS:
-        raise ConfigError("split", f"expected one of {', '.join(SPLITS)}, got {split!r}")
-    name = name or source.path.stem
-    if not name or name.startswith(".") or "/" in name or os.sep in name:
-        raise ConfigError("name", f"expected a plain folder name, got {name!r}")
-    if not source.crop:
-        raise FormatError("the RVT export needs the 304x240 crop: open the source with crop=True")
-    reader = source.reader
-    labels = source.labels()
-    if labels is None or not len(labels):
-        raise FormatError(f"{source.path}: no labels; RVT's layout needs labelled frames (run davis-label first)")
     out = Path(out)
-    seq_dir = out / split / name
-    if seq_dir.exists() and not overwrite:
-        raise FormatError(f"{seq_dir}: sequence exists (pass --overwrite to replace it)")
-
+    name, labels, seq_dir = _check_request(source, out, split, name, overwrite)
     t0 = source.t_offset_us
-    t_last = max(t0 + 1000 * len(reader.ms_to_idx), int(labels["t"].max()))
+    t_last = max(t0 + 1000 * len(source.reader.ms_to_idx), int(labels["t"].max()))
     ends = t0 + WINDOW_US * np.arange(1, max(1, -(-(t_last - t0) // WINDOW_US)) + 1, dtype=np.int64)
     frame_labels, frame_window, frame_t, frame_start = labelled_frames(labels, ends)
     frame_labels = frame_labels.copy()
     frame_labels["t"] = frame_labels["t"].astype(np.int64) - t0
 
-    hdf5plugin = import_hdf5plugin()
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".{name}{STAGING_SUFFIX}"
     if tmp.exists():
         shutil.rmtree(tmp)  # a leftover of an export that was killed: it was never a sequence
     repr_dir = tmp / "event_representations_v2" / EV_REPR_NAME
     labels_dir = tmp / "labels_v2"
-    events_read = 0
     try:
         repr_dir.mkdir(parents=True)
         labels_dir.mkdir()
-        settings = EvalSettings(window_us=WINDOW_US, chunk_windows=CHUNK_WINDOWS)
-        with h5py.File(repr_dir / "event_representations.h5", "w") as h5f:
-            shape = (NUM_CHANNELS, *RVT_HW)
-            data = h5f.create_dataset("data", shape=(0, *shape), maxshape=(None, *shape), dtype="u1",
-                                      chunks=(1, *shape), **hdf5plugin.Blosc(cname="zstd", clevel=1,
-                                                                            shuffle=hdf5plugin.Blosc.SHUFFLE))
-            timings = {"read": 0.0, "histogram": 0.0}  # filled by _event_chunks; not reported here
-            for chunk_ends, hists, _, n_read in _event_chunks(reader, ends, source.origin_xy, settings, timings):
-                start = data.shape[0]
-                data.resize(start + len(chunk_ends), axis=0)
-                data[start:] = hists
-                events_read += n_read
-                if progress is not None:
-                    progress(events_read, source.num_events)
+        events_read = _write_histograms(repr_dir / "event_representations.h5", source, ends, progress)
         np.save(repr_dir / "timestamps_us.npy", ends - t0)
         np.save(repr_dir / "objframe_idx_2_repr_idx.npy", frame_window)
         np.savez(labels_dir / "labels.npz", labels=frame_labels, objframe_idx_2_label_idx=frame_start)
@@ -176,20 +216,4 @@ def export_rvt(source: ExportSource, out: str | os.PathLike, *, split: str = "te
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp)
         raise
-    label_times = meta["label_times"]
-    left_out = label_times - len(frame_window)
-    notes = [f"RVT's Gen1 input is {RVT_HW[1]}x{RVT_HW[0]}: the events are cropped at {tuple(source.origin_xy)}",
-             f"{len(ends)} windows of 50 ms ending every 50 ms from the session's first millisecond (device µs {t0}, "
-             "time 0 of the files), as davis-eval scores them"]
-    if left_out:
-        notes.append(f"{left_out} of {label_times} label times share a window with a later one and are left out "
-                     "(RVT's layout holds one labelled frame per window)")
-    not_exported = {"frames": len(reader.frames), "specials": len(reader.specials()),
-                    "imu": 0 if (imu := reader.imu()) is None else len(imu)}
-    return ExportSummary(
-        format="rvt", session=str(source.path), outputs=(str(seq_dir),), events=events_read, events_read=events_read,
-        labels=len(frame_labels), labels_left_out=len(labels) - len(frame_labels), frame_hw=RVT_HW,
-        origin_xy=tuple(source.origin_xy), t_offset_us=t0,
-        not_exported={k: v for k, v in not_exported.items() if v}, notes=tuple(notes),
-        extra={"windows": len(ends), "labelled_windows": len(frame_window), "label_times": label_times,
-               "label_times_left_out": left_out, "split": split, "sequence": name})
+    return _summary(source, seq_dir, meta, labels, frame_labels, frame_window, ends, events_read, split, name)

@@ -21,6 +21,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import ConfigError, MissingDependencyError, SessionError
+from davis_rig.labelers.yolo import AUTO_LAYOUT, YOLO_CONF_THRESHOLD, YOLO_NMS_IOU
 from davis_rig.session.labels import write_labels  # re-exported: where labelers have always found it
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW
 
@@ -134,14 +135,59 @@ def label_frames(
     return labels[np.argsort(labels["t"], kind="stable")]
 
 
+def _check_settings(conf_threshold: float, iou_threshold: float, intra_op_threads: int | None,
+                    crop_origin_xy: tuple[int, int] | None) -> tuple[int, int]:
+    """Check :func:`label_session`'s settings; returns the crop origin on the sensor, px (default: centred).
+
+    Raises:
+        ConfigError: as :func:`label_session` tells.
+    """
+    from davis_rig.events.crop import center_crop_origin
+
+    for name, value in (("conf_threshold", conf_threshold), ("iou_threshold", iou_threshold)):
+        if not 0.0 <= float(value) <= 1.0:  # also refuses NaN
+            raise ConfigError(name, f"expected a number in [0, 1], got {value}")
+    if intra_op_threads is not None and int(intra_op_threads) < 1:
+        raise ConfigError("intra_op_threads", f"expected >= 1 or None, got {intra_op_threads}")
+    origin = center_crop_origin(DAVIS346_HW, RVT_HW) if crop_origin_xy is None else tuple(map(int, crop_origin_xy))
+    if origin[0] < 0 or origin[1] < 0 or origin[0] + RVT_HW[1] > DAVIS346_HW[1] or origin[1] + RVT_HW[0] > DAVIS346_HW[0]:
+        raise ConfigError("crop_origin_xy", f"{origin} puts the {RVT_HW[1]}x{RVT_HW[0]} crop outside the "
+                                            f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]} sensor")
+    return origin
+
+
+def _check_frames(reader, path: Path, overwrite: bool) -> int:
+    """The number of APS frames of an open session to label.
+
+    Raises:
+        SessionError: no frames, frames that are not DAVIS346's, or labels present without ``overwrite``.
+    """
+    n_frames = len(reader.frames)
+    if n_frames == 0:
+        raise SessionError(f"{path}: the session has no APS frames to label")
+    hw = tuple(reader.frames.data.shape[1:])
+    if hw != DAVIS346_HW:
+        raise SessionError(f"{path}: APS frames are {hw[1]}x{hw[0]} (w x h), expected DAVIS346 "
+                           f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]}")
+    if reader.labels() is not None and not overwrite:
+        raise SessionError(f"{path}: already has /labels; pass --overwrite to replace them")
+    return n_frames
+
+
+def _exposure_middles(frames) -> np.ndarray:
+    """The middle of each frame's exposure, int64 [F], device µs (a session reader's ``frames``)."""
+    t_start = frames.times_us("t_start_exposure_us")
+    return t_start + (frames.times_us("t_end_exposure_us") - t_start) // 2
+
+
 def label_session(
     path: str | Path,
     yolo: str | Path,
     *,
     classes: Sequence[str] | None = None,
-    conf_threshold: float = 0.25,
-    iou_threshold: float = 0.45,
-    layout: str = "auto",
+    conf_threshold: float = YOLO_CONF_THRESHOLD,
+    iou_threshold: float = YOLO_NMS_IOU,
+    layout: str = AUTO_LAYOUT,
     crop_origin_xy: tuple[int, int] | None = None,
     overwrite: bool = False,
     progress: Callable | None = None,
@@ -170,37 +216,19 @@ def label_session(
         SessionError: missing/corrupt session, no frames, frames of the wrong resolution, labels present.
         ModelFormatError: a model that is not a supported YOLO ONNX, or lacks one of ``classes``.
     """
-    from davis_rig.events.crop import center_crop_origin
     from davis_rig.labelers.yolo import YoloOnnxDetector
     from davis_rig.session import SessionReader
 
-    for name, value in (("conf_threshold", conf_threshold), ("iou_threshold", iou_threshold)):
-        if not 0.0 <= float(value) <= 1.0:  # also refuses NaN
-            raise ConfigError(name, f"expected a number in [0, 1], got {value}")
-    if intra_op_threads is not None and int(intra_op_threads) < 1:
-        raise ConfigError("intra_op_threads", f"expected >= 1 or None, got {intra_op_threads}")
-    origin = center_crop_origin(DAVIS346_HW, RVT_HW) if crop_origin_xy is None else tuple(map(int, crop_origin_xy))
-    if origin[0] < 0 or origin[1] < 0 or origin[0] + RVT_HW[1] > DAVIS346_HW[1] or origin[1] + RVT_HW[0] > DAVIS346_HW[0]:
-        raise ConfigError("crop_origin_xy", f"{origin} puts the {RVT_HW[1]}x{RVT_HW[0]} crop outside the "
-                                            f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]} sensor")
+    origin = _check_settings(conf_threshold, iou_threshold, intra_op_threads, crop_origin_xy)
     path = Path(path)
     with SessionReader(path) as reader:  # validates the file before the model is even loaded
-        n_frames = len(reader.frames)
-        if n_frames == 0:
-            raise SessionError(f"{path}: the session has no APS frames to label")
-        hw = tuple(reader.frames.data.shape[1:])
-        if hw != DAVIS346_HW:
-            raise SessionError(f"{path}: APS frames are {hw[1]}x{hw[0]} (w x h), expected DAVIS346 "
-                               f"{DAVIS346_HW[1]}x{DAVIS346_HW[0]}")
-        if reader.labels() is not None and not overwrite:
-            raise SessionError(f"{path}: already has /labels; pass --overwrite to replace them")
+        n_frames = _check_frames(reader, path, overwrite)
         model_path, default_classes = resolve_yolo_model(yolo)
         detector = YoloOnnxDetector(model_path, layout=layout, class_names=None, conf_threshold=conf_threshold,
                                     iou_threshold=iou_threshold, intra_op_threads=intra_op_threads)
         wanted = list(classes) if classes else list(default_classes or ("person",))
         class_ids = detector.class_ids(wanted)
-        t_mid = reader.frames.times_us("t_start_exposure_us")
-        t_mid = t_mid + (reader.frames.times_us("t_end_exposure_us") - t_mid) // 2
+        t_mid = _exposure_middles(reader.frames)
         data = reader.frames.data
         frames = (data[i] for i in range(n_frames))
         labels = label_frames(detector, frames, t_mid, class_ids=class_ids, origin_xy=origin,

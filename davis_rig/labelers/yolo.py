@@ -26,6 +26,7 @@ from __future__ import annotations
 import ast
 import json
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Final, Sequence
 
@@ -33,9 +34,26 @@ import numpy as np
 
 from davis_rig.errors import FormatError, MissingDependencyError, ModelFormatError, ShapeError
 
-__all__ = ["COCO_PERSON", "LAYOUTS", "YoloOnnxDetector", "letterbox", "to_gray_u8"]
+__all__ = ["AUTO_LAYOUT", "COCO_PERSON", "LAYOUTS", "YOLO_CONF_THRESHOLD", "YOLO_NMS_IOU", "YoloLayout",
+           "YoloOnnxDetector", "letterbox", "to_gray_u8"]
 
-LAYOUTS: Final = ("yolov5", "yolov8", "yolov7-nms", "ultralytics-nms")
+
+class YoloLayout(StrEnum):
+    """The output layouts of YOLO ONNX exports the labeler reads (module docstring)."""
+
+    YOLOV5 = "yolov5"
+    YOLOV8 = "yolov8"
+    YOLOV7_NMS = "yolov7-nms"
+    ULTRALYTICS_NMS = "ultralytics-nms"
+
+
+#: Every layout name, in :class:`YoloLayout` order.
+LAYOUTS: Final = tuple(layout.value for layout in YoloLayout)
+#: ``layout=`` / ``--layout`` value that picks the layout from the output shape and the ONNX metadata.
+AUTO_LAYOUT: Final = "auto"
+#: Default score threshold and class-wise NMS IoU of the labeler (YOLOv5 ``detect.py``'s ``conf_thres``/``iou_thres``).
+YOLO_CONF_THRESHOLD: Final = 0.25
+YOLO_NMS_IOU: Final = 0.45
 #: COCO class 0 is "person" in every YOLOv5/v7/v8 COCO model.
 COCO_PERSON: Final = "person"
 PAD_VALUE: Final = 114
@@ -162,10 +180,10 @@ class YoloOnnxDetector:
         self,
         path: str | Path,
         *,
-        layout: str = "auto",
+        layout: str = AUTO_LAYOUT,
         class_names: Sequence[str] | None = None,
-        conf_threshold: float = 0.25,
-        iou_threshold: float = 0.45,
+        conf_threshold: float = YOLO_CONF_THRESHOLD,
+        iou_threshold: float = YOLO_NMS_IOU,
         max_det: int = 300,
         intra_op_threads: int | None = None,
     ):
@@ -213,33 +231,34 @@ class YoloOnnxDetector:
                 raise ModelFormatError(f"{self.path}: dynamic input size and unreadable imgsz {size!r}") from exc
         return _Io(inputs[0].name, (int(h), int(w)), outputs[0].name, tuple(outputs[0].shape))
 
-    def _resolve_layout(self, layout: str) -> str:
-        if layout != "auto":
+    def _resolve_layout(self, layout: str) -> YoloLayout:
+        if layout != AUTO_LAYOUT:
             if layout not in LAYOUTS:
-                raise ValueError(f"layout: expected 'auto' or one of {LAYOUTS}, got {layout!r}")
-            return layout
+                raise ValueError(f"layout: expected {AUTO_LAYOUT!r} or one of {LAYOUTS}, got {layout!r}")
+            return YoloLayout(layout)
         shape = self.io.output_shape
         ultralytics = self.metadata.get("author", "").lower().startswith("ultralytics")
         if len(shape) == 2 and shape[1] == 7:
-            return "yolov7-nms"
+            return YoloLayout.YOLOV7_NMS
         if len(shape) != 3:
             raise ModelFormatError(f"{self.path}: output {self.io.output_name} {shape}: no YOLO layout fits "
                                    f"({LAYOUTS}); pass layout= explicitly")
         if ultralytics:
             args = self.metadata.get("args", "")
-            return "ultralytics-nms" if "'nms': True" in args or '"nms": true' in args else "yolov8"
+            nms = "'nms': True" in args or '"nms": true' in args
+            return YoloLayout.ULTRALYTICS_NMS if nms else YoloLayout.YOLOV8
         a, b = shape[1], shape[2]
         nc = len(self.class_names) if self.class_names else None
         if isinstance(a, int) and isinstance(b, int):
             if nc is not None and a == 4 + nc and b != 5 + nc:
-                return "yolov8"
+                return YoloLayout.YOLOV8
             if nc is not None and b == 5 + nc:
-                return "yolov5"
-            return "yolov8" if a < b else "yolov5"
+                return YoloLayout.YOLOV5
+            return YoloLayout.YOLOV8 if a < b else YoloLayout.YOLOV5
         if isinstance(b, int) and b >= 6:
-            return "yolov5"
+            return YoloLayout.YOLOV5
         if isinstance(a, int) and a >= 5:
-            return "yolov8"
+            return YoloLayout.YOLOV8
         raise ModelFormatError(f"{self.path}: cannot tell the YOLO layout of output {shape}; pass layout=")
 
     # ----------------------------------------------------------------------------------------------
@@ -274,18 +293,18 @@ class YoloOnnxDetector:
             ShapeError: the output does not fit the layout.
         """
         out = np.asarray(output, dtype=np.float32)
-        if self.layout == "yolov7-nms":
+        if self.layout == YoloLayout.YOLOV7_NMS:
             if out.ndim != 2 or out.shape[1] != 7:
                 raise ShapeError(f"yolov7-nms output: expected [K, 7], got {out.shape}")
             rows = out[out[:, 0] == 0]
             return np.stack([rows[:, 1], rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 6], rows[:, 5]], axis=1)
         if out.ndim != 3 or out.shape[0] < 1:
             raise ShapeError(f"{self.layout} output: expected [B, ., .], got {out.shape}")
-        if self.layout == "ultralytics-nms":
+        if self.layout == YoloLayout.ULTRALYTICS_NMS:
             if out.shape[2] != 6:
                 raise ShapeError(f"ultralytics-nms output: expected [B, K, 6], got {out.shape}")
             return out[0].copy()
-        if self.layout == "yolov8":
+        if self.layout == YoloLayout.YOLOV8:
             pred = out[0].T  # [N, 4 + nc]
             if pred.shape[1] < 5:
                 raise ShapeError(f"yolov8 output: expected [B, 4 + nc, N], got {out.shape}")
@@ -320,7 +339,7 @@ class YoloOnnxDetector:
         if classes is not None:
             keep &= np.isin(rows[:, 5].astype(np.int64), np.asarray(list(classes), dtype=np.int64))
         rows = rows[keep]
-        if len(rows) and self.layout not in ("yolov7-nms", "ultralytics-nms"):
+        if len(rows) and self.layout not in (YoloLayout.YOLOV7_NMS, YoloLayout.ULTRALYTICS_NMS):  # no NMS inside
             order = batched_nms(rows[:, :4], rows[:, 4], rows[:, 5].astype(np.int64), self.iou_threshold)
             rows = rows[order]
         else:
@@ -333,7 +352,7 @@ class YoloOnnxDetector:
 
     def settings(self) -> dict:
         """The labeler's settings, JSON-ready (stored with the labels)."""
-        return {"model": str(self.path), "model_name": self.path.name, "layout": self.layout,
+        return {"model": str(self.path), "model_name": self.path.name, "layout": self.layout.value,
                 "input_hw": list(self.io.input_hw), "class_names": self.class_names,
                 "conf_threshold": self.conf_threshold, "iou_threshold": self.iou_threshold, "max_det": self.max_det,
                 "license": self.metadata.get("license"), "preprocess": "grey (uint16 >> 8) x3, letterbox 114, /255"}

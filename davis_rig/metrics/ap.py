@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import io
 from collections.abc import Sequence
+from enum import StrEnum
 from typing import Final
 
 import numpy as np
@@ -40,6 +41,7 @@ from davis_rig.types import BBOX_DTYPE, GEN1_CLASSES, PEDESTRIAN_CLASS_ID, RVT_H
 
 __all__ = [
     "AP_KEYS",
+    "CocoBackend",
     "MIN_DIAG_PX",
     "MIN_SIDE_PX",
     "SKIP_FIRST_US",
@@ -60,6 +62,14 @@ SKIP_FIRST_US: Final = 500_000
 TIME_TOL_US: Final = 50_000
 #: Keys of the result, in COCOeval's ``stats`` order.
 AP_KEYS: Final = ("AP", "AP_50", "AP_75", "AP_S", "AP_M", "AP_L")
+
+
+class CocoBackend(StrEnum):
+    """The COCO evaluation code that computes AP: ``faster_coco_eval`` (C++, the default) or the original
+    ``pycocotools``."""
+
+    FASTER_COCO_EVAL = "faster_coco_eval"
+    PYCOCOTOOLS = "pycocotools"
 
 
 def _check_boxes(name: str, boxes) -> np.ndarray:
@@ -172,7 +182,7 @@ def match_times(gt_boxes: np.ndarray, dt_boxes: np.ndarray, time_tol_us: int = T
 
 
 def _coco_classes(backend: str):
-    if backend == "faster_coco_eval":
+    if backend == CocoBackend.FASTER_COCO_EVAL:
         try:
             from faster_coco_eval import COCO, COCOeval_faster
         except ImportError as exc:
@@ -180,14 +190,14 @@ def _coco_classes(backend: str):
                 "AP needs faster-coco-eval: pip install faster-coco-eval (a davis_rig dependency)"
             ) from exc
         return COCO, COCOeval_faster
-    if backend == "pycocotools":
+    if backend == CocoBackend.PYCOCOTOOLS:
         try:
             from pycocotools.coco import COCO
             from pycocotools.cocoeval import COCOeval
         except ImportError as exc:
             raise MissingDependencyError("backend='pycocotools' needs pycocotools: pip install pycocotools") from exc
         return COCO, COCOeval
-    raise ValueError(f"backend: expected 'faster_coco_eval' or 'pycocotools', got {backend!r}")
+    raise ValueError(f"backend: expected {' or '.join(repr(b.value) for b in CocoBackend)}, got {backend!r}")
 
 
 def coco_ap(
@@ -197,7 +207,7 @@ def coco_ap(
     classes: Sequence[str] = tuple(GEN1_CLASSES.values()),
     category: int | None = PEDESTRIAN_CLASS_ID,
     frame_hw: tuple[int, int] = RVT_HW,
-    backend: str = "faster_coco_eval",
+    backend: str = CocoBackend.FASTER_COCO_EVAL,
 ) -> dict[str, float]:
     """COCO 'bbox' AP of per-image labels and detections (RVT's ``_coco_eval``).
 
@@ -278,7 +288,7 @@ def evaluate_detection(
     time_tol_us: int = TIME_TOL_US,
     category: int | None = PEDESTRIAN_CLASS_ID,
     frame_hw: tuple[int, int] = RVT_HW,
-    backend: str = "faster_coco_eval",
+    backend: str = CocoBackend.FASTER_COCO_EVAL,
 ) -> dict[str, float]:
     """RVT's ``evaluate_list`` for one sequence: filter labels and detections, match times, COCO AP.
 

@@ -18,16 +18,23 @@ Detection in a sequence:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.types import PEDESTRIAN_CLASS_ID
 
-__all__ = ["SeqAsrResult", "box_iou", "label_sequences", "longest_run", "seq_asr", "windows_detected",
-           "windows_with_labels"]
+__all__ = ["SeqAsrMode", "SeqAsrResult", "box_iou", "label_sequences", "longest_run", "seq_asr",
+           "windows_detected", "windows_with_labels"]
 
-MODES = ("paper", "strict")
+
+class SeqAsrMode(StrEnum):
+    """When a window counts as detected: ``paper`` = any pedestrian box; ``strict`` = a pedestrian box with IoU at
+    or above the threshold with one of the window's labels."""
+
+    PAPER = "paper"
+    STRICT = "strict"
 
 
 @dataclass(frozen=True)
@@ -153,9 +160,9 @@ def windows_detected(
     Raises:
         ValueError: unknown mode; ShapeError: ``labels_xyxy`` missing or of the wrong length in strict mode.
     """
-    if mode not in MODES:
-        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
-    if mode == "strict" and (labels_xyxy is None or len(labels_xyxy) != len(detections)):
+    if mode not in tuple(SeqAsrMode):
+        raise ValueError(f"mode: expected one of {tuple(m.value for m in SeqAsrMode)}, got {mode!r}")
+    if mode == SeqAsrMode.STRICT and (labels_xyxy is None or len(labels_xyxy) != len(detections)):
         raise ShapeError(f"strict SeqASR needs one label array per window ({len(detections)} windows), got "
                          f"{None if labels_xyxy is None else len(labels_xyxy)}")
     out = np.zeros(len(detections), dtype=bool)
@@ -170,7 +177,7 @@ def windows_detected(
             keep &= det[:, 4] * det[:, 5] >= np.float32(min_score)
         if not keep.any():
             continue
-        if mode == "paper":
+        if mode == SeqAsrMode.PAPER:
             out[i] = True
         else:
             labels = np.asarray(labels_xyxy[i], dtype=np.float64).reshape(-1, 4)

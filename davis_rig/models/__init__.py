@@ -1,6 +1,6 @@
 """Detectors used by the rig: ``davis_rig.models.rvt`` (RVT, recurrent event-camera detector).
 
-The bundled default detector (issue 7, trained on synthetic events only, see its ``MODEL_CARD.md``) lives in
+The bundled default detector (trained on synthetic events only, see its ``MODEL_CARD.md``) lives in
 ``davis_rig/assets/detector/``: :func:`default_detector_path` (one recurrent RVT step as ONNX, for
 ``davis-eval`` and onnxruntime) and :func:`default_detector_weights_path` (the same weights as fp16 safetensors
 with the architecture in the metadata ``config``, for ``davis_rig.models.rvt.load_detector`` and the attack).
@@ -22,7 +22,7 @@ def _bundled(name: str, hint: str) -> _Path:
         from davis_rig.errors import MissingDependencyError
 
         raise MissingDependencyError(
-            f"the bundled default detector {path} is missing (the synthetic-trained model of issue 7 is not "
+            f"the bundled default detector {path} is missing (the synthetic-trained model is not "
             f"installed with this copy of davis_rig); {hint}")
     return path
 

@@ -5,10 +5,13 @@ Semantics follow libcaer 3.x (PROTOCOL.md §8-§13) with two deliberate differen
 stale per-packet value), and TIMESTAMP_RESET / TIMESTAMP_WRAP specials carry the stream time at which they happen
 instead of libcaer's ``INT32_MAX`` marker.
 
-Implementation: the DVS/timestamp path has no per-word Python loop. Per block of words, the timestamp base is a
-cumulative sum of wrap increments segmented at resets, the 15-bit timestamp and the last row address are
-forward-filled with ``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with
-masks. Control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
+Implementation: the DVS/timestamp path has no per-word Python loop. Two kernels give bit-identical output: the
+compiled one (``_decode_kernel.c``, an optional C extension built by ``pip install``; one pass over the words that
+writes the events and lists the control words with their times) and the numpy one (the reference and the fallback
+where no C compiler was present). In the numpy kernel, per block of words, the timestamp base is a cumulative sum
+of wrap increments segmented at resets, the 15-bit timestamp and the last row address are forward-filled with
+``np.maximum.accumulate`` over ``(index << k) | value`` keys, and events are selected with masks. With either
+kernel, control words (specials, misc8, misc10, big wraps) run through a compact Python loop, except runs of whole
 APS columns (column start, expected rows of samples, column end, ...), which are recognised with numpy and applied in
 bulk. APS ADC samples are never looped over: they are queued as column segments (their values kept in a bounded
 store across transfers) and written into the frame buffers once per frame — runs of whole columns as one rectangular
@@ -18,23 +21,39 @@ slice, anything irregular with one vectorised scatter per group of same-type seg
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field, fields
-from typing import Final
+from typing import Final, NamedTuple
 
 import numpy as np
 
-from davis_rig.errors import ProtocolError
+from davis_rig.errors import ConfigError, MissingDependencyError, ProtocolError
 from davis_rig.protocol.frames import ApsFrame
 from davis_rig.protocol.layout import SensorLayout
 from davis_rig.protocol.words import (
     APS_PIXEL_MAX,
     APS_PIXEL_SHIFT,
     APS_RESET_MIN,
+    CODE_SHIFT,
+    DATA_MASK,
     IMU_TOTAL_COUNT,
+    MISC8_BYTE_MASK,
+    MISC8_SUB_SHIFT,
+    MISC10_SUB_SHIFT,
+    OVERFLOW_SHIFT,
+    TIMESTAMP_FLAG,
+    TIMESTAMP_MASK,
+    Code,
+    Misc8,
     Special,
     SpecialType,
 )
 from davis_rig.types import EVENT_DTYPE
+
+try:  # the compiled DVS/timestamp pass (_decode_kernel.c), built by `pip install` where a C compiler is present
+    from davis_rig.protocol import _decode_kernel
+except ImportError:  # not built: the numpy path decodes (same output)
+    _decode_kernel = None
 
 _log = logging.getLogger(__name__)
 
@@ -43,7 +62,10 @@ __all__ = [
     "IMU6_DTYPE",
     "DecoderStats",
     "DecodedChunk",
+    "KERNELS",
+    "KERNEL_ENV",
     "StreamDecoder",
+    "compiled_kernel_available",
 ]
 
 #: A special event: time (µs, int64) and libcaer special type id (see :class:`~davis_rig.protocol.words.SpecialType`).
@@ -65,9 +87,47 @@ IMU6_DTYPE: Final = np.dtype(
 
 #: Words decoded per vectorised block; bounds temporary memory (about 40 bytes per word) and keeps it in cache.
 _BLOCK_WORDS: Final = 1 << 15
-_TS_KEY_SHIFT: Final = 15
-_Y_KEY_SHIFT: Final = 12
-_BIG_WRAP_SHIFT: Final = 31
+#: Words per call of the compiled kernel: it needs no temporaries (its event buffer, 13 bytes per word, is shrunk to
+#: the events found), so only the control pass's ADC sample store (4 bytes per sample) scales with it.
+_KERNEL_BLOCK_WORDS: Final = 1 << 20
+#: Forward-fill keys are ``(index + 1) << shift | value``: the shift is the bit width of the filled value.
+_TS_KEY_SHIFT: Final = TIMESTAMP_MASK.bit_length()
+_Y_KEY_SHIFT: Final = DATA_MASK.bit_length()
+#: A wrap increment is ``multiplier << _TS_KEY_SHIFT`` µs (one unit = WRAP_TICKS_US = 2**15 µs).
+_WRAP_UNIT_SHIFT: Final = TIMESTAMP_MASK.bit_length()
+#: X-address words are codes 2 (OFF) and 3 (ON): bits 15-13 == 0b001; the polarity is code bit 0.
+_X_ADDR_SHIFT: Final = CODE_SHIFT + 1
+_X_ADDR_KEY: Final = int(Code.X_ADDR_OFF) >> 1
+_POLARITY_SHIFT: Final = CODE_SHIFT
+#: Y-address words minus this are the row (0..4095); any other word minus it is >= 0x1000 or wraps around.
+_Y_WORD_BASE: Final = np.uint16(int(Code.Y_ADDR) << CODE_SHIFT)
+#: Largest 16-bit word value.
+_WORD_MAX: Final = 0xFFFF
+#: ROI and IMU values arrive as big-endian byte pairs (misc8 payloads); IMU values are signed 16-bit.
+_BYTE_BITS: Final = MISC8_BYTE_MASK.bit_length()
+_INT16_SPAN: Final = 1 << 16
+
+# Plain ints of the word codes: numpy compares arrays with an IntEnum member as int64 (about 10x slower than
+# with a plain int), and the per-control-word loop avoids enum attribute lookups.
+_SPECIAL: Final = int(Code.SPECIAL)
+_Y_ADDR: Final = int(Code.Y_ADDR)
+_ADC_SAMPLE: Final = int(Code.ADC_SAMPLE)
+_MISC8: Final = int(Code.MISC8)
+_MISC10: Final = int(Code.MISC10)
+_TS_WRAP: Final = int(Code.TS_WRAP)
+_TS_RESET_WORD: Final = int(Special.TIMESTAMP_RESET)  # the whole word: code 0, sub-code 1
+_RESET_COLUMN: Final = int(Special.APS_RESET_COLUMN_START)
+_SIGNAL_COLUMN: Final = int(Special.APS_SIGNAL_COLUMN_START)
+_COLUMN_END: Final = int(Special.APS_COLUMN_END)
+
+#: Decoder kernels: the compiled DVS/timestamp pass, or the vectorised numpy path (the reference and fallback).
+KERNELS: Final = ("compiled", "numpy")
+#: Environment variable naming the kernel when :class:`StreamDecoder` is given none (default: compiled if built).
+KERNEL_ENV: Final = "DAVIS_RIG_DECODER_KERNEL"
+
+# int64 state buffer of the compiled kernel (ST_* in _decode_kernel.c): clock, last row, last event, geometry.
+_ST_BASE, _ST_OFFSET, _ST_LAST_Y, _ST_LAST_T, _ST_HAS_LAST_T, _ST_ROWS, _ST_COLUMNS, _ST_INVERT_XY = range(8)
+_ST_LEN: Final = 8
 
 _LOSS_COUNTERS: Final = (
     "odd_bytes_dropped",
@@ -255,6 +315,178 @@ class _ImuState:
         )
 
 
+
+def compiled_kernel_available() -> bool:
+    """Whether the compiled decoder kernel was built (``pip install`` with a C compiler) and imports."""
+    return _decode_kernel is not None
+
+
+def _resolve_kernel(kernel: str | None) -> str:
+    """The kernel a decoder uses: ``kernel``, else :data:`KERNEL_ENV`, else ``compiled`` when built."""
+    source = "kernel"
+    if kernel is None:
+        kernel = os.environ.get(KERNEL_ENV) or None
+        source = KERNEL_ENV
+    if kernel is None:
+        return "compiled" if _decode_kernel is not None else "numpy"
+    if kernel not in KERNELS:
+        raise ConfigError(source, f"expected one of {', '.join(KERNELS)}, got {kernel!r}")
+    if kernel == "compiled" and _decode_kernel is None:
+        raise MissingDependencyError(
+            f"{source}=compiled: the compiled decoder kernel davis_rig.protocol._decode_kernel is not built; reinstall "
+            "with a C compiler present (pip install -e .), or use the numpy kernel (same output, slower)"
+        )
+    return kernel
+
+
+class _WordKinds(NamedTuple):
+    """Counts and masks of one block's word kinds that decide which decoding steps run.
+
+    Attributes:
+        n_rare: specials, ADC samples, misc8 and misc10 words (the control-word path).
+        is_wrap: bool [n] wrap words (code 7), ``None`` when the block has no code 4-7 word.
+        n_wrap: number of wrap words.
+        is_reset: bool [n] TIMESTAMP_RESET words, ``None`` when the block has no special word.
+        n_reset: number of TIMESTAMP_RESET words.
+    """
+
+    n_rare: int
+    is_wrap: np.ndarray | None
+    n_wrap: int
+    is_reset: np.ndarray | None
+    n_reset: int
+
+
+def _word_kinds(w: np.ndarray, codes: np.ndarray) -> _WordKinds:
+    """Classify a block's words (``codes = w >> CODE_SHIFT``; timestamp words give codes 8-15)."""
+    n_special = int(np.count_nonzero(codes == _SPECIAL))
+    # codes 4-7 (uint16 arithmetic wraps below 4, and timestamp words give 8-15)
+    n_high = int(np.count_nonzero((codes - np.uint16(_ADC_SAMPLE)) <= _TS_WRAP - _ADC_SAMPLE))
+    is_wrap, n_wrap = None, 0
+    if n_high:
+        is_wrap = codes == _TS_WRAP
+        n_wrap = int(np.count_nonzero(is_wrap))
+    is_reset, n_reset = None, 0
+    if n_special:
+        is_reset = w == _TS_RESET_WORD
+        n_reset = int(np.count_nonzero(is_reset))
+    return _WordKinds(n_special + n_high - n_wrap, is_wrap, n_wrap, is_reset, n_reset)
+
+
+@dataclass(slots=True)
+class _WrapBase:
+    """The wrap base of one block: ``(overflow << 31) + wrapAdd`` in µs, 64-bit, after each wrap/reset word.
+
+    Attributes:
+        base_prev: base carried in from the previous block, µs.
+        base_end: base after the block's last word, µs.
+        changes: int64 [C] positions of the wrap and reset words (``None``: the block has none).
+        change_base: int64 [C] base right after each of them, µs.
+        increments: int64 [C] what each added (``multiplier << 15``; 0 for a reset), µs.
+        change_is_reset: bool [C] which of them are resets.
+    """
+
+    base_prev: int
+    base_end: int
+    changes: np.ndarray | None = None
+    change_base: np.ndarray | None = None
+    increments: np.ndarray | None = None
+    change_is_reset: np.ndarray | None = None
+
+    def at(self, positions: np.ndarray):
+        """Wrap base in effect at (after) each word position, µs; a scalar when the block has no change."""
+        if self.changes is None:
+            return self.base_prev
+        j = np.searchsorted(self.changes, positions, side="right") - 1
+        return np.where(j >= 0, self.change_base[np.maximum(j, 0)], self.base_prev)
+
+    def big_wrap_positions(self) -> np.ndarray | None:
+        """Positions of the wraps that overflow the 31-bit timestamp (libcaer TIMESTAMP_WRAP), or ``None``."""
+        if self.changes is None:
+            return None
+        before = self.change_base - self.increments
+        crossed = (self.change_base >> OVERFLOW_SHIFT) != (before >> OVERFLOW_SHIFT)
+        crossed &= ~self.change_is_reset
+        return self.changes[crossed] if crossed.any() else None
+
+
+def _wrap_base(w: np.ndarray, kinds: _WordKinds, base_prev: int) -> _WrapBase:
+    """Cumulative wrap base of a block: a wrap adds ``multiplier << 15`` µs, a reset restarts at 0."""
+    if not (kinds.n_wrap or kinds.n_reset):
+        return _WrapBase(base_prev, base_prev)
+    if not kinds.n_reset:
+        is_change = kinds.is_wrap
+    elif kinds.is_wrap is None:
+        is_change = kinds.is_reset
+    else:
+        is_change = kinds.is_wrap | kinds.is_reset
+    changes = np.flatnonzero(is_change)
+    change_words = w[changes]
+    increments = (change_words & DATA_MASK).astype(np.int64) << _WRAP_UNIT_SHIFT
+    change_is_reset = change_words == _TS_RESET_WORD
+    increments[change_is_reset] = 0
+    change_base = np.cumsum(increments)
+    if kinds.n_reset:
+        k = np.arange(changes.shape[0])
+        last_reset = np.maximum.accumulate(np.where(change_is_reset, k, -1))
+        change_base += np.where(last_reset >= 0, -change_base[np.maximum(last_reset, 0)], base_prev)
+    else:
+        change_base += base_prev
+    return _WrapBase(base_prev, int(change_base[-1]), changes, change_base, increments, change_is_reset)
+
+
+class _ControlBlock:
+    """State of one block's control-word pass: the ADC samples' cursor and the specials and IMU rows found.
+
+    Args:
+        aps: the decoder's APS state (receives the queued column segments).
+        stats: the decoder's counters.
+        ctrl_words: uint16 [C] the control words in stream order.
+        cut_array: int64 [C] number of the block's ADC samples before each control word.
+        n_adc: ADC samples in the block.
+        store_base: index of the block's first ADC sample in the APS sample store.
+    """
+
+    __slots__ = ("aps", "stats", "ctrl_words", "cut_array", "cuts", "n_adc", "store_base", "adc_done", "specials",
+                 "imu_rows")
+
+    def __init__(self, aps: _ApsState, stats: DecoderStats, ctrl_words: np.ndarray, cut_array: np.ndarray,
+                 n_adc: int, store_base: int):
+        self.aps = aps
+        self.stats = stats
+        self.ctrl_words = ctrl_words
+        self.cut_array = cut_array
+        self.cuts = cut_array.tolist()
+        self.n_adc = n_adc
+        self.store_base = store_base
+        self.adc_done = 0
+        self.specials: list[tuple[int, int]] = []
+        self.imu_rows: list[tuple] = []
+
+    def take_samples(self, upto: int) -> None:
+        """Queue the ADC samples before block sample ``upto`` as a column segment of the current readout."""
+        k = upto - self.adc_done
+        if k <= 0:
+            return
+        start = self.adc_done
+        self.adc_done = upto
+        aps = self.aps
+        if aps.ignore:
+            self.stats.aps_samples_dropped += k
+            return
+        r = aps.readout
+        cx = aps.count_x[r]
+        cy = aps.count_y[r]
+        if cx >= aps.expected_x:
+            self.stats.aps_samples_dropped += k
+            return
+        take = min(k, max(aps.expected_y - cy, 0))
+        self.stats.aps_samples_dropped += k - take
+        if take:
+            aps.pending.append((r, cx, cy, self.store_base + start, self.store_base + start + take))
+            aps.count_y[r] = cy + take
+
+
 class StreamDecoder:
     """Stateful DAVIS word-stream decoder; feed it USB bulk transfers in arrival order.
 
@@ -278,18 +510,28 @@ class StreamDecoder:
     delivers nothing. Data loss (odd bytes, unknown words, out-of-range addresses, dropped frames/samples) is counted
     in :attr:`stats` and logged once per kind as a warning on the ``davis_rig.protocol.decoder`` logger.
 
+    Two kernels decode the DVS/timestamp words with bit-identical output: a compiled C pass (``_decode_kernel.c``,
+    about 6x faster per 8 KiB transfer, see benchmarks/README.md; built by ``pip install`` where a C compiler is
+    present) and the vectorised numpy path described in the module docstring (the fallback). Control words
+    (specials, APS, IMU) take the same Python path with either.
+
     Args:
         layout: the device's raw geometry/orientation read-outs.
         reassemble_odd_bytes: if True, a trailing odd byte is carried into the next transfer (its low byte first);
             if False (libcaer), it is dropped and counted in ``stats.odd_bytes_dropped``.
+        kernel: ``"compiled"``, ``"numpy"``, or None: the environment variable ``DAVIS_RIG_DECODER_KERNEL`` if
+            set, else ``"compiled"`` when it is built.
 
     Raises:
         ProtocolError: ``layout`` is not a :class:`SensorLayout`.
+        ConfigError: an unknown kernel name.
+        MissingDependencyError: ``"compiled"`` asked for but not built.
     """
 
-    def __init__(self, layout: SensorLayout, *, reassemble_odd_bytes: bool = False):
+    def __init__(self, layout: SensorLayout, *, reassemble_odd_bytes: bool = False, kernel: str | None = None):
         if not isinstance(layout, SensorLayout):
             raise ProtocolError(f"layout: expected SensorLayout, got {type(layout).__name__}")
+        self.kernel = _resolve_kernel(kernel)
         self.layout = layout
         self.reassemble_odd_bytes = bool(reassemble_odd_bytes)
         self._stats = DecoderStats()
@@ -310,6 +552,13 @@ class StreamDecoder:
         self._idx12 = np.empty(0, np.int64)
         self._key_t = np.empty(0, np.int64)
         self._key_y = np.empty(0, np.int64)
+        # the compiled kernel's state (base/offset/last row/last event live here instead of the attributes above)
+        self._kernel_state = None
+        if self.kernel == "compiled":
+            self._kernel_state = np.zeros(_ST_LEN, np.int64)
+            self._kernel_state[_ST_ROWS] = self._dvs_rows
+            self._kernel_state[_ST_COLUMNS] = self._dvs_cols
+            self._kernel_state[_ST_INVERT_XY] = self._dvs_invert
 
     # ------------------------------------------------------------------ public API
     @property
@@ -320,6 +569,8 @@ class StreamDecoder:
     @property
     def current_time_us(self) -> int:
         """Stream clock after the last decoded word, µs (64-bit, overflow included)."""
+        if self._kernel_state is not None:
+            return int(self._kernel_state[_ST_BASE]) + int(self._kernel_state[_ST_OFFSET])
         return self._base_us + self._offset_us
 
     def feed(self, transfer) -> DecodedChunk:
@@ -395,7 +646,7 @@ class StreamDecoder:
         if words.ndim != 1:
             raise ProtocolError(f"words: expected a 1-D array, got shape {words.shape}")
         if words.dtype != np.uint16:
-            if words.size and (words.dtype.kind not in "iu" or words.min() < 0 or words.max() > 0xFFFF):
+            if words.size and (words.dtype.kind not in "iu" or words.min() < 0 or words.max() > _WORD_MAX):
                 raise ProtocolError(f"words: expected integers in 0..65535, got {words.dtype} values")
             words = words.astype(np.uint16)
         n = words.shape[0]
@@ -403,11 +654,20 @@ class StreamDecoder:
             self._warn_once()
             return DecodedChunk()
         self._stats.words += n
-        if n <= _BLOCK_WORDS:
+        if self._kernel_state is not None:
+            words = np.ascontiguousarray(words)
+            if n <= _KERNEL_BLOCK_WORDS:
+                chunk = self._decode_block_compiled(words)
+            else:
+                chunk = DecodedChunk.concatenate(
+                    self._decode_block_compiled(words[s : s + _KERNEL_BLOCK_WORDS])
+                    for s in range(0, n, _KERNEL_BLOCK_WORDS)
+                )
+        elif n <= _BLOCK_WORDS:
             chunk = self._decode_block(words)
         else:
             # one output array for all blocks (an upper bound: every X word), filled block by block
-            out = np.empty(int(np.count_nonzero((words >> 13) == 1)), EVENT_DTYPE)
+            out = np.empty(int(np.count_nonzero((words >> _X_ADDR_SHIFT) == _X_ADDR_KEY)), EVENT_DTYPE)
             filled = 0
             parts = []
             for s in range(0, n, _BLOCK_WORDS):
@@ -460,325 +720,323 @@ class StreamDecoder:
         return self._idx15[:n], self._idx12[:n]
 
     def _decode_block(self, w: np.ndarray, out: np.ndarray | None = None) -> DecodedChunk:
+        """Decode one block of at most :data:`_BLOCK_WORDS` words (DVS path vectorised, control words looped)."""
         n = w.shape[0]
         idx15, idx12 = self._index_keys(n)
-        codes = w >> 12
-        n_special = int(np.count_nonzero(codes == 0))
-        n_high = int(np.count_nonzero((codes - np.uint16(4)) <= 3))  # codes 4-7 (uint16 arithmetic wraps below 4)
-        if n_high:
-            is_wrap = codes == 7
-            n_wrap = int(np.count_nonzero(is_wrap))
-        else:
-            is_wrap = None
-            n_wrap = 0
-        n_rare = n_special + n_high - n_wrap  # specials, ADC samples, misc8, misc10
-        is_ts = w >= 0x8000
-        n_reset = 0
-        is_reset = None
-        if n_special:
-            is_reset = w == Special.TIMESTAMP_RESET
-            n_reset = int(np.count_nonzero(is_reset))
-
+        codes = w >> CODE_SHIFT
+        kinds = _word_kinds(w, codes)
         # --- 15-bit offset: forward fill of ((index + 1) << 15 | t15) over time-setting words --------------------
         # Non-setters get key 0; positions before the block's first setter fall back to the carried offset
         # (any setter key is >= 1 << 15 > carried offset), applied with np.maximum on gathered keys only.
-        key_t = np.bitwise_or(idx15, w & 0x7FFF, out=self._key_t[:n])
-        np.multiply(key_t, is_ts, out=key_t)
+        key_t = np.bitwise_or(idx15, w & TIMESTAMP_MASK, out=self._key_t[:n])
+        np.multiply(key_t, w >= TIMESTAMP_FLAG, out=key_t)
         offset_in = self._offset_us
-
-        # --- wrap base: only changes at wrap and reset words, which are few; computed on those positions ---------
-        # base = (overflow << 31) + wrapAdd, 64-bit; a wrap adds n << 15, a reset restarts at 0.
-        base_prev = self._base_us
-        changes = None
-        if n_wrap or n_reset:
-            if not n_reset:
-                is_change = is_wrap
-            elif is_wrap is None:
-                is_change = is_reset
-            else:
-                is_change = is_wrap | is_reset
-            changes = np.flatnonzero(is_change)
-            key_t[changes] = idx15[changes]  # wraps and resets are setters with offset 0
-            change_words = w[changes]
-            increments = (change_words & 0x0FFF).astype(np.int64) << 15
-            change_is_reset = change_words == Special.TIMESTAMP_RESET
-            increments[change_is_reset] = 0
-            change_base = np.cumsum(increments)
-            if n_reset:
-                k = np.arange(changes.shape[0])
-                last_reset = np.maximum.accumulate(np.where(change_is_reset, k, -1))
-                change_base += np.where(last_reset >= 0, -change_base[np.maximum(last_reset, 0)], base_prev)
-            else:
-                change_base += base_prev
-            base_end = int(change_base[-1])
-        else:
-            base_end = base_prev
+        base = _wrap_base(w, kinds, self._base_us)
+        if base.changes is not None:
+            key_t[base.changes] = idx15[base.changes]  # wraps and resets are setters with offset 0
         np.maximum.accumulate(key_t, out=key_t)
+        key_y = self._last_row_keys(w, codes, idx12)
+        last_y_in = self._last_y
+        xi, events = self._dvs_events(w, key_t, key_y, base, kinds, out)
+        chunk = DecodedChunk(events=events)
 
-        def base_at(positions: np.ndarray):
-            """Wrap base in effect at (after) each word position; a scalar when the block has no change."""
-            if changes is None:
-                return base_prev
-            j = np.searchsorted(changes, positions, side="right") - 1
-            return np.where(j >= 0, change_base[np.maximum(j, 0)], base_prev)
+        # --- control words: specials, misc8, misc10, big wraps; ADC samples as column segments ---------------------
+        big_wrap_pos = base.big_wrap_positions()
+        if kinds.n_rare or big_wrap_pos is not None:
+            ctrl_pos, times = self._control_times(codes, key_t, offset_in, base, big_wrap_pos)
+            self._control(w, codes, ctrl_pos, times, chunk)
+            if kinds.n_reset and xi.shape[0] and int(np.count_nonzero(kinds.is_reset[xi[-1]:])):
+                self._last_event_t = None  # a reset after the block's last event
 
-        # --- last Y: forward fill of ((index + 1) << 12 | y) over in-range Y words ---------------------------------
-        y_data = w - np.uint16(0x1000)  # the row for Y words; >= 0x1000 (so never "in range") for any other word
+        # --- carry state -------------------------------------------------------------------------------------------
+        self._base_us = base.base_end
+        self._offset_us = max(int(key_t[-1]), offset_in) & TIMESTAMP_MASK
+        self._last_y = max(int(key_y[-1]), last_y_in) & DATA_MASK
+        return chunk
+
+    def _decode_block_compiled(self, w: np.ndarray) -> DecodedChunk:
+        """:meth:`_decode_block` with the compiled DVS/timestamp pass (same output; control words as there).
+
+        Args:
+            w: uint16 [n] C-contiguous, at most :data:`_KERNEL_BLOCK_WORDS`.
+        """
+        events, n_ctrl, positions, times, n_adc, out_of_range, non_monotonic = _decode_kernel.decode(
+            w, self._kernel_state
+        )
+        chunk = DecodedChunk(events=np.frombuffer(events, EVENT_DTYPE))
+        if out_of_range:
+            self._stats.dvs_out_of_range += out_of_range
+        if non_monotonic:
+            self._stats.non_monotonic_timestamps += non_monotonic
+        if n_ctrl or n_adc:
+            ctrl_pos = np.frombuffer(positions, np.int64, n_ctrl) if n_ctrl else np.empty(0, np.int64)
+            ctrl_times = np.frombuffer(times, np.int64, n_ctrl) if n_ctrl else np.empty(0, np.int64)
+            self._control(w, w >> CODE_SHIFT, ctrl_pos, ctrl_times, chunk)
+        return chunk
+
+    def _last_row_keys(self, w: np.ndarray, codes: np.ndarray, idx12: np.ndarray) -> np.ndarray:
+        """Forward fill of ((index + 1) << 12 | y) over the in-range Y words (0 before the block's first one)."""
+        n = w.shape[0]
+        y_data = w - _Y_WORD_BASE  # the row for Y words; >= 0x1000 (so never "in range") for any other word
         valid_y = y_data < self._dvs_rows
-        self._stats.dvs_out_of_range += int(np.count_nonzero(codes == 1)) - int(np.count_nonzero(valid_y))
+        self._stats.dvs_out_of_range += int(np.count_nonzero(codes == _Y_ADDR)) - int(np.count_nonzero(valid_y))
         key_y = np.bitwise_or(idx12, y_data, out=self._key_y[:n])
         np.multiply(key_y, valid_y, out=key_y)
         np.maximum.accumulate(key_y, out=key_y)
-        last_y_in = self._last_y
+        return key_y
 
-        # --- DVS events ----------------------------------------------------------------------------------------------
-        xi = np.flatnonzero((w >> 13) == 1)  # codes 2 and 3
+    def _dvs_events(self, w, key_t, key_y, base: "_WrapBase", kinds: "_WordKinds", out):
+        """DVS polarity events of the block and their non-monotonic count; returns (X word positions, events)."""
+        xi = np.flatnonzero((w >> _X_ADDR_SHIFT) == _X_ADDR_KEY)  # codes 2 and 3
         if xi.shape[0]:
             x_words = w[xi]
-            xdata = x_words & 0x0FFF
+            xdata = x_words & DATA_MASK
             if int(xdata.max()) >= self._dvs_cols:
                 ok = xdata < self._dvs_cols
                 self._stats.dvs_out_of_range += xi.shape[0] - int(np.count_nonzero(ok))
                 xi = xi[ok]
                 xdata = xdata[ok]
                 x_words = x_words[ok]
-        if xi.shape[0]:
-            t = key_t[xi]
-            if t[0] < (1 << _TS_KEY_SHIFT):  # events before the block's first setter use the carried offset
-                np.maximum(t, offset_in, out=t)
-            t &= 0x7FFF
-            t += base_at(xi)
-            y = key_y[xi]
-            if y[0] < (1 << _Y_KEY_SHIFT):  # events before the block's first Y word use the carried row
-                np.maximum(y, last_y_in, out=y)
-            y &= 0x0FFF
-            events = np.empty(xi.shape[0], EVENT_DTYPE) if out is None else out[: xi.shape[0]]
-            events["t"] = t
-            if self._dvs_invert:
-                events["x"] = y
-                events["y"] = xdata
-            else:
-                events["x"] = xdata
-                events["y"] = y
-            events["p"] = (x_words >> 12) & 1
-            # non-monotonic event times (a reset between two events restarts the comparison)
-            backwards = t[1:] < t[:-1]
-            first_backwards = self._last_event_t is not None and int(t[0]) < self._last_event_t
-            if n_reset:
-                epoch = np.searchsorted(np.flatnonzero(is_reset), xi)
-                backwards &= epoch[1:] == epoch[:-1]
-                first_backwards = first_backwards and int(epoch[0]) == 0
-            self._stats.non_monotonic_timestamps += int(np.count_nonzero(backwards)) + int(first_backwards)
-            self._last_event_t = int(t[-1])
-        else:
-            events = np.empty(0, EVENT_DTYPE)
-            if n_reset:
+        if not xi.shape[0]:
+            if kinds.n_reset:
                 self._last_event_t = None
-
-        chunk = DecodedChunk(events=events)
-
-        # --- control words: specials, misc8, misc10, big wraps; ADC samples as column segments ---------------------
-        big_wrap_pos = None
-        if n_wrap:
-            before = change_base - increments
-            crossed = (change_base >> _BIG_WRAP_SHIFT) != (before >> _BIG_WRAP_SHIFT)
-            crossed &= ~change_is_reset
-            if crossed.any():
-                big_wrap_pos = changes[crossed]
-        if n_rare or big_wrap_pos is not None:
-            self._control(w, codes, key_t, offset_in, base_at, big_wrap_pos, chunk)
-            if n_reset and xi.shape[0] and int(np.count_nonzero(is_reset[xi[-1]:])):
-                self._last_event_t = None  # a reset after the block's last event
-
-        # --- carry state -------------------------------------------------------------------------------------------
-        self._base_us = base_end
-        self._offset_us = max(int(key_t[-1]), offset_in) & 0x7FFF
-        self._last_y = max(int(key_y[-1]), last_y_in) & 0x0FFF
-        return chunk
+            return xi, np.empty(0, EVENT_DTYPE)
+        t = key_t[xi]
+        if t[0] < (1 << _TS_KEY_SHIFT):  # events before the block's first setter use the carried offset
+            np.maximum(t, self._offset_us, out=t)
+        t &= TIMESTAMP_MASK
+        t += base.at(xi)
+        y = key_y[xi]
+        if y[0] < (1 << _Y_KEY_SHIFT):  # events before the block's first Y word use the carried row
+            np.maximum(y, self._last_y, out=y)
+        y &= DATA_MASK
+        events = np.empty(xi.shape[0], EVENT_DTYPE) if out is None else out[: xi.shape[0]]
+        events["t"] = t
+        if self._dvs_invert:
+            events["x"] = y
+            events["y"] = xdata
+        else:
+            events["x"] = xdata
+            events["y"] = y
+        events["p"] = (x_words >> _POLARITY_SHIFT) & 1
+        # non-monotonic event times (a reset between two events restarts the comparison)
+        backwards = t[1:] < t[:-1]
+        first_backwards = self._last_event_t is not None and int(t[0]) < self._last_event_t
+        if kinds.n_reset:
+            epoch = np.searchsorted(np.flatnonzero(kinds.is_reset), xi)
+            backwards &= epoch[1:] == epoch[:-1]
+            first_backwards = first_backwards and int(epoch[0]) == 0
+        self._stats.non_monotonic_timestamps += int(np.count_nonzero(backwards)) + int(first_backwards)
+        self._last_event_t = int(t[-1])
+        return xi, events
 
     # ------------------------------------------------------------------ control-word path
-    def _control(self, w, codes, key_t, offset_in, base_at, big_wrap_pos, chunk: DecodedChunk) -> None:
-        aps = self._aps
-        imu = self._imu
-        stats = self._stats
-        ctrl_mask = (codes == 0) | (codes == 5) | (codes == 6)
+    @staticmethod
+    def _control_times(codes, key_t, offset_in, base: "_WrapBase", big_wrap_pos) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of a block's control words (codes 0, 5, 6, big wraps) and the stream time after each, µs."""
+        ctrl_mask = (codes == _SPECIAL) | (codes == _MISC8) | (codes == _MISC10)
         if big_wrap_pos is not None:
             ctrl_mask[big_wrap_pos] = True
         ctrl_pos = np.flatnonzero(ctrl_mask)
-        adc_pos = np.flatnonzero(codes == 4)
-        ctrl_words = w[ctrl_pos]
-        if adc_pos.shape[0]:
-            adc_vals = (w[adc_pos] & 0x0FFF).astype(np.int32)
-            cut_array = np.searchsorted(adc_pos, ctrl_pos)
-        else:
-            adc_vals = np.empty(0, np.int32)
-            cut_array = np.zeros(ctrl_pos.shape[0], np.int64)
-        adc_cut = cut_array.tolist()
-        n_adc = adc_vals.shape[0]
-        store_base = aps.store_len  # block ADC index i is store index store_base + i
-        if n_adc:
-            aps.store.append(adc_vals)
-            aps.store_len += n_adc
-        times = np.maximum(key_t[ctrl_pos], offset_in) & 0x7FFF
-        times += base_at(ctrl_pos)
-        specials: list[tuple[int, int]] = []
-        imu_rows: list[tuple] = []
-        adc_done = 0
+        times = np.maximum(key_t[ctrl_pos], offset_in) & TIMESTAMP_MASK
+        times += base.at(ctrl_pos)
+        return ctrl_pos, times
 
-        def take_samples(upto: int) -> None:
-            nonlocal adc_done
-            k = upto - adc_done
-            if k <= 0:
-                return
-            start = adc_done
-            adc_done = upto
-            if aps.ignore:
-                stats.aps_samples_dropped += k
-                return
-            r = aps.readout
-            cx = aps.count_x[r]
-            cy = aps.count_y[r]
-            if cx >= aps.expected_x:
-                stats.aps_samples_dropped += k
-                return
-            take = min(k, max(aps.expected_y - cy, 0))
-            stats.aps_samples_dropped += k - take
-            if take:
-                aps.pending.append((r, cx, cy, store_base + start, store_base + start + take))
-                aps.count_y[r] = cy + take
+    def _control(self, w, codes, ctrl_pos: np.ndarray, times: np.ndarray, chunk: DecodedChunk) -> None:
+        """Run the control words of a block in stream order (specials, misc8/misc10, big wraps, ADC segments).
 
-        words_list = ctrl_words.tolist()
+        Args:
+            w: uint16 [n] the block's words; codes: ``w >> CODE_SHIFT``.
+            ctrl_pos: int64 [C] positions of the control words; times: int64 [C] stream time right after each, µs.
+            chunk: receives the specials, IMU samples and frames.
+        """
+        block = self._control_block(w, codes, ctrl_pos)
+        words_list = block.ctrl_words.tolist()
         times_list = times.tolist()
         n_ctrl = len(words_list)
         i = -1
         while i + 1 < n_ctrl:
             i += 1
             word = words_list[i]
-            t = times_list[i]
-            cut = adc_cut[i]
-            if (
-                (word == Special.APS_RESET_COLUMN_START or word == Special.APS_SIGNAL_COLUMN_START)
-                and not aps.ignore
-                and i + 3 < n_ctrl
-                and words_list[i + 1] == Special.APS_COLUMN_END
-                and words_list[i + 2] == word
-                and adc_cut[i + 1] - cut == aps.expected_y
-            ):
+            cut = block.cuts[i]
+            if (word == _RESET_COLUMN or word == _SIGNAL_COLUMN) and self._column_run_starts(block, words_list, i):
                 # a run of whole columns (start, expected_y samples, end, start, ...): handled in bulk
-                pairs = self._column_run(ctrl_words, cut_array, i)
+                pairs = self._column_run(block.ctrl_words, block.cut_array, i)
                 if pairs >= 2:
-                    take_samples(cut)
-                    adc_done = self._bulk_columns(word, pairs, cut_array, i, store_base)
+                    block.take_samples(cut)
+                    block.adc_done = self._bulk_columns(word, pairs, block.cut_array, i, block.store_base)
                     i += 2 * pairs - 1
                     continue
-            code = word >> 12
-            sub = word & 0x0FFF
-            if code == 0:
-                if sub == Special.TIMESTAMP_RESET:
-                    take_samples(cut)
-                    self._flush_aps()
-                    stats.timestamp_resets += 1
-                    self._interrupt(aps, imu)
-                    specials.append((t, SpecialType.TIMESTAMP_RESET))
-                elif sub in _SPECIAL_TYPE_OF_WIRE:
-                    specials.append((t, _SPECIAL_TYPE_OF_WIRE[sub]))
-                elif sub == Special.IMU_START_6:
-                    if imu.in_sample and not imu.ignore:
-                        stats.imu_samples_dropped += 1
-                    imu.ignore = False
-                    imu.in_sample = True
-                    imu.count = 0
-                    imu.present = 0
-                    imu.values = [0.0] * 7
-                elif sub == Special.IMU_END:
-                    if imu.ignore:
-                        continue
-                    if imu.count == IMU_TOTAL_COUNT:
-                        v = imu.values
-                        imu_rows.append((t, v[0], v[1], v[2], v[4], v[5], v[6], v[3]))
-                    else:
-                        stats.imu_samples_dropped += 1
-                    imu.in_sample = False
-                elif sub in (Special.APS_FRAME_START_GS, Special.APS_FRAME_START_RS):
-                    take_samples(cut)
-                    self._flush_aps()
-                    if aps.in_frame and not aps.ignore:
-                        stats.aps_frames_dropped += 1
-                    aps.ignore = False
-                    aps.in_frame = True
-                    aps.roi_counter = 0
-                    aps.readout = _READOUT_RESET
-                    aps.count_x = [0, 0]
-                    aps.count_y = [0, 0]
-                    aps.t_sof = t
-                    aps.pixel_buffer.fill(0)
-                    specials.append((t, SpecialType.APS_FRAME_START))
-                elif Special.APS_FRAME_END <= sub <= Special.APS_EXPOSURE_END:
-                    if aps.ignore:
-                        continue
-                    if sub == Special.APS_EXPOSURE_START:
-                        aps.t_soe = t
-                        specials.append((t, SpecialType.APS_EXPOSURE_START))
-                    elif sub == Special.APS_EXPOSURE_END:
-                        aps.t_eoe = t
-                        specials.append((t, SpecialType.APS_EXPOSURE_END))
-                    else:
-                        take_samples(cut)
-                        if sub == Special.APS_RESET_COLUMN_START:
-                            aps.readout = _READOUT_RESET
-                            aps.count_y[_READOUT_RESET] = 0
-                        elif sub == Special.APS_SIGNAL_COLUMN_START:
-                            aps.readout = _READOUT_SIGNAL
-                            aps.count_y[_READOUT_SIGNAL] = 0
-                        elif sub == Special.APS_COLUMN_END:
-                            aps.count_x[aps.readout] += 1
-                        else:  # frame end
-                            self._flush_aps()
-                            specials.append((t, SpecialType.APS_FRAME_END))
-                            self._end_frame(t, chunk)
-                else:
-                    stats.unknown_words += 1
-            elif code == 5:
-                misc = sub >> 8
-                byte = sub & 0xFF
-                if misc == 0:
-                    if not imu.ignore:
-                        self._imu_byte(imu, byte)
-                elif misc == 1:
-                    aps.roi_high = byte
-                elif misc == 2:
-                    slot = aps.roi_counter & 3
-                    aps.roi_values[slot] = (aps.roi_high << 8) | byte
-                    aps.roi_counter += 1
-                    if slot == 3:
-                        take_samples(cut)
-                        self._flush_aps()
-                        aps.set_roi()
-                elif misc == 3:
-                    if not imu.ignore:
-                        self._imu_scale(imu, byte)
-                else:
-                    stats.unknown_words += 1
-            elif code == 6:
-                if sub >> 10:
-                    stats.unknown_words += 1
+            code = word >> CODE_SHIFT
+            if code == _SPECIAL:
+                self._special(block, word & DATA_MASK, times_list[i], cut, chunk)
+            elif code == _MISC8:
+                self._misc8(block, word & DATA_MASK, cut)
+            elif code == _MISC10:
+                if (word & DATA_MASK) >> MISC10_SUB_SHIFT:
+                    self._stats.unknown_words += 1
                 # sub-code 0 = exposure value parts, only used by libcaer's auto-exposure: consumed.
             else:  # big wrap (code 7)
-                take_samples(cut)
-                self._flush_aps()
-                stats.big_wraps += 1
-                self._interrupt(aps, imu)
-                specials.append((t, SpecialType.TIMESTAMP_WRAP))
-        take_samples(n_adc)
+                self._big_wrap(block, times_list[i], cut)
+        self._finish_control(block, chunk)
+
+    def _control_block(self, w: np.ndarray, codes: np.ndarray, ctrl_pos: np.ndarray) -> _ControlBlock:
+        """Start a block's control pass: its ADC samples go to the APS sample store, cut at each control word."""
+        aps = self._aps
+        adc_pos = np.flatnonzero(codes == _ADC_SAMPLE)
+        if adc_pos.shape[0]:
+            adc_vals = (w[adc_pos] & DATA_MASK).astype(np.int32)
+            cut_array = np.searchsorted(adc_pos, ctrl_pos)
+        else:
+            adc_vals = np.empty(0, np.int32)
+            cut_array = np.zeros(ctrl_pos.shape[0], np.int64)
+        store_base = aps.store_len  # block ADC index i is store index store_base + i
+        if adc_vals.shape[0]:
+            aps.store.append(adc_vals)
+            aps.store_len += adc_vals.shape[0]
+        return _ControlBlock(aps, self._stats, w[ctrl_pos], cut_array, adc_vals.shape[0], store_base)
+
+    def _column_run_starts(self, block: "_ControlBlock", words_list: list, i: int) -> bool:
+        """Whether the column start at control ``i`` begins at least two whole columns (cheap scalar pre-check)."""
+        aps = self._aps
+        return (
+            not aps.ignore
+            and i + 3 < len(words_list)
+            and words_list[i + 1] == _COLUMN_END
+            and words_list[i + 2] == words_list[i]
+            and block.cuts[i + 1] - block.cuts[i] == aps.expected_y
+        )
+
+    def _finish_control(self, block: "_ControlBlock", chunk: DecodedChunk) -> None:
+        """Queue the block's trailing ADC samples, bound the sample store, and attach specials and IMU rows."""
+        aps = self._aps
+        block.take_samples(block.n_adc)
         if aps.pending and aps.store_len > _STORE_FLUSH_SAMPLES:  # bound memory on streams that never end a frame
             self._flush_aps()
         if not aps.pending:  # nothing refers to the stored samples any more
             aps.store = []
             aps.store_len = 0
-        if specials:
-            chunk.specials = np.array(specials, dtype=SPECIAL_DTYPE)
-        if imu_rows:
-            chunk.imu = np.array(imu_rows, dtype=IMU6_DTYPE)
+        if block.specials:
+            chunk.specials = np.array(block.specials, dtype=SPECIAL_DTYPE)
+        if block.imu_rows:
+            chunk.imu = np.array(block.imu_rows, dtype=IMU6_DTYPE)
+
+    def _special(self, block: "_ControlBlock", sub: int, t: int, cut: int, chunk: DecodedChunk) -> None:
+        """One special word (code 0, PROTOCOL.md §8.1) at stream time ``t`` µs."""
+        aps = self._aps
+        imu = self._imu
+        if sub == Special.TIMESTAMP_RESET:
+            block.take_samples(cut)
+            self._flush_aps()
+            self._stats.timestamp_resets += 1
+            self._interrupt(aps, imu)
+            block.specials.append((t, SpecialType.TIMESTAMP_RESET))
+        elif sub in _SPECIAL_TYPE_OF_WIRE:
+            block.specials.append((t, _SPECIAL_TYPE_OF_WIRE[sub]))
+        elif sub == Special.IMU_START_6:
+            if imu.in_sample and not imu.ignore:
+                self._stats.imu_samples_dropped += 1
+            imu.ignore = False
+            imu.in_sample = True
+            imu.count = 0
+            imu.present = 0
+            imu.values = [0.0] * 7
+        elif sub == Special.IMU_END:
+            self._imu_end(block, t)
+        elif sub == Special.APS_FRAME_START_GS or sub == Special.APS_FRAME_START_RS:
+            block.take_samples(cut)
+            self._flush_aps()
+            self._aps_frame_start(t)
+            block.specials.append((t, SpecialType.APS_FRAME_START))
+        elif Special.APS_FRAME_END <= sub <= Special.APS_EXPOSURE_END:
+            if not aps.ignore:
+                self._aps_readout(block, sub, t, cut, chunk)
+        else:
+            self._stats.unknown_words += 1
+
+    def _imu_end(self, block: "_ControlBlock", t: int) -> None:
+        """IMU end special: deliver the sample if exactly :data:`IMU_TOTAL_COUNT` bytes came, else count a drop."""
+        imu = self._imu
+        if imu.ignore:
+            return
+        if imu.count == IMU_TOTAL_COUNT:
+            v = imu.values
+            block.imu_rows.append((t, v[0], v[1], v[2], v[4], v[5], v[6], v[3]))
+        else:
+            self._stats.imu_samples_dropped += 1
+        imu.in_sample = False
+
+    def _aps_frame_start(self, t: int) -> None:
+        """APS frame start (global or rolling shutter): a frame still in progress is dropped."""
+        aps = self._aps
+        if aps.in_frame and not aps.ignore:
+            self._stats.aps_frames_dropped += 1
+        aps.ignore = False
+        aps.in_frame = True
+        aps.roi_counter = 0
+        aps.readout = _READOUT_RESET
+        aps.count_x = [0, 0]
+        aps.count_y = [0, 0]
+        aps.t_sof = t
+        aps.pixel_buffer.fill(0)
+
+    def _aps_readout(self, block: "_ControlBlock", sub: int, t: int, cut: int, chunk: DecodedChunk) -> None:
+        """APS frame end, column start/end and exposure start/end specials of a frame being read."""
+        aps = self._aps
+        if sub == Special.APS_EXPOSURE_START:
+            aps.t_soe = t
+            block.specials.append((t, SpecialType.APS_EXPOSURE_START))
+            return
+        if sub == Special.APS_EXPOSURE_END:
+            aps.t_eoe = t
+            block.specials.append((t, SpecialType.APS_EXPOSURE_END))
+            return
+        block.take_samples(cut)
+        if sub == Special.APS_RESET_COLUMN_START:
+            aps.readout = _READOUT_RESET
+            aps.count_y[_READOUT_RESET] = 0
+        elif sub == Special.APS_SIGNAL_COLUMN_START:
+            aps.readout = _READOUT_SIGNAL
+            aps.count_y[_READOUT_SIGNAL] = 0
+        elif sub == Special.APS_COLUMN_END:
+            aps.count_x[aps.readout] += 1
+        else:  # frame end
+            self._flush_aps()
+            block.specials.append((t, SpecialType.APS_FRAME_END))
+            self._end_frame(t, chunk)
+
+    def _misc8(self, block: "_ControlBlock", data: int, cut: int) -> None:
+        """One misc 8-bit word (code 5): IMU data/scale byte or APS ROI byte."""
+        aps = self._aps
+        imu = self._imu
+        misc = data >> MISC8_SUB_SHIFT
+        byte = data & MISC8_BYTE_MASK
+        if misc == Misc8.IMU_DATA:
+            if not imu.ignore:
+                self._imu_byte(imu, byte)
+        elif misc == Misc8.APS_ROI_HIGH:
+            aps.roi_high = byte
+        elif misc == Misc8.APS_ROI_LOW:
+            slot = aps.roi_counter & 3
+            aps.roi_values[slot] = (aps.roi_high << _BYTE_BITS) | byte
+            aps.roi_counter += 1
+            if slot == 3:
+                block.take_samples(cut)
+                self._flush_aps()
+                aps.set_roi()
+        elif misc == Misc8.IMU_SCALE:
+            if not imu.ignore:
+                self._imu_scale(imu, byte)
+        else:
+            self._stats.unknown_words += 1
+
+    def _big_wrap(self, block: "_ControlBlock", t: int, cut: int) -> None:
+        """A wrap that overflowed the 31-bit timestamp: interrupt APS/IMU and emit TIMESTAMP_WRAP at ``t``."""
+        block.take_samples(cut)
+        self._flush_aps()
+        self._stats.big_wraps += 1
+        self._interrupt(self._aps, self._imu)
+        block.specials.append((t, SpecialType.TIMESTAMP_WRAP))
 
     def _column_run(self, ctrl_words: np.ndarray, cuts: np.ndarray, i: int) -> int:
         """Number of consecutive whole-column (start, end) pairs of the same readout type starting at control i."""
@@ -787,7 +1045,7 @@ class StreamDecoder:
         words = ctrl_words[i : i + 2 * pairs].reshape(pairs, 2)
         starts = cuts[i : i + 2 * pairs : 2]
         ends = cuts[i + 1 : i + 2 * pairs : 2]
-        ok = (words[:, 0] == words[0, 0]) & (words[:, 1] == Special.APS_COLUMN_END) & (ends - starts == expected_y)
+        ok = (words[:, 0] == words[0, 0]) & (words[:, 1] == _COLUMN_END) & (ends - starts == expected_y)
         ok[1:] &= starts[1:] == ends[:-1]  # no samples between a column end and the next column start
         return pairs if ok.all() else int(np.argmin(ok))
 
@@ -1010,9 +1268,9 @@ class StreamDecoder:
         if count % 2 == 0:
             imu.high_byte = byte
         else:
-            raw = (imu.high_byte << 8) | byte
-            if raw >= 0x8000:
-                raw -= 0x10000
+            raw = (imu.high_byte << _BYTE_BITS) | byte
+            if raw >= _INT16_SPAN >> 1:  # signed 16-bit
+                raw -= _INT16_SPAN
             slot = count // 2  # 0-2 accel, 3 temperature, 4-6 gyro
             if slot < 3:
                 imu.values[slot] = imu.flip[slot] * raw / imu.accel_lsb_per_g

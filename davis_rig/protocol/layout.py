@@ -6,6 +6,7 @@ from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
 from davis_rig.errors import ProtocolError
+from davis_rig.types import DAVIS346_HW
 
 __all__ = ["SensorLayout"]
 
@@ -74,13 +75,17 @@ class SensorLayout:
     # ------------------------------------------------------------------ constructors
     @classmethod
     def davis346(cls) -> "SensorLayout":
-        """DAVIS346B as assumed by the shared vectors: 346 columns × 260 rows, orientation 0, chip id 5, IMU type 1."""
+        """DAVIS346B as assumed by the shared vectors: 346 columns × 260 rows, orientation 0, chip id 5, IMU type 1.
+
+        The one home of the DAVIS346's read-outs (the virtual camera answers them by default).
+        """
+        rows, columns = DAVIS346_HW
         return cls(
-            dvs_size_columns=346,
-            dvs_size_rows=260,
+            dvs_size_columns=columns,
+            dvs_size_rows=rows,
             dvs_orientation_info=0,
-            aps_size_columns=346,
-            aps_size_rows=260,
+            aps_size_columns=columns,
+            aps_size_rows=rows,
             aps_orientation_info=0,
             imu_type=1,
             imu_orientation_info=0,

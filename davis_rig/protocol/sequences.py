@@ -145,8 +145,17 @@ def default_fpga_config(
         The register writes. MUX TIMESTAMP_RESET=false and the host-only AUTOEXPOSURE/FRAME_MODE produce no
         transfer, exactly as in libcaer.
     """
+    return [
+        *_dvs_fpga_writes(dvs_size_xy, features),
+        *_aps_fpga_writes(aps_size_xy, features, clocks, exposure_us, frame_interval_us),
+        *_imu_fpga_writes(imu_type),
+        *_extinput_fpga_writes(features, clocks),
+    ]
+
+
+def _dvs_fpga_writes(dvs_size_xy: tuple[int, int], features: DeviceFeatures) -> list[ConfigWrite]:
+    """MUX stall policy and the DVS part of :func:`default_fpga_config` (filters only where the device has them)."""
     dvs_w, dvs_h = (int(v) for v in dvs_size_xy)
-    aps_w, aps_h = (int(v) for v in aps_size_xy)
     out = [
         _w(Module.MUX, Mux.DROP_EXTINPUT_ON_TRANSFER_STALL, 1),
         _w(Module.MUX, Mux.DROP_DVS_ON_TRANSFER_STALL, 1),
@@ -179,23 +188,41 @@ def default_fpga_config(
             _w(Module.DVS, Dvs.FILTER_POLARITY_SUPPRESS, 0),
             _w(Module.DVS, Dvs.FILTER_POLARITY_SUPPRESS_TYPE, 0),
         ]
-    out.append(_w(Module.APS, Aps.WAIT_ON_TRANSFER_STALL, 1))
-    out += global_shutter_writes(features.aps_has_global_shutter, features)
-    out += [
+    return out
+
+
+def _aps_fpga_writes(aps_size_xy: tuple[int, int], features: DeviceFeatures, clocks: Clocks, exposure_us: int,
+                     frame_interval_us: int) -> list[ConfigWrite]:
+    """The APS part of :func:`default_fpga_config`: stall policy, global shutter, full-sensor ROI, timing."""
+    aps_w, aps_h = (int(v) for v in aps_size_xy)
+    return [
+        _w(Module.APS, Aps.WAIT_ON_TRANSFER_STALL, 1),
+        *global_shutter_writes(features.aps_has_global_shutter, features),
         _w(Module.APS, Aps.START_COLUMN_0, 0),
         _w(Module.APS, Aps.START_ROW_0, 0),
         _w(Module.APS, Aps.END_COLUMN_0, aps_w - 1),
         _w(Module.APS, Aps.END_ROW_0, aps_h - 1),
         exposure_write(exposure_us, clocks),
         frame_interval_write(frame_interval_us, clocks),
+    ]
+
+
+def _imu_fpga_writes(imu_type: int) -> list[ConfigWrite]:
+    """The IMU part of :func:`default_fpga_config` (GYRO_DLPF only for type 2, the MPU-9250)."""
+    out = [
         _w(Module.IMU, Imu.SAMPLE_RATE_DIVIDER, 0),
         _w(Module.IMU, Imu.ACCEL_DLPF, 1),
         _w(Module.IMU, Imu.ACCEL_FULL_SCALE, 1),
     ]
     if imu_type == 2:
         out.append(_w(Module.IMU, Imu.GYRO_DLPF, 1))
-    out += [
-        _w(Module.IMU, Imu.GYRO_FULL_SCALE, 1),
+    out.append(_w(Module.IMU, Imu.GYRO_FULL_SCALE, 1))
+    return out
+
+
+def _extinput_fpga_writes(features: DeviceFeatures, clocks: Clocks) -> list[ConfigWrite]:
+    """The external-input part of :func:`default_fpga_config`: pulse detector, and the generator if present."""
+    out = [
         _w(Module.EXTINPUT, ExtInput.DETECT_RISING_EDGES, 0),
         _w(Module.EXTINPUT, ExtInput.DETECT_FALLING_EDGES, 0),
         _w(Module.EXTINPUT, ExtInput.DETECT_PULSES, 1),

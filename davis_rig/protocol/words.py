@@ -27,6 +27,12 @@ __all__ = [
     "TIMESTAMP_MASK",
     "CODE_SHIFT",
     "DATA_MASK",
+    "MISC8_SUB_SHIFT",
+    "MISC8_SUB_MASK",
+    "MISC8_BYTE_MASK",
+    "MISC10_SUB_SHIFT",
+    "MISC10_SUB_MASK",
+    "MISC10_VALUE_MASK",
     "WRAP_TICKS_US",
     "WRAP_MAX_MULTIPLIER",
     "OVERFLOW_SHIFT",
@@ -55,6 +61,18 @@ TIMESTAMP_MASK: Final = 0x7FFF
 CODE_SHIFT: Final = 12
 #: Bits 11-0 of an event word: the data field.
 DATA_MASK: Final = 0x0FFF
+#: Position of the 4-bit sub-code in the data field of a misc 8-bit word (code 5).
+MISC8_SUB_SHIFT: Final = 8
+#: Largest misc 8-bit sub-code (4 bits).
+MISC8_SUB_MASK: Final = 0xF
+#: Bits 7-0 of a misc 8-bit word: the payload byte.
+MISC8_BYTE_MASK: Final = 0xFF
+#: Position of the 2-bit sub-code in the data field of a misc 10-bit word (code 6).
+MISC10_SUB_SHIFT: Final = 10
+#: Largest misc 10-bit sub-code (2 bits).
+MISC10_SUB_MASK: Final = 0x3
+#: Bits 9-0 of a misc 10-bit word: the payload.
+MISC10_VALUE_MASK: Final = 0x3FF
 #: One wrap-multiplier unit, µs (2**15).
 WRAP_TICKS_US: Final = 0x8000
 #: Largest wrap multiplier a code-7 word can carry (12-bit data field).
@@ -203,12 +221,14 @@ def special_word(sub_code: int) -> int:
 
 def misc8_word(sub_code: int, byte: int) -> int:
     """Build a misc 8-bit word (code 5): sub-code 0..15 (see :class:`Misc8`), payload byte 0..255."""
-    return _event_word(Code.MISC8, (_check("sub_code", sub_code, 0xF) << 8) | _check("byte", byte, 0xFF))
+    sub = _check("sub_code", sub_code, MISC8_SUB_MASK) << MISC8_SUB_SHIFT
+    return _event_word(Code.MISC8, sub | _check("byte", byte, MISC8_BYTE_MASK))
 
 
 def misc10_word(sub_code: int, value: int) -> int:
     """Build a misc 10-bit word (code 6): sub-code 0..3, payload 0..1023."""
-    return _event_word(Code.MISC10, (_check("sub_code", sub_code, 3) << 10) | _check("value", value, 0x3FF))
+    sub = _check("sub_code", sub_code, MISC10_SUB_MASK) << MISC10_SUB_SHIFT
+    return _event_word(Code.MISC10, sub | _check("value", value, MISC10_VALUE_MASK))
 
 
 def words_to_bytes(words) -> bytes:

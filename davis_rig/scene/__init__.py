@@ -1,4 +1,4 @@
-"""Digital scene: body, motion, camera, rendering, textures, backgrounds, APS frames and synthetic recordings.
+"""Digital scene: body, motion, camera, rendering, textures, backgrounds and APS frames.
 
 numpy modules (imported with the package):
 
@@ -17,7 +17,8 @@ numpy modules (imported with the package):
 torch (or smplx) modules, loaded on first access of one of their names, so that importing this package does
 not import torch: :mod:`~davis_rig.scene.rasterize`, :mod:`~davis_rig.scene.renderer`,
 :mod:`~davis_rig.scene.shading`, :mod:`~davis_rig.scene.texture`, :mod:`~davis_rig.scene.scene`
-(:func:`render_clip`), :mod:`~davis_rig.scene.recording`, :mod:`~davis_rig.scene.smpl`.
+(:func:`render_clip`), :mod:`~davis_rig.scene.smpl`. A rendered scene becomes a session.h5 through
+:mod:`davis_rig.training.recording` (the layer that may drive the capture stack).
 
 Not re-exported: the function ``rasterize`` (the submodule of that name would shadow it after its first import;
 use ``from davis_rig.scene.rasterize import rasterize``).
@@ -37,6 +38,7 @@ from davis_rig.scene.background import (
     rectangles,
     stripes,
     uniform,
+    warp_background,
 )
 from davis_rig.scene.body import (
     ASSET_FORMAT_VERSION,
@@ -110,6 +112,7 @@ from davis_rig.scene.skeleton import SOLE_BAND_M, Rig, descendants, sole_points
 __all__ = [
     "ApsConfig", "aps_frame_times", "synthesize_aps_frames", "to_adc",
     "KINDS", "checker", "from_image", "gradient", "noise", "random_background", "rectangles", "stripes", "uniform",
+    "warp_background",
     "ASSET_FORMAT_VERSION", "DEFAULT_ASSET_PATH", "PART_NAMES", "BodyAsset", "BodyModel", "WalkCycle",
     "quaternion_to_matrix",
     "DAVIS346_FOCAL_PX", "DAVIS346_LENS_MM", "DAVIS346_PIXEL_UM", "DEFAULT_PERSON_HEIGHT_M", "TEST_SCALES_PX",
@@ -146,15 +149,6 @@ _LAZY = {
         "render_clip",
         "scene_camera",
         "scene_vertices",
-    ),
-    "davis_rig.scene.recording": (
-        "SYNTHETIC_LABELER",
-        "SyntheticRecording",
-        "embed_in_sensor",
-        "labels_to_crop",
-        "simulate_recording",
-        "write_clip_session",
-        "write_synthetic_session",
     ),
     "davis_rig.scene.smpl": ("SmplBody", "read_obj_uvs"),
 }

@@ -1,7 +1,8 @@
 """Static textured backgrounds (linear intensity in [0, 1]): procedural patterns and image files.
 
 All generators return a new float32 array [H, W]; they take an explicit ``numpy.random.Generator`` where
-random. Nothing is downloaded: image backgrounds come from files the user supplies.
+random. Nothing is downloaded: image backgrounds come from files the user supplies. :func:`warp_background`
+renders a background as a plane seen by a moving camera (ego-motion).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ __all__ = [
     "rectangles",
     "stripes",
     "uniform",
+    "warp_background",
 ]
 
 KINDS = ("uniform", "noise", "stripes", "checker", "gradient", "rectangles")
@@ -160,3 +162,40 @@ def random_background(hw, rng: np.random.Generator, kinds=KINDS) -> np.ndarray:
     if kind == "rectangles":
         return rectangles(hw, rng, int(rng.integers(10, 60)), low, high)
     raise ValueError(f"unknown background kind {kind!r}; expected one of {KINDS}")
+
+
+def warp_background(background: np.ndarray, camera, rotation, translation, depth_m: float,
+                    reference: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Per-frame views of a background as a plane ``depth_m`` in front of a reference camera, float32 [T, H, W].
+
+    The image ``background`` is what the reference camera sees of the plane; every frame gets the plane-induced
+    homography ``K (R_rel + t_rel n^T / depth_m) K^-1`` from the reference camera to its own (``n`` = the
+    reference optical axis), applied with bilinear interpolation and reflected borders.
+
+    Args:
+        background: float32 [H, W], linear intensity, the view of the reference camera.
+        camera: the intrinsics (:class:`~davis_rig.scene.camera.PinholeCamera`; output size ``camera.hw``).
+        rotation, translation: world -> camera extrinsics per frame, [T, 3, 3] and [T, 3] (m).
+        depth_m: distance of the plane from the reference camera along its optical axis (m).
+        reference: ``(rotation [3, 3], translation [3])`` of the reference camera (default: the first frame's).
+
+    Returns:
+        float32 [T, H, W].
+    """
+    import cv2
+
+    k = camera.matrix.copy()
+    k[0, 2] -= 0.5  # OpenCV puts pixel centres at integers
+    k[1, 2] -= 0.5
+    k_inv = np.linalg.inv(k)
+    normal = np.array([0.0, 0.0, 1.0])
+    h, w = camera.hw
+    r0, t0 = (rotation[0], translation[0]) if reference is None else reference
+    frames = []
+    for r_k, t_k in zip(rotation, translation):  # one homography per frame (a warp is an image op)
+        r_rel = r_k @ r0.T
+        t_rel = t_k - r_rel @ t0
+        homography = k @ (r_rel + np.outer(t_rel, normal) / depth_m) @ k_inv
+        frames.append(cv2.warpPerspective(background, homography, (w, h), flags=cv2.INTER_LINEAR,
+                                          borderMode=cv2.BORDER_REFLECT))
+    return np.stack(frames).astype(np.float32)

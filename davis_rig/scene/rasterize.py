@@ -139,6 +139,145 @@ def rasterize(
     return rasterize_sparse(vertices_px, faces, hw, supersample, cull_backfaces, near_m, max_pairs).to_dense()
 
 
+def _check_inputs(vertices_px, faces, hw: tuple[int, int], supersample: int) -> tuple[int, int, int]:
+    """``(s, h, w)`` of valid arguments of :func:`rasterize_sparse`; ShapeError / ValueError otherwise."""
+    if vertices_px.ndim != 3 or vertices_px.shape[-1] != 3:
+        raise ShapeError(f"vertices_px must be [T, V, 3], got {tuple(vertices_px.shape)}")
+    if faces.ndim != 2 or faces.shape[-1] != 3:
+        raise ShapeError(f"faces must be [F, 3], got {tuple(faces.shape)}")
+    s = int(supersample)
+    if s < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    h, w = int(hw[0]), int(hw[1])
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {hw}")
+    return s, h, w
+
+
+@dataclass
+class _Candidates:
+    """The (frame, face) pairs whose bounding box holds sample centres, with their barycentric set-up.
+
+    Attributes:
+        live: int64 [L], flat ``frame * F + face`` of each pair; counts: int64 [L], samples in its bounding box.
+        ox, oy: float [L], the box origin (sample units); bw, bh: float [L], its width and height (samples).
+        table: float [L, 7], ``(db0/dcx, db0/dcy, b0(0), db1/dcx, db1/dcy, b1(0), bw)`` in box-local coordinates.
+        z_table: float [L, 3], the corners' depths (m).
+    """
+
+    live: "object"
+    counts: "object"
+    ox: "object"
+    oy: "object"
+    bw: "object"
+    bh: "object"
+    table: "object"
+    z_table: "object"
+
+
+def _candidates(comp, faces, n_frames: int, hs: int, ws: int, cull_backfaces: bool, near_m: float):
+    """Cull the triangles of every frame and set up the barycentrics of the survivors (:class:`_Candidates`).
+
+    Args:
+        comp: float [3 T, V], coordinate-major sample-unit vertices (x rows, then y, then depth).
+
+    Returns:
+        :class:`_Candidates`, or ``None`` when no face's bounding box holds a sample centre.
+    """
+    torch = _torch()
+    n_faces = faces.shape[0]
+    fl = faces.long()
+    c0, c1, c2 = (comp.index_select(1, fl[:, k]).view(3, n_frames, n_faces) for k in range(3))  # each [3, T, F]
+    x0_, x1_, x2_ = c0[0], c1[0], c2[0]
+    y0_, y1_, y2_ = c0[1], c1[1], c2[1]
+    area = (x1_ - x0_) * (y2_ - y0_) - (x2_ - x0_) * (y1_ - y0_)
+    keep = (c0[2] > near_m) & (c1[2] > near_m) & (c2[2] > near_m) & (area != 0)
+    if cull_backfaces:
+        keep &= area < 0  # counter-clockwise as seen = negative signed area in y-down pixel coordinates
+    # sample j has its centre at j + 0.5 (sample units): the bbox holds j in [ceil(min-0.5), floor(max-0.5)]
+    xmin = torch.ceil(torch.minimum(torch.minimum(x0_, x1_), x2_) - 0.5).clamp(0, ws)
+    xmax = torch.floor(torch.maximum(torch.maximum(x0_, x1_), x2_) - 0.5).clamp(-1, ws - 1)
+    ymin = torch.ceil(torch.minimum(torch.minimum(y0_, y1_), y2_) - 0.5).clamp(0, hs)
+    ymax = torch.floor(torch.maximum(torch.maximum(y0_, y1_), y2_) - 0.5).clamp(-1, hs - 1)
+    bw = (xmax - xmin + 1).clamp(min=0)
+    bh = (ymax - ymin + 1).clamp(min=0)
+    counts = torch.where(keep, bw * bh, torch.zeros_like(bw)).reshape(-1).long()  # [T*F]
+    live = torch.nonzero(counts > 0).squeeze(1)
+    if live.numel() == 0:
+        return None
+    pick = lambda a: a.reshape(-1).index_select(0, live)  # noqa: E731
+    # Barycentrics as affine functions of the sample centre in bbox-local coordinates (small numbers,
+    # no cancellation): b_i(cx, cy) = a_i * cx + c_i * cy + k_i with cx = dx + 0.5, cy = dy + 0.5.
+    ox, oy = pick(xmin), pick(ymin)
+    lx = [pick(x0_) - ox, pick(x1_) - ox, pick(x2_) - ox]
+    ly = [pick(y0_) - oy, pick(y1_) - oy, pick(y2_) - oy]
+    inv_area = 1.0 / pick(area)
+    coeffs = []
+    for i, j, k in ((0, 1, 2), (1, 2, 0)):  # b_i is the edge function of the opposite edge (j, k)
+        coeffs += [
+            (ly[j] - ly[k]) * inv_area,  # d b_i / d cx
+            (lx[k] - lx[j]) * inv_area,  # d b_i / d cy
+            (lx[j] * ly[k] - lx[k] * ly[j]) * inv_area,  # b_i at the bbox-local origin
+        ]
+    table = torch.stack(coeffs + [pick(bw)], dim=1)  # [L, 7]
+    z_table = torch.stack([pick(c0[2]), pick(c1[2]), pick(c2[2])], dim=1)  # [L, 3]
+    return _Candidates(live, counts.index_select(0, live), ox, oy, pick(bw), pick(bh), table, z_table)
+
+
+def _chunk_bounds(counts, max_pairs: int) -> list[int]:
+    """Boundaries of consecutive candidate chunks with <= ``max_pairs`` (face, sample) pairs each (a single huge
+    face forms its own chunk)."""
+    torch = _torch()
+    cumulative = torch.cumsum(counts, 0)
+    bounds = [0]
+    total = int(cumulative[-1])
+    if total > max_pairs:
+        marks = torch.arange(max_pairs, total, max_pairs, device=counts.device)
+        cuts = torch.searchsorted(cumulative, marks, right=True).tolist()
+        bounds += [c for c in cuts if 0 < c < counts.numel()]
+    bounds.append(counts.numel())
+    return sorted(set(bounds))
+
+
+def _inside_samples(cand: _Candidates, lo: int, hi: int, n_faces: int, hs: int, ws: int, box) -> dict | None:
+    """The (face, sample) pairs of candidates ``[lo, hi)`` whose sample centre lies inside the triangle.
+
+    Args:
+        box: ``(x0, y0, w, h)`` of the z-buffer window (sample units).
+
+    Returns:
+        ``{"row": candidate [N], "sample": flat sample [N], "slot": z-buffer slot [N], "b": barycentrics [N, 3]}``,
+        or ``None`` when no sample of the chunk is inside.
+    """
+    torch = _torch()
+    device = cand.counts.device
+    box_x0, box_y0, box_w, box_h = box
+    cnt = cand.counts[lo:hi]
+    n = int(cnt.sum())
+    rows = torch.repeat_interleave(torch.arange(lo, hi, device=device), cnt, output_size=n)
+    starts = torch.cumsum(cnt, 0) - cnt
+    local = torch.arange(n, device=device) - torch.repeat_interleave(starts, cnt, output_size=n)
+    tab = cand.table.index_select(0, rows)
+    width = tab[:, 6].long()
+    dy = torch.div(local, width, rounding_mode="floor")
+    dx = local - dy * width
+    cx = dx.to(tab.dtype) + 0.5
+    cy = dy.to(tab.dtype) + 0.5
+    b0 = tab[:, 0] * cx + tab[:, 1] * cy + tab[:, 2]
+    b1 = tab[:, 3] * cx + tab[:, 4] * cy + tab[:, 5]
+    b2 = 1.0 - b0 - b1
+    sel = torch.nonzero((b0 >= 0) & (b1 >= 0) & (b2 >= 0)).squeeze(1)
+    if sel.numel() == 0:
+        return None
+    row = rows.index_select(0, sel)
+    frame = torch.div(cand.live.index_select(0, row), n_faces, rounding_mode="floor")
+    px = cand.ox.index_select(0, row).long() + dx.index_select(0, sel)
+    py = cand.oy.index_select(0, row).long() + dy.index_select(0, sel)
+    return {"row": row, "sample": frame * (hs * ws) + py * ws + px,
+            "slot": frame * (box_h * box_w) + (py - box_y0) * box_w + (px - box_x0),
+            "b": torch.stack([b0.index_select(0, sel), b1.index_select(0, sel), b2.index_select(0, sel)], 1)}
+
+
 def rasterize_sparse(
     vertices_px,
     faces,
@@ -169,16 +308,7 @@ def rasterize_sparse(
         ValueError: supersample < 1 or a non-positive image size.
     """
     torch = _torch()
-    if vertices_px.ndim != 3 or vertices_px.shape[-1] != 3:
-        raise ShapeError(f"vertices_px must be [T, V, 3], got {tuple(vertices_px.shape)}")
-    if faces.ndim != 2 or faces.shape[-1] != 3:
-        raise ShapeError(f"faces must be [F, 3], got {tuple(faces.shape)}")
-    s = int(supersample)
-    if s < 1:
-        raise ValueError(f"supersample must be >= 1, got {supersample}")
-    h, w = int(hw[0]), int(hw[1])
-    if h < 1 or w < 1:
-        raise ValueError(f"image size must be positive, got {hw}")
+    s, h, w = _check_inputs(vertices_px, faces, hw, supersample)
     device = vertices_px.device
     dtype = vertices_px.dtype
     n_frames = vertices_px.shape[0]
@@ -200,102 +330,43 @@ def rasterize_sparse(
         # coordinate-major [3 T, V] so each corner gather is one index_select along the last dim of a 2-D tensor
         # (3-4x faster than the same gather along dim 2 of [3, T, V] on CPU)
         comp = (vertices_px * scale).permute(2, 0, 1).reshape(3 * n_frames, -1)
-        fl = faces.long()
-        c0, c1, c2 = (comp.index_select(1, fl[:, k]).view(3, n_frames, n_faces) for k in range(3))  # each [3, T, F]
-        x0_, x1_, x2_ = c0[0], c1[0], c2[0]
-        y0_, y1_, y2_ = c0[1], c1[1], c2[1]
-        area = (x1_ - x0_) * (y2_ - y0_) - (x2_ - x0_) * (y1_ - y0_)
-        keep = (c0[2] > near_m) & (c1[2] > near_m) & (c2[2] > near_m) & (area != 0)
-        if cull_backfaces:
-            keep &= area < 0  # counter-clockwise as seen = negative signed area in y-down pixel coordinates
-        # sample j has its centre at j + 0.5 (sample units): the bbox holds j in [ceil(min-0.5), floor(max-0.5)]
-        xmin = torch.ceil(torch.minimum(torch.minimum(x0_, x1_), x2_) - 0.5).clamp(0, ws)
-        xmax = torch.floor(torch.maximum(torch.maximum(x0_, x1_), x2_) - 0.5).clamp(-1, ws - 1)
-        ymin = torch.ceil(torch.minimum(torch.minimum(y0_, y1_), y2_) - 0.5).clamp(0, hs)
-        ymax = torch.floor(torch.maximum(torch.maximum(y0_, y1_), y2_) - 0.5).clamp(-1, hs - 1)
-        bw = (xmax - xmin + 1).clamp(min=0)
-        bh = (ymax - ymin + 1).clamp(min=0)
-        counts = torch.where(keep, bw * bh, torch.zeros_like(bw)).reshape(-1).long()  # [T*F]
-        live = torch.nonzero(counts > 0).squeeze(1)
-        if live.numel() == 0:
+        cand = _candidates(comp, faces, n_frames, hs, ws, cull_backfaces, near_m)
+        if cand is None:
             return result
-        counts = counts.index_select(0, live)
-        pick = lambda a: a.reshape(-1).index_select(0, live)  # noqa: E731
-        # Barycentrics as affine functions of the sample centre in bbox-local coordinates (small numbers,
-        # no cancellation): b_i(cx, cy) = a_i * cx + c_i * cy + k_i with cx = dx + 0.5, cy = dy + 0.5.
-        ox, oy = pick(xmin), pick(ymin)
-        lx = [pick(x0_) - ox, pick(x1_) - ox, pick(x2_) - ox]
-        ly = [pick(y0_) - oy, pick(y1_) - oy, pick(y2_) - oy]
-        inv_area = 1.0 / pick(area)
-        coeffs = []
-        for i, j, k in ((0, 1, 2), (1, 2, 0)):  # b_i is the edge function of the opposite edge (j, k)
-            coeffs += [
-                (ly[j] - ly[k]) * inv_area,  # d b_i / d cx
-                (lx[k] - lx[j]) * inv_area,  # d b_i / d cy
-                (lx[j] * ly[k] - lx[k] * ly[j]) * inv_area,  # b_i at the bbox-local origin
-            ]
-        table = torch.stack(coeffs + [pick(bw)], dim=1)  # [L, 7]
-        z_table = torch.stack([pick(c0[2]), pick(c1[2]), pick(c2[2])], dim=1)  # [L, 3]
         # the z-buffer spans only the union of the live bounding boxes (a slot per sample of that window in every
         # frame): a buffer of all T*H s*W s samples costs more in page faults than the rest of the z-buffer
-        box_x0, box_y0 = int(ox.min()), int(oy.min())
-        box_w = int((ox + pick(bw)).max()) - box_x0
-        box_h = int((oy + pick(bh)).max()) - box_y0
-        # chunks of faces with <= max_pairs candidate pairs each (a single huge face forms its own chunk)
-        cumulative = torch.cumsum(counts, 0)
-        bounds = [0]
-        total = int(cumulative[-1])
-        if total > max_pairs:
-            marks = torch.arange(max_pairs, total, max_pairs, device=device)
-            cuts = torch.searchsorted(cumulative, marks, right=True).tolist()
-            bounds += [c for c in cuts if 0 < c < live.numel()]
-        bounds.append(live.numel())
-        bounds = sorted(set(bounds))
-        found = {"row": [], "sample": [], "slot": [], "b": []}
-        for lo, hi in zip(bounds[:-1], bounds[1:]):
-            cnt = counts[lo:hi]
-            n = int(cnt.sum())
-            rows = torch.repeat_interleave(torch.arange(lo, hi, device=device), cnt, output_size=n)
-            starts = torch.cumsum(cnt, 0) - cnt
-            local = torch.arange(n, device=device) - torch.repeat_interleave(starts, cnt, output_size=n)
-            tab = table.index_select(0, rows)
-            width = tab[:, 6].long()
-            dy = torch.div(local, width, rounding_mode="floor")
-            dx = local - dy * width
-            cx = dx.to(dtype) + 0.5
-            cy = dy.to(dtype) + 0.5
-            b0 = tab[:, 0] * cx + tab[:, 1] * cy + tab[:, 2]
-            b1 = tab[:, 3] * cx + tab[:, 4] * cy + tab[:, 5]
-            b2 = 1.0 - b0 - b1
-            sel = torch.nonzero((b0 >= 0) & (b1 >= 0) & (b2 >= 0)).squeeze(1)
-            if sel.numel() == 0:
-                continue
-            row = rows.index_select(0, sel)
-            face_frame = live.index_select(0, row)
-            frame = torch.div(face_frame, n_faces, rounding_mode="floor")
-            px = ox.index_select(0, row).long() + dx.index_select(0, sel)
-            py = oy.index_select(0, row).long() + dy.index_select(0, sel)
-            found["row"].append(row)
-            found["sample"].append(frame * (hs * ws) + py * ws + px)
-            found["slot"].append(frame * (box_h * box_w) + (py - box_y0) * box_w + (px - box_x0))
-            found["b"].append(torch.stack([b0.index_select(0, sel), b1.index_select(0, sel), b2.index_select(0, sel)], 1))
-        if not found["row"]:
+        box_x0, box_y0 = int(cand.ox.min()), int(cand.oy.min())
+        box = (box_x0, box_y0, int((cand.ox + cand.bw).max()) - box_x0, int((cand.oy + cand.bh).max()) - box_y0)
+        bounds = _chunk_bounds(cand.counts, max_pairs)
+        found = [f for f in (_inside_samples(cand, lo, hi, n_faces, hs, ws, box)
+                             for lo, hi in zip(bounds[:-1], bounds[1:])) if f is not None]
+        if not found:
             return result
-        row = torch.cat(found["row"])
-        sample = torch.cat(found["sample"])
-        w_persp = torch.cat(found["b"]) / z_table.index_select(0, row)
-        depth = 1.0 / w_persp.sum(dim=1)
-        face_frame = live.index_select(0, row)
-        face = face_frame - torch.div(face_frame, n_faces, rounding_mode="floor") * n_faces
-        # z-buffer over the candidate samples only: unique (depth, face) keys, minimum per sample wins. Only the
-        # slots of candidate samples are written (include_self=False) and read, so the buffer is left uninitialised
-        key = (depth.float().view(torch.int32).long() << 32) | face
-        slot = torch.cat(found["slot"])
-        zbuf = torch.empty((n_frames * box_h * box_w,), dtype=torch.int64, device=device)
-        zbuf.scatter_reduce_(0, slot, key, reduce="amin", include_self=False)
-        win = torch.nonzero(key == zbuf.index_select(0, slot)).squeeze(1)
-        result.sample = sample.index_select(0, win)
-        result.face = face.index_select(0, win)
-        result.bary = w_persp.index_select(0, win) * depth.index_select(0, win)[:, None]
-        result.depth_m = depth.index_select(0, win)
+        _resolve_visibility(result, cand, found, n_faces, n_frames * box[2] * box[3])
     return result
+
+
+def _resolve_visibility(result: SparseFragments, cand: _Candidates, found: list[dict], n_faces: int,
+                        z_slots: int) -> None:
+    """z-buffer over the candidate samples only: the nearest (face, sample) pair of every sample wins; its face,
+    perspective-correct barycentrics and depth go into ``result``.
+
+    Keys pack ``float32 depth bits << 32 | face`` (unique per pair, ordered like the depths); only the ``z_slots``
+    slots of candidate samples are written (include_self=False) and read, so the buffer is left uninitialised.
+    """
+    torch = _torch()
+    row = torch.cat([f["row"] for f in found])
+    sample = torch.cat([f["sample"] for f in found])
+    w_persp = torch.cat([f["b"] for f in found]) / cand.z_table.index_select(0, row)
+    depth = 1.0 / w_persp.sum(dim=1)
+    face_frame = cand.live.index_select(0, row)
+    face = face_frame - torch.div(face_frame, n_faces, rounding_mode="floor") * n_faces
+    key = (depth.float().view(torch.int32).long() << 32) | face
+    slot = torch.cat([f["slot"] for f in found])
+    zbuf = torch.empty((z_slots,), dtype=torch.int64, device=key.device)
+    zbuf.scatter_reduce_(0, slot, key, reduce="amin", include_self=False)
+    win = torch.nonzero(key == zbuf.index_select(0, slot)).squeeze(1)
+    result.sample = sample.index_select(0, win)
+    result.face = face.index_select(0, win)
+    result.bary = w_persp.index_select(0, win) * depth.index_select(0, win)[:, None]
+    result.depth_m = depth.index_select(0, win)

@@ -242,6 +242,42 @@ def _blend_corners(corners, bary):
     return corners[:, 0] * b[:, 0] + corners[:, 1] * b[:, 1] + corners[:, 2] * b[:, 2]
 
 
+def _rasterize_in_groups(projected, faces, hw: tuple[int, int], s: int, cull_backfaces: bool, group: int):
+    """Rasterize the frames ``group`` at a time (bounded dense z-buffers): covered samples ``(sample, face, bary)``,
+    ``sample`` flat over all frames (``t*(H s)*(W s) + row_s*(W s) + col_s``)."""
+    torch = _torch()
+    per_frame = hw[0] * s * hw[1] * s
+    parts = {"sample": [], "face": [], "bary": []}
+    for first in range(0, projected.shape[0], group):  # a few groups of frames at most
+        frags = rasterize_sparse(projected[first : first + group], faces, hw, supersample=s,
+                                 cull_backfaces=cull_backfaces)
+        parts["sample"].append(frags.sample + first * per_frame)
+        parts["face"].append(frags.face)
+        parts["bary"].append(frags.bary)
+    return torch.cat(parts["sample"]), torch.cat(parts["face"]), torch.cat(parts["bary"])
+
+
+def _sample_pixels(sample, hw: tuple[int, int], s: int):
+    """Frame int64 [N] and flat pixel ``t*H*W + row*W + col`` int64 [N] of flat sample indices [N]."""
+    torch = _torch()
+    h, w = hw
+    per_frame = h * s * w * s
+    frame = torch.div(sample, per_frame, rounding_mode="floor")
+    rest = sample - frame * per_frame
+    row = torch.div(rest, w * s, rounding_mode="floor")
+    col = rest - row * (w * s)
+    pixel = frame * (h * w) + torch.div(row, s, rounding_mode="floor") * w + torch.div(col, s, rounding_mode="floor")
+    return frame, pixel
+
+
+def _corner_normals(vertices_m, faces, face, frame):
+    """Vertex normals of the three corners of each sample's face in its frame, [N, 3 corners, 3]."""
+    normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
+    n_verts = normals.shape[1]
+    corner = (faces.long().index_select(0, face) + (frame * n_verts)[:, None]).reshape(-1)
+    return normals.reshape(-1, 3).index_select(0, corner).view(-1, 3, 3)
+
+
 def rasterize_mesh(
     vertices_m,
     faces,
@@ -286,32 +322,12 @@ def rasterize_mesh(
         h, w = camera.hw
         s = int(supersample)
         t = vertices_m.shape[0]
-        per_frame = h * s * w * s
-        group = max(1, int(max_samples) // per_frame)
-        normals = vertex_normals(vertices_m, faces)  # [T, V, 3]
-        uvs = torch.as_tensor(face_uvs, device=vertices_m.device).to(vertices_m.dtype)
-        faces_long = faces.long()
-        parts = {"sample": [], "face": [], "bary": []}
-        for first in range(0, t, group):  # a few groups of frames at most: bounded dense maps
-            frags = rasterize_sparse(
-                projected[first : first + group], faces, camera.hw, supersample=s, cull_backfaces=cull_backfaces
-            )
-            parts["sample"].append(frags.sample + first * per_frame)
-            parts["face"].append(frags.face)
-            parts["bary"].append(frags.bary)
-        sample = torch.cat(parts["sample"])
-        face = torch.cat(parts["face"])
-        bary = torch.cat(parts["bary"])
-        frame = torch.div(sample, per_frame, rounding_mode="floor")
-        rest = sample - frame * per_frame
-        row = torch.div(rest, w * s, rounding_mode="floor")
-        col = rest - row * (w * s)
-        pixel = frame * (h * w) + torch.div(row, s, rounding_mode="floor") * w + torch.div(col, s, rounding_mode="floor")
-        uv = _blend_corners(uvs.index_select(0, face), bary)
-        n_verts = normals.shape[1]
-        corner = (faces_long.index_select(0, face) + (frame * n_verts)[:, None]).reshape(-1)
-        corner_normals = normals.reshape(-1, 3).index_select(0, corner).view(-1, 3, 3)  # [N, 3 corners, 3]
-        shade = lambert(_blend_corners(corner_normals, bary), light)
+        group = max(1, int(max_samples) // (h * s * w * s))
+        sample, face, bary = _rasterize_in_groups(projected, faces, camera.hw, s, cull_backfaces, group)
+        frame, pixel = _sample_pixels(sample, camera.hw, s)
+        uv = _blend_corners(torch.as_tensor(face_uvs, device=vertices_m.device).to(vertices_m.dtype)
+                            .index_select(0, face), bary)
+        shade = lambert(_blend_corners(_corner_normals(vertices_m, faces, face, frame), bary), light)
         counts = torch.bincount(pixel, minlength=t * h * w)  # cheaper than pooling the dense sample map
         coverage = (counts.to(vertices_m.dtype) / float(s * s)).view(t, h, w)
     return RasterizedMesh(

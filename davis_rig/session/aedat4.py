@@ -32,6 +32,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import FormatError, MissingDependencyError
+from davis_rig.protocol import IMU6_DTYPE, SPECIAL_DTYPE, ApsFrame, SpecialType
 from davis_rig.session.info import sensor_layout
 from davis_rig.session.labels import labels_crop_origin, shift_boxes, write_labels
 from davis_rig.session.writer import SessionWriter
@@ -40,8 +41,19 @@ from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, GEN1_CLASSES, make_events
 #: First bytes of every AEDAT 4.0 file.
 AEDAT4_MAGIC = b"#!AER-DAT4.0\r\n"
 
-#: dv.TriggerType value -> libcaer special type id (``davis_rig.protocol.words.SpecialType``).
-TRIGGER_TO_SPECIAL = {0: 1, 1: 2, 2: 3, 3: 4, 4: 12, 5: 13, 6: 14, 7: 15, 8: 16, 9: 17}
+#: dv.TriggerType value -> libcaer special type (``davis_rig.protocol.words.SpecialType``).
+TRIGGER_TO_SPECIAL = {
+    0: SpecialType.TIMESTAMP_RESET,
+    1: SpecialType.EXTERNAL_INPUT_RISING_EDGE,
+    2: SpecialType.EXTERNAL_INPUT_FALLING_EDGE,
+    3: SpecialType.EXTERNAL_INPUT_PULSE,
+    4: SpecialType.EXTERNAL_GENERATOR_RISING_EDGE,
+    5: SpecialType.EXTERNAL_GENERATOR_FALLING_EDGE,
+    6: SpecialType.APS_FRAME_START,
+    7: SpecialType.APS_FRAME_END,
+    8: SpecialType.APS_EXPOSURE_START,
+    9: SpecialType.APS_EXPOSURE_END,
+}
 #: libcaer special type id -> dv.TriggerType value (the export direction).
 SPECIAL_TO_TRIGGER = {special: trigger for trigger, special in TRIGGER_TO_SPECIAL.items()}
 
@@ -55,10 +67,6 @@ META_LABELS_CROP_ORIGIN_XY = "davis_rig.labels_crop_origin_xy"
 META_LABELS_ATTRS = "davis_rig.labels_attrs"
 _CLASS_IDS = {name: class_id for class_id, name in GEN1_CLASSES.items()}
 
-_SPECIAL_DTYPE = np.dtype([("t", "<i8"), ("type", "u1")])
-_IMU_DTYPE = np.dtype([("t", "<i8"), ("accel_x_g", "<f4"), ("accel_y_g", "<f4"), ("accel_z_g", "<f4"),
-                       ("gyro_x_dps", "<f4"), ("gyro_y_dps", "<f4"), ("gyro_z_dps", "<f4"),
-                       ("temperature_c", "<f4")])
 
 
 def import_dv():
@@ -127,9 +135,7 @@ class _Chunk:
     imu: np.ndarray | None = None
 
 
-def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)):
-    from davis_rig.session.reader import StoredFrame
-
+def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)) -> ApsFrame:
     image = np.asarray(dv_frame.image)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -143,8 +149,8 @@ def _frame(dv_frame, origin_xy: tuple[int, int] = (0, 0)):
         raise FormatError(f"AEDAT4 frame at t={dv_frame.timestamp}: unsupported pixel type {image.dtype}")
     t_start = int(dv_frame.timestamp)
     exposure_us = int(dv_frame.exposure.total_seconds() * 1e6 + 0.5)
-    return StoredFrame(pixels, int(dv_frame.positionX) + origin_xy[0], int(dv_frame.positionY) + origin_xy[1],
-                       t_start, t_start, t_start + exposure_us, t_start + exposure_us)
+    return ApsFrame(pixels, int(dv_frame.positionX) + origin_xy[0], int(dv_frame.positionY) + origin_xy[1],
+                    t_start, t_start, t_start + exposure_us, t_start + exposure_us)
 
 
 def _read_boxes(recording) -> tuple[np.ndarray, int]:
@@ -168,6 +174,99 @@ def _read_boxes(recording) -> tuple[np.ndarray, int]:
     return boxes, skipped
 
 
+def _open_recording(dv, src: Path):
+    """Open an AEDAT4 file with dv-processing (``MonoCameraRecording``) after checking its magic.
+
+    Raises:
+        FormatError: no such file, not an AEDAT4 file, or dv-processing cannot read it.
+    """
+    if not src.exists():
+        raise FormatError(f"{src}: no such AEDAT4 file")
+    with open(src, "rb") as file:
+        magic = file.read(len(AEDAT4_MAGIC))
+    if magic != AEDAT4_MAGIC:
+        raise FormatError(f"{src}: not an AEDAT4 file (starts with {magic!r}, expected {AEDAT4_MAGIC!r})")
+    try:
+        return dv.io.MonoCameraRecording(str(src))
+    except RuntimeError as exc:
+        raise FormatError(f"{src}: not a readable AEDAT4 file ({exc})") from exc
+
+
+def _device_info(recording, src: Path) -> tuple[dict, tuple[int, int]]:
+    """The session's device info from the recording's camera name and resolutions, and the events' origin on
+    the sensor, px (``(0, 0)`` unless the file is an exported crop: then the layout is the whole sensor's)."""
+    camera_name = recording.getCameraName()
+    device_info: dict = {"serial": camera_name.rsplit("_", 1)[-1] if "_" in camera_name else camera_name,
+                         "camera_name": camera_name, "imported_from": str(src)}
+    layout: dict = {}
+    if recording.isEventStreamAvailable():
+        width, height = recording.getEventResolution()
+        layout.update(dvs_size_columns=int(width), dvs_size_rows=int(height), dvs_width=int(width),
+                      dvs_height=int(height))
+    if recording.isFrameStreamAvailable():
+        width, height = recording.getFrameResolution()
+        layout.update(aps_size_columns=int(width), aps_size_rows=int(height), aps_width=int(width),
+                      aps_height=int(height))
+    events_meta = recording.getStreamMetadata("events") if recording.isEventStreamAvailable() else {}
+    origin = _pair(events_meta, META_ORIGIN_XY) or (0, 0)
+    if (sensor_wh := _pair(events_meta, META_SENSOR_WH)) is not None:
+        layout = sensor_layout(*sensor_wh)  # an exported crop: the events and frames go back onto the sensor
+    device_info["layout"] = layout
+    return device_info, origin
+
+
+def _write_streams(recording, writer: SessionWriter, origin: tuple[int, int]) -> None:
+    """Write the events, frames, triggers (as specials) and IMU samples, one stream after the other.
+
+    Raises:
+        RuntimeError: dv-processing found a damaged packet.
+    """
+    if recording.isEventStreamAvailable():
+        while (batch := recording.getNextEventBatch()) is not None:
+            raw = batch.numpy()
+            if len(raw):
+                writer.append_events(make_events(raw["timestamp"], raw["x"] + origin[0],
+                                                 raw["y"] + origin[1], raw["polarity"].astype(np.uint8)))
+                writer.maybe_flush()
+    if recording.isFrameStreamAvailable():
+        while (frame := recording.getNextFrame()) is not None:
+            writer.append_frame(_frame(frame, origin))
+            writer.maybe_flush()  # frames are buffered until a flush: keep at most one interval in RAM
+    if recording.isTriggerStreamAvailable():
+        specials = []
+        while (batch := recording.getNextTriggerBatch()) is not None:
+            specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
+        if specials:
+            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=SPECIAL_DTYPE)),
+                          device_clock=False)
+    if recording.isImuStreamAvailable():
+        samples = []
+        while (batch := recording.getNextImuBatch()) is not None:
+            samples += [(int(s.timestamp), s.accelerometerX, s.accelerometerY, s.accelerometerZ, s.gyroscopeX,
+                         s.gyroscopeY, s.gyroscopeZ, s.temperature) for s in batch]
+        if samples:
+            writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, SPECIAL_DTYPE),
+                                 np.array(samples, dtype=IMU6_DTYPE)))
+
+
+def _write_box_labels(src: Path, dst, boxes: np.ndarray, box_meta, origin: tuple[int, int]) -> None:
+    """Store the recording's boxes as the session's labels, moved from the labels' crop onto the events' one.
+
+    Raises:
+        FormatError: the labels' attribute metadata is not JSON.
+    """
+    labels_origin = _pair(box_meta, META_LABELS_CROP_ORIGIN_XY) or (0, 0)
+    try:
+        attrs = json.loads(box_meta.get(META_LABELS_ATTRS, "{}"))
+    except json.JSONDecodeError as exc:
+        raise FormatError(f"{src}: malformed {META_LABELS_ATTRS} metadata ({exc})") from exc
+    attrs = {"labeler": "davis_rig.session.aedat4", "labeler_version": __version__, "source": src.name,
+             **attrs, "imported_from": str(src)}
+    if labels_crop_origin(attrs) is None:
+        attrs.update(crop_origin_x=labels_origin[0], crop_origin_y=labels_origin[1])
+    write_labels(dst, shift_boxes(boxes, origin[0] - labels_origin[0], origin[1] - labels_origin[1]), attrs)
+
+
 def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> Aedat4ImportSummary:
     """Convert an AEDAT4 file into a session.h5: one stream after the other (events, frames, triggers, IMU),
     each in its own time order, batch by batch.
@@ -187,82 +286,21 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
     """
     dv = import_dv()
     src = Path(src)
-    if not src.exists():
-        raise FormatError(f"{src}: no such AEDAT4 file")
-    with open(src, "rb") as file:
-        magic = file.read(len(AEDAT4_MAGIC))
-    if magic != AEDAT4_MAGIC:
-        raise FormatError(f"{src}: not an AEDAT4 file (starts with {magic!r}, expected {AEDAT4_MAGIC!r})")
-    try:
-        recording = dv.io.MonoCameraRecording(str(src))
-    except RuntimeError as exc:
-        raise FormatError(f"{src}: not a readable AEDAT4 file ({exc})") from exc
-    camera_name = recording.getCameraName()
-    device_info: dict = {"serial": camera_name.rsplit("_", 1)[-1] if "_" in camera_name else camera_name,
-                         "camera_name": camera_name, "imported_from": str(src)}
-    layout: dict = {}
-    if recording.isEventStreamAvailable():
-        width, height = recording.getEventResolution()
-        layout.update(dvs_size_columns=int(width), dvs_size_rows=int(height), dvs_width=int(width),
-                      dvs_height=int(height))
-    if recording.isFrameStreamAvailable():
-        width, height = recording.getFrameResolution()
-        layout.update(aps_size_columns=int(width), aps_size_rows=int(height), aps_width=int(width),
-                      aps_height=int(height))
-    events_meta = recording.getStreamMetadata("events") if recording.isEventStreamAvailable() else {}
-    origin = _pair(events_meta, META_ORIGIN_XY) or (0, 0)
-    if (sensor_wh := _pair(events_meta, META_SENSOR_WH)) is not None:
-        layout = sensor_layout(*sensor_wh)  # an exported crop: the events and frames go back onto the sensor
-    device_info["layout"] = layout
+    recording = _open_recording(dv, src)
+    device_info, origin = _device_info(recording, src)
     config = {"source": "aedat4", "frame_scale": "dv 8-bit value << 8"}
     has_boxes = recording.isStreamAvailable(BOX_STREAM) and recording.isStreamOfBoundingBoxType(BOX_STREAM)
     box_meta = recording.getStreamMetadata(BOX_STREAM) if has_boxes else {}
-    labels_origin = _pair(box_meta, META_LABELS_CROP_ORIGIN_XY) or (0, 0)
-
     with SessionWriter(dst, device_info=device_info, config=config, overwrite=overwrite) as writer:
         try:
-            if recording.isEventStreamAvailable():
-                while (batch := recording.getNextEventBatch()) is not None:
-                    raw = batch.numpy()
-                    if len(raw):
-                        writer.append_events(make_events(raw["timestamp"], raw["x"] + origin[0],
-                                                         raw["y"] + origin[1], raw["polarity"].astype(np.uint8)))
-                        writer.maybe_flush()
-            if recording.isFrameStreamAvailable():
-                while (frame := recording.getNextFrame()) is not None:
-                    writer.append_frame(_frame(frame, origin))
-                    writer.maybe_flush()  # frames are buffered until a flush: keep at most one interval in RAM
-            if recording.isTriggerStreamAvailable():
-                specials = []
-                while (batch := recording.getNextTriggerBatch()) is not None:
-                    specials += [(int(tr.timestamp), TRIGGER_TO_SPECIAL.get(int(tr.type), 255)) for tr in batch]
-                if specials:
-                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.array(specials, dtype=_SPECIAL_DTYPE)),
-                                  device_clock=False)
-            if recording.isImuStreamAvailable():
-                samples = []
-                while (batch := recording.getNextImuBatch()) is not None:
-                    samples += [(int(s.timestamp), s.accelerometerX, s.accelerometerY, s.accelerometerZ, s.gyroscopeX,
-                                 s.gyroscopeY, s.gyroscopeZ, s.temperature) for s in batch]
-                if samples:
-                    writer.append(_Chunk(np.zeros(0, EVENT_DTYPE), [], np.zeros(0, _SPECIAL_DTYPE),
-                                         np.array(samples, dtype=_IMU_DTYPE)))
+            _write_streams(recording, writer, origin)
             boxes, skipped = _read_boxes(recording) if has_boxes else (None, 0)
         except RuntimeError as exc:  # dv-processing reports damaged packets as RuntimeError
             raise FormatError(f"{src}: damaged AEDAT4 data after {writer.counts['events']} events ({exc}); "
                               f"{dst} keeps what was read and is marked incomplete") from exc
         counts = writer.counts
     if boxes is not None:
-        try:
-            attrs = json.loads(box_meta.get(META_LABELS_ATTRS, "{}"))
-        except json.JSONDecodeError as exc:
-            raise FormatError(f"{src}: malformed {META_LABELS_ATTRS} metadata ({exc})") from exc
-        attrs = {"labeler": "davis_rig.session.aedat4", "labeler_version": __version__, "source": src.name,
-                 **attrs, "imported_from": str(src)}
-        if labels_crop_origin(attrs) is None:
-            attrs.update(crop_origin_x=labels_origin[0], crop_origin_y=labels_origin[1])
-        write_labels(dst, shift_boxes(boxes, origin[0] - labels_origin[0], origin[1] - labels_origin[1]), attrs)
-    return Aedat4ImportSummary(path=Path(dst), camera_name=camera_name, events=counts["events"],
+        _write_box_labels(src, dst, boxes, box_meta, origin)
+    return Aedat4ImportSummary(path=Path(dst), camera_name=device_info["camera_name"], events=counts["events"],
                                frames=counts["frames"], specials=counts["specials"], imu=counts["imu"],
                                labels=0 if boxes is None else len(boxes), labels_skipped=skipped)
-

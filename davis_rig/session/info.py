@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.session import schema
+from davis_rig.session.h5file import frame_hw_from_device_info
 from davis_rig.session.journal import journal_path
 from davis_rig.session.labels import labels_crop_origin
 from davis_rig.session.reader import SessionReader
-from davis_rig.session.writer import frame_hw_from_device_info
 from davis_rig.types import GEN1_CLASSES
 
 __all__ = ["PEAK_WINDOW_MS", "LabelsInfo", "SessionInfo", "describe_session", "dvs_hw_from_device_info",

@@ -240,14 +240,15 @@ def iter_journal(path: str | os.PathLike) -> Iterator[tuple[int, bytes, int]]:
     with file:
         if file.read(len(MAGIC)) != MAGIC:
             raise SessionError(f"{path}: not a davis_rig journal (expected magic {MAGIC!r})")
+        size = os.fstat(file.fileno()).st_size
         offset = len(MAGIC)
         while True:
             head = file.read(_RECORD.size)
             if len(head) < _RECORD.size:
                 return
             kind, length, crc = _RECORD.unpack(head)
-            if kind not in (KIND_HEADER, KIND_TRANSFER, KIND_NOTE):
-                return
+            if kind not in (KIND_HEADER, KIND_TRANSFER, KIND_NOTE) or offset + _RECORD.size + length > size:
+                return  # a damaged length is never allocated: a record must end inside the file
             payload = file.read(length)
             if len(payload) < length or zlib.crc32(payload) != crc:
                 return

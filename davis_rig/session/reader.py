@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from davis_rig.errors import SessionError
+from davis_rig.protocol.frames import ApsFrame
 from davis_rig.session import schema
 from davis_rig.session.journal import journal_path
 from davis_rig.types import EVENT_DTYPE
@@ -22,40 +22,78 @@ def _recover_hint(path: Path) -> str:
     return ""
 
 
-@dataclass(frozen=True)
-class StoredFrame:
-    """One APS frame as stored (same fields as ``davis_rig.protocol.frames.ApsFrame``).
+def _read(path: Path, dataset, key, what: str) -> np.ndarray:
+    """``dataset[key]``, with HDF5 read errors (damaged chunks) turned into a SessionError naming the file."""
+    try:
+        return dataset[key]
+    except OSError as exc:
+        raise SessionError(f"{path}: cannot read {what}: the data is damaged ({exc})" + _recover_hint(path)) from exc
 
-    Attributes:
-        pixels: uint16 [height, width] of the read-out region (libcaer 16-bit scale).
-        position_x, position_y: region origin, px.
-        t_start_of_frame_us, t_start_exposure_us, t_end_exposure_us, t_end_of_frame_us: device µs.
+
+class FrameData:
+    """Read-only access to ``/frames/data`` (uint16 [F, H, W]): indexing reads lazily, like the h5py dataset.
+
+    Args:
+        dataset: the h5py dataset.
+        path: the session file (named in errors).
+
+    Raises (on indexing):
+        SessionError: HDF5 cannot read the requested frames (a damaged chunk).
     """
 
-    pixels: np.ndarray
-    position_x: int
-    position_y: int
-    t_start_of_frame_us: int
-    t_start_exposure_us: int
-    t_end_exposure_us: int
-    t_end_of_frame_us: int
+    def __init__(self, dataset, path: Path):
+        self._dataset = dataset
+        self._path = path
 
     @property
-    def t_exposure_mid_us(self) -> int:
-        """Middle of the exposure, device µs (libcaer: ``SOE + (EOE - SOE) // 2``)."""
-        return self.t_start_exposure_us + (self.t_end_exposure_us - self.t_start_exposure_us) // 2
+    def shape(self) -> tuple[int, ...]:
+        """(F, H, W)."""
+        return self._dataset.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        """uint16."""
+        return self._dataset.dtype
+
+    @property
+    def ndim(self) -> int:
+        """3."""
+        return self._dataset.ndim
+
+    def __len__(self) -> int:
+        return len(self._dataset)
+
+    def __getitem__(self, key) -> np.ndarray:
+        return _read(self._path, self._dataset, key, f"/frames/data[{_index_text(key)}]")
+
+
+def _index_text(key) -> str:
+    """``1, 0:260, ::2`` for the key ``(1, slice(0, 260), slice(None, None, 2))``."""
+    if isinstance(key, tuple):
+        return ", ".join(_index_text(part) for part in key)
+    if isinstance(key, slice):
+        text = ("" if key.start is None else str(key.start)) + ":" + ("" if key.stop is None else str(key.stop))
+        return text + (f":{key.step}" if key.step is not None else "")
+    return "..." if key is Ellipsis else str(key)
 
 
 class FrameStore:
     """Lazy access to the APS frames of a session: ``len``, indexing (-> frame objects) and time columns.
 
+    Args:
+        group: the h5py ``/frames`` group.
+        path: the session file (named in errors).
+
     Attributes:
-        data: the h5py dataset [F, H, W] uint16 (full sensor, zero outside each ROI); read slices lazily.
+        data: :class:`FrameData` [F, H, W] uint16 (full sensor, zero outside each ROI); read slices lazily.
+
+    Raises (on indexing):
+        SessionError: a frame's data is damaged.
     """
 
-    def __init__(self, group):
+    def __init__(self, group, path: Path):
         self._group = group
-        self.data = group[schema.FRAME_DATA]
+        self.data = FrameData(group[schema.FRAME_DATA], path)
         self._roi = group[schema.FRAME_ROI][:]
         self._times = {name: group[name][:] for name in schema.FRAME_TIME_COLUMNS}
         n = len(self.data)
@@ -89,25 +127,19 @@ class FrameStore:
         return self._roi.copy()
 
     def __getitem__(self, index: int):
-        """Return frame ``index`` as an ``ApsFrame`` (or :class:`StoredFrame` if the protocol package is absent)."""
+        """Return frame ``index`` as an :class:`~davis_rig.protocol.frames.ApsFrame`."""
         n = len(self)
         if not -n <= index < n:
             raise IndexError(f"frame index {index} out of range for {n} frames")
         index %= n
         x0, y0, width, height = (int(v) for v in self._roi[index])
         pixels = self.data[index, y0 : y0 + height, x0 : x0 + width]
-        fields = dict(
+        return ApsFrame(
             pixels=pixels,
             position_x=x0,
             position_y=y0,
             **{name: int(self._times[name][index]) for name in schema.FRAME_TIME_COLUMNS},
         )
-        try:
-            from davis_rig.protocol.frames import ApsFrame
-
-            return ApsFrame(**fields)
-        except (ImportError, TypeError):
-            return StoredFrame(**fields)
 
     def __iter__(self):
         for i in range(len(self)):
@@ -183,7 +215,7 @@ class SessionReader:
             if len(self._ms_to_idx) and (self._ms_to_idx[-1] > self.num_events or
                                          np.any(np.diff(self._ms_to_idx) < 0)):
                 raise SessionError(f"{self.path}: /events/ms_to_idx is inconsistent with {self.num_events} events")
-            self.frames = FrameStore(f[schema.FRAMES_GROUP])
+            self.frames = FrameStore(f[schema.FRAMES_GROUP], self.path)
             self.device_info = json.loads(f.attrs.get(schema.ATTR_DEVICE_INFO, "{}"))
             self.config = json.loads(f.attrs.get(schema.ATTR_CONFIG, "{}"))
             self.biases = json.loads(f.attrs.get(schema.ATTR_BIASES, "{}"))
@@ -216,12 +248,10 @@ class SessionReader:
         group = self._require_open()[schema.EVENTS_GROUP]
         out = np.empty(max(stop - start, 0), dtype=EVENT_DTYPE)
         if len(out):
-            try:
-                out["t"] = group["t"][start:stop] + self.t_offset_us
-                for name in ("x", "y", "p"):
-                    out[name] = group[name][start:stop]
-            except OSError as exc:
-                raise SessionError(f"{self.path}: cannot read events [{start}, {stop}): {exc}") from exc
+            what = f"events [{start}, {stop})"
+            out["t"] = _read(self.path, group["t"], slice(start, stop), what) + self.t_offset_us
+            for name in ("x", "y", "p"):
+                out[name] = _read(self.path, group[name], slice(start, stop), what)
         return out
 
     def events(self) -> np.ndarray:
@@ -244,7 +274,7 @@ class SessionReader:
         hi = int(ms[m]) if m < len(ms) else n
         if lo >= hi:
             return hi
-        t_window = group["t"][lo:hi]
+        t_window = _read(self.path, group["t"], slice(lo, hi), f"event times [{lo}, {hi})")
         return lo + int(np.searchsorted(t_window, t_rel, side="left"))
 
     def events_between(self, t0_us: int, t1_us: int) -> np.ndarray:
@@ -278,7 +308,9 @@ class SessionReader:
         group = self._require_open()[schema.EVENTS_GROUP]
         t0 = self.t_offset_us if t_start_us is None else int(t_start_us)
         if t_end_us is None:
-            t_end_us = (int(group["t"][self.num_events - 1]) + self.t_offset_us + 1) if self.num_events else t0
+            last = self.num_events - 1
+            t_end_us = (int(_read(self.path, group["t"], last, f"event time [{last}]")) + self.t_offset_us + 1
+                        if self.num_events else t0)
         start = self.event_index(t0)
         while t0 < t_end_us:
             t1 = min(t0 + window_us, t_end_us)
@@ -306,7 +338,7 @@ class SessionReader:
             raise SessionError(f"{self.path}: /{group_name} columns have different lengths {lengths}")
         table = np.empty(lengths[names[0]], dtype=[(name, group[name].dtype) for name in names])
         for name in names:
-            table[name] = group[name][:]
+            table[name] = _read(self.path, group[name], slice(None), f"/{group_name}/{name}")
         return table
 
     def specials(self) -> np.ndarray:
@@ -326,7 +358,7 @@ class SessionReader:
         group = f[schema.LABELS_GROUP]
         if schema.LABEL_BOXES not in group:
             raise SessionError(f"{self.path}: /labels has no '{schema.LABEL_BOXES}' dataset")
-        boxes = group[schema.LABEL_BOXES][:]
+        boxes = _read(self.path, group[schema.LABEL_BOXES], slice(None), f"/{schema.LABELS_GROUP}/{schema.LABEL_BOXES}")
         if boxes.dtype != schema.LABEL_DTYPE:
             raise SessionError(f"{self.path}: /labels/boxes dtype {boxes.dtype}, expected {schema.LABEL_DTYPE}")
         return boxes

@@ -1,5 +1,14 @@
 """Record a camera into a session.h5: the one API call behind ``davis-record``.
 
+:func:`record_session` journals the raw USB transfers next to the file (``<path>.journal``, see
+:mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild the file
+after a crash; the journal is deleted when the recording ends cleanly. An unplug (:class:`DeviceDisconnectedError`)
+ends the recording normally: everything decoded before it is written and the file is closed
+(``stopped_by=StopReason.DISCONNECTED``). A device timestamp reset during the recording
+(``Davis346.timestamp_reset`` or a sync master) loses nothing: the data after it is stored after the data before
+it, offset so the file's time stays monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]``
+(see :meth:`SessionWriter.append`).
+
 Capture path: this module never imports torch (nor the device package: the camera is passed in).
 """
 
@@ -9,14 +18,26 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Callable
 
 from davis_rig.errors import DavisRigError, DeviceDisconnectedError, DeviceError, TransportError
-from davis_rig.session.writer import SessionWriter, to_jsonable
+from davis_rig.session.h5file import to_jsonable
+from davis_rig.session.writer import SessionWriter
 
 #: Longest wait for data inside the camera's chunk iterator, s (bounds the reaction time to stop / duration).
 POLL_TIMEOUT_S = 0.1
+
+
+class StopReason(StrEnum):
+    """Why :func:`record_session` ended: the duration was up, ``stop_event`` was set (Ctrl-C), the camera was
+    unplugged, or acquisition was stopped by someone else (the stream ended)."""
+
+    DURATION = "duration"
+    STOP = "stop"
+    DISCONNECTED = "disconnected"
+    END = "end"
 
 
 @dataclass(frozen=True)
@@ -47,8 +68,7 @@ class RecordingSummary:
         path: the session file.
         duration_s: wall-clock recording time, s.
         events, frames, specials, imu: items in the file.
-        stopped_by: ``"duration"``, ``"stop"`` (stop_event / Ctrl-C), ``"disconnected"`` or ``"end"``
-            (acquisition was stopped by someone else).
+        stopped_by: a :class:`StopReason`.
         camera_stats: the camera's counters at the end (transfers, bytes, dropped_transfers, decoder stats).
     """
 
@@ -58,7 +78,7 @@ class RecordingSummary:
     frames: int
     specials: int
     imu: int
-    stopped_by: str
+    stopped_by: StopReason
     camera_stats: dict = field(default_factory=dict)
 
     @property
@@ -136,6 +156,83 @@ def _stop_and_drain(camera, writer: SessionWriter) -> None:
         raise stop_error
 
 
+class _ProgressReporter:
+    """Stores the camera's counters in the file (and its journal) and calls ``progress`` every ``interval_s``."""
+
+    def __init__(self, camera, writer: SessionWriter, progress: Callable[[RecordingProgress], None] | None,
+                 interval_s: float):
+        self.camera = camera
+        self.writer = writer
+        self.progress = progress
+        self.interval_s = interval_s
+        self.t_start = time.monotonic()
+        self._last, self._last_events = self.t_start, 0
+
+    def maybe_report(self, now: float) -> None:
+        """Report if the last report is at least ``interval_s`` old (``now``: ``time.monotonic()``, s)."""
+        if now - self._last < self.interval_s:
+            return
+        writer = self.writer
+        stats = _camera_stats(self.camera)
+        writer.set_stats({"camera": stats})
+        if writer.journal is not None:
+            writer.journal.note({"camera": stats})
+        if self.progress is not None:
+            events = writer.counts["events"]
+            self.progress(RecordingProgress(
+                elapsed_s=now - self.t_start,
+                events=events,
+                frames=writer.counts["frames"],
+                event_rate_hz=(events - self._last_events) / (now - self._last),
+                dropped_transfers=int(stats.get("dropped_transfers", 0) or 0),
+                decoder_errors=_decoder_errors(stats),
+            ))
+        self._last, self._last_events = now, writer.counts["events"]
+
+
+def _configure(camera, exposure_us: int | None, frame_interval_us: int | None, send_default_config: bool) -> dict:
+    """Send the settings to the camera; returns the recording configuration stored in the file."""
+    if send_default_config:
+        camera.send_default_config()
+    if exposure_us is not None:
+        camera.set_exposure(int(exposure_us))
+    if frame_interval_us is not None:
+        camera.set_frame_interval(int(frame_interval_us))
+    return {
+        "exposure_us": _aps_setting(camera, "exposure_us", exposure_us, send_default_config),
+        "frame_interval_us": _aps_setting(camera, "frame_interval_us", frame_interval_us, send_default_config),
+        "default_config_sent": send_default_config,
+        "biases": to_jsonable(getattr(camera, "biases", None)) or {},
+    }
+
+
+def _write_until_stopped(camera, writer: SessionWriter, reporter: _ProgressReporter, duration_s: float | None,
+                         stop_event: threading.Event) -> StopReason:
+    """Write the camera's chunks until the duration is up, ``stop_event`` is set or acquisition ends elsewhere."""
+    while True:
+        chunk = camera.read(POLL_TIMEOUT_S)
+        if chunk is not None:
+            writer.append(chunk)
+        elif not camera.running:
+            return StopReason.END  # acquisition ended elsewhere and everything read was delivered
+        else:
+            writer.maybe_flush()
+        now = time.monotonic()
+        reporter.maybe_report(now)
+        if stop_event.is_set():
+            return StopReason.STOP
+        if duration_s is not None and now - reporter.t_start >= duration_s:
+            return StopReason.DURATION
+
+
+def _stop_after_error(camera) -> None:
+    """Leave the camera stopped after an error (disk full, Ctrl-C outside the CLI, a bug); the error goes on."""
+    try:
+        camera.stop()
+    except DavisRigError:
+        pass
+
+
 def record_session(
     camera,
     path: str | os.PathLike,
@@ -152,14 +249,7 @@ def record_session(
 ) -> RecordingSummary:
     """Configure an open camera, record it into ``path`` until ``duration_s`` / ``stop_event`` / unplug, and stop.
 
-    The raw USB transfers are journaled next to the file (``<path>.journal``, see
-    :mod:`davis_rig.session.journal`) so that :func:`~davis_rig.session.recovery.recover_session` can rebuild
-    the file after a crash; the journal is deleted when the recording ends cleanly. An unplug
-    (:class:`DeviceDisconnectedError`) ends the recording normally: everything decoded before it is written and
-    the file is closed (``stopped_by="disconnected"``). A device timestamp reset during the recording
-    (``Davis346.timestamp_reset`` or a sync master) loses nothing: the data after it is stored after the data before
-    it, offset so the file's time stays monotonic; the offsets are in ``stats["writer"]["timestamp_reset_offsets"]``
-    (see :meth:`SessionWriter.append`).
+    The module docstring tells what happens to the journal, at an unplug and at a device timestamp reset.
 
     Args:
         camera: an open ``davis_rig.device.camera.Davis346`` (or an object with the same methods: ``info``,
@@ -187,73 +277,25 @@ def record_session(
     """
     if duration_s is not None and duration_s < 0:
         raise ValueError(f"duration_s must be >= 0, got {duration_s}")
-    if send_default_config:
-        camera.send_default_config()
-    if exposure_us is not None:
-        camera.set_exposure(int(exposure_us))
-    if frame_interval_us is not None:
-        camera.set_frame_interval(int(frame_interval_us))
-    config = {
-        "exposure_us": _aps_setting(camera, "exposure_us", exposure_us, send_default_config),
-        "frame_interval_us": _aps_setting(camera, "frame_interval_us", frame_interval_us, send_default_config),
-        "default_config_sent": send_default_config,
-        "biases": to_jsonable(getattr(camera, "biases", None)) or {},
-    }
-    stop_event = stop_event or threading.Event()
+    config = _configure(camera, exposure_us, frame_interval_us, send_default_config)
     path = Path(path)
-    stopped_by = "end"
     with SessionWriter(path, device_info=camera.info, config=config, overwrite=overwrite,
                        journal=journal) as writer:
         camera.add_raw_listener(writer.append_raw)
         _start_or_discard(camera, writer)
-        t_start = time.monotonic()
-        last_progress, last_events = t_start, 0
+        reporter = _ProgressReporter(camera, writer, progress, progress_interval_s)
         try:
-            while True:
-                chunk = camera.read(POLL_TIMEOUT_S)
-                if chunk is not None:
-                    writer.append(chunk)
-                elif not camera.running:
-                    break  # acquisition ended elsewhere and everything read was delivered
-                else:
-                    writer.maybe_flush()
-                now = time.monotonic()
-                if now - last_progress >= progress_interval_s:
-                    stats = _camera_stats(camera)
-                    writer.set_stats({"camera": stats})
-                    if writer.journal is not None:
-                        writer.journal.note({"camera": stats})
-                    if progress is not None:
-                        events = writer.counts["events"]
-                        progress(RecordingProgress(
-                            elapsed_s=now - t_start,
-                            events=events,
-                            frames=writer.counts["frames"],
-                            event_rate_hz=(events - last_events) / (now - last_progress),
-                            dropped_transfers=int(stats.get("dropped_transfers", 0) or 0),
-                            decoder_errors=_decoder_errors(stats),
-                        ))
-                    last_progress, last_events = now, writer.counts["events"]
-                if stop_event.is_set():
-                    stopped_by = "stop"
-                    break
-                if duration_s is not None and now - t_start >= duration_s:
-                    stopped_by = "duration"
-                    break
+            stopped_by = _write_until_stopped(camera, writer, reporter, duration_s, stop_event or threading.Event())
             _stop_and_drain(camera, writer)
         except DeviceDisconnectedError:
-            stopped_by = "disconnected"
+            stopped_by = StopReason.DISCONNECTED
             camera.stop()  # safe after an unplug: only stops the reader thread
         except BaseException:
-            # Disk full, Ctrl-C outside the CLI, a bug: leave the camera stopped, then let the error through.
-            try:
-                camera.stop()
-            except DavisRigError:
-                pass
+            _stop_after_error(camera)
             raise
         finally:
             _remove_listener(camera, writer.append_raw)
-        duration = time.monotonic() - t_start
+        duration = time.monotonic() - reporter.t_start
         stats = _camera_stats(camera)
         writer.set_stats({"camera": stats, "stopped_by": stopped_by})
         counts = writer.counts
@@ -262,4 +304,4 @@ def record_session(
                             camera_stats=stats)
 
 
-__all__ = ["RecordingProgress", "RecordingSummary", "record_session"]
+__all__ = ["RecordingProgress", "RecordingSummary", "StopReason", "record_session"]

@@ -25,7 +25,10 @@ event part unchanged (``import hdf5plugin`` first, the datasets are Blosc-compre
 
 Event times are stored relative to ``t_offset`` (as DSEC does) so that ``ms_to_idx`` starts at the first
 millisecond of the recording; every other ``t*`` dataset holds absolute device µs. :class:`SessionReader` hides
-the offset: it always returns device µs.
+the offset: it always returns device µs. "Device µs" in a file is the camera clock made monotonic: after a
+timestamp reset or a damaged timestamp the writer adds an offset, listed in the ``stats`` attribute
+(``stats["writer"]["timestamp_reset_offsets"]`` and ``["time_discontinuity_offsets"]``, see
+:meth:`davis_rig.session.writer.SessionWriter.append`); without those, it is the camera clock.
 
 Compression: Blosc lz4 (level 5) with byte shuffle, chosen for speed at the DAVIS346 peak of 12 M ev/s. Measured
 on this project's 2-core dev machine, 6 M synthetic events, h5py direct writes, machine idle: uncompressed

@@ -146,6 +146,25 @@ def hflip(hist: torch.Tensor, boxes: list[torch.Tensor | None]) -> tuple[torch.T
     return torch.flip(hist, dims=[-1]), out
 
 
+def _zoom_window(name: str, hw: tuple[int, int], factor: float, x0: int, y0: int) -> tuple[int, int]:
+    """The zoom window ``(int(H/f), int(W/f))`` (px); ShapeError naming ``name`` if at (x0, y0) it leaves the frame."""
+    height, width = hw
+    win_h, win_w = int(height / factor), int(width / factor)
+    if not (0 <= x0 <= width - win_w and 0 <= y0 <= height - win_h):
+        raise ShapeError(f"{name}: window {win_w}×{win_h} at ({x0}, {y0}) leaves the {width}×{height} frame")
+    return win_h, win_w
+
+
+def _scale_boxes(boxes: list[torch.Tensor | None], x_of, y_of, sx: float, sy: float, hw: tuple[int, int],
+                 min_side_px: float) -> list[torch.Tensor | None]:
+    """Boxes ``(class, x, y, w, h)`` mapped to ``(class, x_of(x), y_of(y), w sx, h sy)`` and clipped to the frame
+    (:func:`_clip_boxes`); ``None`` entries stay ``None``."""
+    return [None if b is None else
+            _clip_boxes(torch.stack([b[:, 0], x_of(b[:, 1]), y_of(b[:, 2]), b[:, 3] * sx, b[:, 4] * sy], 1), hw,
+                        min_side_px)
+            for b in boxes]
+
+
 def zoom_in(hist: torch.Tensor, boxes: list[torch.Tensor | None], factor: float, x0: int, y0: int,
             min_side_px: float = 1.0) -> tuple[torch.Tensor, list[torch.Tensor | None]]:
     """Crop the window ``[y0, y0 + int(H/f)) × [x0, x0 + int(W/f))`` and rescale it to H × W (nearest-exact).
@@ -162,20 +181,12 @@ def zoom_in(hist: torch.Tensor, boxes: list[torch.Tensor | None], factor: float,
         ShapeError: the window leaves the frame.
     """
     height, width = hist.shape[-2:]
-    win_h, win_w = int(height / factor), int(width / factor)
-    if not (0 <= x0 <= width - win_w and 0 <= y0 <= height - win_h):
-        raise ShapeError(f"zoom_in: window {win_w}×{win_h} at ({x0}, {y0}) leaves the {width}×{height} frame")
+    win_h, win_w = _zoom_window("zoom_in", (height, width), factor, x0, y0)
     crop = hist[..., y0:y0 + win_h, x0:x0 + win_w]
     out = F.interpolate(crop, size=(height, width), mode="nearest-exact")
     sx, sy = width / win_w, height / win_h
-    new_boxes = []
-    for b in boxes:
-        if b is None:
-            new_boxes.append(None)
-            continue
-        b = torch.stack([b[:, 0], (b[:, 1] - x0) * sx, (b[:, 2] - y0) * sy, b[:, 3] * sx, b[:, 4] * sy], 1)
-        new_boxes.append(_clip_boxes(b, (height, width), min_side_px))
-    return out, new_boxes
+    return out, _scale_boxes(boxes, lambda x: (x - x0) * sx, lambda y: (y - y0) * sy, sx, sy, (height, width),
+                             min_side_px)
 
 
 def zoom_out(hist: torch.Tensor, boxes: list[torch.Tensor | None], factor: float, x0: int, y0: int,
@@ -185,21 +196,13 @@ def zoom_out(hist: torch.Tensor, boxes: list[torch.Tensor | None], factor: float
     Args and Returns: as :func:`zoom_in`.
     """
     height, width = hist.shape[-2:]
-    win_h, win_w = int(height / factor), int(width / factor)
-    if not (0 <= x0 <= width - win_w and 0 <= y0 <= height - win_h):
-        raise ShapeError(f"zoom_out: window {win_w}×{win_h} at ({x0}, {y0}) leaves the {width}×{height} frame")
+    win_h, win_w = _zoom_window("zoom_out", (height, width), factor, x0, y0)
     small = F.interpolate(hist, size=(win_h, win_w), mode="nearest-exact")
     out = torch.zeros_like(hist)
     out[..., y0:y0 + win_h, x0:x0 + win_w] = small
     sx, sy = win_w / width, win_h / height
-    new_boxes = []
-    for b in boxes:
-        if b is None:
-            new_boxes.append(None)
-            continue
-        b = torch.stack([b[:, 0], b[:, 1] * sx + x0, b[:, 2] * sy + y0, b[:, 3] * sx, b[:, 4] * sy], 1)
-        new_boxes.append(_clip_boxes(b, (height, width), min_side_px))
-    return out, new_boxes
+    return out, _scale_boxes(boxes, lambda x: x * sx + x0, lambda y: y * sy + y0, sx, sy, (height, width),
+                             min_side_px)
 
 
 def apply_augment(hist: torch.Tensor, boxes: list[torch.Tensor | None], params: AugmentParams,

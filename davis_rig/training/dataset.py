@@ -1,4 +1,4 @@
-"""Detection datasets in RVT's preprocessed layout: writer, per-sequence reader, chunk samplers for TBPTT.
+"""Detection datasets in RVT's preprocessed layout: writer, dataset card, per-sequence reader.
 
 On-disk layout (the one RVT's ``data/genx_utils`` reads, so a preprocessed Gen1 folder also works)::
 
@@ -19,35 +19,31 @@ The labels of labelled frame ``f`` are ``labels[objframe_idx_2_label_idx[f] : ob
 (the last frame runs to the end). A labelled frame may hold zero boxes (a window known to contain no object, e.g.
 an empty synthetic scene); windows that are not a labelled frame carry no supervision.
 
-Torch-facing parts (:class:`RandomChunkDataset`, :class:`StreamingBatches`) import torch lazily.
+The chunk samplers of truncated-BPTT training over these sequences are in :mod:`davis_rig.training.batches`.
+numpy + h5py only.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US
 from davis_rig.types import BBOX_DTYPE, GEN1_CLASSES, RVT_HW
 
 __all__ = [
     "EV_REPR_NAME",
+    "NUM_CHANNELS",
     "SPLITS",
     "DatasetWriter",
     "SequenceData",
     "list_sequences",
-    "RandomChunkDataset",
-    "StreamingBatches",
-    "StreamingTrainLanes",
-    "ResumableBatchSampler",
-    "ChunkBatch",
-    "collate_chunks",
-    "labels_to_tensor",
+    "write_dataset_card",
 ]
 
 #: RVT's representation folder name (``dataset.ev_repr_name`` of the Gen1 experiment config).
@@ -98,6 +94,56 @@ def _json_default(value):
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _checked_windows(histograms, window_end_us) -> tuple[np.ndarray, np.ndarray]:
+    """The histograms uint8 [T, 20, 240, 304] and their window end times int64 [T] (µs) of one sequence.
+
+    Raises:
+        ShapeError: wrong histogram shape/dtype, no window, or times that do not match the windows.
+        FormatError: times not strictly increasing.
+    """
+    hist = np.asarray(histograms)
+    if hist.dtype != np.uint8 or hist.ndim != 4 or hist.shape[1:] != (NUM_CHANNELS, *RVT_HW):
+        raise ShapeError(
+            f"histograms: expected uint8 [T, {NUM_CHANNELS}, {RVT_HW[0]}, {RVT_HW[1]}], got {hist.dtype} "
+            f"{tuple(hist.shape)}"
+        )
+    num_windows = int(hist.shape[0])
+    ends = np.asarray(window_end_us).astype(np.int64)
+    if ends.shape != (num_windows,):
+        raise ShapeError(f"window_end_us: expected shape ({num_windows},), got {ends.shape}")
+    if num_windows == 0:
+        raise ShapeError("histograms: a sequence needs at least one window")
+    if num_windows > 1 and np.any(np.diff(ends) <= 0):
+        raise FormatError("window_end_us: must be strictly increasing")
+    return hist, ends
+
+
+def _write_histograms(repr_dir: Path, hist: np.ndarray, ends: np.ndarray, frame_windows: Sequence[int],
+                      h5_kwargs: Mapping[str, Any]) -> None:
+    """``event_representations.h5`` (compressed with ``h5_kwargs``), ``timestamps_us.npy`` and
+    ``objframe_idx_2_repr_idx.npy`` of one sequence into ``repr_dir`` (created)."""
+    repr_dir.mkdir(parents=True)
+    with _h5py().File(repr_dir / "event_representations.h5", "w") as h5f:
+        h5f.create_dataset("data", data=hist, chunks=(1, NUM_CHANNELS, *RVT_HW), **h5_kwargs)
+    np.save(repr_dir / "timestamps_us.npy", ends)
+    np.save(repr_dir / "objframe_idx_2_repr_idx.npy", np.asarray(frame_windows, dtype=np.int64))
+
+
+def _write_labels(labels_dir: Path, frame_times_us: np.ndarray, frame_labels: Sequence[np.ndarray]) -> np.ndarray:
+    """``labels.npz`` (all boxes + each labelled frame's first box) and ``timestamps_us.npy`` (µs per labelled
+    frame) into ``labels_dir`` (created). Returns all boxes, BBOX_DTYPE [K]."""
+    labels_dir.mkdir(parents=True)
+    counts = [len(boxes) for boxes in frame_labels]
+    starts = np.zeros(len(counts), dtype=np.int64)
+    if counts:
+        starts[1:] = np.cumsum(counts)[:-1]
+    all_labels = np.concatenate(frame_labels) if frame_labels else np.zeros(0, BBOX_DTYPE)
+    all_labels = np.ascontiguousarray(all_labels.astype(BBOX_DTYPE, copy=False))
+    np.savez(labels_dir / "labels.npz", labels=all_labels, objframe_idx_2_label_idx=starts)
+    np.save(labels_dir / "timestamps_us.npy", frame_times_us)
+    return all_labels
 
 
 # ---------------------------------------------------------------------------------------------------- writer
@@ -187,59 +233,29 @@ class DatasetWriter:
             raise FormatError("DatasetWriter: add_sequence after close()")
         if split not in SPLITS:
             raise FormatError(f"split: expected one of {SPLITS}, got {split!r}")
-        hist = np.asarray(histograms)
-        if hist.dtype != np.uint8 or hist.ndim != 4 or hist.shape[1:] != (NUM_CHANNELS, *RVT_HW):
-            raise ShapeError(
-                f"histograms: expected uint8 [T, {NUM_CHANNELS}, {RVT_HW[0]}, {RVT_HW[1]}], got {hist.dtype} "
-                f"{tuple(hist.shape)}"
-            )
-        num_windows = int(hist.shape[0])
-        ends = np.asarray(window_end_us).astype(np.int64)
-        if ends.shape != (num_windows,):
-            raise ShapeError(f"window_end_us: expected shape ({num_windows},), got {ends.shape}")
-        if num_windows == 0:
-            raise ShapeError("histograms: a sequence needs at least one window")
-        if num_windows > 1 and np.any(np.diff(ends) <= 0):
-            raise FormatError("window_end_us: must be strictly increasing")
-        frame_windows, frame_labels = self._normalise_labels(labels, num_windows)
+        hist, ends = _checked_windows(histograms, window_end_us)
+        frame_windows, frame_labels = self._normalise_labels(labels, len(ends))
         name = name if name is not None else f"seq_{len(self._records):05d}"
         seq_dir = self.root / split / name
         if seq_dir.exists():
             if not self.overwrite:
                 raise FormatError(f"{seq_dir}: sequence exists (pass overwrite=True to replace)")
             shutil.rmtree(seq_dir)
-        repr_dir = seq_dir / "event_representations_v2" / EV_REPR_NAME
-        labels_dir = seq_dir / "labels_v2"
-        repr_dir.mkdir(parents=True)
-        labels_dir.mkdir(parents=True)
-
-        h5py = _h5py()
-        with h5py.File(repr_dir / "event_representations.h5", "w") as h5f:
-            h5f.create_dataset("data", data=hist, chunks=(1, NUM_CHANNELS, *RVT_HW), **self._h5_kwargs)
-        np.save(repr_dir / "timestamps_us.npy", ends)
-        objframe_idx_2_repr_idx = np.asarray(frame_windows, dtype=np.int64)
-        np.save(repr_dir / "objframe_idx_2_repr_idx.npy", objframe_idx_2_repr_idx)
-
-        counts = [len(boxes) for boxes in frame_labels]
-        starts = np.zeros(len(counts), dtype=np.int64)
-        if counts:
-            starts[1:] = np.cumsum(counts)[:-1]
-        all_labels = np.concatenate(frame_labels) if frame_labels else np.zeros(0, BBOX_DTYPE)
-        all_labels = np.ascontiguousarray(all_labels.astype(BBOX_DTYPE, copy=False))
-        np.savez(labels_dir / "labels.npz", labels=all_labels, objframe_idx_2_label_idx=starts)
-        np.save(labels_dir / "timestamps_us.npy", ends[objframe_idx_2_repr_idx])
+        _write_histograms(seq_dir / "event_representations_v2" / EV_REPR_NAME, hist, ends, frame_windows,
+                          self._h5_kwargs)
+        all_labels = _write_labels(seq_dir / "labels_v2", ends[np.asarray(frame_windows, dtype=np.int64)],
+                                   frame_labels)
         meta = dict(meta or {})
-        with open(seq_dir / "meta.json", "w", encoding="utf-8") as handle:
+        with open(seq_dir / "meta.json", "w", encoding="utf-8") as handle:  # last: marks a complete sequence
             json.dump(meta, handle, indent=1, default=_json_default)
-
         classes = all_labels["class_id"].astype(np.int64)
         size_bytes = sum(p.stat().st_size for p in seq_dir.rglob("*") if p.is_file())
         self._records.append({
-            "split": split, "name": name, "windows": num_windows, "labelled_frames": len(frame_windows),
-            "empty_frames": int(sum(c == 0 for c in counts)), "boxes": int(all_labels.shape[0]),
+            "split": split, "name": name, "windows": len(ends), "labelled_frames": len(frame_windows),
+            "empty_frames": int(sum(len(boxes) == 0 for boxes in frame_labels)), "boxes": int(all_labels.shape[0]),
             "boxes_per_class": {GEN1_CLASSES.get(int(c), str(int(c))): int((classes == c).sum())
                                 for c in np.unique(classes)},
-            "duration_us": int(ends[-1] - ends[0]) + 50_000, "size_bytes": int(size_bytes),
+            "duration_us": int(ends[-1] - ends[0]) + WINDOW_US, "size_bytes": int(size_bytes),
             "seed": meta.get("seed"), "meta": meta,
         })
         return seq_dir
@@ -312,8 +328,9 @@ def write_dataset_card(
         "name": name,
         "description": description,
         "layout": "RVT preprocessed (event_representations_v2/" + EV_REPR_NAME + ", labels_v2)",
-        "representation": {"type": "stacked_histogram", "window_us": 50_000, "num_bins": 10, "count_cutoff": 10,
-                            "channels": NUM_CHANNELS, "height": RVT_HW[0], "width": RVT_HW[1], "dtype": "uint8"},
+        "representation": {"type": "stacked_histogram", "window_us": WINDOW_US, "num_bins": NUM_BINS,
+                           "count_cutoff": COUNT_CUTOFF, "channels": NUM_CHANNELS, "height": RVT_HW[0],
+                           "width": RVT_HW[1], "dtype": "uint8"},
         "classes": {str(k): v for k, v in GEN1_CLASSES.items()},
         "compression": compression,
         "splits": splits,
@@ -442,348 +459,3 @@ class SequenceData:
         """All boxes of the sequence, BBOX_DTYPE, sorted by time (stable)."""
         labels = self._labels.astype(BBOX_DTYPE)
         return labels[np.argsort(labels["t"], kind="stable")]
-
-
-def labels_to_tensor(boxes: np.ndarray | None, *, min_side_px: float = 0.0):
-    """Convert Prophesee boxes into the training format float32 [K, 5] ``(class, x, y, w, h)`` (px, top-left).
-
-    Boxes are clipped to the 304×240 frame (RVT ``clamp_to_frame_``); boxes with a side ≤ ``min_side_px`` after
-    clipping are dropped. ``None`` (unlabelled window) stays ``None``.
-    """
-    import torch
-
-    if boxes is None:
-        return None
-    height, width = RVT_HW
-    x1 = np.clip(boxes["x"].astype(np.float32), 0, width - 1)
-    y1 = np.clip(boxes["y"].astype(np.float32), 0, height - 1)
-    x2 = np.clip((boxes["x"] + boxes["w"]).astype(np.float32), 0, width - 1)
-    y2 = np.clip((boxes["y"] + boxes["h"]).astype(np.float32), 0, height - 1)
-    out = np.stack([boxes["class_id"].astype(np.float32), x1, y1, x2 - x1, y2 - y1], axis=1).reshape(-1, 5)
-    keep = (out[:, 3] > min_side_px) & (out[:, 4] > min_side_px)
-    return torch.from_numpy(np.ascontiguousarray(out[keep]))
-
-
-# ---------------------------------------------------------------------------------------------------- torch side
-@dataclass
-class ChunkBatch:
-    """A batch of sequence chunks for truncated BPTT.
-
-    Attributes:
-        histograms: uint8 tensor [L, B, 20, 240, 304].
-        labels: L lists of B entries: float32 [K, 5] ``(class, x, y, w, h)`` or ``None`` (no supervision).
-        is_first: bool tensor [B]: the chunk starts a sequence (reset the recurrent state).
-        valid: bool tensor [L, B]: the window exists (padding at sequence ends is False).
-        window_end_us: int64 tensor [L, B] (−1 for padding).
-        sequence: B sequence indices (into the dataset's sequence list; −1 for an exhausted lane).
-        window: int64 tensor [L, B] window indices within the sequence (−1 for padding).
-    """
-
-    histograms: Any
-    labels: list[list[Any]]
-    is_first: Any
-    valid: Any
-    window_end_us: Any
-    sequence: list[int]
-    window: Any
-
-
-def _torch():
-    try:
-        import torch
-    except ImportError as exc:
-        raise MissingDependencyError("training needs torch: pip install 'davis_rig[torch]'") from exc
-    return torch
-
-
-class RandomChunkDataset:
-    """Random-access chunks of L consecutive windows ending at a labelled window (RVT ``sampling: random``).
-
-    Every labelled window ``r`` of every sequence is one sample: windows ``[r − L + 1, r]`` (shifted right to
-    start at 0 when the sequence has fewer windows before ``r``, so the chunk still contains ``r``; sequences
-    shorter than L are zero-padded at the end with ``valid`` False). The recurrent state starts from zero for
-    every sample (``is_first`` True), as in RVT's random sampling.
-
-    A ``torch.utils.data.Dataset``-compatible map-style dataset (``__len__``/``__getitem__``).
-
-    Args:
-        root: dataset folder.
-        split: split name.
-        seq_len: chunk length L (windows).
-        min_side_px: drop label boxes with a side ≤ this after clipping to the frame.
-
-    Raises:
-        FormatError: no sequence or no labelled window in the split.
-    """
-
-    def __init__(self, root: str | Path, split: str = "train", seq_len: int = 21, *, min_side_px: float = 0.0):
-        if seq_len < 1:
-            raise ValueError(f"seq_len: expected ≥ 1, got {seq_len}")
-        self.seq_len = int(seq_len)
-        self.min_side_px = float(min_side_px)
-        self.sequences = [SequenceData(p) for p in list_sequences(root, split)]
-        if not self.sequences:
-            raise FormatError(f"{Path(root) / split}: no sequences")
-        samples = []
-        for seq_index, seq in enumerate(self.sequences):
-            for window in seq.labelled_windows().tolist():
-                start = max(0, min(window - self.seq_len + 1, seq.num_windows - self.seq_len))
-                samples.append((seq_index, start))
-        if not samples:
-            raise FormatError(f"{Path(root) / split}: no labelled window")
-        self.samples = np.asarray(samples, dtype=np.int64)
-
-    def __len__(self) -> int:
-        return int(self.samples.shape[0])
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        torch = _torch()
-        seq_index, start = (int(v) for v in self.samples[index])
-        seq = self.sequences[seq_index]
-        stop = min(start + self.seq_len, seq.num_windows)
-        hist = np.zeros((self.seq_len, NUM_CHANNELS, *RVT_HW), dtype=np.uint8)
-        hist[: stop - start] = seq.histograms(start, stop)
-        windows = np.full(self.seq_len, -1, dtype=np.int64)
-        windows[: stop - start] = np.arange(start, stop)
-        ends = np.full(self.seq_len, -1, dtype=np.int64)
-        ends[: stop - start] = seq.window_end_us[start:stop]
-        labels = [labels_to_tensor(seq.labels_at(w), min_side_px=self.min_side_px) if w >= 0 else None
-                  for w in windows.tolist()]
-        return {"histograms": torch.from_numpy(hist), "labels": labels, "is_first": True,
-                "valid": torch.from_numpy(windows >= 0), "window_end_us": torch.from_numpy(ends),
-                "sequence": seq_index, "window": torch.from_numpy(windows)}
-
-
-def collate_chunks(items: Sequence[Mapping[str, Any]]) -> ChunkBatch:
-    """Stack samples of :class:`RandomChunkDataset` into a time-major :class:`ChunkBatch`."""
-    torch = _torch()
-    seq_len = len(items[0]["labels"])
-    return ChunkBatch(
-        histograms=torch.stack([item["histograms"] for item in items], dim=1),
-        labels=[[item["labels"][t] for item in items] for t in range(seq_len)],
-        is_first=torch.tensor([bool(item["is_first"]) for item in items]),
-        valid=torch.stack([item["valid"] for item in items], dim=1),
-        window_end_us=torch.stack([item["window_end_us"] for item in items], dim=1),
-        sequence=[int(item["sequence"]) for item in items],
-        window=torch.stack([item["window"] for item in items], dim=1),
-    )
-
-
-class StreamingBatches:
-    """Stream whole sequences in chunks of L windows over B parallel lanes (RVT ``sampling: stream``).
-
-    Sequences are dealt round-robin to the lanes; each lane plays its sequences one after the other, every
-    sequence from window ``max(first_labelled − (L − 1), 0)`` (RVT's streaming start) to its end. A lane's chunk
-    that starts a sequence has ``is_first`` True (reset the state); a lane whose sequences are exhausted, and the
-    tail after a sequence's end, are padding (``valid`` False). A chunk never spans two sequences.
-
-    Args:
-        root: dataset folder.
-        split: split name.
-        seq_len: chunk length L.
-        batch_size: lanes B.
-        min_side_px: as :func:`labels_to_tensor`.
-        sequences: use these already-open sequences instead of listing ``root``/``split``.
-    """
-
-    def __init__(self, root: str | Path | None, split: str = "val", seq_len: int = 21, batch_size: int = 1, *,
-                 min_side_px: float = 0.0, sequences: Sequence[SequenceData] | None = None):
-        self.seq_len = int(seq_len)
-        self.batch_size = int(batch_size)
-        self.min_side_px = float(min_side_px)
-        self.sequences = list(sequences) if sequences is not None else [
-            SequenceData(p) for p in list_sequences(root, split)]
-        if self.seq_len < 1 or self.batch_size < 1:
-            raise ValueError(f"seq_len and batch_size must be ≥ 1, got {seq_len}, {batch_size}")
-
-    def _lane_chunks(self, lane: int) -> list[tuple[int, int, int, bool]]:
-        chunks = []
-        for seq_index in range(lane, len(self.sequences), self.batch_size):
-            seq = self.sequences[seq_index]
-            labelled = seq.labelled_windows()
-            first = max(int(labelled[0]) - (self.seq_len - 1), 0) if labelled.size else 0
-            for k, start in enumerate(range(first, seq.num_windows, self.seq_len)):
-                chunks.append((seq_index, start, min(start + self.seq_len, seq.num_windows), k == 0))
-        return chunks
-
-    def __len__(self) -> int:
-        return max((len(self._lane_chunks(lane)) for lane in range(self.batch_size)), default=0)
-
-    def __iter__(self) -> Iterator[ChunkBatch]:
-        torch = _torch()
-        lanes = [self._lane_chunks(lane) for lane in range(self.batch_size)]
-        steps = max((len(c) for c in lanes), default=0)
-        length, batch = self.seq_len, self.batch_size
-        for step in range(steps):
-            hist = np.zeros((length, batch, NUM_CHANNELS, *RVT_HW), dtype=np.uint8)
-            windows = np.full((length, batch), -1, dtype=np.int64)
-            ends = np.full((length, batch), -1, dtype=np.int64)
-            labels: list[list[Any]] = [[None] * batch for _ in range(length)]
-            is_first = np.zeros(batch, dtype=bool)
-            sequence = [-1] * batch
-            for lane, chunks in enumerate(lanes):
-                if step >= len(chunks):
-                    continue
-                seq_index, start, stop, first = chunks[step]
-                seq = self.sequences[seq_index]
-                n = stop - start
-                hist[:n, lane] = seq.histograms(start, stop)
-                windows[:n, lane] = np.arange(start, stop)
-                ends[:n, lane] = seq.window_end_us[start:stop]
-                for t in range(n):
-                    labels[t][lane] = labels_to_tensor(seq.labels_at(start + t), min_side_px=self.min_side_px)
-                is_first[lane] = first
-                sequence[lane] = seq_index
-            yield ChunkBatch(histograms=torch.from_numpy(hist), labels=labels, is_first=torch.from_numpy(is_first),
-                             valid=torch.from_numpy(windows >= 0), window_end_us=torch.from_numpy(ends),
-                             sequence=sequence, window=torch.from_numpy(windows))
-
-
-class ResumableBatchSampler:
-    """Shuffled batches of sample indices with a position that can be saved and restored exactly.
-
-    Epoch ``e`` uses the permutation drawn from ``seed + e``; incomplete last batches are dropped (when the
-    dataset has fewer samples than one batch, indices wrap around so every batch is full).
-
-    Args:
-        num_samples: dataset length.
-        batch_size: samples per batch.
-        seed: base seed.
-    """
-
-    def __init__(self, num_samples: int, batch_size: int, seed: int = 0):
-        if num_samples < 1 or batch_size < 1:
-            raise ValueError(f"num_samples and batch_size must be ≥ 1, got {num_samples}, {batch_size}")
-        self.num_samples = int(num_samples)
-        self.batch_size = int(batch_size)
-        self.seed = int(seed)
-        self.epoch = 0
-        self.position = 0  # batches already handed out in this epoch
-
-    @property
-    def batches_per_epoch(self) -> int:
-        return max(self.num_samples // self.batch_size, 1)
-
-    def _epoch_batches(self, epoch: int) -> np.ndarray:
-        rng = np.random.default_rng(self.seed + epoch)
-        order = rng.permutation(self.num_samples)
-        needed = self.batches_per_epoch * self.batch_size
-        if needed > order.shape[0]:
-            order = np.resize(order, needed)
-        return order[:needed].reshape(self.batches_per_epoch, self.batch_size)
-
-    def state_dict(self) -> dict[str, int]:
-        return {"epoch": self.epoch, "position": self.position, "seed": self.seed}
-
-    def load_state_dict(self, state: Mapping[str, int]) -> None:
-        self.epoch, self.position = int(state["epoch"]), int(state["position"])
-        self.seed = int(state.get("seed", self.seed))
-
-    def __iter__(self) -> Iterator[list[int]]:
-        while True:
-            batches = self._epoch_batches(self.epoch)
-            while self.position < batches.shape[0]:
-                batch = batches[self.position].tolist()
-                self.position += 1
-                yield batch
-            self.epoch += 1
-            self.position = 0
-
-    def __len__(self) -> int:  # an "infinite" sampler; DataLoader only needs a length hint
-        return 2**62
-
-
-def dataset_summary(root: str | Path) -> dict[str, Any]:
-    """Counts per split read back from the files (sequences, windows, labelled frames, boxes)."""
-    summary: dict[str, Any] = {}
-    for split in SPLITS:
-        if not (Path(root) / split).is_dir():
-            continue
-        seqs = [SequenceData(p) for p in list_sequences(root, split)]
-        summary[split] = {
-            "sequences": len(seqs),
-            "windows": int(sum(s.num_windows for s in seqs)),
-            "labelled_frames": int(sum(s.objframe_idx_2_repr_idx.shape[0] for s in seqs)),
-            "boxes": int(sum(s.all_labels().shape[0] for s in seqs)),
-        }
-        for s in seqs:
-            s.close()
-    return summary
-
-
-class StreamingTrainLanes:
-    """Endless streaming lanes for training (the ``stream`` half of RVT's ``mixed`` sampling), resumable.
-
-    Each lane plays the sequences in its own shuffled order (a new permutation per lane and pass), each
-    sequence from ``max(first_labelled − (L − 1), 0)`` to its end in chunks of L windows; the recurrent state
-    is carried between a lane's consecutive chunks and reset when the lane starts a sequence (``is_first``).
-    The last chunk of a sequence is zero-padded (``valid`` False).
-
-    Args:
-        sequences: the training sequences.
-        seq_len: chunk length L.
-        num_lanes: lanes (the stream part of the batch).
-        seed: base seed of the lane permutations.
-        min_side_px: as :func:`labels_to_tensor`.
-    """
-
-    def __init__(self, sequences: Sequence[SequenceData], seq_len: int, num_lanes: int, seed: int = 0,
-                 min_side_px: float = 0.0):
-        if not sequences or num_lanes < 1 or seq_len < 1:
-            raise ValueError("StreamingTrainLanes: needs sequences, num_lanes ≥ 1 and seq_len ≥ 1")
-        self.sequences = list(sequences)
-        self.seq_len = int(seq_len)
-        self.num_lanes = int(num_lanes)
-        self.seed = int(seed)
-        self.min_side_px = float(min_side_px)
-        # per lane: [pass, position in the pass's permutation, next window start (−1 = start a new sequence)]
-        self.lanes = [[0, 0, -1] for _ in range(self.num_lanes)]
-
-    def _order(self, lane: int, epoch: int) -> np.ndarray:
-        return np.random.default_rng((self.seed, lane, epoch)).permutation(len(self.sequences))
-
-    def _first_window(self, seq: SequenceData) -> int:
-        labelled = seq.labelled_windows()
-        return max(int(labelled[0]) - (self.seq_len - 1), 0) if labelled.size else 0
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"seed": self.seed, "lanes": [list(lane) for lane in self.lanes]}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        lanes = [list(map(int, lane)) for lane in state["lanes"]]
-        if len(lanes) != self.num_lanes:
-            raise FormatError(f"stream state has {len(lanes)} lanes, this sampler {self.num_lanes}")
-        self.seed, self.lanes = int(state["seed"]), lanes
-
-    def next_items(self) -> list[dict[str, Any]]:
-        """One chunk per lane, as items of :func:`collate_chunks` (plus ``"lane"``)."""
-        torch = _torch()
-        items = []
-        for lane_index, lane in enumerate(self.lanes):
-            epoch, position, start = lane
-            seq_index = int(self._order(lane_index, epoch)[position])
-            seq = self.sequences[seq_index]
-            is_first = start < 0
-            if is_first:
-                start = self._first_window(seq)
-            stop = min(start + self.seq_len, seq.num_windows)
-            n = stop - start
-            hist = np.zeros((self.seq_len, NUM_CHANNELS, *RVT_HW), dtype=np.uint8)
-            hist[:n] = seq.histograms(start, stop)
-            windows = np.full(self.seq_len, -1, dtype=np.int64)
-            windows[:n] = np.arange(start, stop)
-            ends = np.full(self.seq_len, -1, dtype=np.int64)
-            ends[:n] = seq.window_end_us[start:stop]
-            labels = [labels_to_tensor(seq.labels_at(w), min_side_px=self.min_side_px) if w >= 0 else None
-                      for w in windows.tolist()]
-            items.append({"histograms": torch.from_numpy(hist), "labels": labels, "is_first": is_first,
-                          "valid": torch.from_numpy(windows >= 0), "window_end_us": torch.from_numpy(ends),
-                          "sequence": seq_index, "window": torch.from_numpy(windows), "lane": lane_index})
-            if stop >= seq.num_windows:  # sequence done: next one (next pass after the last)
-                position += 1
-                if position >= len(self.sequences):
-                    epoch, position = epoch + 1, 0
-                lane[:] = [epoch, position, -1]
-            else:
-                lane[:] = [epoch, position, stop]
-        return items

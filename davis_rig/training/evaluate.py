@@ -31,7 +31,8 @@ import numpy as np
 from davis_rig.errors import ConfigError, FormatError, ShapeError
 from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
 from davis_rig.metrics.seqasr import label_sequences, windows_detected
-from davis_rig.training.dataset import SequenceData, labels_to_tensor, list_sequences
+from davis_rig.training.batches import labels_to_tensor
+from davis_rig.training.dataset import SequenceData, list_sequences
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
 __all__ = ["SplitScoreConfig", "SequenceDetections", "detect_sequences", "evaluate_split", "format_scores",

@@ -29,7 +29,7 @@ from davis_rig.errors import ShapeError
 from davis_rig.models.rvt._torch import F, torch
 
 __all__ = ["AnchorGrid", "SimOTAResult", "bboxes_iou_cxcywh", "iou_loss", "simota_assign", "yolox_loss",
-           "init_head_biases"]
+           "yolox_targets", "init_head_biases"]
 
 CENTER_RADIUS = 1.5
 IOU_COST_WEIGHT = 3.0
@@ -192,6 +192,13 @@ def simota_assign(
     matched_ious = (matching.float() * ious).sum(0)[fg_cand]
     fg_mask[cand_index[fg_cand]] = True
     return SimOTAResult(fg_mask, matched_gt, gt_classes.long()[matched_gt], matched_ious)
+
+
+def yolox_targets(labels: torch.Tensor) -> torch.Tensor:
+    """Training labels float [K, 5] ``(class, x, y, w, h)`` (px, top-left corner) as the label format of
+    :func:`yolox_loss`, float [K, 5] ``(class, cx, cy, w, h)``."""
+    return torch.stack([labels[:, 0], labels[:, 1] + labels[:, 3] / 2, labels[:, 2] + labels[:, 4] / 2,
+                        labels[:, 3], labels[:, 4]], dim=1)
 
 
 def _l1_target(gt: torch.Tensor, strides: torch.Tensor, cells: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

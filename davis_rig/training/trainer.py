@@ -23,140 +23,34 @@ import math
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from davis_rig.errors import CheckpointError, ConfigError, FormatError
+from davis_rig.errors import CheckpointError, FormatError
 from davis_rig.models.rvt._torch import nn, torch
 from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
-from davis_rig.training.augment import AugmentConfig, AugmentParams, apply_augment, sample_params
-from davis_rig.training.dataset import (
+from davis_rig.training.augment import AugmentParams, apply_augment, sample_params
+from davis_rig.training.batches import (
     ChunkBatch,
     RandomChunkDataset,
     ResumableBatchSampler,
-    StreamingBatches,
     StreamingTrainLanes,
     collate_chunks,
-    list_sequences,
 )
-from davis_rig.training.losses import AnchorGrid, init_head_biases, yolox_loss
-from davis_rig.types import BBOX_DTYPE, RVT_HW
+from davis_rig.training.losses import AnchorGrid, init_head_biases, yolox_loss, yolox_targets
+from davis_rig.training.train_config import TrainConfig
+from davis_rig.training.validation import reset_states, validate_detector
+from davis_rig.types import RVT_HW
 
 __all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT", "read_train_checkpoint"]
 
 #: ``format`` of ``checkpoints/last.pt`` (one string with the weights reader: ``models.rvt.checkpoint``).
 CHECKPOINT_FORMAT = TRAIN_CHECKPOINT_FORMAT
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Training hyper-parameters (defaults: RVT Gen1 recipe).
-
-    Attributes:
-        model: a :meth:`RVTConfig.presets` name: ``"tiny"``, ``"small"``, ``"base"``, ``"mini"`` or ``"nano"``.
-        steps: total optimizer steps (the one-cycle schedule spans them).
-        batch_size: chunks per batch. seq_len: windows per chunk (TBPTT length L).
-        lr, weight_decay, pct_start, div_factor, final_div_factor: AdamW + OneCycleLR (final lr = lr /
-            final_div_factor, RVT's convention).
-        grad_clip: max gradient L2 norm (0 = off).
-        precision: ``"auto"`` (bf16 on CUDA if supported, else fp16; fp32 on CPU), ``"fp32"``, ``"bf16"``, ``"fp16"``.
-        ema_decay: EMA of the weights (e.g. 0.9998) used for validation and export; ``None`` = off.
-        val_every, ckpt_every, log_every: intervals in steps (0 = never; a checkpoint is always written at the
-            end, and a finished run is always validated at its last step).
-        val_batch_size, val_seq_len: streaming lanes and chunk length for validation.
-        val_conf_threshold: postprocess threshold for AP (RVT's reported evaluation: 0.001).
-        val_skip_first_us: labels and detections within this time from a sequence's start are ignored (RVT 0.5 s).
-        val_max_sequences: evaluate only the first N validation sequences (``None`` = all).
-        min_box_side_px: training labels with a side ≤ this (after clipping to the frame) are dropped.
-        sampling: ``"mixed"`` (RVT: half streaming lanes, half random chunks; needs batch ≥ 2) or ``"random"``.
-        augment: :class:`AugmentConfig` of the random-access chunks (RVT ``data_augmentation.random``).
-        stream_augment: :class:`AugmentConfig` of the streaming lanes, drawn once per sequence (RVT ``stream``).
-        seed: seeds the model initialisation, the data order and the augmentation.
-        device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:1"``...
-        num_workers: DataLoader workers reading histograms (0 = main process).
-        use_l1: add YOLOX's L1 loss (RVT: off).
-        progress: show a tqdm progress bar on stderr.
-    """
-
-    model: str = "tiny"
-    steps: int = 400_000
-    batch_size: int = 8
-    seq_len: int = 21
-    lr: float = 2e-4
-    weight_decay: float = 0.0
-    pct_start: float = 0.005
-    div_factor: float = 20.0
-    final_div_factor: float = 10_000.0
-    grad_clip: float = 1.0
-    precision: str = "auto"
-    ema_decay: float | None = None
-    val_every: int = 5_000
-    ckpt_every: int = 1_000
-    log_every: int = 50
-    val_batch_size: int = 8
-    val_seq_len: int = 21
-    val_conf_threshold: float = 0.001
-    val_skip_first_us: int = 500_000
-    val_max_sequences: int | None = None
-    min_box_side_px: float = 0.0
-    sampling: str = "mixed"
-    augment: AugmentConfig = field(default_factory=AugmentConfig)
-    stream_augment: AugmentConfig = field(default_factory=AugmentConfig.rvt_stream)
-    seed: int = 0
-    device: str = "auto"
-    num_workers: int = 0
-    use_l1: bool = False
-    progress: bool = False
-
-    def __post_init__(self):
-        if self.model not in RVTConfig.presets():
-            raise ConfigError("model", f"expected one of {sorted(RVTConfig.presets())}, got {self.model!r}")
-        if self.precision not in ("auto", "fp32", "bf16", "fp16"):
-            raise ConfigError("precision", f"expected auto, fp32, bf16 or fp16, got {self.precision!r}")
-        for name in ("steps", "batch_size", "seq_len", "val_batch_size", "val_seq_len"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(name, f"expected ≥ 1, got {getattr(self, name)}")
-        if self.sampling not in ("mixed", "random"):
-            raise ConfigError("sampling", f"expected 'mixed' or 'random', got {self.sampling!r}")
-        if self.sampling == "mixed" and self.batch_size < 2:
-            raise ConfigError("batch_size", "sampling 'mixed' needs ≥ 2 (half streaming, half random); use 'random'")
-        if self.ema_decay is not None and not 0 < self.ema_decay < 1:
-            raise ConfigError("ema_decay", f"expected in (0, 1), got {self.ema_decay}")
-        if not float(self.lr) > 0:  # also rejects NaN
-            raise ConfigError("lr", f"expected > 0, got {self.lr}")
-        for name in ("val_every", "ckpt_every", "log_every", "num_workers", "val_skip_first_us"):
-            if int(getattr(self, name)) < 0:
-                raise ConfigError(name, f"expected ≥ 0, got {getattr(self, name)}")
-        for name in ("weight_decay", "grad_clip", "min_box_side_px"):
-            if not float(getattr(self, name)) >= 0:
-                raise ConfigError(name, f"expected ≥ 0, got {getattr(self, name)}")
-        if self.val_max_sequences is not None and int(self.val_max_sequences) < 1:
-            raise ConfigError("val_max_sequences", f"expected ≥ 1 or None, got {self.val_max_sequences}")
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict (``from_dict`` reads it back)."""
-        out = asdict(self)
-        out["augment"] = asdict(self.augment)
-        out["stream_augment"] = asdict(self.stream_augment)
-        return out
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        kwargs = {k: v for k, v in d.items() if k in names}
-        for name in ("augment", "stream_augment"):
-            if isinstance(kwargs.get(name), Mapping):
-                aug = dict(kwargs[name])
-                for key in ("zoom_in_range", "zoom_out_range"):
-                    if key in aug:
-                        aug[key] = tuple(aug[key])
-                kwargs[name] = AugmentConfig(**aug)
-        return cls(**kwargs)
 
 
 class ModelEMA:
@@ -233,21 +127,6 @@ def read_train_checkpoint(path: str | Path, map_location: str | torch.device = "
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
     return state
-
-
-def _to_cxcywh(boxes: torch.Tensor) -> torch.Tensor:
-    return torch.stack([boxes[:, 0], boxes[:, 1] + boxes[:, 3] / 2, boxes[:, 2] + boxes[:, 4] / 2,
-                        boxes[:, 3], boxes[:, 4]], dim=1)
-
-
-def _boxes_to_bbox(boxes: torch.Tensor, t_us: int) -> np.ndarray:
-    b = boxes.detach().cpu().numpy()
-    out = np.zeros(b.shape[0], BBOX_DTYPE)
-    out["t"] = int(t_us)
-    out["x"], out["y"], out["w"], out["h"] = b[:, 1], b[:, 2], b[:, 3], b[:, 4]
-    out["class_id"] = b[:, 0].astype(np.uint8)
-    out["class_confidence"] = 1.0
-    return out
 
 
 def _finite_mean(values) -> float:
@@ -353,13 +232,6 @@ class Trainer:
                 labels[t][b] = chunk_labels[t]
         return out, labels
 
-    # ------------------------------------------------------------------ states
-    def _reset_states(self, states, is_first: torch.Tensor):
-        if states is None or bool(is_first.all()):
-            return None
-        keep = (~is_first).to(self.device, dtype=states[0][0].dtype).view(-1, 1, 1, 1)
-        return [(h * keep, c * keep) for h, c in states]
-
     # ------------------------------------------------------------------ one step
     def train_step(self, batch: ChunkBatch) -> dict[str, float]:
         """One optimizer step of truncated BPTT over a batch of chunks.
@@ -372,7 +244,7 @@ class Trainer:
         """
         self.model.train()
         hist, labels = self._augment(batch)
-        states = self._reset_states(self._states, batch.is_first)
+        states = reset_states(self._states, batch.is_first)
         autocast = torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
         lr = self.optimizer.param_groups[0]["lr"]
         selected: dict[int, list[torch.Tensor]] = {2: [], 3: [], 4: []}
@@ -387,7 +259,7 @@ class Trainer:
                 index = torch.tensor(lanes, device=self.device)
                 for level in selected:
                     selected[level].append(features[level].index_select(0, index))
-                targets.extend(_to_cxcywh(labels[t][b]).to(self.device) for b in lanes)
+                targets.extend(yolox_targets(labels[t][b]).to(self.device) for b in lanes)
             if targets:
                 raw = self.model.forward_raw_head({k: torch.cat(v) for k, v in selected.items()})
         self._states = [(h.detach(), c.detach()) for h, c in states]
@@ -420,68 +292,19 @@ class Trainer:
         """The weights used for validation and export (EMA if enabled)."""
         return self.ema.model if self.ema is not None else self.model
 
-    @torch.no_grad()
     def validate(self, split: str = "val") -> dict[str, Any]:
-        """Stream the split through the eval model and compute COCO AP with the RVT protocol.
+        """Stream the split through the eval model and compute COCO AP with the RVT protocol
+        (:func:`~davis_rig.training.validation.validate_detector` with this run's settings).
 
         Returns:
             ``{"AP", "AP_50", "AP_75", "AP_S", "AP_M", "AP_L", "num_images", "num_labels", "num_detections",
             "sequences", "time_s"}``; an empty dict when the split does not exist.
         """
-        from davis_rig.metrics.ap import coco_ap, detections_to_boxes, filter_boxes, match_times
-        from davis_rig.models.rvt.postprocess import postprocess
-
-        if not (self.data_dir / split).is_dir() or not list_sequences(self.data_dir, split):
-            return {}
-        start_time = time.perf_counter()
         cfg = self.config
-        model = self.eval_model
-        was_training = model.training
-        model.eval()
-        stream = StreamingBatches(self.data_dir, split, cfg.val_seq_len, cfg.val_batch_size)
-        if cfg.val_max_sequences is not None:
-            stream.sequences = stream.sequences[: cfg.val_max_sequences]
-        gt: dict[int, list[np.ndarray]] = {}
-        dt: dict[int, list[np.ndarray]] = {}
-        states = None
-        autocast = torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
-        for batch in stream:
-            states = self._reset_states(states, batch.is_first)
-            hist = batch.histograms.to(self.device).float()
-            for t in range(hist.shape[0]):
-                with autocast:
-                    features, states = model.forward_backbone(pad_to_input(hist[t], self.model_config.in_res_hw),
-                                                              states)
-                lanes = [b for b, lab in enumerate(batch.labels[t]) if lab is not None and bool(batch.valid[t, b])]
-                if not lanes:
-                    continue
-                index = torch.tensor(lanes, device=self.device)
-                with autocast:
-                    decoded = model.forward_detect({k: v.index_select(0, index) for k, v in features.items()})
-                detections = postprocess(decoded.float().cpu(), cfg.val_conf_threshold, 0.45)
-                for det, b in zip(detections, lanes):
-                    seq, t_us = batch.sequence[b], int(batch.window_end_us[t, b])
-                    gt.setdefault(seq, []).append(_boxes_to_bbox(batch.labels[t][b], t_us))
-                    dt.setdefault(seq, []).append(detections_to_boxes(det, t_us))
-        gts_all, dts_all = [], []
-        for seq_index in sorted(gt):
-            seq_start = int(stream.sequences[seq_index].window_end_us[0]) - 50_000
-            skip = seq_start + cfg.val_skip_first_us if cfg.val_skip_first_us is not None else None
-            g = filter_boxes(np.concatenate(gt[seq_index]), skip_until_us=skip)
-            d = filter_boxes(np.concatenate(dt[seq_index]), skip_until_us=skip)
-            # detections carry their label's exact time; Prophesee's ±50 ms would also hand every image the
-            # neighbouring windows' detections when labels are 50 ms apart (synthetic data: every window)
-            _, g_list, d_list = match_times(g, d, time_tol_us=0)
-            gts_all.extend(g_list)
-            dts_all.extend(d_list)
-        result: dict[str, Any] = dict(coco_ap(gts_all, dts_all, category=None))
-        result.update(num_images=len(gts_all), num_labels=int(sum(len(g) for g in gts_all)),
-                      num_detections=int(sum(len(d) for d in dts_all)), sequences=len(stream.sequences),
-                      time_s=round(time.perf_counter() - start_time, 3))
-        for seq in stream.sequences:
-            seq.close()
-        model.train(was_training)
-        return result
+        return validate_detector(self.eval_model, self.data_dir, split, seq_len=cfg.val_seq_len,
+                                 batch_size=cfg.val_batch_size, conf_threshold=cfg.val_conf_threshold,
+                                 skip_first_us=cfg.val_skip_first_us, max_sequences=cfg.val_max_sequences,
+                                 amp_dtype=self.amp_dtype)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

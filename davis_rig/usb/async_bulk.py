@@ -263,8 +263,9 @@ class BulkTransferRing:
         """Allocate and submit the transfers, then start the ring's thread.
 
         Raises:
-            DeviceDisconnectedError / TransportError: the first submission failed (every transfer submitted before
-                it was cancelled, waited for and freed).
+            DeviceDisconnectedError / TransportError: the first submission failed (nothing was left in flight).
+                A later submission that fails ends the started stream with that error instead (``on_end``), after
+                the bytes of the transfers already in flight.
         """
         if self._started:
             raise RuntimeError("BulkTransferRing already started (a ring runs once)")
@@ -324,7 +325,15 @@ class BulkTransferRing:
             self._slot_of[ctypes.addressof(fields)] = index
         with self._lock:
             for index in range(self.transfers):
-                self._submit_locked(index)
+                try:
+                    self._submit_locked(index)
+                except (DeviceDisconnectedError, TransportError) as exc:
+                    if index == 0:
+                        raise  # nothing in flight: the stream never started
+                    # Transfers are in flight and may already hold data (a camera unplugged while the ring was
+                    # being filled): the stream started and ends with this error, after their bytes.
+                    self._fail_locked(exc)
+                    return
 
     def _submit_locked(self, index: int) -> None:
         code = self._api.submit_transfer(self._slots[index])

@@ -12,12 +12,15 @@ Format (version 1, all integers little-endian; documented in ``firmware_notes/re
         payload       length bytes
 
 A file cut short while recording (the last record incomplete) is still readable: the reader stops at the last
-complete record and sets :attr:`ReplayReader.truncated`.
+complete record and sets :attr:`ReplayReader.truncated`. A header whose ``device_info`` is not a valid sensor
+layout (e.g. 0 columns) is a :class:`~davis_rig.errors.FormatError` naming the file. Host times are only used for
+pacing (:func:`pacing_us`), which tolerates damaged ones.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import struct
 import time
 import warnings
@@ -25,7 +28,9 @@ from dataclasses import dataclass, field
 from os import PathLike
 from typing import Any, BinaryIO, Iterator
 
-from davis_rig.errors import FormatError
+import numpy as np
+
+from davis_rig.errors import FormatError, ProtocolError
 
 REPLAY_MAGIC = b"DAVISRPL"
 REPLAY_VERSION = 1
@@ -33,6 +38,10 @@ _PREAMBLE = struct.Struct("<8sHI")
 _RECORD = struct.Struct("<QI")
 #: Upper bound on one record's payload, bytes (guards against reading garbage as a length).
 MAX_RECORD_BYTES = 64 * 1024 * 1024
+#: Longest pause between two records that pacing reproduces, ns. A streaming DAVIS completes a transfer at least
+#: every ~33 ms (a wrap word every 32.768 ms, sent after the 1 ms early-packet delay), so a longer step, or one
+#: back in time, is a damaged host time.
+MAX_PACING_STEP_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -90,20 +99,28 @@ class ReplayHeader:
         """Build from the decoded JSON object.
 
         Raises:
-            FormatError: not an object or ``device_info`` missing.
+            FormatError: not an object, ``device_info`` missing, a number that is not an integer, or a
+                ``device_info`` that is not a valid sensor layout (all read-outs, sizes 1..4096 px).
         """
+        from davis_rig.protocol.layout import SensorLayout
+
         if not isinstance(obj, dict) or not isinstance(obj.get("device_info"), dict):
             raise FormatError(f"replay header: expected a JSON object with a 'device_info' object, got {obj!r:.200}")
         known = {"device_info", "serial", "firmware_version", "logic_version", "logic_patch", "clocks"}
-        return cls(
-            device_info={str(k): int(v) for k, v in obj["device_info"].items()},
-            serial=str(obj.get("serial", "")),
-            firmware_version=int(obj.get("firmware_version", 0)),
-            logic_version=int(obj.get("logic_version", 0)),
-            logic_patch=int(obj.get("logic_patch", 0)),
-            clocks={str(k): int(v) for k, v in dict(obj.get("clocks", {})).items()},
-            extra={k: v for k, v in obj.items() if k not in known},
-        )
+        try:
+            header = cls(
+                device_info={str(k): int(v) for k, v in obj["device_info"].items()},
+                serial=str(obj.get("serial", "")),
+                firmware_version=int(obj.get("firmware_version", 0)),
+                logic_version=int(obj.get("logic_version", 0)),
+                logic_patch=int(obj.get("logic_patch", 0)),
+                clocks={str(k): int(v) for k, v in dict(obj.get("clocks", {})).items()},
+                extra={k: v for k, v in obj.items() if k not in known},
+            )
+            SensorLayout.from_mapping(header.device_info)
+        except (TypeError, ValueError, ProtocolError) as exc:
+            raise FormatError(f"replay header: {exc}") from exc
+        return header
 
 
 class ReplayWriter:
@@ -208,12 +225,16 @@ class ReplayReader:
                 obj = json.loads(raw.decode("utf-8"))
             except (UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise FormatError(f"{self.path}: header is not valid UTF-8 JSON ({exc})") from exc
-            self.header = ReplayHeader.from_json(obj)
+            try:
+                self.header = ReplayHeader.from_json(obj)
+            except FormatError as exc:
+                raise FormatError(f"{self.path}: {exc}") from exc
         except BaseException:
             f.close()
             raise
         self._file = f
         self._data_offset = f.tell()
+        self._size = os.fstat(f.fileno()).st_size
         return self
 
     def __iter__(self) -> Iterator[ReplayRecord]:
@@ -232,6 +253,9 @@ class ReplayReader:
             t_ns, length = _RECORD.unpack(head)
             if length > MAX_RECORD_BYTES:
                 raise FormatError(f"{self.path}: record length {length} exceeds {MAX_RECORD_BYTES} bytes (corrupt file)")
+            if reader.tell() + length > self._size:  # cut short: nothing to allocate a buffer for
+                self._mark_truncated()
+                return
             data = reader.read(length)
             if len(data) < length:
                 self._mark_truncated()
@@ -257,3 +281,25 @@ class ReplayReader:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def pacing_us(host_times_ns) -> tuple[np.ndarray, int]:
+    """Release times of replay records, µs after the first one, from their host times.
+
+    Each record follows the previous one by the difference of their host times; a step that goes back or is
+    longer than :data:`MAX_PACING_STEP_NS` (a damaged host time: one flipped bit of a ``u64`` is up to 292 years)
+    counts as 0, so one bad record never stalls a paced replay.
+
+    Args:
+        host_times_ns: the records' ``host_time_ns`` (0..2**64-1), in file order [R].
+
+    Returns:
+        (float64 [R] release times in µs, non-decreasing from 0; number of steps taken as 0).
+    """
+    t = np.asarray(host_times_ns, dtype=np.uint64).astype(np.float64)  # ns < 2**53 are exact
+    if not t.shape[0]:
+        return np.zeros(0), 0
+    step = np.diff(t)
+    bad = (step < 0) | (step > MAX_PACING_STEP_NS)
+    step[bad] = 0.0
+    return np.concatenate([[0.0], np.cumsum(step) / 1000.0]), int(np.count_nonzero(bad))

@@ -13,6 +13,7 @@ passed on the device clock, which gives optional real-time pacing.
 from __future__ import annotations
 
 import threading
+import warnings
 from collections import deque
 from dataclasses import dataclass
 from os import PathLike
@@ -121,25 +122,34 @@ class ReplaySource(DataSource):
 
     Args:
         path: replay file written by :class:`~davis_rig.usb.replay.ReplayWriter`.
-        paced: release each transfer at its recorded host time relative to the first record.
+        paced: release each transfer at its recorded host time relative to the first record
+            (:func:`~davis_rig.usb.replay.pacing_us`: a damaged host time, going back or jumping over
+            ``MAX_PACING_STEP_NS``, is paced as no pause, with one ``RuntimeWarning``).
 
     Attributes:
         header: the file's :class:`~davis_rig.usb.replay.ReplayHeader` (device read-outs for the virtual device).
         truncated: whether the file's last record was incomplete.
+        bad_host_times: pacing steps taken as 0 because of damaged host times (0 when not paced).
     """
 
     def __init__(self, path: str | PathLike, *, paced: bool = False):
         super().__init__()
-        from davis_rig.usb.replay import ReplayReader
+        from davis_rig.usb.replay import MAX_PACING_STEP_NS, ReplayReader, pacing_us
 
         with ReplayReader(path) as reader:
             self.header = reader.header
-            t0 = None
-            for record in reader:
-                if t0 is None:
-                    t0 = record.host_time_ns
-                self._push((record.host_time_ns - t0) / 1000.0 if paced else 0.0, record.data)
+            records = list(reader)
             self.truncated = reader.truncated
+        releases, self.bad_host_times = pacing_us([r.host_time_ns for r in records]) if paced else (None, 0)
+        for k, record in enumerate(records):
+            self._push(float(releases[k]) if paced else 0.0, record.data)
+        if self.bad_host_times:
+            warnings.warn(
+                f"{path}: {self.bad_host_times} replay records have a host time that goes back or jumps more than "
+                f"{MAX_PACING_STEP_NS / 1e9:g} s (damaged); they are released right after the previous record",
+                RuntimeWarning,
+                stacklevel=2,
+            )
 
 
 def _slice_edges(t_first: int, t_last: int, slice_us: int, frame_spans: np.ndarray) -> np.ndarray:

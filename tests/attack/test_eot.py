@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from mocap_files import write_bvh
+from tests.helpers.mocap_files import write_bvh
 
 pytest.importorskip("torch")
 

@@ -36,3 +36,8 @@ def digital_cost():
 @pytest.fixture(scope="module")
 def run_all():
     yield from _load_script("run_all")
+
+
+@pytest.fixture(scope="module")
+def fuzz_capture():
+    yield from _load_script("fuzz_capture")

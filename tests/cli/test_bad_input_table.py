@@ -18,7 +18,7 @@ from davis_rig.cli import eval as eval_cli
 from davis_rig.cli import eval_dataset, label, make_dataset, record, train
 from davis_rig.labelers.session_labels import label_session
 
-from eval_data import person_rvt, person_yolo, scene_session, sha256
+from tests.helpers.eval_data import person_rvt, person_yolo, scene_session, sha256
 
 COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval": eval_cli.main,
             "davis-eval-dataset": eval_dataset.main, "davis-train": train.main,

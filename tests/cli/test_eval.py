@@ -11,7 +11,7 @@ import pytest
 from davis_rig.cli import eval as cli
 from davis_rig.labelers.session_labels import label_session
 
-from eval_data import person_rvt, person_yolo, scene_session, sha256
+from tests.helpers.eval_data import person_rvt, person_yolo, scene_session, sha256
 
 
 @pytest.fixture(scope="module")

@@ -10,14 +10,23 @@ from pathlib import Path
 import pytest
 
 from davis_rig.cli import export as cli
-from davis_rig.interop import FORMATS
 from davis_rig.interop.summary import ExportSummary
 
 SAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "sample.h5"
 
 
-def test_formats_match_the_library():
-    assert cli.FORMATS == FORMATS
+def test_help_lists_the_library_formats_and_imports_nothing_heavy(fresh_python):
+    code = (
+        "import sys, io, contextlib\n"
+        "from davis_rig.cli.export import main\n"
+        "buf = io.StringIO()\n"
+        "with contextlib.redirect_stdout(buf):\n"
+        "    try: main(['--help'])\n"
+        "    except SystemExit: pass\n"
+        "assert '{aedat4,prophesee-dat,rvt,npz}' in buf.getvalue()\n"
+        "print(sorted(m for m in ('h5py', 'torch', 'numpy', 'hdf5plugin') if m in sys.modules))\n"
+    )
+    assert fresh_python(code) == "[]"
 
 
 def test_arguments_map_onto_export_session(monkeypatch, capsys):

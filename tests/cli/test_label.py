@@ -11,7 +11,7 @@ import pytest
 from davis_rig.cli import label as cli
 from davis_rig.session import SessionReader
 
-from eval_data import person_yolo, scene_session, sha256
+from tests.helpers.eval_data import person_yolo, scene_session, sha256
 
 
 def test_label_writes_labels_and_reports(tmp_path, capsys):

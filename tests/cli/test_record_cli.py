@@ -105,6 +105,8 @@ def test_recover_maps_onto_recover_session(monkeypatch, capsys):
     "argv, message",
     [([], "the following arguments are required: --out (or --recover SESSION_H5)"),
      (["--recover", "a.h5", "--out", "b.h5"], "argument --recover: not allowed with --out"),
+     (["--recover", "a.h5", "--view"], "argument --recover: not allowed with --view"),
+     (["--recover", "a.h5", "--no-imu"], "argument --recover: not allowed with --no-imu"),
      (["--out", "a.h5", "--fake-fast"], "argument --fake-fast: needs --fake REPLAY")],
 )
 def test_usage_errors(argv, message, capsys):
@@ -182,3 +184,24 @@ def test_capture_path_does_not_import_torch(fresh_python):
         "print('torch' in sys.modules, 'dv_processing' in sys.modules)\n"
     )
     assert fresh_python(code) == "False False"
+
+
+def test_no_imu_starts_the_camera_without_the_imu_and_the_default_starts_it(monkeypatch, tmp_path):
+    from davis_rig.protocol.config import Imu, Module
+
+    devices = []
+    make_backend = cli.fake_backend
+
+    def keep_device(replay, fast=False):
+        backend, exhausted = make_backend(replay, fast)
+        devices.append(backend.devices[0])
+        return backend, exhausted
+
+    monkeypatch.setattr(cli, "fake_backend", keep_device)
+    replay = Path(__file__).resolve().parents[2] / "recordings" / "sample.davisreplay"
+    assert cli.main(["--fake", str(replay), "--fake-fast", "--out", str(tmp_path / "imu.h5"), "-q"]) == 0
+    assert cli.main(["--fake", str(replay), "--fake-fast", "--out", str(tmp_path / "no.h5"), "-q", "--no-imu"]) == 0
+    imu_runs = [[w.value for w in device.writes if (w.module, w.param) == (Module.IMU, Imu.RUN_ACCELEROMETER)]
+                for device in devices]
+    assert 1 in imu_runs[0]  # started with the accelerometer on, as libcaer and DV do
+    assert 1 not in imu_runs[1]

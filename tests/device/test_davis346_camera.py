@@ -15,9 +15,9 @@ from davis_rig.protocol.sequences import Sleep, config_writes, default_config_se
 from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend, usb_error
 
-from camera_reads import read_until_drained
-from davis346_vectors import VECTOR_IDS, VECTORS, assert_matches_expected, vector_transfers
-from libusb_emu import usb_backend  # noqa: F401  (fixture: every test runs on the virtual and the emulated libusb)
+from tests.helpers.camera_reads import read_until_drained
+from tests.helpers.davis346_vectors import VECTOR_IDS, VECTORS, assert_matches_expected, vector_transfers
+from tests.helpers.libusb_emu import usb_backend  # noqa: F401  (fixture: every test runs on the virtual and the emulated libusb)
 
 CLOCKS = Clocks(logic_mhz=104, adc_mhz=30, usb_mhz=80, deviation=1000)
 FEATURES = DeviceFeatures(dvs_has_background_activity_filter=True, dvs_has_roi_filter=True, aps_has_global_shutter=True)

@@ -1,4 +1,4 @@
-"""Fixtures of the evaluation tests (the helper module ``eval_data`` is found through ``tests/conftest.py``)."""
+"""Fixtures of the evaluation tests (their data come from :mod:`tests.helpers.eval_data`)."""
 
 import numpy as np
 import pytest

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -24,7 +26,7 @@ from davis_rig.labelers.session_labels import label_session
 from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
-from eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
+from tests.helpers.eval_data import SCENE_US, person_rvt, person_yolo, scene_session, sha256
 
 SETTINGS = EvalSettings(seq_len=5)
 
@@ -120,6 +122,81 @@ def test_scores_carry_states_and_match_the_runner_on_the_same_windows(labelled, 
     for m in metrics.values():
         assert 0.0 <= m["AP"] <= 1.0 and m["seq_asr_strict"] >= m["seq_asr"]
     assert [metrics[t]["seq_asr"] for t in (0.001, 0.01, 0.1, 0.25)] == sorted(m["seq_asr"] for m in metrics.values())
+
+
+def test_pipelined_parts_give_the_whole_steps_detections_bit_for_bit(labelled, tmp_path):
+    pytest.importorskip("torch", reason="exporting the mini RVT needs torch")
+    from davis_rig.models.rvt import RVTConfig, RVTDetector, export_step_onnx
+
+    import torch
+
+    torch.manual_seed(1)
+    runner = RVTOnnxRunner(export_step_onnx(RVTDetector(RVTConfig.mini()), tmp_path / "mini.onnx"))
+    splits = []
+    split = runner.split
+
+    def spy(*threads):
+        splits.append(threads)
+        return split(*threads)
+
+    runner.split = spy
+    settings = EvalSettings(thresholds=(0.001, 0.25), chunk_windows=3)
+    whole = score_session(labelled, runner, dataclasses.replace(settings, pipeline=False))
+    assert splits == []
+    piped = score_session(labelled, runner, settings)
+    assert splits == [(1, min(2, os.cpu_count()), 1)]  # the recurrent part on 2 onnxruntime threads by default
+    assert piped.num_events == whole.num_events and set(piped.timings_s) == set(whole.timings_s)
+    for th in settings.thresholds:
+        assert len(piped.detections[th]) == len(whole.detections[th]) == len(whole.window_end_us)
+        for got, want in zip(piped.detections[th], whole.detections[th]):
+            assert (got is None and want is None) or np.array_equal(got, want)
+    assert sum(d is not None for d in piped.detections[0.001]) > 0  # random weights: boxes to compare
+
+
+class _FailingSplit:
+    """Parts of a stand-in step; ``recur`` fails at its ``fail_at``-th call."""
+
+    def __init__(self, fail_at: int):
+        self.calls, self.fail_at = 0, fail_at
+
+    def pre(self, x):
+        return x
+
+    def recur(self, x1, states):
+        self.calls += 1
+        if self.calls == self.fail_at:
+            raise RuntimeError("recur failed")
+        return states
+
+    def head(self, states):
+        return np.zeros((1, 1, 6), np.float32)
+
+
+class _SplitRunner:
+    def __init__(self, split):
+        self._split = split
+
+    def prepare_histogram(self, hist):
+        return hist
+
+    def split(self, *threads):
+        return self._split
+
+    def initial_states(self, batch):
+        return []
+
+
+def test_a_failing_part_stops_the_pipeline_and_its_threads(labelled):
+    import threading
+
+    before = threading.active_count()
+    failing = _FailingSplit(fail_at=5)
+    with pytest.raises(RuntimeError, match="recur failed"):
+        score_session(labelled, _SplitRunner(failing), EvalSettings(chunk_windows=2))
+    assert failing.calls == 5
+    assert threading.active_count() == before  # reader, pre, recur and post-processing threads all joined
+    scores = score_session(labelled, _SplitRunner(_FailingSplit(fail_at=0)), EvalSettings(chunk_windows=2))
+    assert len(scores.detections[0.25]) == len(scores.window_end_us)
 
 
 def test_labels_provenance_decodes_davis_label_settings_and_keeps_foreign_text():
@@ -243,10 +320,17 @@ def test_report_json_round_trip_has_every_number(labelled, tmp_path):
 
 
 class _HistogramRecorder:
-    """Stand-in for the RVT runner: keeps every window's histogram, detects nothing (one anchor, score 0)."""
+    """Stand-in for the RVT runner: keeps every window's histogram, detects nothing (one anchor, score 0); runs
+    whole steps (no split)."""
 
     def __init__(self):
         self.hists = []
+
+    def prepare_histogram(self, hist):
+        return hist
+
+    def split(self, *threads):
+        raise ModelFormatError("a stand-in, not a graph")
 
     def step(self, hist, states):
         self.hists.append(hist[0].copy())

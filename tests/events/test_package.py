@@ -8,7 +8,7 @@ import pytest
 
 import davis_rig.events as events
 
-MODULES = ("crop", "histogram", "histogram_torch", "simulator", "v2e_torch")
+MODULES = ("crop", "histogram", "histogram_torch", "intensity", "simulator", "v2e_torch")
 
 
 def test_all_is_the_union_of_the_modules_public_names():

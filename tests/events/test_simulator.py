@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.events.simulator import EventSimulator, SimulatorConfig, lin_log, simulate_events
+from davis_rig.events.intensity import lin_log
+from davis_rig.events.simulator import EventSimulator, SimulatorConfig, simulate_events
 from davis_rig.types import EVENT_DTYPE
 
 LN20_OVER_20 = math.log(20.0) / 20.0

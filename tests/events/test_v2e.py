@@ -13,13 +13,13 @@ from hypothesis import strategies as st
 
 from davis_rig.errors import FormatError, ShapeError
 from davis_rig.events.histogram import stacked_histograms
+from davis_rig.events.intensity import rgb_to_luma
 from davis_rig.events.simulator import simulate_events
 from davis_rig.events.v2e_torch import (
     OFFICIAL_RELAXED_SCALE,
     DifferentiableV2E,
     floor_ste,
     pair_bins,
-    rgb_to_luma,
     v2e_counts,
     v2e_histograms,
 )
@@ -241,7 +241,7 @@ def test_fused_dvs_equals_the_unrolled_autograd_graph(per_pixel):
 
 
 def test_fused_lin_log_equals_autograd_of_lin_log():
-    from davis_rig.events.simulator import lin_log
+    from davis_rig.events.intensity import lin_log
     from davis_rig.events.v2e_torch import log_intensity
 
     x = torch.tensor([[[0.0, 0.01, 20 / 255, 0.2]], [[0.5, 0.9, 1.0, 1.3]]], dtype=torch.float64, requires_grad=True)

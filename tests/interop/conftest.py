@@ -11,7 +11,7 @@ from davis_rig.session import SessionWriter
 from davis_rig.session.labels import write_labels
 from davis_rig.types import BBOX_DTYPE
 
-from session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame
+from tests.helpers.session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame
 
 #: Crop origin of the fixture's labels: not the centred (21, 10), so a mix-up of origins shows.
 LABELS_ORIGIN = (17, 12)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from davis_rig.errors import ConfigError, FormatError, MissingDependencyError
-from davis_rig.interop import FORMATS, export_session
+from davis_rig.interop import ExportFormat, export_session
 from davis_rig.interop.source import ExportSource
 from davis_rig.session import SessionReader, SessionWriter
 
@@ -58,7 +58,7 @@ def test_dat_refuses_recordings_longer_than_32_bit_microseconds(tmp_path, rich_s
 
 
 def test_dat_without_labels_and_a_stale_box_file(tmp_path, rng):
-    from session_data import random_events
+    from tests.helpers.session_data import random_events
 
     with SessionWriter(tmp_path / "bare.h5") as writer:
         writer.append_events(random_events(rng, 100))
@@ -74,7 +74,7 @@ def test_dat_without_labels_and_a_stale_box_file(tmp_path, rng):
 def test_unknown_format_and_missing_dv_processing(tmp_path, rich_session, monkeypatch):
     with pytest.raises(ConfigError, match="expected one of aedat4, prophesee-dat, rvt, npz") as err:
         export_session(rich_session[0], "hdf5", tmp_path / "x")
-    assert err.value.field == "to" and FORMATS == ("aedat4", "prophesee-dat", "rvt", "npz")
+    assert err.value.field == "to" and tuple(ExportFormat) == ("aedat4", "prophesee-dat", "rvt", "npz")
 
     def no_dv():
         raise MissingDependencyError('AEDAT4 needs dv-processing: pip install "davis_rig[aedat4]"')

@@ -12,7 +12,7 @@ from davis_rig.session.info import sensor_layout
 from davis_rig.session.labels import write_labels
 from davis_rig.types import BBOX_DTYPE, RVT_HW
 
-from session_data import random_events
+from tests.helpers.session_data import random_events
 
 
 @pytest.mark.parametrize("max_events", [1, 777, 5000, 10**9])

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval_data import PERSON_BOX, person_yolo
+from tests.helpers.eval_data import PERSON_BOX, person_yolo
 
 TOOL = Path(__file__).resolve().parents[2] / "tools" / "measure_labeler.py"
 

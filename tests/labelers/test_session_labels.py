@@ -9,7 +9,7 @@ from davis_rig.errors import DavisRigError, ModelFormatError, SessionError
 from davis_rig.labelers.session_labels import label_session
 from davis_rig.session import SessionReader, SessionWriter
 
-from eval_data import PERSON_BOX_CROP, person_yolo, scene_session, sha256
+from tests.helpers.eval_data import PERSON_BOX_CROP, person_yolo, scene_session, sha256
 
 
 @pytest.fixture

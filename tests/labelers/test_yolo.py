@@ -9,7 +9,7 @@ from davis_rig.errors import ModelFormatError
 from davis_rig.labelers.session_labels import crop_boxes, resolve_yolo_model
 from davis_rig.labelers.yolo import YoloOnnxDetector, letterbox, to_gray_u8
 
-from eval_data import frame_box_to_yolo_input, yolo_onnx, yolov8_output
+from tests.helpers.eval_data import frame_box_to_yolo_input, yolo_onnx, yolov8_output
 
 FRAME = np.zeros((260, 346), np.uint16)
 BOX = (120.0, 60.0, 200.0, 220.0)  # x1, y1, x2, y2 on the 346x260 frame

@@ -19,7 +19,9 @@ from davis_rig.protocol.words import (
     y_word,
 )
 
-from davis346_vectors import assert_matches_expected
+from tests.helpers.davis346_vectors import assert_matches_expected
+
+pytestmark = pytest.mark.usefixtures("each_decoder_kernel")
 
 
 # ---------------------------------------------------------------------------------------------- shared vectors

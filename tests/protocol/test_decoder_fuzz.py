@@ -10,6 +10,8 @@ import pytest
 
 from davis_rig.protocol import SensorLayout, StreamDecoder
 
+pytestmark = pytest.mark.usefixtures("each_decoder_kernel")
+
 
 def control_heavy_words(rng: np.random.Generator, n: int) -> np.ndarray:
     """Words biased towards specials (sub-codes 0-20), ADC samples, misc8/misc10, wraps and small timestamps."""

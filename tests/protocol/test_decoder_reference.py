@@ -14,6 +14,8 @@ from hypothesis import strategies as st
 
 from davis_rig.protocol import DecodedChunk, SensorLayout, StreamDecoder
 
+pytestmark = pytest.mark.usefixtures("each_decoder_kernel")
+
 INT32_MAX = 2**31 - 1
 EDGE_TYPES = {2: 3, 3: 2, 4: 4, 16: 13, 17: 12}  # wire sub-code -> libcaer special type
 TIMING_SPECIALS = {0, 1, 2, 3, 4, 12, 13}  # special types the reference models

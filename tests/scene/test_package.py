@@ -10,7 +10,7 @@ import davis_rig.scene as scene
 import davis_rig.scene.mocap as mocap
 
 SCENE_MODULES = ("aps", "background", "body", "camera", "gait", "masks", "motion", "skeleton", "rasterize",
-                 "renderer", "shading", "texture", "scene", "recording", "smpl")
+                 "renderer", "shading", "texture", "scene", "smpl")
 MOCAP_MODULES = ("amass", "bvh", "retarget", "splits")
 #: Functions named like their submodule: not re-exported (the submodule would shadow them once imported).
 SHADOWED = {"rasterize", "retarget"}

@@ -1,4 +1,4 @@
-"""Fixtures of the session tests (the helper module ``session_data`` is found through ``tests/conftest.py``)."""
+"""Fixtures of the session tests (their data come from :mod:`tests.helpers.session_data`)."""
 
 import numpy as np
 import pytest

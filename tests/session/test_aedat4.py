@@ -12,7 +12,7 @@ import pytest
 from davis_rig.errors import FormatError
 from davis_rig.session import SessionReader
 
-from session_data import random_events
+from tests.helpers.session_data import random_events
 
 dv = pytest.importorskip("dv_processing", reason="AEDAT4 import needs the optional dv-processing package")
 

@@ -24,8 +24,8 @@ from davis_rig.usb.replay import ReplayHeader, ReplayWriter
 from davis_rig.usb.sources import EncodedSource, Faults, TransferListSource
 from davis_rig.usb.virtual import VirtualDavis346
 
-from libusb_emu import EmuFaults, emulated_usb_backend, usb_backend  # noqa: F401  (fixtures)
-from session_data import random_events
+from tests.helpers.libusb_emu import EmuFaults, emulated_usb_backend, usb_backend  # noqa: F401  (fixtures)
+from tests.helpers.session_data import random_events
 
 LAYOUT = SensorLayout.davis346()
 
@@ -227,17 +227,24 @@ def write_paced_replay(path, events, span_us, slice_us=10_000):
     return path
 
 
+def start_fake_recording(tmp_path, rng, n_events: int, span_us: int, stdout) -> tuple[subprocess.Popen, np.ndarray]:
+    """Start `davis-record --out tmp_path/s.h5 --fake REPLAY` on a paced replay of ``n_events`` random events over
+    ``span_us`` µs; returns the process (stderr piped) and the events."""
+    events = random_events(rng, n_events, t0_us=0, span_us=span_us)
+    replay = write_paced_replay(tmp_path / "long.replay", events, span_us)
+    proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(tmp_path / "s.h5"),
+                             "--fake", str(replay)], stderr=subprocess.PIPE, stdout=stdout)
+    return proc, events
+
+
 def test_kill_9_of_davis_record_then_recover(tmp_path, rng):
     """kill -9 of a `davis-record --fake` subprocess, then `davis-record --recover`: at most ~1 s is lost."""
     import re
     import signal
     import time
 
-    events = random_events(rng, 1_000_000, t0_us=0, span_us=20_000_000)
-    replay = write_paced_replay(tmp_path / "long.replay", events, 20_000_000)
+    proc, events = start_fake_recording(tmp_path, rng, 1_000_000, 20_000_000, subprocess.DEVNULL)
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
-                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
     seen = []  # (wall time, events written) from the live progress line
     buffer = b""
     deadline = time.monotonic() + 60
@@ -274,11 +281,8 @@ def test_ctrl_c_of_davis_record_closes_a_complete_file(tmp_path, rng):
     import signal
     import time
 
-    events = random_events(rng, 200_000, t0_us=0, span_us=10_000_000)
-    replay = write_paced_replay(tmp_path / "long.replay", events, 10_000_000)
+    proc, events = start_fake_recording(tmp_path, rng, 200_000, 10_000_000, subprocess.PIPE)
     out = tmp_path / "s.h5"
-    proc = subprocess.Popen([sys.executable, "-m", "davis_rig.cli.record", "--out", str(out), "--fake", str(replay)],
-                            stderr=subprocess.PIPE, stdout=subprocess.PIPE)
     stderr = b""
     deadline = time.monotonic() + 60
     while b"Mev/s" not in stderr and time.monotonic() < deadline:  # the first live progress line

@@ -18,7 +18,7 @@ from davis_rig.session.journal import journal_path
 from davis_rig.session.labels import labels_crop_origin, write_labels
 from davis_rig.types import BBOX_DTYPE
 
-from session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame
+from tests.helpers.session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame
 
 SAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "sample.h5"
 

@@ -19,9 +19,9 @@ from davis_rig.session.journal import (KIND_NOTE, KIND_TRANSFER, MAGIC, SessionJ
                                        read_journal)
 from davis_rig.session.record import record_session
 
-from session_data import FakeCamera, cut, random_events, synth_stream
+from tests.helpers.session_data import FakeCamera, cut, random_events, synth_stream
 
-HERE = Path(__file__).resolve().parent
+REPO_ROOT = Path(__file__).resolve().parents[2]  # the recorder subprocess imports tests.helpers from here
 
 
 def test_journal_round_trip_and_damaged_tail(tmp_path):
@@ -106,7 +106,7 @@ RECORDER = textwrap.dedent(
     import sys, time, json
     sys.path.insert(0, sys.argv[3])
     import numpy as np
-    from session_data import FakeCamera, cut, random_events, synth_stream
+    from tests.helpers.session_data import FakeCamera, cut, random_events, synth_stream
     from davis_rig.session.record import record_session
 
     rng = np.random.default_rng(7)
@@ -132,7 +132,7 @@ def test_kill_9_then_recover_loses_at_most_one_second(tmp_path):
     path = tmp_path / "s.h5"
     script = tmp_path / "recorder.py"
     script.write_text(RECORDER)
-    proc = subprocess.Popen([sys.executable, str(script), str(path), str(tmp_path / "events.npy"), str(HERE)],
+    proc = subprocess.Popen([sys.executable, str(script), str(path), str(tmp_path / "events.npy"), str(REPO_ROOT)],
                             stdout=subprocess.PIPE, text=True)
     progress = []
     for line in proc.stdout:

@@ -12,7 +12,7 @@ from davis_rig.session import SessionReader
 from davis_rig.session.journal import journal_path
 from davis_rig.session.record import record_session
 
-from session_data import FakeCamera, cut, random_events, synth_stream
+from tests.helpers.session_data import FakeCamera, cut, random_events, synth_stream
 
 
 def test_records_everything_and_configures_the_camera(tmp_path, rng):

@@ -19,7 +19,7 @@ from davis_rig.session import SessionReader, SessionWriter, schema
 from davis_rig.session.journal import journal_path
 from davis_rig.types import BBOX_DTYPE, EVENT_DTYPE, make_events
 
-from session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame, split_chunks
+from tests.helpers.session_data import SPECIAL_DTYPE, Chunk, random_events, random_frame, split_chunks
 
 IMU_DTYPE = np.dtype([("t", "<i8"), ("accel_x_g", "<f4"), ("gyro_z_dps", "<f4"), ("temperature_c", "<f4")])
 
@@ -165,14 +165,17 @@ def test_empty_session(tmp_path):
         assert reader.imu() is None
 
 
-def test_events_going_back_in_time_are_dropped_and_counted(tmp_path):
+def test_events_whose_timestamp_alone_goes_back_are_kept_at_the_previous_time(tmp_path):
     first = make_events([100, 200, 300], [1, 2, 3], [1, 2, 3], [0, 1, 0])
     second = make_events([250, 400, 350, 500], [4, 5, 6, 7], [4, 5, 6, 7], [1, 1, 1, 1])
-    with pytest.warns(UserWarning, match="go back in time"):
+    with pytest.warns(UserWarning, match="goes back or sticks out"):
         path = write_session(tmp_path / "s.h5", [Chunk(first), Chunk(second)])
     with SessionReader(path) as reader:
-        np.testing.assert_array_equal(reader.events()["t"], [100, 200, 300, 400, 500])
-        assert reader.stats["writer"]["events_dropped_non_monotonic"] == 2
+        events = reader.events()
+        np.testing.assert_array_equal(events["t"], [100, 200, 300, 300, 400, 400, 500])
+        np.testing.assert_array_equal(events["x"], np.arange(1, 8))
+        assert reader.stats["writer"]["events_time_repaired"] == 2
+        assert reader.stats["writer"]["time_discontinuities"] == 0
 
 
 def test_wrong_event_dtype_is_rejected(tmp_path):

@@ -15,7 +15,7 @@ pytest.importorskip("onnx")
 from davis_rig.metrics.seqasr import box_iou  # noqa: E402
 from davis_rig.scene import scene  # noqa: E402
 from davis_rig.scene.aps import ADC_MAX_DN, ADC_SHIFT, ApsConfig, to_adc  # noqa: E402
-from eval_data import PERSON_BOX, person_yolo  # noqa: E402
+from tests.helpers.eval_data import PERSON_BOX, person_yolo  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -8,17 +8,14 @@ import numpy as np
 import pytest
 
 from davis_rig.errors import FormatError, ShapeError
-from davis_rig.training.dataset import (
-    EV_REPR_NAME,
-    DatasetWriter,
+from davis_rig.training.batches import (
     RandomChunkDataset,
     ResumableBatchSampler,
-    SequenceData,
     StreamingBatches,
     StreamingTrainLanes,
     collate_chunks,
-    list_sequences,
 )
+from davis_rig.training.dataset import EV_REPR_NAME, DatasetWriter, SequenceData, list_sequences
 from davis_rig.types import BBOX_DTYPE
 
 
@@ -174,7 +171,7 @@ def test_streaming_train_lanes_play_whole_sequences_and_resume(moving_boxes_data
 
 
 def test_labels_to_tensor_clips_to_frame_and_drops_small():
-    from davis_rig.training.dataset import labels_to_tensor
+    from davis_rig.training.batches import labels_to_tensor
 
     boxes = _boxes(0, [(-10, 5, 30, 40), (300, 230, 20, 20), (100, 100, 2, 50)])
     out = labels_to_tensor(boxes, min_side_px=2.5)

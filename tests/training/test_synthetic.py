@@ -18,6 +18,8 @@ from davis_rig.scene.body import PART_NAMES  # noqa: E402
 from davis_rig.scene.camera import TEST_SCALES_PX  # noqa: E402
 from davis_rig.scene.masks import part_label_map  # noqa: E402
 from davis_rig.training import synthetic as syn  # noqa: E402
+from davis_rig.training.synthetic.paint import vehicle_layers  # noqa: E402
+from davis_rig.training.synthetic.scenes import sample_distractor  # noqa: E402
 from davis_rig.training.dataset import SequenceData, list_sequences  # noqa: E402
 from davis_rig.types import PEDESTRIAN_CLASS_ID, RVT_HW  # noqa: E402
 
@@ -153,7 +155,7 @@ def test_occluded_person_gets_no_label(model):
 def test_empty_scene_with_distractors_fires_events_but_has_no_labels(model):
     rng = np.random.default_rng(1)
     base = syn.sample_scene(rng, "train", SHORT)
-    distractors = tuple(syn._distractor(rng, "train", RVT_HW, SHORT.duration_s, 0.5) for _ in range(3))
+    distractors = tuple(sample_distractor(rng, "train", RVT_HW, SHORT.duration_s, 0.5) for _ in range(3))
     distractors = tuple(dataclasses.replace(d, start_xy_px=(150.0, 120.0), velocity_px_s=(200.0, 0.0), level=0.9)
                         for d in distractors)
     scene = dataclasses.replace(base, people=(), distractors=distractors, ego_motion=None,
@@ -170,7 +172,7 @@ def _car(length_px: float = 100.0, x: float = 150.0, y: float = 150.0, vx: float
 
 def test_car_silhouette_area_box_and_paint():
     length = 100.0
-    ((alpha, value),) = syn._vehicle_layers((_car(length, 150.0, 150.0),), np.array([0.0, 0.1]), RVT_HW, 4)
+    ((alpha, value),) = vehicle_layers((_car(length, 150.0, 150.0),), np.array([0.0, 0.1]), RVT_HW, 4)
     # body 1 x 0.26 L, cabin 0.5 x 0.2 L, the lower halves of two wheels of radius 0.11 L below the body
     area = (0.26 + 0.5 * 0.2 + math.pi * 0.11**2) * length**2
     np.testing.assert_allclose(alpha.sum(axis=(1, 2)), area, rtol=0.01)
@@ -185,7 +187,7 @@ def test_car_silhouette_area_box_and_paint():
     assert np.isclose(shade[150, 150], 0.9) and np.isclose(shade[176, 180], 0.05)
     window = np.argwhere(np.isclose(shade, 0.1))
     assert window[:, 1].mean() < 150 and window[:, 0].max() < 142
-    mirrored = syn._vehicle_layers((_car(length, 150.0, 150.0, vx=-200.0),), np.array([0.0]), RVT_HW, 4)
+    mirrored = vehicle_layers((_car(length, 150.0, 150.0, vx=-200.0),), np.array([0.0]), RVT_HW, 4)
     np.testing.assert_allclose(mirrored[0][1][0], value[0][:, ::-1][:, np.r_[4:304, 0:4]], atol=1e-6)
 
 

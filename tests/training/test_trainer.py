@@ -25,7 +25,7 @@ def _log(run_dir):
 
 
 def test_loss_falls_and_validation_runs(moving_boxes_dataset, tmp_path):
-    from davis_rig.training.dataset import collate_chunks
+    from davis_rig.training.batches import collate_chunks
 
     torch.set_num_threads(2)
     trainer = Trainer(moving_boxes_dataset, tmp_path / "run", _config(lr=2e-2, augment=AugmentConfig.off(),

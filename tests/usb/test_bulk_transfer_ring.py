@@ -33,7 +33,7 @@ from davis_rig.usb.sources import Faults, TransferListSource
 from davis_rig.usb.transport import UsbTransport
 from davis_rig.usb.virtual import VirtualDavis346, usb_error
 
-from libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
+from tests.helpers.libusb_emu import (  # noqa: F401  (usb_backend, emulated_usb_backend: fixtures)
     STRESS_TRANSFER,
     EmuFaults,
     EndlessSource,
@@ -220,12 +220,25 @@ def test_stall_on_a_vanished_camera_ends_with_the_clear_halt_error():
     assert isinstance(sink.ends[0], DeviceDisconnectedError) and "gone while clearing" in str(sink.ends[0])
 
 
-def test_failed_submission_at_start_raises_and_leaves_nothing_in_flight():
-    api, sink = ScriptedApi([], fail_submit_at=3), Collector()
+def test_failed_first_submission_raises_and_leaves_nothing_in_flight():
+    api, sink = ScriptedApi([], fail_submit_at=1), Collector()
     ring = make_ring(api, sink)
     with pytest.raises(DeviceDisconnectedError, match="could not be submitted"):
         ring.start()
-    assert ring.in_flight == 0 and api.cancels == 2 and api.frees == 4 and not ring.running
+    assert ring.in_flight == 0 and api.cancels == 0 and api.frees == 4 and not ring.running and sink.ends == []
+
+
+def test_failed_later_submission_ends_the_started_stream_after_the_data():
+    # The camera is unplugged while the ring is being filled: the two transfers in flight come back cancelled with
+    # the bytes they hold, and those bytes are delivered before the stream ends.
+    api, sink = ScriptedApi([], partial_on_cancel=b"part", fail_submit_at=3), Collector()
+    ring = make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    ring.stop()
+    assert sink.data == [b"part", b"part"] and api.cancels == 2
+    assert len(sink.ends) == 1 and isinstance(sink.ends[0], DeviceDisconnectedError)
+    assert "could not be submitted" in str(sink.ends[0])
+    assert api.submits == 3 and api.frees == 4 and ring.in_flight == 0 and not ring.running
 
 
 def test_a_failing_consumer_ends_the_stream_with_its_error():

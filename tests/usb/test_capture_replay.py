@@ -10,7 +10,7 @@ from davis_rig.usb.replay import ReplayReader
 from davis_rig.usb.sources import EncodedSource
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
-from camera_reads import read_until_drained
+from tests.helpers.camera_reads import read_until_drained
 
 
 def test_capture_then_replay_gives_the_same_events(tmp_path, load_tool):

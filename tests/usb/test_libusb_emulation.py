@@ -1,4 +1,4 @@
-"""The emulated libusb-1.0 (tests/usb/libusb_emu): that it behaves like libusb where the capture path depends on it,
+"""The emulated libusb-1.0 (tests/helpers/libusb_emu): that it behaves like libusb where the capture path depends on it,
 that it counts misuse of the transfer API, and the start/read/stop stress of the capture path on it."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-import libusb_emu
+from tests.helpers import libusb_emu
 from davis_rig.device.camera import Davis346
 from davis_rig.protocol.config import Dvs, Module, Mux, Usb
 from davis_rig.usb.async_bulk import (
@@ -26,7 +26,7 @@ from davis_rig.usb.sources import TransferListSource
 from davis_rig.usb.transport import UsbTransport, list_devices
 from davis_rig.usb.virtual import VirtualDavis346
 
-from libusb_emu import EmuFaults, EmulatedLibusb, EmulatorUnavailable, start_stop_cycles
+from tests.helpers.libusb_emu import EmuFaults, EmulatedLibusb, EmulatorUnavailable, start_stop_cycles
 
 
 @pytest.fixture

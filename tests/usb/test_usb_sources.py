@@ -12,7 +12,7 @@ from davis_rig.types import make_events
 from davis_rig.usb.sources import EncodedSource, Faults, _slice_edges
 from davis_rig.usb.virtual import VirtualDavis346, VirtualDavis346Backend
 
-from camera_reads import read_until_drained
+from tests.helpers.camera_reads import read_until_drained
 
 LAYOUT = SensorLayout.davis346()
 

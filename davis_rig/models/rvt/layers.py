@@ -215,9 +215,10 @@ class ConvLSTM(nn.Module):
             (h, c): float [B, C, H, W] each.
         """
         mix = self.conv1x1(torch.cat((x, h_prev), dim=1))
-        gates, cell_input = torch.tensor_split(mix, [self.dim * 3], dim=1)
+        # torch.split (not tensor_split, the same slices) exports as one ONNX Split instead of a Loop per call
+        gates, cell_input = torch.split(mix, [self.dim * 3, self.dim], dim=1)
         gates = torch.sigmoid(gates)
-        forget_gate, input_gate, output_gate = torch.tensor_split(gates, 3, dim=1)
+        forget_gate, input_gate, output_gate = torch.split(gates, self.dim, dim=1)
         cell_input = torch.tanh(cell_input)
         c = forget_gate * c_prev + input_gate * cell_input
         h = output_gate * torch.tanh(c)

@@ -25,7 +25,7 @@ from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.postprocess import postprocess
 from davis_rig.types import RVT_HW
 
-__all__ = ["RVTOnnxRunner", "GraphSignature"]
+__all__ = ["RVTOnnxRunner", "GraphSignature", "SplitStep"]
 
 _INPUT_NAME = "histogram"
 _OUTPUT_NAME = "detections"
@@ -150,6 +150,58 @@ def _read_signature(session, path: Path) -> GraphSignature:
     )
 
 
+def _session_options(ort, intra_op_threads: int | None, allow_spinning: bool):
+    options = ort.SessionOptions()
+    if intra_op_threads is not None:
+        options.intra_op_num_threads = int(intra_op_threads)
+        options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
+    return options
+
+
+class SplitStep:
+    """One RVT step as three onnxruntime sessions, ``pre`` → ``recur`` → ``head`` (:mod:`.onnx_split`).
+
+    ``recur`` alone carries the states, so a caller can run ``pre`` of the next window and ``head`` of the
+    previous one beside ``recur`` of the current one, each in its own thread (onnxruntime releases the GIL).
+    Chained, the three calls compute what :meth:`RVTOnnxRunner.step` computes: the same nodes and weights.
+    Made by :meth:`RVTOnnxRunner.split`; takes checked inputs (:meth:`RVTOnnxRunner.prepare_histogram`, states
+    shaped like :meth:`RVTOnnxRunner.initial_states`).
+    """
+
+    def __init__(self, runner: "RVTOnnxRunner", threads: tuple[int | None, int | None, int | None]):
+        import onnxruntime as ort
+
+        from davis_rig.models.rvt.onnx_split import split_step_file
+
+        parts = split_step_file(runner.path)
+        self._x1 = parts.x1_name
+        self._sessions = [
+            ort.InferenceSession(part.SerializeToString(), providers=runner.providers,
+                                 sess_options=_session_options(ort, part_threads, runner.allow_spinning))
+            for part, part_threads in zip((parts.pre, parts.recur, parts.head), threads)
+        ]
+
+    def pre(self, x: np.ndarray) -> np.ndarray:
+        """Stage 1 before its LSTM: padded float32 histogram [B, 20, H, W] → float32 [B, C_1, H/4, W/4]."""
+        return self._sessions[0].run(None, {_INPUT_NAME: x})[0]
+
+    def recur(self, x1: np.ndarray, states: States) -> States:
+        """The recurrent part: :meth:`pre`'s output and the 4 (h, c) states → the 4 new (h, c) states."""
+        feeds = {self._x1: x1}
+        for stage, (h_state, c_state) in enumerate(states, start=1):
+            feeds[f"h{stage}"] = h_state
+            feeds[f"c{stage}"] = c_state
+        results = self._sessions[1].run(list(_STATE_OUT_NAMES), feeds)
+        return [(results[2 * i], results[2 * i + 1]) for i in range(4)]
+
+    def head(self, states: States) -> np.ndarray:
+        """PAFPN + YOLOX head of the new states' h2, h3, h4 → decoded float32 [B, A, 5 + classes]."""
+        feeds = {f"h{stage}_out": states[stage - 1][0] for stage in (2, 3, 4)}
+        return self._sessions[2].run([_OUTPUT_NAME], feeds)[0]
+
+
 class RVTOnnxRunner:
     """onnxruntime session for one RVT recurrent step, with explicit numpy states.
 
@@ -179,16 +231,12 @@ class RVTOnnxRunner:
         except ImportError as exc:  # pragma: no cover - onnxruntime is a core dependency
             raise MissingDependencyError("RVTOnnxRunner needs onnxruntime: pip install onnxruntime") from exc
         self.path = Path(path)
-        options = ort.SessionOptions()
-        if intra_op_threads is not None:
-            options.intra_op_num_threads = int(intra_op_threads)
-            options.inter_op_num_threads = 1
-        options.log_severity_level = 3
-        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
+        self.providers = list(providers or ["CPUExecutionProvider"])
+        self.allow_spinning = bool(allow_spinning)
+        options = _session_options(ort, intra_op_threads, self.allow_spinning)
+        self._splits: dict = {}
         try:
-            self._session = ort.InferenceSession(
-                str(self.path), sess_options=options, providers=list(providers or ["CPUExecutionProvider"])
-            )
+            self._session = ort.InferenceSession(str(self.path), sess_options=options, providers=self.providers)
         except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/NoSuchFile types
             raise ModelFormatError(f"{self.path}: onnxruntime cannot load the model: {exc}") from exc
         self.signature = _read_signature(self._session, self.path)
@@ -220,7 +268,12 @@ class RVTOnnxRunner:
             checked.append((h_state, c_state))
         return checked
 
-    def _prepare_histogram(self, hist) -> np.ndarray:
+    def prepare_histogram(self, hist) -> np.ndarray:
+        """The graph's input for ``hist``: float32 [B, 20, H, W], zero-padded bottom/right (see :meth:`step`).
+
+        Raises:
+            ShapeError: wrong channels or resolution.
+        """
         hist = np.asarray(hist)
         channels = self.signature.input_channels
         height, width = self.signature.in_res_hw
@@ -241,6 +294,23 @@ class RVTOnnxRunner:
         padded[:, :, : hist.shape[2], : hist.shape[3]] = hist
         return padded
 
+    def split(self, pre_threads: int | None = 1, recur_threads: int | None = 1,
+              head_threads: int | None = 1) -> SplitStep:
+        """The step as three sessions that a pipeline can run side by side (:class:`SplitStep`); cached.
+
+        Args:
+            pre_threads, recur_threads, head_threads: onnxruntime intra-op threads of each part's session
+                (``None``: onnxruntime's choice).
+
+        Raises:
+            ModelFormatError: the graph does not split (:func:`~davis_rig.models.rvt.onnx_split.split_step_graph`);
+                :meth:`step` still runs it whole.
+        """
+        key = tuple(None if t is None else int(t) for t in (pre_threads, recur_threads, head_threads))
+        if key not in self._splits:
+            self._splits[key] = SplitStep(self, key)
+        return self._splits[key]
+
     # ------------------------------------------------------------------ inference
     def step(self, hist, states: States | None = None) -> tuple[np.ndarray, States]:
         """Run one recurrent step.
@@ -256,7 +326,7 @@ class RVTOnnxRunner:
         Raises:
             ShapeError: wrong histogram resolution/channels or state shapes, or a batch the graph cannot take.
         """
-        x = self._prepare_histogram(hist)
+        x = self.prepare_histogram(hist)
         batch = x.shape[0]
         if self.signature.batch is not None and batch != self.signature.batch:
             raise ShapeError(f"histogram: this graph has a fixed batch of {self.signature.batch}, got {batch}")

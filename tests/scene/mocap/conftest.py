@@ -1,7 +1,7 @@
 """Fixtures of the mocap importer tests: tiny synthetic files in the real AMASS / BVH formats."""
 
 import pytest
-from mocap_files import write_amass, write_bvh
+from tests.helpers.mocap_files import write_amass, write_bvh
 
 
 @pytest.fixture()
