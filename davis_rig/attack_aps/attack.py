@@ -214,7 +214,11 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
 
     generator.train()
     t0 = time.perf_counter()
-    with (out / "log.jsonl").open("a" if start else "w") as log:
+    log_path = out / "log.jsonl"
+    kept = [line for line in log_path.read_text().splitlines() if json.loads(line)["step"] <= start] if (
+        start and log_path.is_file()) else []
+    log_path.write_text("".join(line + "\n" for line in kept))  # records after the checkpoint are redone
+    with log_path.open("a") as log:
         for step in range(start, config.iterations):
             if step and step % config.refresh_every == 0:
                 for pool in pools:
