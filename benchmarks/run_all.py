@@ -28,7 +28,7 @@ HERE = Path(__file__).resolve().parent
 #: Benchmarks in the order data flows through the toolkit (capture, representation, detector, scene, attack).
 ORDER = ("decode", "usb_pipeline", "io", "fuzz_capture", "interop", "representation", "model", "rvt_eager",
          "evaluation", "view_live", "body", "motion", "render", "v2e", "digital_cost", "synthetic", "train_step",
-         "attack_step")
+         "attack_step", "attack_validation")
 
 #: ``--quick`` arguments per script (the defaults otherwise).
 QUICK_ARGS = {
@@ -50,6 +50,7 @@ QUICK_ARGS = {
     "synthetic": ["--scenes", "2", "--seconds", "0.5"],
     "train_step": ["--repeats", "2"],
     "attack_step": ["--repeats", "2"],
+    "attack_validation": ["--clips", "4", "--repeats", "1"],
 }
 
 

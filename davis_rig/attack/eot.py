@@ -16,7 +16,8 @@ Beyond the paper (whose official code renders a walking-in-place SMPL body on a 
 jitter only), every clip draws:
 
 - body shape from the **training** shapes (:func:`split_shapes`; the test shapes are never used for training),
-  motion: the shape's walk cycle (walking forward or in place) or one of the given training motions
+  motion: the shape's walk (``walk``: the gait generator's natural walk by default, or the asset's bundled
+  cycle; walking forward or in place) or one of the given training motions
   (e.g. the AMASS train split of :mod:`davis_rig.scene.mocap.splits`), start time, heading;
 - camera: the training scale (middle) with the official jitter (:class:`~davis_rig.scene.camera.EoTJitter`,
   p = 0.4 rotation +-0.1 rad, p = 0.4 distance +-0.25/1.75), a lateral/depth placement offset;
@@ -25,7 +26,9 @@ jitter only), every clip draws:
   in place, camera jitter only, ideal sensor);
 - sensor non-idealities for the differentiable V2E: the clip's contrast threshold (uniform range), per-pixel
   threshold mismatch (Gaussian, v2e's ``sigma_thres``) and shot-noise events (Poisson, added to the histogram as
-  constants: they carry no gradient, like real noise).
+  constants: they carry no gradient, like real noise); with ``test_sensor_probability`` (default 1/2) the clip
+  has the evaluation's ideal sensor instead, so the test sensor is inside the distribution that trains and
+  validates the texture.
 
 All randomness comes from ``numpy.random.default_rng`` seeded with integers; no global RNG is touched.
 """
@@ -35,14 +38,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
+from davis_rig.events.simulator import DEFAULT_THRESHOLD
 from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
-from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
 
 try:
@@ -63,6 +67,8 @@ __all__ = [
 ]
 
 _SEED_SALT = 0x5EED_A77C
+#: The evaluation's contrast threshold (:class:`~davis_rig.events.simulator.SimulatorConfig`, ON = OFF).
+TEST_THRESHOLD = DEFAULT_THRESHOLD
 
 
 def split_shapes(num_shapes: int, test_every: int = 4) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -101,7 +107,9 @@ class EoTConfig:
     Attributes:
         shapes: body shapes to draw from; ``None`` = the training split of :func:`split_shapes`.
         heading_range_rad: heading uniform in this range (0 = towards the camera, pi/2 = walking right).
-        advance_probability: chance that the walk cycle moves forward (else walks in place, as the official code).
+        advance_probability: chance that the walk moves forward (else walks in place, as the official code).
+        walk: the walk of the clips without a training motion (:data:`~davis_rig.scene.scene.WALKS`):
+            ``"natural"`` (default, the gait generator's 1.3 m/s) or ``"bundled"`` (the asset's cycle).
         scale: camera scale name or person height in px (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`).
         jitter: camera EoT jitter (official p = 0.4 / p = 0.4); ``None`` = none.
         offset_x_m: lateral placement uniform in +-offset_x_m (m).
@@ -114,6 +122,9 @@ class EoTConfig:
         threshold_sigma: per-pixel threshold mismatch std (log units), 0 = off.
         min_threshold: lower clip of the per-pixel thresholds.
         shot_noise_rate_hz: per-pixel noise event rate (ON + OFF), uniform in this range (Hz).
+        test_sensor_probability: chance that a clip's sensor is the evaluation's instead of the ranges above:
+            the ideal sensor of :class:`~davis_rig.events.simulator.SimulatorConfig` (theta = 0.2 ON and OFF,
+            no mismatch, no noise), so the test sensor lies inside the training (and validation) distribution.
         seq_len: windows per sequence (paper: 3).
         window_us: window duration (RVT: 50 ms).
         playback_speed: motion seconds per clip second (official code: 5/3,
@@ -126,6 +137,7 @@ class EoTConfig:
     shapes: tuple[int, ...] | None = None
     heading_range_rad: tuple[float, float] = (0.0, 2.0 * math.pi)
     advance_probability: float = 0.5
+    walk: str = "natural"
     scale: str | float = TRAIN_SCALE
     jitter: EoTJitter | None = field(default_factory=EoTJitter)
     offset_x_m: float = 0.4
@@ -138,6 +150,7 @@ class EoTConfig:
     threshold_sigma: float = 0.02
     min_threshold: float = 0.05
     shot_noise_rate_hz: tuple[float, float] = (0.0, 1.0)
+    test_sensor_probability: float = 0.5
     seq_len: int = 3
     window_us: int = WINDOW_US
     playback_speed: float = 1.0
@@ -158,19 +171,29 @@ class EoTConfig:
                       **overrides})
 
     def __post_init__(self) -> None:
+        def refuse(name: str, reason: str) -> None:
+            raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")
+
         if int(self.seq_len) < 1:
-            raise ValueError(f"seq_len must be >= 1, got {self.seq_len}")
-        for name in ("advance_probability", "random_light_probability", "random_background_probability"):
+            refuse("seq_len", "expected an integer >= 1")
+        for name in ("advance_probability", "random_light_probability", "random_background_probability",
+                     "test_sensor_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+                refuse(name, "expected a number in [0, 1]")
         lo, hi = self.threshold_range
         if not 0 < lo <= hi:
-            raise ValueError(f"threshold_range must satisfy 0 < low <= high, got {self.threshold_range}")
+            refuse("threshold_range", "expected 0 < low <= high")
         low_rate, high_rate = self.shot_noise_rate_hz
-        if self.threshold_sigma < 0 or low_rate < 0 or high_rate < low_rate:
-            raise ValueError("threshold_sigma must be >= 0 and shot_noise_rate_hz a range of rates >= 0")
+        if not 0 <= low_rate <= high_rate:
+            refuse("shot_noise_rate_hz", "expected a range of rates 0 <= low <= high")
+        if not self.threshold_sigma >= 0:
+            refuse("threshold_sigma", "expected a number >= 0")
         if int(self.window_us) <= 0:
-            raise ValueError(f"window_us must be > 0, got {self.window_us}")
+            refuse("window_us", "expected an integer > 0")
+        if self.walk not in WALKS:
+            refuse("walk", f"expected one of {WALKS}")
+        if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
+            refuse("playback_speed", "expected a finite number > 0")
 
     @property
     def duration_s(self) -> float:
@@ -190,11 +213,10 @@ class PoolClip:
         seed: the seed it was drawn from.
         spec: the :class:`~davis_rig.scene.scene.SceneSpec`.
         raster: :class:`~davis_rig.scene.renderer.RasterizedMesh` (no grad) without its ``uv``, ``face``,
-            ``sample_index`` and ``coverage`` (a step needs only :meth:`~RasterizedMesh.person`; use ``lookup``
-            for the texels, ``backdrop`` for the background).
+            ``sample_index``, ``sample_pixel`` and ``coverage`` (a step needs only :meth:`~RasterizedMesh.person`
+            with ``active_pixel``; use ``lookup`` for the texels, ``active_backdrop`` for the background).
         lookup: :class:`~davis_rig.scene.texture.TexelLookup` of the grid (mask applied: white outside).
-        background: float32 tensor [H, W].
-        backdrop: float32 tensor [T, H, W], the visible background ``background * (1 - coverage)`` (computed once).
+        background: float32 tensor [H, W]; outside :attr:`active_box` every frame is this background.
         t_us: int64 [T] frame times (µs).
         window_end_us: int64 [W] window ends (µs).
         boxes: float32 [W, 4] person box ``(x0, y0, x1, y1)`` at each window end (px; NaN: not visible).
@@ -204,9 +226,12 @@ class PoolClip:
         active_box: ``(y0, y1, x0, x1)`` (px, end exclusive), the rows and columns of every pixel the person covers
             in any frame. Outside it the video is the constant background, so no event can fire there and the
             V2E runs on this crop only (:meth:`active_video`); at least one pixel even when the person is unseen.
-        active_backdrop: float32 tensor [T, y1 - y0, x1 - x0], ``backdrop`` inside the active box.
+        active_backdrop: float32 tensor [T, y1 - y0, x1 - x0], the visible background ``background * (1 -
+            coverage)`` inside the active box (computed once; outside the box the coverage is 0).
         active_pixel: int64 tensor [N], each covered sample's flat pixel index ``t*h*w + row*w + col`` in the box.
         window_us: window duration (µs): each window is ``[end - window_us, end]``.
+        base_threshold: the clip's contrast threshold as drawn (float64) when every pixel has it (no mismatch),
+            else ``None``.
     """
 
     seed: int
@@ -214,7 +239,6 @@ class PoolClip:
     raster: object
     lookup: object
     background: "torch.Tensor"
-    backdrop: "torch.Tensor"
     t_us: np.ndarray
     window_end_us: np.ndarray
     boxes: np.ndarray
@@ -225,15 +249,20 @@ class PoolClip:
     active_backdrop: "torch.Tensor"
     active_pixel: "torch.Tensor"
     window_us: int = WINDOW_US
+    base_threshold: float | None = None
 
     def video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """Render the clip with an n x n grid (differentiable w.r.t. ``grid``): float tensor [T, H, W].
 
         Equals ``raster.compose(lookup.sample(grid), background)`` of the full raster (bit for bit with a float32
-        grid; the backdrop is kept in float32).
+        grid): the background everywhere, :meth:`active_video` inside the active box.
         """
-        person = self.raster.person(self.lookup.sample(grid, fill=1.0))
-        return self.backdrop.to(person.dtype) + person
+        active = self.active_video(grid)
+        y0, y1, x0, x1 = self.active_box
+        frames = torch.broadcast_to(self.background.to(active.dtype), (active.shape[0], *self.background.shape))
+        video = frames.clone()
+        video[:, y0:y1, x0:x1] = active
+        return video
 
     def active_video(self, grid: "torch.Tensor") -> "torch.Tensor":
         """:meth:`video` inside :attr:`active_box`: float tensor [T, y1 - y0, x1 - x0] (the same bits, computed
@@ -268,7 +297,7 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     Returns:
         ``(spec, sensor)``: the scene (``seed`` resolves jitter, light and background inside
         :func:`~davis_rig.scene.scene.render_clip`) and ``{"threshold", "threshold_sigma", "noise_rate_hz",
-        "sensor_seed"}``.
+        "sensor_seed", "test_sensor"}`` (``test_sensor``: the evaluation's ideal sensor was drawn).
     """
     rng = np.random.default_rng([_SEED_SALT, int(seed)])
     shapes = config.shapes if config.shapes is not None else split_shapes(num_shapes)[0]
@@ -290,7 +319,8 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
         background = float(rng.uniform(*config.background_level_range))
     spec = SceneSpec(
         shape_index=shape, motion=motion, motion_start_s=start_s, playback_speed=config.playback_speed,
-        advance=advance, heading_rad=heading, scale=config.scale, offset_m=offset, camera=config.camera,
+        advance=advance, walk=config.walk, heading_rad=heading, scale=config.scale, offset_m=offset,
+        camera=config.camera,
         jitter=config.jitter, light=light,
         background=background, render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
         supersample=config.supersample, seed=int(rng.integers(2**62)),
@@ -300,7 +330,11 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
         "threshold_sigma": float(config.threshold_sigma),
         "noise_rate_hz": float(rng.uniform(*config.shot_noise_rate_hz)),
         "sensor_seed": int(rng.integers(2**62)),
+        "test_sensor": False,
     }
+    # drawn last: the draws above (scene and sensor) are the same whatever the probability
+    if config.test_sensor_probability > 0 and rng.random() < config.test_sensor_probability:
+        sensor.update(threshold=TEST_THRESHOLD, threshold_sigma=0.0, noise_rate_hz=0.0, test_sensor=True)
     return spec, sensor
 
 
@@ -357,21 +391,24 @@ def prepare_clip(
     device = clip.raster.coverage.device
     active_box = _active_box(clip.raster.coverage)
     background = torch.as_tensor(clip.background, device=device)
-    backdrop = clip.raster.backdrop(background)
-    # a step needs only sample_pixel and shade (RasterizedMesh.person) once the texel lookup and the backdrop are
-    # built: drop the per-sample UVs, faces and sample indices and the coverage (half of a clip's memory)
-    raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None, coverage=None)
+    backdrop = clip.raster.backdrop(background)  # [T, H, W]: only its active box is kept
     y0, y1, x0, x1 = active_box
     frame_px = h * w
-    frame, row, col = raster.sample_pixel // frame_px, raster.sample_pixel % frame_px // w, raster.sample_pixel % w
+    pixel = clip.raster.sample_pixel
+    frame, row, col = pixel // frame_px, pixel % frame_px // w, pixel % w
     active_pixel = (frame * (y1 - y0) + row - y0) * (x1 - x0) + col - x0
+    # a step needs only the shade (RasterizedMesh.person into the active box) once the texel lookup, the backdrop
+    # and the active pixels are built: drop the per-sample UVs, faces, sample indices and full-frame pixels and the
+    # coverage (with the full-frame backdrop, ~60 % of a clip's memory: 24 -> 10 MB at 10 x 10, middle scale)
+    raster = dataclasses.replace(clip.raster, face=None, uv=None, sample_index=None, coverage=None, sample_pixel=None)
     return PoolClip(
-        seed=int(seed), spec=spec, raster=raster, lookup=lookup, background=background, backdrop=backdrop,
+        seed=int(seed), spec=spec, raster=raster, lookup=lookup, background=background,
         t_us=t_us, window_end_us=ends, boxes=boxes, threshold=torch.as_tensor(theta, device=device),
         noise_cell=torch.as_tensor(noise_cell, device=device),
         noise_count=torch.as_tensor(noise_count.astype(np.float32), device=device), active_box=active_box,
         active_backdrop=backdrop[:, y0:y1, x0:x1].contiguous(), active_pixel=active_pixel,
         window_us=int(config.window_us),
+        base_threshold=None if sensor["threshold_sigma"] > 0 else float(sensor["threshold"]),
     )
 
 
@@ -399,13 +436,15 @@ class ClipPool:
         rank, world_size: this process owns the slots ``i`` with ``i % world_size == rank`` (DDP).
         generations: int [size] generation of each slot (a checkpoint's ``state_dict()["generations"]``);
             default zeros.
+        on_clip: called after each clip built here (progress; an exception it raises stops the building).
 
     Raises:
         ValueError: size < world_size or bad rank.
     """
 
     def __init__(self, config: EoTConfig, model, grid_n: int, mask=None, *, size: int = 32, base_seed: int = 0,
-                 motions: Sequence[Motion] = (), rank: int = 0, world_size: int = 1, generations=None):
+                 motions: Sequence[Motion] = (), rank: int = 0, world_size: int = 1, generations=None,
+                 on_clip: Callable[[], None] | None = None):
         if int(world_size) < 1 or not 0 <= int(rank) < int(world_size):
             raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
         if int(size) < int(world_size):
@@ -427,6 +466,8 @@ class ClipPool:
         self.clips: dict[int, PoolClip] = {}
         for slot in self.owned.tolist():
             self._build(slot)
+            if on_clip is not None:
+                on_clip()
 
     def _build(self, slot: int) -> None:
         seed = slot_seed(self.base_seed, slot, int(self.generations[slot]))

@@ -3,8 +3,9 @@
 Protocol (paper, Experiments; official code where the paper is silent):
 
 - **Test scenes**: body shapes of the test split (:func:`davis_rig.attack.eot.split_shapes`, never used in
-  training) and their walk cycles (or given test motions, e.g. the AMASS test split of
-  :mod:`davis_rig.scene.mocap.splits`), several headings and start phases, each at the three camera scales
+  training) and their walks (the gait generator's natural walk by default, ``walk``), or given test motions (e.g.
+  the AMASS test split of :mod:`davis_rig.scene.mocap.splits`), several headings and start phases, each at the
+  three camera scales
   (:data:`~davis_rig.scene.camera.TEST_SCALES_PX`: large / middle / small); the person walks across a blank
   grey background under the toolkit's default light. :meth:`EvalConfig.official` is the official renders' scene
   instead: blank white background (PyTorch3D's default), its light, the body walking in place. Every scene is
@@ -36,11 +37,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
 from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
 from davis_rig.scene.camera import PinholeCamera
-from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, Motion, SceneSpec
+from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
@@ -56,6 +57,7 @@ __all__ = [
     "TextureSpec",
     "EVENT_MODELS",
     "EVENT_MODEL_NAMES",
+    "detect_histograms",
     "detect_windows",
     "evaluate_textures",
     "prepare_scenes",
@@ -99,8 +101,10 @@ class EvalConfig:
         nms_threshold: class-wise NMS IoU threshold.
         background: uniform background level (default 0.5 grey; the official renders are blank white, 1.0).
         light: the scene light (``None`` = the toolkit's default :class:`~davis_rig.scene.shading.Light`).
-        walk_in_place: the walk cycle stays in place (the official code drops the global translation); False =
+        walk_in_place: the walk stays in place (the official code drops the global translation); False =
             the person walks forward across the view.
+        walk: the walk without test motions (:data:`~davis_rig.scene.scene.WALKS`): ``"natural"`` (default, the
+            gait generator's 1.3 m/s) or ``"bundled"`` (the asset's cycle, the walk of the tables measured before).
         render_rate_hz, supersample: rendering.
         simulator: the exact simulator's settings (ideal sensor by default; its thresholds are θ of the relaxed
             model too).
@@ -122,6 +126,7 @@ class EvalConfig:
     background: float = 0.5
     light: Light | None = None
     walk_in_place: bool = False
+    walk: str = "natural"
     render_rate_hz: float = MIN_RENDER_RATE_HZ
     supersample: int = 2
     simulator: SimulatorConfig = field(default_factory=SimulatorConfig)
@@ -136,12 +141,26 @@ class EvalConfig:
         return cls(**{"background": 1.0, "light": Light.official(), "walk_in_place": True, **overrides})
 
     def __post_init__(self) -> None:
-        if int(self.seq_len) < 1 or int(self.warmup_windows) < 0:
-            raise ValueError(f"need seq_len >= 1 and warmup_windows >= 0, got {self.seq_len}, {self.warmup_windows}")
+        from davis_rig.scene.camera import TEST_SCALES_PX
+
+        def refuse(name: str, reason: str) -> None:
+            raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")
+
+        if int(self.seq_len) < 1:
+            refuse("seq_len", "expected an integer >= 1")
+        if int(self.warmup_windows) < 0:
+            refuse("warmup_windows", "expected an integer >= 0")
         if not self.thresholds or any(not 0 <= t <= 1 for t in self.thresholds):
-            raise ValueError(f"thresholds must be non-empty and in [0, 1], got {self.thresholds}")
+            refuse("thresholds", "expected one or more numbers in [0, 1]")
         if self.events not in EVENT_MODELS:
-            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
+            refuse("events", f"expected one of {EVENT_MODELS}")
+        if not self.scales or any(s not in TEST_SCALES_PX if isinstance(s, str) else not (math.isfinite(s) and s > 0)
+                                  for s in self.scales):
+            refuse("scales", f"expected names from {tuple(TEST_SCALES_PX)} or heights in px > 0")
+        if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
+            refuse("playback_speed", "expected a finite number > 0")
+        if self.walk not in WALKS:
+            refuse("walk", f"expected one of {WALKS}")
 
     @property
     def num_windows(self) -> int:
@@ -210,6 +229,7 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
                         out.append((scale, SceneSpec(
                             shape_index=int(shape), motion=motion, motion_start_s=float(phase),
                             playback_speed=float(config.playback_speed), advance=not config.walk_in_place,
+                            walk=config.walk,
                             heading_rad=float(heading), scale=scale,
                             camera=config.camera, light=config.light, background=float(config.background),
                             render_rate_hz=config.render_rate_hz, duration_s=config.duration_s,
@@ -217,21 +237,27 @@ def evaluation_scenes(config: EvalConfig, num_shapes: int,
     return out
 
 
-def prepare_scenes(specs: Sequence[tuple[object, SceneSpec]], model, config: EvalConfig) -> list[EvalScene]:
+def prepare_scenes(specs: Sequence[tuple[object, SceneSpec]], model, config: EvalConfig, *,
+                   progress: bool = False) -> list[EvalScene]:
     """Pose and rasterize the test scenes once (no autograd).
 
     Args:
         specs: ``(scale, SceneSpec)`` pairs (:func:`evaluation_scenes`).
         model: :class:`~davis_rig.scene.body.BodyModel`.
         config: the evaluation settings.
+        progress: show a tqdm bar (stderr).
 
     Returns:
         list of :class:`EvalScene`.
     """
+    import sys
+
+    from tqdm import tqdm
+
     from davis_rig.scene.scene import render_clip
 
     scenes = []
-    for scale, spec in specs:
+    for scale, spec in tqdm(specs, disable=not progress, desc="preparing test scenes", unit="scene", file=sys.stderr):
         with torch.no_grad():
             clip = render_clip(spec, None, model=model)
         t_us = np.asarray(clip.t_us, dtype=np.int64)
@@ -333,6 +359,31 @@ def detect_windows(detector, video, t_us, window_end_us, simulator: SimulatorCon
             out, states = detector(x, states)
             decoded.append(out[0].float().cpu().numpy())
     return decoded, hist
+
+
+def detect_histograms(detector, hists: Sequence["torch.Tensor"], device=None) -> list[list[np.ndarray]]:
+    """The detector over the windows of several sequences at once, recurrent states per sequence.
+
+    Args:
+        detector: :class:`~davis_rig.models.rvt.detector.RVTDetector` (eval mode).
+        hists: per sequence a tensor [W, 20, H, W] of counts (all the same shape).
+        device: torch device of the detector (default: its parameters').
+
+    Returns:
+        per sequence, per window: the head's decoded float32 [A, 5 + nc] array.
+    """
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    device = next(detector.parameters()).device if device is None else torch.device(device)
+    batch = torch.stack([torch.as_tensor(h) for h in hists], dim=1).to(device=device, dtype=torch.float32)
+    decoded, states = [[] for _ in hists], None
+    with torch.no_grad():
+        for k in range(batch.shape[0]):
+            out, states = detector(pad_to_input(batch[k], detector.config.in_res_hw), states)
+            out = out.float().cpu().numpy()
+            for i in range(len(hists)):
+                decoded[i].append(out[i])
+    return decoded
 
 
 def _label_boxes(box: np.ndarray, t_us: int) -> np.ndarray:
@@ -544,7 +595,7 @@ def table1(optimized: Mapping[int, np.ndarray], detector, out_dir: str | Path, *
     for n in sorted(optimized, reverse=True):
         grid = np.asarray(optimized[n], dtype=np.float32)
         textures[f"ours {n}x{n}"] = TextureSpec(grid, tuple(parts) if parts else None)
-    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config, progress=progress)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table1",
                        f"Table 1: baselines vs optimized textures (digital, {EVENT_MODEL_NAMES[config.events]})",
@@ -570,7 +621,7 @@ def table2(optimized: Mapping[str, np.ndarray], detector, out_dir: str | Path, *
     model = model or BodyModel()
     textures = {key: TextureSpec(np.asarray(grid, dtype=np.float32), tuple(key.split("+")))
                 for key, grid in optimized.items()}
-    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config)
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes, motions), model, config, progress=progress)
     rows = evaluate_textures(textures, detector, scenes, config, progress=progress)
     return write_table(rows, config.thresholds, out_dir, "table2",
                        f"Table 2: body-part combinations (10x10, {EVENT_MODEL_NAMES[config.events]})",

@@ -40,7 +40,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, MissingDependencyError, ShapeError
 from davis_rig.scene.body import PART_NAMES, BodyAsset
 
 __all__ = [
@@ -146,7 +146,7 @@ def load_texture_grid(path: str | Path, n_cells: int | None = None) -> np.ndarra
 
     Raises:
         FileNotFoundError: no such file. FormatError: unreadable file, non-square texture, or a map whose
-        grid cannot be detected (pass ``n_cells``). ValueError: bad n_cells.
+        grid cannot be detected (pass ``n_cells``). ConfigError: bad n_cells.
     """
     path = Path(path)
     if not path.is_file():
@@ -172,7 +172,8 @@ def load_texture_grid(path: str | Path, n_cells: int | None = None) -> np.ndarra
     if n_cells is not None:
         n = int(n_cells)
         if not 1 <= n <= min(size, MAX_GRID_CELLS):
-            raise ValueError(f"n_cells must be in [1, {min(size, MAX_GRID_CELLS)}] for a {size}^2 texture, got {n_cells}")
+            raise ConfigError("n_cells", f"expected an integer in [1, {min(size, MAX_GRID_CELLS)}] for a {size}^2 "
+                                         f"texture, got {n_cells}")
         return grid_from_map(image, n) if n != size else (image > 0.5).astype(np.float32)
     if size <= MAX_GRID_CELLS:
         return (image > 0.5).astype(np.float32)
@@ -351,12 +352,13 @@ def pattern_pieces(
         list of :class:`PatternPiece`, in part order then by decreasing island size.
 
     Raises:
-        ValueError: unknown part or stretch mode, conflicting or non-positive sizes, no faces.
+        ConfigError (a ValueError): an unknown part, a non-positive size or ease, a shape outside the asset.
+        ValueError: unknown stretch mode, conflicting sizes, no faces.
     """
     parts = tuple(dict.fromkeys(parts))
     unknown = [p for p in parts if p not in PART_NAMES]
     if unknown or not parts:
-        raise ValueError(f"parts must be a non-empty list of {PART_NAMES}, got {list(parts)}")
+        raise ConfigError("parts", f"expected a non-empty list of {PART_NAMES}, got {list(parts)}")
     if stretch not in ("median", "area"):
         raise ValueError(f"stretch must be 'median' or 'area', got {stretch!r}")
     if texture_mm is not None and cell_mm is not None:
@@ -364,17 +366,18 @@ def pattern_pieces(
     user_scale = None
     if texture_mm is not None:
         if not texture_mm > 0:
-            raise ValueError(f"texture_mm must be > 0, got {texture_mm}")
+            raise ConfigError("texture_mm", f"expected a number > 0, got {texture_mm}")
         user_scale = float(texture_mm)
     if cell_mm is not None:
         if not cell_mm > 0 or n_cells is None or int(n_cells) < 1:
-            raise ValueError(f"cell_mm must be > 0 and needs n_cells >= 1, got cell_mm={cell_mm}, n_cells={n_cells}")
+            raise ConfigError("cell_mm", f"expected a number > 0 (and n_cells >= 1), got cell_mm={cell_mm}, "
+                                         f"n_cells={n_cells}")
         user_scale = float(cell_mm) * int(n_cells)
     if not ease > 0:
-        raise ValueError(f"ease must be > 0, got {ease}")
+        raise ConfigError("ease", f"expected a number > 0, got {ease}")
     asset = BodyAsset.load() if asset is None else asset
     if not 0 <= int(shape_index) < asset.num_shapes:
-        raise IndexError(f"shape_index {shape_index} outside [0, {asset.num_shapes})")
+        raise ConfigError("shape_index", f"expected a shape in [0, {asset.num_shapes}), got {shape_index}")
     uv_all = asset.face_uvs.astype(np.float64)
     verts = asset.rest_vertices_m[int(shape_index)].astype(np.float64)[asset.faces]
     area_3d_mm2 = 0.5 * np.linalg.norm(np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0]), axis=1) * 1e6

@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from davis_rig.attack.loss import AdversarialLoss, adversarial_loss
+from davis_rig.attack.loss import AdversarialLoss, adversarial_loss, anchor_cells, anchors_on_boxes
 from davis_rig.errors import MissingDependencyError, ShapeError
 
 try:
@@ -54,8 +54,8 @@ class DetectorLoss(torch.nn.Module):
         config: the :class:`~davis_rig.attack.optimize.AttackConfig` (loss weights, reduction, box margin,
             precision: ``"bf16"`` autocasts the detector, with the autocast cache off as CUDA graphs need).
 
-    ``forward(x)`` or, with ``config.box_margin_px`` set, ``forward(x, boxes)`` (boxes float [W, B, 4] in input
-    pixels, NaN = no person) returns the :class:`~davis_rig.attack.loss.AdversarialLoss` fields as a tuple of
+    ``forward(x)`` or, with ``config.box_margin_px`` set or ``config.loss_anchors == "person"``, ``forward(x, boxes)``
+    (boxes float [W, B, 4] in input pixels, NaN = no person) returns the :class:`~davis_rig.attack.loss.AdversarialLoss` fields as a tuple of
     0-dim tensors ``(total, obj, cls, num_anchors)``.
     """
 
@@ -67,6 +67,10 @@ class DetectorLoss(torch.nn.Module):
         self.reduction = config.loss_reduction
         self.box_margin_px = config.box_margin_px
         self.bf16 = config.precision == "bf16"
+        self.person_anchors = config.loss_anchors == "person"
+        device = next(detector.parameters()).device
+        self.register_buffer("cells", anchor_cells(detector.config.in_res_hw, detector.config.head_strides,
+                                                   device=device), persistent=False)
 
     def forward(self, x: "torch.Tensor", boxes: "torch.Tensor | None" = None) -> tuple:
         from davis_rig.models.rvt.detector import pad_to_input
@@ -77,8 +81,11 @@ class DetectorLoss(torch.nn.Module):
             for w in range(x.shape[0]):
                 out, states = self.detector(pad_to_input(x[w], self.detector.config.in_res_hw), states)
                 decoded.append(out.float())
-        loss = adversarial_loss(decoded, self.lambda_obj, self.lambda_cls, boxes=boxes,
-                                box_margin_px=self.box_margin_px or 0.0, reduction=self.reduction)
+        on_person = anchors_on_boxes(self.cells, boxes) if self.person_anchors else None
+        loss = adversarial_loss(decoded, self.lambda_obj, self.lambda_cls,
+                                boxes=boxes if self.box_margin_px is not None else None,
+                                box_margin_px=self.box_margin_px or 0.0, reduction=self.reduction,
+                                anchor_mask=on_person)
         return loss.total, loss.obj, loss.cls, loss.num_anchors
 
 
@@ -130,7 +137,7 @@ class FixedShapeAttackLoss:
         x = torch.stack([clip_histograms(grid, c, config.v2e_mode, config.v2e_binning, config.v2e_gradient)
                          for c in clips], dim=1).to(self.device)
         args = (x,)
-        if config.box_margin_px is not None:
+        if config.box_margin_px is not None or config.loss_anchors == "person":
             args += (torch.as_tensor(np.stack([c.boxes for c in clips], axis=1), device=self.device),)
         shapes = tuple(tuple(a.shape) for a in args)
         if self._run is None:

@@ -1,12 +1,13 @@
-"""Gradient-free refinement of a hard texture: greedy cell flips scored with the exact event simulator.
+"""Gradient-free refinement of a hard texture: greedy cell flips scored with exact event counts.
 
 Beyond the paper. The attack's gradient reaches the texture through binarization, the event counts' surrogate and
 RVT, and on the detectors measured here it is a weak guide (``docs/attack.md``: single-cell flips beat it on every
 probed clip). After the gradient phase, :func:`refine_texture` therefore runs a coordinate descent over the cells of
-the hard grid: flip one cell, score the grid on a set of EoT clips with the exact simulator (the same scoring as
-validation), keep the flip if the mean top pedestrian score (highest ``obj * p_ped`` per window, the number that must
-fall below the confidence threshold) falls. Only cells that some clip actually shows inside the part mask are
-tried. Cost: one scoring of all refinement clips per tried cell and pass.
+the hard grid: flip one cell, score the grid on a set of EoT clips with exact event counts (the scoring validation
+selects by: each clip's own sensor, :func:`davis_rig.attack.optimize.validate`), keep the flip if the mean top
+pedestrian score (highest ``obj * p_ped`` per window, the number that must fall below the confidence threshold)
+falls. Only cells that some clip actually shows inside the part mask are tried. Cost: one scoring of all
+refinement clips per tried cell and pass.
 """
 
 from __future__ import annotations

@@ -14,6 +14,20 @@ import os
 import shlex
 import sys
 
+from davis_rig.cli._common import (
+    add_detector,
+    add_out,
+    add_quiet,
+    add_threads,
+    add_threshold,
+    epilog,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    probability,
+)
+
 OPTIMIZE_EPILOG = """\
 examples:
   davis-attack optimize --out runs/n10 --cells 10               # paper: 11,500 steps, full body, bundled detector
@@ -22,7 +36,9 @@ examples:
   torchrun --nproc_per_node 4 -m davis_rig.cli.attack optimize --out runs/n10_ddp --clips-per-step 8   # DDP
 
 RUN_DIR gets log.jsonl (loss, obj, cls, alpha per step; validation SeqASR), snapshots/step_*.png, checkpoints/
-last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Under torchrun
+last.pt, best_texture.npy/png + best.json (best validation SeqASR) and texture.npy/png (final). Ctrl-C or SIGTERM
+finishes the current step, writes the checkpoint and exits 130; --resume then continues from that very step
+(the same losses as a run that was never stopped). Under torchrun
 (WORLD_SIZE > 1) the process group is initialised from the environment: nccl on CUDA, gloo on CPU.
 """
 
@@ -56,38 +72,130 @@ counts instead, to compare with the paper's numbers).
 """
 
 
-def _detector_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--detector", default=None, metavar="CKPT",
-                        help="RVT checkpoint (.ckpt/.pt/.safetensors, official RVT included); default: the bundled one")
-    parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch (default: torch's)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+#: Body parts of ``--parts`` (:data:`davis_rig.scene.body.PART_NAMES`) and ``all`` (the whole body, no mask).
+PART_CHOICES = ("torso", "arms", "legs", "head", "hands", "feet", "all")
+#: Binarization schedules of ``--alpha-schedule`` (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+ALPHA_SCHEDULE_CHOICES = ("linear", "cosine", "step", "hard", "soft")
+#: Learning-rate schedules of ``--lr-schedule`` (:data:`davis_rig.attack.lr_schedule.LR_SCHEDULES`).
+LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
+#: Named camera scales of ``--scales`` (:data:`davis_rig.scene.camera.TEST_SCALES_PX`).
+SCALE_NAMES = ("large", "middle", "small")
+#: Library field -> the option that sets it: a :class:`~davis_rig.errors.ConfigError` names the option.
+CONFIG_OPTIONS = {
+    "grid_n": "--cells", "iterations": "--iterations", "clips_per_step": "--clips-per-step",
+    "pool_size": "--pool-size", "refresh_every": "--refresh-every", "lr": "--lr", "lr_min": "--lr-min",
+    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule",
+    "validate_every": "--validate-every", "num_validation_clips": "--val-clips", "checkpoint_every": "--checkpoint-every",
+    "box_margin_px": "--box-margin", "refine_passes": "--refine-passes", "refine_clips": "--refine-clips",
+    "playback_speed": "--playback-speed", "thresholds": "--threshold", "device": "--device", "parts": "--parts",
+    "scales": "--scales", "n_cells": "--cells", "shape_index": "--shape", "ease": "--ease", "texture_mm": "--size-mm",
+    "cell_mm": "--cell-mm",
+}  # fmt: skip
+
+
+#: Largest --cells (:data:`davis_rig.attack.texture.MAX_CELLS`).
+MAX_CELLS = 256
+
+
+def _cells(text: str) -> int:
+    """``--cells``: grid cells per side, an integer in [1, :data:`MAX_CELLS`]."""
+    value = positive_int(text)
+    if value > MAX_CELLS:
+        raise argparse.ArgumentTypeError(f"expected an integer in [1, {MAX_CELLS}], got {text!r}")
+    return value
+
+
+def _device_name(text: str) -> str:
+    """``--device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is checked when the command runs)."""
+    kind, _, index = text.partition(":")
+    if text == "auto" or (kind in ("cpu", "cuda") and (not index or (kind == "cuda" and index.isdigit()))):
+        return text
+    raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
+
+
+def _scale(text: str) -> str | float:
+    """``--scales``: a scale name or a person height in px (> 0)."""
+    if text in SCALE_NAMES:
+        return text
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected {', '.join(SCALE_NAMES)} or a height in px > 0, "
+                                         f"got {text!r}") from None
+
+
+def _texture_item(text: str) -> tuple[str, str]:
+    """``--texture KEY=PATH``."""
+    key, sep, path = text.partition("=")
+    if not sep or not key or not path:
+        raise argparse.ArgumentTypeError(f"expected KEY=PATH, got {text!r}")
+    return key, path
+
+
+def _combination(text: str) -> tuple[str, ...]:
+    """``--combinations``: paintable parts joined by '+' (torso, arms, legs)."""
+    parts = tuple(text.split("+"))
+    if not all(p in PART_CHOICES[:3] for p in parts) or len(set(parts)) != len(parts):
+        raise argparse.ArgumentTypeError(f"expected parts from torso, arms, legs joined by '+', got {text!r}")
+    return parts
+
+
+def _common_run_args(parser: argparse.ArgumentParser) -> None:
+    """--detector, --device, --threads, --quiet (hidden --no-progress) and the motion sources."""
+    add_detector(parser, metavar="CKPT", help="RVT checkpoint (.ckpt/.pt/.safetensors, official RVT included); "
+                                              "default: the bundled detector")
+    parser.add_argument("--device", type=_device_name, default="auto",
+                        help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
+    add_threads(parser, help="CPU threads of torch (default: torch's)")
+    add_quiet(parser, help="no progress output on stderr")
     mocap = parser.add_mutually_exclusive_group()
     mocap.add_argument("--amass", default=None, metavar="DIR",
                        help="AMASS CMU folder: optimize draws train-split motions, evaluate uses test-split motions "
                             "(default: the body shapes' walk cycles)")
     mocap.add_argument("--bvh", default=None, metavar="DIR",
                        help="CMU BVH folder (DIR/<subject>/<subject>_<trial>.bvh): as --amass, same trial split")
-    parser.add_argument("--max-trials", type=int, default=None,
+    parser.add_argument("--max-trials", type=positive_int, default=None, metavar="N",
                         help="with --amass or --bvh: use the first N trials of the split")
 
 
 def _budget_args(p: argparse.ArgumentParser) -> None:
     """The optimisation budget and settings shared by ``optimize`` and ``reproduce``."""
-    p.add_argument("--iterations", type=int, default=11_500,
+    p.add_argument("--iterations", type=positive_int, default=11_500,
                    help="optimisation steps (default: 11500); may change on resume, but the alpha schedule then runs "
                         "over the new total: extending a finished 300-step run to 11500 drops alpha from 1 back "
                         "to about 0.03")
-    p.add_argument("--clips-per-step", type=int, default=1, help="EoT clips per step over all ranks (default: 1)")
-    p.add_argument("--pool-size", type=int, default=32, help="pre-rasterized clips in the pool (default: 32)")
-    p.add_argument("--refresh-every", type=int, default=50, help="pool refresh period in steps (default: 50)")
-    p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: 1e-4)")
-    p.add_argument("--alpha-schedule", default="linear",
+    p.add_argument("--clips-per-step", type=positive_int, default=1,
+                   help="EoT clips per step over all ranks (default: 1)")
+    p.add_argument("--pool-size", type=positive_int, default=32, help="pre-rasterized clips in the pool (default: 32)")
+    p.add_argument("--refresh-every", type=positive_int, default=50,
+                   help="pool refresh period in steps (default: 50)")
+    p.add_argument("--lr", type=positive_float, default=1e-4, help="Adam learning rate (default: 1e-4)")
+    p.add_argument("--lr-schedule", choices=LR_SCHEDULE_CHOICES, default="cosine_restarts",
+                   help="cosine_restarts (default, the official code's: cosine from --lr down to --lr-min over "
+                        "--lr-period steps, then a warm restart) or constant (--lr at every step)")
+    p.add_argument("--lr-min", type=non_negative_float, default=1e-7, help="floor of the cosine (default: 1e-7)")
+    p.add_argument("--lr-period", type=positive_int, default=None, metavar="STEPS",
+                   help="steps of one cosine (default: --iterations, one cosine over the run as the official "
+                        "11,500-step run)")
+    p.add_argument("--alpha-schedule", choices=ALPHA_SCHEDULE_CHOICES, default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
-    p.add_argument("--validate-every", type=int, default=1000, help="validation period in steps (default: 1000)")
-    p.add_argument("--val-clips", type=int, default=16, help="validation clips (default: 16)")
-    p.add_argument("--box-margin", type=float, default=None, metavar="PX",
+    p.add_argument("--validate-every", type=positive_int, default=1000,
+                   help="validation period in steps (default: 1000)")
+    p.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="STEPS",
+                   help="write checkpoints/last.pt every STEPS steps (default: every 5 minutes of work); a "
+                        "checkpoint is also written after the last step of a call and on Ctrl-C / SIGTERM, "
+                        "which then stops with exit code 130")
+    p.add_argument("--val-clips", type=positive_int, default=64,
+                   help="validation clips (default: 64), each scored as trained and as tested")
+    p.add_argument("--test-sensor-probability", type=probability, default=0.5, metavar="P",
+                   help="share of the training and validation clips whose sensor is the evaluation's ideal one "
+                        "(theta 0.2, no mismatch, no noise) instead of the EoT's noisy sensors (default 0.5; 0: the "
+                        "former EoT)")
+    p.add_argument("--box-margin", type=non_negative_float, default=None, metavar="PX",
                    help="score only anchors within PX of the person's box (default: all anchors, paper)")
+    p.add_argument("--loss-anchors", choices=["all", "person"], default="all",
+                   help="anchors the loss scores: all (paper; on the detectors trained here > 98 %% of it is the "
+                        "background anchors' p_ped) or person (the anchors whose cell overlaps the person's box)")
     p.add_argument("--loss", choices=["mean", "top"], default="mean",
                    help="mean: obj and p_ped averaged over all scored anchors (paper); top: the highest-confidence "
                         "anchor per window and clip (stronger signal on detectors with busy backgrounds)")
@@ -96,16 +204,16 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "straight-through floor (ste); the forward counts are the same (docs/attack.md)")
     p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32",
                    help="detector autocast: bf16 is faster on recent GPUs (default fp32)")
-    p.add_argument("--refine-passes", type=int, default=0,
+    p.add_argument("--refine-passes", type=non_negative_int, default=0,
                    help="after the last step, sweeps of greedy cell flips starting from the better of the best "
-                        "texture and plain white, each flip scored with the exact simulator (default 0: none, the "
-                        "paper)")
-    p.add_argument("--refine-clips", type=int, default=8,
+                        "texture and plain white, each flip scored as validation selects (the clips' own sensors) "
+                        "(default 0: none, the paper)")
+    p.add_argument("--refine-clips", type=positive_int, default=8,
                    help="EoT clips that score the refinement's flips (default 8)")
     p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
-                   help="best texture on validation: seqasr (paper: SeqASR, then mean top score) or score (mean "
-                        "top score alone; finer with few validation clips)")
-    p.add_argument("--seed", type=int, default=0, help="seed of init, dropout, pool and sampling")
+                   help="best texture on validation, scored as trained: seqasr (paper: SeqASR, then mean top "
+                        "score) or score (mean top score alone; finer with few validation clips)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of init, dropout, pool and sampling")
 
 
 SCENES = ("toolkit", "official")
@@ -122,7 +230,11 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
                         "in training and test, as the paper's numbers were made; not events; training takes the "
                         "straight-through gradient of the relaxed counts, replacing --v2e-gradient, and one "
                         "threshold per clip: no per-pixel threshold mismatch)")
-    p.add_argument("--playback-speed", type=float, default=1.0,
+    p.add_argument("--walk", choices=["natural", "bundled"], default="natural",
+                   help="the walk of training and test scenes without --amass/--bvh: natural (default: the gait "
+                        "generator's 1.3 m/s, ~2 steps/s, feet on the ground in every frame) or bundled (the body "
+                        "asset's cycle: 0.53 m/s, 1.2 steps/s, crouched; the walk of every table measured before)")
+    p.add_argument("--playback-speed", type=positive_float, default=1.0,
                    help="motion seconds per clip second in training and test (default 1: real time; the official "
                         "code's 10 frames of 120 fps motion per 50 ms window are 1.667)")
 
@@ -130,11 +242,15 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
 def _scene_args(p: argparse.ArgumentParser) -> None:
     """The test scenes and thresholds shared by ``evaluate`` and ``reproduce``."""
     _scene_kind_arg(p)
-    p.add_argument("--thresholds", type=float, nargs="+", default=None, help="confidence thresholds")
-    p.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
+    add_threshold(p, aliases=("--thresholds",),
+                  help="confidence threshold (default: 0.001, 0.01, 0.1, 0.25 for Table 1 and named textures, "
+                       "0.25 for Table 2)")
+    p.add_argument("--scales", type=_scale, nargs="+", default=list(SCALE_NAMES), metavar="SCALE",
+                   help="camera scales: large, middle, small or a person height in px (default: all three names)")
     p.add_argument("--headings", type=int, choices=[1, 2, 4], default=4,
                    help="person headings per shape: 1, 2 or 4 (default 4)")
-    p.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+    p.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0, 0.5], metavar="S",
+                   help="start times into the walk (s, default 0 0.5)")
 
 
 _HEADINGS_RAD = {1: (math.pi / 2,), 2: (math.pi / 2, -math.pi / 2), 4: (math.pi / 2, -math.pi / 2, 0.0, math.pi)}
@@ -143,76 +259,118 @@ _HEADINGS_RAD = {1: (math.pi / 2,), 2: (math.pi / 2, -math.pi / 2), 4: (math.pi 
 def _eval_config(args, default_thresholds):
     from davis_rig.attack.evaluate import EvalConfig
 
-    scales = tuple(float(s) if s.replace(".", "", 1).isdigit() else s for s in args.scales)
     make = EvalConfig.official if args.scene == "official" else EvalConfig
-    return make(scales=scales, thresholds=tuple(args.thresholds or default_thresholds),
+    return make(scales=tuple(args.scales), thresholds=tuple(args.threshold or default_thresholds),
                 headings_rad=_HEADINGS_RAD[args.headings], phases=tuple(args.phases), events=args.events,
-                playback_speed=args.playback_speed)
+                playback_speed=args.playback_speed, walk=args.walk)
+
+
+def _subparser(subparsers, name: str, help: str, description: str, examples: str) -> argparse.ArgumentParser:
+    return subparsers.add_parser(name, help=help, description=description, epilog=epilog(examples),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
 def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``optimize`` on a subparsers object; the action is stored as ``func``."""
-    p = subparsers.add_parser("optimize", help="optimise an adversarial texture (EoT, resumable, DDP)",
-                              description="Optimise a black/white adversarial texture against a frozen RVT.",
-                              epilog=OPTIMIZE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
-    p.add_argument("--cells", type=int, default=10, help="grid cells per side n (paper: 10 ... 60; default 10)")
-    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
-                   help="painted body parts (default: torso arms legs); 'all' = whole body without mask")
+    p = _subparser(subparsers, "optimize", "optimise an adversarial texture (EoT, resumable, DDP)",
+                   "Optimise a black/white adversarial texture against a frozen RVT.", OPTIMIZE_EPILOG)
+    add_out(p, required=True, metavar="RUN_DIR", help="run folder")
+    p.add_argument("--cells", type=_cells, default=10,
+                   help="grid cells per side n (paper: 10 ... 60; default 10)")
+    p.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
+                   help="painted body parts: torso, arms, legs, head, hands, feet (default: torso arms legs); "
+                        "'all' = whole body without mask")
     _budget_args(p)
     _scene_kind_arg(p)
-    p.add_argument("--max-steps", type=int, default=None, help="stop after N steps in this call (then --resume)")
+    p.add_argument("--max-steps", type=positive_int, default=None,
+                   help="stop after N steps in this call (then --resume)")
     p.add_argument("--resume", action="store_true",
-                   help="continue RUN_DIR/checkpoints/last.pt (a clean new run when there is none); without it "
-                        "RUN_DIR must not hold a run")
-    _detector_args(p)
-    p.set_defaults(func=optimize_command)
+                   help="continue RUN_DIR/checkpoints/last.pt at the step it holds (a clean new run when RUN_DIR "
+                        "holds no run); without it RUN_DIR must not hold a run")
+    _common_run_args(p)
+    p.set_defaults(func=optimize_command, check=_check_optimize)
     return p
 
 
 def add_evaluate_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``evaluate`` on a subparsers object; the action is stored as ``func``."""
-    p = subparsers.add_parser("evaluate", help="digital evaluation: AP and SeqASR, Tables 1 and 2",
-                              description="Score textures with the paper's digital protocol (exact simulator).",
-                              epilog=EVALUATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p = _subparser(subparsers, "evaluate", "digital evaluation: AP and SeqASR, Tables 1 and 2",
+                   "Score textures with the paper's digital protocol (exact simulator).", EVALUATE_EPILOG)
+    add_out(p, required=True, metavar="DIR", help="output folder")
     p.add_argument("--table", type=int, choices=[1, 2], default=None, help="reproduce Table 1 or Table 2")
-    p.add_argument("--texture", action="append", default=[], metavar="KEY=PATH",
+    p.add_argument("--texture", type=_texture_item, action="append", default=[], metavar="KEY=PATH",
                    help="texture file (.npy/.png, n x n or upsampled map); repeatable")
-    p.add_argument("--cells", type=int, default=None, metavar="N",
+    p.add_argument("--cells", type=positive_int, default=None, metavar="N",
                    help="grid cells per side of every --texture that is an upsampled map (default: detected)")
-    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts (Table 1 / named)")
+    p.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
+                   help="painted parts (Table 1 / named): torso, arms, legs, head, hands, feet, or all")
     _scene_args(p)
     p.add_argument("--visualise", action="store_true", help="also write event frames with boxes and a GIF")
-    _detector_args(p)
-    p.set_defaults(func=evaluate_command)
+    _common_run_args(p)
+    p.set_defaults(func=evaluate_command, check=_check_evaluate)
     return p
 
 
 def add_reproduce_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``reproduce`` on a subparsers object; the action is stored as ``func``."""
-    p = subparsers.add_parser("reproduce", help="optimize every texture of Table 1 or 2, then evaluate the table",
-                              description="Reproduce the paper's Table 1 or 2 with an explicit budget.",
-                              epilog=REPRODUCE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = _subparser(subparsers, "reproduce", "optimize every texture of Table 1 or 2, then evaluate the table",
+                   "Reproduce the paper's Table 1 or 2 with an explicit budget.", REPRODUCE_EPILOG)
     p.add_argument("--table", type=int, choices=[1, 2], required=True, help="Table 1 (grid sizes) or 2 (body parts)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (runs/ + table files)")
-    p.add_argument("--grids", type=int, nargs="+", default=None,
+    add_out(p, required=True, metavar="DIR", help="output folder (runs/ + table files)")
+    p.add_argument("--grids", type=_cells, nargs="+", default=None, metavar="N",
                    help="Table 1 grid sizes (default: 60 50 40 30 20 10)")
-    p.add_argument("--combinations", nargs="+", default=None, metavar="PARTS",
+    p.add_argument("--combinations", type=_combination, nargs="+", default=None, metavar="PARTS",
                    help="Table 2 part combinations joined by '+', e.g. legs torso+legs (default: all 7)")
     _budget_args(p)
     _scene_args(p)
-    _detector_args(p)
-    p.set_defaults(func=reproduce_command)
+    _common_run_args(p)
+    p.set_defaults(func=reproduce_command, check=_check_budget)
     return p
 
 
+def _check_budget(parser: argparse.ArgumentParser, args) -> None:
+    """Options of ``optimize`` and ``reproduce`` that must agree (checked before anything is loaded)."""
+    if args.clips_per_step > args.pool_size:
+        parser.error(f"argument --clips-per-step: {args.clips_per_step} exceeds --pool-size {args.pool_size}")
+    if args.lr_min > args.lr:
+        parser.error(f"argument --lr-min: {args.lr_min:g} exceeds --lr {args.lr:g}")
+
+
+def _check_optimize(parser: argparse.ArgumentParser, args) -> None:
+    _check_budget(parser, args)
+    _check_parts(parser, args)
+
+
+def _check_parts(parser: argparse.ArgumentParser, args) -> None:
+    if "all" in args.parts and len(args.parts) > 1:
+        parser.error("argument --parts: 'all' (the whole body) cannot be combined with other parts")
+
+
+def _check_evaluate(parser: argparse.ArgumentParser, args) -> None:
+    _check_parts(parser, args)
+    keys = [key for key, _ in args.texture]
+    if len(set(keys)) != len(keys):
+        parser.error(f"argument --texture: a KEY is given twice in {keys}")
+    if args.table == 1 and not all(k.isdigit() and int(k) >= 1 for k in keys):
+        parser.error(f"argument --texture: Table 1 keys are grid sizes (e.g. 10=path), got {keys}")
+    if args.table is None and not keys:
+        parser.error("argument --texture: give at least one --texture NAME=PATH (or --table 1 / 2)")
+
+
 def _device(name: str):
+    """The torch device of ``--device``; a device that is not there is a usage error naming the option."""
     import torch
+
+    from davis_rig.errors import ConfigError
 
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device", f"{name!r}: CUDA is not available on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError("device", f"{name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 def _init_distributed(device):
@@ -238,12 +396,16 @@ def _attack_config(args, grid_n: int, parts):
     # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed); they take
     # one threshold per clip, so the EoT's per-pixel threshold mismatch is off
     relaxed = args.events == "official_relaxed"
-    eot = make(playback_speed=args.playback_speed, **({"threshold_sigma": 0.0} if relaxed else {}))
+    eot = make(playback_speed=args.playback_speed, test_sensor_probability=args.test_sensor_probability,
+               walk=args.walk,
+               **({"threshold_sigma": 0.0} if relaxed else {}))
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
-                        refresh_every=args.refresh_every, lr=args.lr, alpha_schedule=args.alpha_schedule,
+                        refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,
+                        lr_min=args.lr_min, lr_period=args.lr_period, alpha_schedule=args.alpha_schedule,
                         validate_every=args.validate_every, num_validation_clips=args.val_clips,
-                        box_margin_px=args.box_margin, loss_reduction=args.loss,
+                        checkpoint_every=args.checkpoint_every,
+                        box_margin_px=args.box_margin, loss_anchors=args.loss_anchors, loss_reduction=args.loss,
                         v2e_mode="official_relaxed" if relaxed else "dvs",
                         v2e_gradient="ste" if relaxed else args.v2e_gradient, events=args.events,
                         precision=args.precision, refine_passes=args.refine_passes,
@@ -251,29 +413,56 @@ def _attack_config(args, grid_n: int, parts):
                         seed=args.seed)
 
 
-def optimize_command(args) -> int:
-    """Action of ``davis-attack optimize``: one :func:`davis_rig.attack.optimize.optimize_texture` call."""
-    import torch
+def _starting(command: str, args) -> None:
+    """The first progress line, before the imports and loads that take seconds."""
+    if not args.quiet:
+        print(f"davis-attack {command}: loading torch, the detector and the body model ...", file=sys.stderr,
+              flush=True)
 
-    from davis_rig.attack.optimize import load_attack_detector, optimize_texture
+
+def _interrupted(command: str, exc) -> int:
+    """Report a run stopped by Ctrl-C / SIGTERM (:class:`~davis_rig.attack.optimize.AttackInterrupted`)."""
+    print(f"davis-attack {command}: interrupted ({exc})", file=sys.stderr)
+    return 130
+
+
+def _set_threads(args) -> None:
+    import torch
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = _init_distributed(_device(args.device))
+
+
+def optimize_command(args) -> int:
+    """Action of ``davis-attack optimize``: one :func:`davis_rig.attack.optimize.optimize_texture` call."""
+    _starting("optimize", args)
+    import torch
+
+    from davis_rig.attack.optimize import AttackInterrupted, load_attack_detector, optimize_texture
+
+    _set_threads(args)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = _attack_config(args, args.cells, parts)
+    device = _init_distributed(_device(args.device))
     detector = load_attack_detector(args.detector, device=device)
     motions = _motions(args, "train")
     try:
         result = optimize_texture(config, detector, args.out, resume=args.resume, device=device, motions=motions,
-                                  progress=not args.no_progress, max_steps=args.max_steps)
+                                  progress=not args.quiet, max_steps=args.max_steps)
+    except AttackInterrupted as exc:
+        return _interrupted("optimize", exc)
     finally:
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
     if int(os.environ.get("RANK", "0")) == 0:
+        final = result.final_validation or {}
         print(json.dumps({"out_dir": str(result.out_dir), "steps": result.steps,
                           "seconds_per_step": result.seconds_per_step, "best_step": result.best_step,
-                          "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr}))
+                          "best_seq_asr": None if math.isnan(result.best_seq_asr) else result.best_seq_asr,
+                          "final_texture": {"train_top_score": final["train_top_score"],
+                                            "test_top_score": final["mean_top_score"],
+                                            "transfer_gap": final["transfer_gap"]} if "transfer_gap" in final
+                          else None}))
     return 0
 
 
@@ -294,68 +483,51 @@ def _command_line() -> str:
     return shlex.join(["davis-attack", *sys.argv[1:]])
 
 
-def _usage(message: str) -> int:
-    print(f"davis-attack evaluate: error: {message}", file=sys.stderr)
-    return 2
-
-
-def _parse_textures(items: list[str]) -> dict[str, str] | None:
-    out = {}
-    for item in items:
-        key, sep, path = item.partition("=")
-        if not sep or not key or not path:
-            return None
-        out[key] = path
-    return out
-
-
 def evaluate_command(args) -> int:
     """Action of ``davis-attack evaluate``: Table 1, Table 2 or named textures (one API call each)."""
-    import torch
+    from davis_rig.cli._common import removing_new_empty_dirs
 
+    _starting("evaluate", args)
     from davis_rig.attack import evaluate as ev
     from davis_rig.attack.export import load_texture_grid
     from davis_rig.attack.optimize import load_attack_detector
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = _device(args.device)
-    textures = _parse_textures(args.texture)
-    if textures is None:
-        return _usage(f"--texture expects KEY=PATH, got {args.texture}")
-    if args.table == 1 and not all(k.isdigit() for k in textures):
-        return _usage(f"Table 1 keys are grid sizes (e.g. 10=path), got {sorted(textures)}")
-    if args.table is None and not textures:
-        return _usage("give at least one --texture NAME=PATH (or --table 1 / 2)")
-    default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
-    config = _eval_config(args, default_thr)
-    detector = load_attack_detector(args.detector, device=device)
-    command = _command_line()
-    parts = None if args.parts == ["all"] else tuple(args.parts)
     from davis_rig.scene.body import BodyModel
 
-    model = BodyModel()
-    motions = _motions(args, "test")
+    _set_threads(args)
+    textures = dict(args.texture)
+    default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
+    config = _eval_config(args, default_thr)
+    parts = None if args.parts == ["all"] else tuple(args.parts)
     if args.table == 1:
         grids = {int(k): load_texture_grid(p, args.cells) for k, p in textures.items()}
-        res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
-                        motions=motions, progress=not args.no_progress)
-        specs = {**ev.baseline_textures(parts), **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
-    elif args.table == 2:
-        grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
-        res = ev.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
-                        progress=not args.no_progress)
-        specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
     else:
-        specs = {k: ev.TextureSpec(load_texture_grid(p, args.cells), parts) for k, p in textures.items()}
-        scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config)
-        rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.no_progress)
-        res = ev.write_table(rows, config.thresholds, args.out, "evaluation",
-                             f"Digital evaluation ({ev.EVENT_MODEL_NAMES[config.events]})", command=command)
-    summary = {"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"])}
-    if args.visualise:
-        vis = ev.write_visualisations(specs, detector, args.out, config=config, model=model)
-        summary.update(frames=[str(p) for p in vis["frames"]], gif=str(vis["gif"]))
+        grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
+    device = _device(args.device)
+    detector = load_attack_detector(args.detector, device=device)
+    command = _command_line()
+    model = BodyModel()
+    motions = _motions(args, "test")
+    with removing_new_empty_dirs(args.out):
+        if args.table == 1:
+            res = ev.table1(grids, detector, args.out, config=config, model=model, parts=parts, command=command,
+                            motions=motions, progress=not args.quiet)
+            specs = {**ev.baseline_textures(parts),
+                     **{f"ours {n}x{n}": ev.TextureSpec(g, parts) for n, g in grids.items()}}
+        elif args.table == 2:
+            res = ev.table2(grids, detector, args.out, config=config, model=model, command=command, motions=motions,
+                            progress=not args.quiet)
+            specs = {k: ev.TextureSpec(g, tuple(k.split("+"))) for k, g in grids.items()}
+        else:
+            specs = {k: ev.TextureSpec(g, parts) for k, g in grids.items()}
+            scenes = ev.prepare_scenes(ev.evaluation_scenes(config, model.num_shapes, motions), model, config,
+                                       progress=not args.quiet)
+            rows = ev.evaluate_textures(specs, detector, scenes, config, progress=not args.quiet)
+            res = ev.write_table(rows, config.thresholds, args.out, "evaluation",
+                                 f"Digital evaluation ({ev.EVENT_MODEL_NAMES[config.events]})", command=command)
+        summary = {"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"])}
+        if args.visualise:
+            vis = ev.write_visualisations(specs, detector, args.out, config=config, model=model)
+            summary.update(frames=[str(p) for p in vis["frames"]], gif=str(vis["gif"]))
     print(res["markdown"].read_text())
     print(json.dumps(summary))
     return 0
@@ -363,23 +535,27 @@ def evaluate_command(args) -> int:
 
 def reproduce_command(args) -> int:
     """Action of ``davis-attack reproduce``: one :func:`davis_rig.attack.reproduce.reproduce_table` call."""
-    import torch
+    from davis_rig.cli._common import removing_new_empty_dirs
 
+    _starting("reproduce", args)
     from davis_rig.attack import evaluate as ev
-    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.optimize import AttackInterrupted, load_attack_detector
     from davis_rig.attack.reproduce import reproduce_table
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = _device(args.device)
-    combos = None if args.combinations is None else [tuple(c.split("+")) for c in args.combinations]
+    _set_threads(args)
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
+    attack, eval_config = _attack_config(args, 10, None), _eval_config(args, default_thr)
+    device = _device(args.device)
     detector = load_attack_detector(args.detector, device=device)
-    res = reproduce_table(args.table, detector, args.out, attack=_attack_config(args, 10, None),
-                          eval_config=_eval_config(args, default_thr), grids=args.grids, combinations=combos,
-                          train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
-                          detector_name=str(args.detector) if args.detector else "bundled default",
-                          command=_command_line(), progress=not args.no_progress)
+    try:
+        with removing_new_empty_dirs(args.out):
+            res = reproduce_table(args.table, detector, args.out, attack=attack, eval_config=eval_config,
+                                  grids=args.grids, combinations=args.combinations,
+                                  train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
+                                  detector_name=str(args.detector) if args.detector else "bundled default",
+                                  command=_command_line(), progress=not args.quiet)
+    except AttackInterrupted as exc:
+        return _interrupted("reproduce", exc)
     print(res["markdown"].read_text())
     print(json.dumps({"markdown": str(res["markdown"]), "json": str(res["json"]), "plot": str(res["plot"]),
                       "record": str(res["record"])}))

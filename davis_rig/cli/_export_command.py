@@ -7,30 +7,36 @@ from __future__ import annotations
 
 import argparse
 
-EPILOG = """\
+from davis_rig.cli._common import add_out, epilog, non_negative_int, positive_float, positive_int
+
+EXAMPLES = """\
 examples:
   davis-attack export best_10x10.png --out print/                    # body-sized pieces, A4
   davis-attack export texture_1024.png --cells 10 --out print/ --paper A3 --size-mm 1000
   davis-attack export grid.npy --out print/ --cell-mm 50 --parts torso arms
 """
+#: Body parts a pattern can be cut for (:data:`davis_rig.scene.body.PART_NAMES`).
+EXPORT_PARTS = ("torso", "arms", "legs", "head", "hands", "feet")
 
 
 def add_export_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``export`` on the ``davis-attack`` subparsers."""
     p = subparsers.add_parser("export", help="print-ready vector PDF pattern pieces + PNGs + preview",
                               description="Lay a black/white texture out as body-part pattern pieces on A4/A3 pages.",
-                              epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              epilog=epilog(EXAMPLES), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("texture", metavar="TEXTURE", help="n x n grid or upsampled map (.png/.npy), 1 = white")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    add_out(p, required=True, metavar="DIR", help="output directory")
     p.add_argument("--paper", default="A4", choices=["A4", "A3"])
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--size-mm", type=float, default=None,
+    size.add_argument("--size-mm", type=positive_float, default=None,
                       help="side of the whole UV texture in mm (official: 500 or 1000); default: the body's size")
-    size.add_argument("--cell-mm", type=float, default=None, help="side of one grid cell in mm")
-    p.add_argument("--cells", type=int, default=None, help="grid cells per side of an upsampled map (auto-detected)")
-    p.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted body parts")
-    p.add_argument("--shape", type=int, default=0, help="body shape index for the body scale (default 0)")
-    p.add_argument("--ease", type=float, default=1.0, help="factor on the body scale (default 1.0)")
+    size.add_argument("--cell-mm", type=positive_float, default=None, help="side of one grid cell in mm")
+    p.add_argument("--cells", type=positive_int, default=None,
+                   help="grid cells per side of an upsampled map (auto-detected)")
+    p.add_argument("--parts", nargs="+", choices=EXPORT_PARTS, default=["torso", "arms", "legs"], metavar="PART",
+                   help="painted body parts: torso, arms, legs, head, hands, feet (default: torso arms legs)")
+    p.add_argument("--shape", type=non_negative_int, default=0, help="body shape index for the body scale (default 0)")
+    p.add_argument("--ease", type=positive_float, default=1.0, help="factor on the body scale (default 1.0)")
     p.add_argument("--no-preview", action="store_true", help="skip the preview render")
     p.set_defaults(func=export_command)
     return p
@@ -38,19 +44,14 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
 
 def export_command(args) -> int:
     """Run ``davis-attack export``; prints the written files."""
-    import sys
-
     from davis_rig.attack.export import export_texture, load_texture_grid
+    from davis_rig.cli._common import removing_new_empty_dirs
 
-    for name in ("size_mm", "cell_mm"):
-        value = getattr(args, name)
-        if value is not None and not value > 0:
-            print(f"davis-attack export: error: --{name.replace('_', '-')} must be > 0", file=sys.stderr)
-            return 2
     grid = load_texture_grid(args.texture, args.cells)
-    written = export_texture(grid, args.out, parts=args.parts, paper=args.paper, texture_mm=args.size_mm,
-                             cell_mm=args.cell_mm, shape_index=args.shape, ease=args.ease,
-                             preview=not args.no_preview)
+    with removing_new_empty_dirs(args.out):
+        written = export_texture(grid, args.out, parts=args.parts, paper=args.paper, texture_mm=args.size_mm,
+                                 cell_mm=args.cell_mm, shape_index=args.shape, ease=args.ease,
+                                 preview=not args.no_preview)
     for key, path in written.items():
         print(f"{key}: {path}")
     return 0

@@ -1,9 +1,9 @@
 """``davis-attack``: the digital optimizer's commands (``optimize``, ``evaluate``, ``reproduce``, ``export``).
 
 Each subcommand maps its arguments onto one API call (:mod:`davis_rig.cli._attack_commands` for ``optimize``,
-``evaluate`` and ``reproduce``; :mod:`davis_rig.cli._export_command` for ``export``); errors become one message
-and an exit code in :mod:`davis_rig.cli._common`. Heavy imports happen in the actions, so ``--help`` is fast.
-Under torchrun:
+``evaluate`` and ``reproduce``; :mod:`davis_rig.cli._export_command` for ``export``); bad values exit 2 naming the
+option, errors become one message and an exit code in :mod:`davis_rig.cli._common`. Heavy imports happen in the
+actions, so ``--help`` is fast. Under torchrun:
 ``torchrun --nproc_per_node N -m davis_rig.cli.attack optimize ...``.
 """
 
@@ -12,8 +12,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from davis_rig.cli._attack_commands import add_evaluate_parser, add_optimize_parser, add_reproduce_parser
-from davis_rig.cli._common import new_parser, run_command
+from davis_rig.cli._attack_commands import (
+    CONFIG_OPTIONS,
+    add_evaluate_parser,
+    add_optimize_parser,
+    add_reproduce_parser,
+)
+from davis_rig.cli._common import EXIT_USAGE, new_parser, run_command
 from davis_rig.cli._export_command import add_export_parser
 
 NAME = "davis-attack"
@@ -31,10 +36,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse and apply the subcommand's cross-option rules (``check`` of its defaults, reported by its parser)."""
+    args = parser.parse_args(argv)
+    check = getattr(args, "check", None)
+    if check is not None:
+        check(parser._subparsers._group_actions[0].choices[args.command], args)
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``davis-attack``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    return run_command(f"{NAME} {args.command}", lambda: args.func(args))
+    """Entry point of ``davis-attack``; returns the exit code (argparse's 0 and 2 included)."""
+    try:
+        args = _parse(build_parser(), argv)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    # messages name the subcommand, as argparse's do: "davis-attack optimize: error: argument --cells: ..."
+    return run_command(f"{NAME} {args.command}", lambda: args.func(args), CONFIG_OPTIONS)
 
 
 if __name__ == "__main__":

@@ -73,6 +73,7 @@ from davis_rig.scene.gait import (
     fit_fourier,
     generate_gait,
     joint_angles_deg,
+    natural_walk,
 )
 from davis_rig.scene.masks import (
     DEFAULT_PADDING_PX,
@@ -92,6 +93,7 @@ from davis_rig.scene.motion import (
     contact_slip,
     foot_vertex_ids,
     ground_contact,
+    in_place,
     lock_stance_foot,
     loop,
     motion_from_world_rotations,
@@ -119,11 +121,11 @@ __all__ = [
     "TRAIN_SCALE", "EgoMotion", "EoTJitter", "PinholeCamera", "distance_for_height", "look_at",
     "rotation_from_vector",
     "FIT_MAX_ERROR_DEG", "FOURIER_COEFFICIENTS", "NATIVE_STANCE_FRACTION", "NORMATIVE_TABLES", "GaitParams",
-    "evaluate_fourier", "fit_fourier", "generate_gait", "joint_angles_deg",
+    "evaluate_fourier", "fit_fourier", "generate_gait", "joint_angles_deg", "natural_walk",
     "DEFAULT_PADDING_PX", "EMPTY_LABEL", "MASK_SIZE_PX", "PAINTABLE_COMBINATIONS", "PAINTABLE_PARTS",
     "combination_masks", "part_label_map", "part_mask", "uv_to_texel",
     "MOTION_FORMAT_VERSION", "Motion", "concatenate", "contact_slip", "foot_vertex_ids", "ground_contact",
-    "lock_stance_foot", "loop", "motion_from_world_rotations",
+    "in_place", "lock_stance_foot", "loop", "motion_from_world_rotations",
     "quat_conjugate", "quat_from_matrix", "quat_from_rotvec", "quat_multiply", "quat_slerp", "quat_to_matrix",
     "resample", "rotate_heading", "rotation_about_z", "sample", "turn",
     "SOLE_BAND_M", "Rig", "descendants", "sole_points",
@@ -143,6 +145,7 @@ _LAZY = {
     "davis_rig.scene.scene": (
         "MIN_RENDER_RATE_HZ",
         "OFFICIAL_PLAYBACK_SPEED",
+        "WALKS",
         "Clip",
         "RenderBody",
         "SceneSpec",

@@ -86,6 +86,7 @@ __all__ = [
     "fit_fourier",
     "generate_gait",
     "joint_angles_deg",
+    "natural_walk",
 ]
 
 GRAVITY_M_S2 = 9.81
@@ -604,3 +605,36 @@ def generate_gait(
     if params.turn_rate_rad_s:
         motion = turn(motion, params.turn_rate_rad_s, root_rest_pose=root_rest)
     return motion
+
+
+#: Frame rate of :func:`natural_walk` (frames per second).
+NATURAL_WALK_FPS_HZ = 200.0
+# natural walks by (asset, shape, in place); the asset is held so its id stays its own
+_NATURAL_WALKS: dict[tuple[int, int, bool], tuple[object, Motion]] = {}
+
+
+def natural_walk(asset=None, shape_index: int = 0, *, advance: bool = True) -> Motion:
+    """The scenes' default walk: :func:`generate_gait` with the default :class:`GaitParams` for one body shape.
+
+    Self-selected walking speed, 1.3 m/s, the cadence of Alexander's relation (~1.9-2 steps/s), a foot on the
+    ground in every frame; generated once per asset, shape and ``advance`` (~0.4-1 s) and kept.
+
+    Args:
+        asset: :class:`~davis_rig.scene.body.BodyAsset` (``None`` = the bundled one).
+        shape_index: body shape.
+        advance: True: walking forward (towards -Y); False: in place (:func:`~davis_rig.scene.motion.in_place`,
+            as the official code).
+
+    Returns:
+        A cyclic :class:`~davis_rig.scene.motion.Motion` at :data:`NATURAL_WALK_FPS_HZ` (do not modify it: it is
+        shared).
+    """
+    from davis_rig.scene.body import BodyAsset
+    from davis_rig.scene.motion import in_place
+
+    asset = BodyAsset.load() if asset is None else asset
+    key = (id(asset), int(shape_index), bool(advance))
+    if key not in _NATURAL_WALKS:
+        walk = generate_gait(GaitParams(), asset, int(shape_index), fps_hz=NATURAL_WALK_FPS_HZ)
+        _NATURAL_WALKS[key] = (asset, walk if advance else in_place(walk))
+    return _NATURAL_WALKS[key][1]

@@ -13,6 +13,7 @@ Kernels (all return new motions, none mutates its input):
   period of a cycle (``cycle_advance_m`` set): then sampling wraps around (frame ``T`` = frame 0, root
   shifted by ``cycle_advance_m``), so the cycle can be played for any length.
 - :func:`loop`: repeat a cyclic motion ``n`` times (root advancing by ``cycle_advance_m`` per period).
+- :func:`in_place`: a cyclic motion without its progression (walking on a treadmill, as the official code).
 - :func:`rotate_heading`, :func:`turn`: rotate the whole motion about the vertical axis, at once or at a
   constant turning rate (the root path bends; local limb motion is unchanged).
 - :func:`concatenate`: join motions end to start (the root path continues), optionally cross-faded.
@@ -46,6 +47,7 @@ __all__ = [
     "contact_slip",
     "foot_vertex_ids",
     "ground_contact",
+    "in_place",
     "lock_stance_foot",
     "loop",
     "motion_from_world_rotations",
@@ -478,6 +480,24 @@ def loop(motion: Motion, num_cycles: int) -> Motion:
     root = np.tile(motion.root_translation_m.astype(np.float64), (num_cycles, 1)) + k[:, None] * motion.cycle_advance_m
     return replace(motion, rotations_wxyz=rot, root_translation_m=root,
                    cycle_advance_m=num_cycles * motion.cycle_advance_m)
+
+
+def in_place(motion: Motion) -> Motion:
+    """A cyclic motion walked in place: the cycle's mean progression removed from the root.
+
+    Frame ``k`` of ``T`` loses ``cycle_advance_m * k / T``: what remains of the horizontal root path is its sway
+    around the mean (the planted foot slides backwards at the walking speed, as on a treadmill) and the result is
+    a cycle with a zero advance.
+
+    Raises:
+        ValueError: the motion is not a cycle.
+    """
+    if not motion.is_cycle:
+        raise ValueError(f"motion {motion.name!r} is not a cycle; cannot walk it in place")
+    k = np.arange(motion.num_frames, dtype=np.float64) / motion.num_frames
+    root = motion.root_translation_m.astype(np.float64) - k[:, None] * motion.cycle_advance_m
+    return replace(motion, root_translation_m=root, cycle_advance_m=np.zeros(3),
+                   metadata={**motion.metadata, "in_place": True})
 
 
 # ---------------------------------------------------------------------------------------------- heading, turning

@@ -6,10 +6,13 @@ height, so ``heading_rad = 0`` means the person faces (walks towards) the camera
 means the person walks to the image right (+X). With ``advance=True`` the body moves forward at the motion's
 own speed and the path is centred so that the person passes the placement point at the middle of the clip.
 
-Motions: the asset's walk cycle by default (sampled at any rate, cyclic), or any
-:class:`~davis_rig.scene.motion.Motion` (local rotations ``[T, J, 4]`` + root translation ``[T, 3]`` at
-``fps_hz``), sampled at the frame times by :func:`davis_rig.scene.motion.sample` (slerp / linear root; a
-cycle wraps around its period, a clip is clamped at its ends).
+Motions: by default a natural walk (``walk="natural"``: :func:`davis_rig.scene.gait.natural_walk`, the gait
+generator's 1.3 m/s at ~2 steps/s with a foot on the ground in every frame), or the asset's bundled walk cycle
+(``walk="bundled"``: 0.53 m/s, 1.2 steps/s, crouched, its 24 Hz keyframes interpolated, which lifts or sinks the
+feet by up to ~8 mm between them; kept for the scenes made with it), or any :class:`~davis_rig.scene.motion.Motion`
+(local rotations ``[T, J, 4]`` + root translation ``[T, 3]`` at ``fps_hz``), sampled at the frame times by
+:func:`davis_rig.scene.motion.sample` (slerp / linear root; a cycle wraps around its period, a clip is clamped at
+its ends).
 
 Bodies: anything with the small :class:`RenderBody` interface: the bundled anny
 :class:`~davis_rig.scene.body.BodyModel` (the default; it alone has a walk cycle) or a user-supplied SMPL(-H)
@@ -45,6 +48,7 @@ from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 __all__ = [
     "MIN_RENDER_RATE_HZ",
     "OFFICIAL_PLAYBACK_SPEED",
+    "WALKS",
     "Clip",
     "RenderBody",
     "SceneSpec",
@@ -52,6 +56,9 @@ __all__ = [
     "scene_camera",
     "scene_vertices",
 ]
+
+#: Walks of ``SceneSpec(motion=None)``: ``"natural"`` (the gait generator's) and ``"bundled"`` (the asset's cycle).
+WALKS = ("natural", "bundled")
 
 #: Lowest render rate (frames per second): 10 time bins per 50 ms window.
 MIN_RENDER_RATE_HZ = 200.0
@@ -95,13 +102,16 @@ class SceneSpec:
 
     Attributes:
         shape_index: body shape of the asset.
-        motion: a :class:`~davis_rig.scene.motion.Motion`, or ``None`` for the asset's walk cycle of that shape.
+        motion: a :class:`~davis_rig.scene.motion.Motion`, or ``None`` for the shape's walk (``walk``).
         motion_start_s: time into the motion of the first frame (s).
         playback_speed: motion seconds per clip second (1 = real time). The official code renders 10 frames at
             120 fps into each 50 ms RVT window, i.e. plays the motion 5/3 times too fast
             (:data:`OFFICIAL_PLAYBACK_SPEED`).
-        advance: walk cycle only: move forward at the cycle's speed (False = walk in place, as the official
+        advance: ``motion=None`` only: move forward at the walk's speed (False = walk in place, as the official
             code). A :class:`Motion` always uses its own root translation.
+        walk: ``motion=None`` only: :data:`WALKS`, ``"natural"`` (default: the gait generator's walk,
+            :func:`~davis_rig.scene.gait.natural_walk`) or ``"bundled"`` (the asset's walk cycle, the walk of the
+            scenes made before the natural one).
         heading_rad: body rotation about world Z (0 = facing the camera, pi/2 = walking to the image right).
         scale: test-scale name (``"large"``, ``"middle"``, ``"small"``) or a person height in px of a
             1.75 m person; sets the camera distance (:func:`~davis_rig.scene.camera.distance_for_height`).
@@ -128,6 +138,7 @@ class SceneSpec:
     motion_start_s: float = 0.0
     playback_speed: float = 1.0
     advance: bool = True
+    walk: str = "natural"
     heading_rad: float = math.pi / 2
     scale: str | float = "middle"
     distance_m: float | None = None
@@ -154,6 +165,8 @@ class SceneSpec:
             raise ValueError(f"playback_speed must be > 0, got {self.playback_speed}")
         if int(self.supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {self.supersample}")
+        if self.walk not in WALKS:
+            raise ValueError(f"walk must be one of {WALKS}, got {self.walk!r}")
 
     @property
     def num_frames(self) -> int:
@@ -234,18 +247,23 @@ def scene_vertices(spec: SceneSpec, model: RenderBody) -> "object":
     speed = float(spec.playback_speed)
     t_s = speed * (spec.frame_times_us() - spec.t0_us) / 1e6 + spec.motion_start_s
     t_mid = spec.motion_start_s + speed * 0.5 * (spec.num_frames - 1) / spec.render_rate_hz
-    if spec.motion is None:
-        if not hasattr(model, "sample_walk"):
-            raise ValueError(f"{type(model).__name__} has no walk cycle: set SceneSpec.motion "
-                             "(e.g. SmplBody.amass_motion(path))")
+    motion = spec.motion
+    if motion is None and not hasattr(model, "sample_walk"):
+        raise ValueError(f"{type(model).__name__} has no walk cycle: set SceneSpec.motion "
+                         "(e.g. SmplBody.amass_motion(path))")
+    if motion is None and spec.walk == "natural":
+        from davis_rig.scene.gait import natural_walk
+
+        motion = natural_walk(model.asset, spec.shape_index, advance=spec.advance)
+    if motion is None:  # the bundled cycle
         rotations, root = model.sample_walk(spec.shape_index, t_s, advance=spec.advance)
         if spec.advance:
             walk_speed = model.asset.walk_cycle(spec.shape_index).speed_m_s
             root = root.clone()
             root[:, 1] += walk_speed * t_mid  # centre the path: mid-clip position at the placement point
     else:
-        rot_np, root_np = sample(spec.motion, t_s)
-        _, mid = sample(spec.motion, [t_mid])
+        rot_np, root_np = sample(motion, t_s)
+        _, mid = sample(motion, [t_mid])
         root_np[:, :2] -= mid[:, :2]
         rotations = torch.as_tensor(rot_np, device=model.device)
         root = torch.as_tensor(root_np, device=model.device)

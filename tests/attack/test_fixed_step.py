@@ -39,7 +39,8 @@ def _loss_and_grad(fn, grid_values):
     return loss, grid.grad
 
 
-@pytest.mark.parametrize("overrides", [{}, {"loss_reduction": "top"}, {"box_margin_px": 8.0}])
+@pytest.mark.parametrize("overrides", [{}, {"loss_reduction": "top"}, {"box_margin_px": 8.0},
+                                       {"loss_anchors": "person"}, {"loss_anchors": "person", "loss_reduction": "top"}])
 def test_eager_fixed_shape_loss_is_attack_loss_bit_for_bit(detector, clips, overrides):
     config = AttackConfig(grid_n=4, clips_per_step=2, eot=TINY_EOT, **overrides)
     grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(1))

@@ -125,3 +125,44 @@ def test_inputs_not_modified_and_validation():
         adversarial_loss([W1], boxes=torch.zeros(3, 4))  # 3 boxes for 1 window x 1 batch
     with pytest.raises(ValueError):
         adversarial_loss([W1], boxes=torch.zeros(1, 4), box_margin_px=-1)
+
+
+def test_anchor_cells_follow_the_heads_anchor_order():
+    from davis_rig.attack.loss import anchor_cells
+    from davis_rig.models.rvt.head import YOLOXHead
+
+    strides, hw = (8, 16, 32), (256, 320)
+    head = YOLOXHead(2, strides, (8, 16, 32))
+    feats = [torch.zeros(1, 1, hw[0] // s, hw[1] // s) for s in strides]
+    grids, stride = head.decode_grids(feats, torch.float32, torch.device("cpu"))
+    cells = anchor_cells(hw, strides)
+    assert cells.shape == (sum((hw[0] // s) * (hw[1] // s) for s in strides), 4)
+    assert torch.equal(cells[:, :2], grids[0] * stride[0]) and torch.equal(cells[:, 2:] - cells[:, :2],
+                                                                          stride[0].expand(-1, 2))
+
+
+def test_anchors_on_boxes_keep_the_cells_the_person_overlaps():
+    from davis_rig.attack.loss import anchors_on_boxes
+
+    cells = torch.tensor([[0.0, 0, 8, 8], [8, 0, 16, 8], [0, 8, 8, 16], [0, 0, 32, 32]])
+    boxes = torch.tensor([[[9.0, 1, 12, 7]], [[float("nan")] * 4]])  # [W=2, B=1, 4]
+    keep = anchors_on_boxes(cells, boxes)
+    assert keep.shape == (2, 1, 4)
+    assert keep[0, 0].tolist() == [False, True, False, True] and not keep[1].any()
+    touching = anchors_on_boxes(cells, torch.tensor([8.0, 8, 9, 9]))  # only edges/corners shared with cells 0-2
+    assert touching.tolist() == [False, False, False, True]
+
+
+def test_loss_on_person_anchors_scores_only_them():
+    decoded = torch.rand(3, 2, 5, 7, generator=torch.Generator().manual_seed(0))  # [W, B, A, 7]
+    mask = torch.zeros(3, 2, 5, dtype=torch.bool)
+    mask[..., 1] = True
+    mask[0, 0, 3] = True
+    loss = adversarial_loss(decoded, 1.0, 1.0, anchor_mask=mask)
+    assert int(loss.num_anchors) == int(mask.sum())
+    assert loss.obj.item() == pytest.approx(decoded[..., 4][mask].mean().item())
+    assert loss.cls.item() == pytest.approx(decoded[..., 6][mask].mean().item())
+    top = adversarial_loss(decoded, 1.0, 1.0, anchor_mask=mask, reduction="top")
+    assert int(top.num_anchors) == 6  # every window and clip has a kept anchor
+    with pytest.raises(ShapeError):
+        adversarial_loss(decoded, anchor_mask=mask[0])

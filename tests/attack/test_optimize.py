@@ -18,7 +18,8 @@ from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.scene.body import BodyModel
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
-TINY_EOT = EoTConfig(supersample=1)
+# the seeds below were picked with a noisy training sensor on every clip (no test-sensor draws)
+TINY_EOT = EoTConfig(supersample=1, test_sensor_probability=0.0)
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # exact resume is checked on one thread
 
 
@@ -119,9 +120,11 @@ def test_pool_rebuilds_from_generations_and_splits_slots(body):
 def test_loss_decreases_on_tiny_detector(detector, body, tmp_path, rule):
     # the fixture detector has random weights and reacts weakly to the texture: on most clips the loss moves by
     # ~1-5 % in 10 steps; the clip of seed 6 (deterministic on one thread) leaves room to fall by ~8 % with both
-    # rules (re-pick the seed when the bundled body asset or the EoT draws change)
+    # rules (re-pick the seed when the bundled body asset or the EoT draws change; picked with a constant rate
+    # and the bundled walk)
     cfg = _tiny(iterations=10, pool_size=1, refresh_every=1000, dropout=0.0, alpha_schedule="soft",
-                box_margin_px=0.0, lr=0.1, checkpoint_every=1000, snapshot_every=1000, v2e_gradient=rule, seed=6)
+                box_margin_px=0.0, lr=0.1, checkpoint_every=1000, snapshot_every=1000, v2e_gradient=rule, seed=6,
+                lr_schedule="constant", eot=replace(TINY_EOT, walk="bundled"))
     optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
     losses = [r["loss"] for r in _log(tmp_path / "log.jsonl")[0]]
     assert len(losses) == 10 and all(math.isfinite(v) for v in losses)
@@ -204,7 +207,7 @@ def test_best_on_validation_by_score_keeps_the_lowest_mean_top_score(detector, b
     cfg = _tiny(iterations=3, validate_every=1, lr=0.5, dropout=0.0, select_by="score")
     result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
     vals = _log(tmp_path / "log.jsonl")[1]
-    lowest = min(vals, key=lambda v: (v["mean_top_score"], v["step"]))
+    lowest = min(vals, key=lambda v: (v["train_top_score"], v["step"]))  # as trained: the clips' own sensors
     assert json.loads((tmp_path / "best.json").read_text()) == lowest and result.best_step == lowest["step"]
 
 
@@ -353,25 +356,49 @@ def test_clip_histograms_equals_the_two_pass_computation(body, rule):
     events = clip.noise_cell.repeat_interleave(clip.noise_count.long())
     noise = torch.zeros(weight.numel()).index_add_(0, events, torch.ones(events.numel())).view_as(weight)
 
-    def exact(video):
-        counts = v2e_histograms(video, clip.t_us, clip.window_end_us, count_cutoff=None,
-                                threshold_on=clip.threshold, threshold_off=clip.threshold)
-        return torch.clamp(counts + noise, max=10.0)
+    def counts(video, threshold):
+        return v2e_histograms(video, clip.t_us, clip.window_end_us, count_cutoff=None, threshold_on=threshold,
+                              threshold_off=threshold)
 
     two_pass = grid.clone().requires_grad_(True)
     video = clip.video(two_pass)
+    with torch.no_grad():  # the value: counts in float64, as the exact simulator takes them
+        value = counts(video.double(), clip.threshold.double()).float()
     if rule == "ste":
-        expected = exact(video)
+        ste = counts(video, clip.threshold)
+        expected = torch.clamp(value + (ste - ste.detach()) + noise, max=10.0)
     else:
-        with torch.no_grad():
-            counts = exact(video)
         theta = float(clip.threshold.mean())
         surrogate = v2e_histograms(video, clip.t_us, clip.window_end_us, mode="official_relaxed", count_cutoff=None,
                                    threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
-        expected = counts + (surrogate - surrogate.detach())  # the exact counts' value, the surrogate's gradient
+        expected = torch.clamp(value + noise, max=10.0) + (surrogate - surrogate.detach())
     expected.backward(weight)
     assert torch.equal(hist, expected) and torch.equal(shared.grad, two_pass.grad)
     assert shared.grad.abs().sum() > 0
+
+
+def test_with_the_test_sensor_the_step_counts_the_exact_simulators_events(body):
+    # per pixel and window (the bins may differ: a frame pair's midpoint vs interpolated event times)
+    from davis_rig.attack.optimize import clip_histograms
+    from davis_rig.events.simulator import simulate_events
+
+    clip = ClipPool(replace(TINY_EOT, test_sensor_probability=1.0), body, 4, size=1, base_seed=3).clips[0]
+    assert clip.base_threshold == 0.2 and clip.noise_cell.numel() == 0
+    grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
+    hist = clip_histograms(grid, clip, gradient="ste").detach()
+    events = simulate_events(clip.video(grid).detach(), clip.t_us)
+    compared = 0
+    for k, end in enumerate(clip.window_end_us):
+        inside = events[(events["t"] > end - clip.window_us) & (events["t"] <= end)]
+        for polarity in (0, 1):
+            expected = np.zeros(clip.raster.hw)
+            sel = inside[inside["p"] == polarity]
+            np.add.at(expected, (sel["y"], sel["x"]), 1)
+            bins = hist[k, polarity * 10 : (polarity + 1) * 10].numpy()
+            unclipped = (bins < 10).all(0)  # a bin at 10 may hold more events
+            assert np.array_equal(bins.sum(0)[unclipped], expected[unclipped]), (k, polarity)
+            compared += int(expected[unclipped].sum())
+    assert compared >= len(events) // 3  # the events of pixels with no bin at the clip (38 % here) agree
 
 
 def test_load_attack_detector_defaults_to_bundled_weights(monkeypatch, tmp_path):
@@ -422,9 +449,7 @@ def test_a_new_run_refuses_a_folder_that_holds_a_run(detector, body, tmp_path):
 
 
 def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
-    # an earlier run that stopped before its first checkpoint left a log, a best texture and a refinement record
-    records = [{"step": 1, "loss": -1.0}, {"refine": {}}]
-    (tmp_path / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    # an earlier run left a best texture, a refinement record and a snapshot but no log and no checkpoint
     np.save(tmp_path / "best_texture.npy", np.full((4, 4), 7.0, np.float32))
     (tmp_path / "best.json").write_text(json.dumps({"SeqASR": 1.0, "mean_top_score": 0.0, "step": 1}))
     (tmp_path / "refine.json").write_text("{}")
@@ -433,11 +458,164 @@ def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
     result = optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False,
                               resume=True)
     steps, vals = _log(tmp_path / "log.jsonl")
-    assert [s["step"] for s in steps] == [1] and steps[0]["loss"] != -1.0 and [v["step"] for v in vals] == [1]
-    assert "refine" not in (tmp_path / "log.jsonl").read_text() and not (tmp_path / "refine.json").exists()
-    assert not (tmp_path / "snapshots" / "step_000500.png").exists()
+    assert [s["step"] for s in steps] == [1] and [v["step"] for v in vals] == [1]
+    assert not (tmp_path / "refine.json").exists() and not (tmp_path / "snapshots" / "step_000500.png").exists()
     assert set(np.unique(result.best_texture)) <= {0.0, 1.0}
     assert json.loads((tmp_path / "best.json").read_text()) == vals[0]
+
+
+def test_resume_of_a_log_without_checkpoint_is_refused_and_nothing_is_touched(detector, body, tmp_path):
+    # a run killed before its first checkpoint: --resume must not silently restart at step 1 over its log
+    log = "".join(json.dumps({"step": s, "loss": -1.0}) + "\n" for s in (1, 2))
+    (tmp_path / "log.jsonl").write_text(log)
+    with pytest.raises(CheckpointError, match="records 2 steps but there is no"):
+        optimize_texture(_tiny(), detector, tmp_path, body_model=body, progress=False, resume=True)
+    assert (tmp_path / "log.jsonl").read_text() == log
+
+
+@pytest.mark.parametrize("content, match", [
+    (b"", "unreadable"),
+    (b"not a checkpoint at all", "unreadable"),
+    ({"step": 2}, "missing or malformed: best, config, generator, optimizer, pool"),
+    ({"generator": {}, "optimizer": {}, "step": 2, "pool": {"generations": [0, 0]}, "best": "", "config": {}},
+     "malformed pool or config"),
+    ([1, 2, 3], "not a dict"),
+])
+def test_resume_from_a_corrupt_checkpoint_is_a_checkpoint_error_naming_the_file(detector, body, tmp_path, content,
+                                                                              match):
+    path = tmp_path / "checkpoints" / "last.pt"
+    path.parent.mkdir()
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save(content, path)
+    with pytest.raises(CheckpointError, match=match) as info:
+        optimize_texture(_tiny(), detector, tmp_path, body_model=body, progress=False, resume=True)
+    assert str(path) in str(info.value)
+
+
+def test_resume_from_a_checkpoint_of_another_generator_size_is_a_checkpoint_error(detector, body, tmp_path):
+    optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False)
+    path = tmp_path / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    state["generator"]["fc1.weight"] = torch.zeros(3, 3)
+    torch.save(state, path)
+    with pytest.raises(CheckpointError, match="does not fit"):
+        optimize_texture(_tiny(iterations=2, pool_size=1), detector, tmp_path, body_model=body, progress=False,
+                         resume=True)
+
+
+def _signal_at(monkeypatch, when: str, count: int) -> None:
+    """Send SIGINT to this process at the ``count``-th call of ``when`` ("attack_loss", "validate", "clip")."""
+    import os
+    import signal
+
+    import davis_rig.attack.evaluate as ev
+    import davis_rig.attack.optimize as opt
+    from davis_rig.attack import eot
+
+    target = {"attack_loss": opt, "validate": ev, "clip": eot}[when]
+    name = {"attack_loss": "attack_loss", "validate": "window_histograms", "clip": "prepare_clip"}[when]
+    original = getattr(target, name)
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == count:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(target, name, wrapped)
+
+
+def test_sigint_checkpoints_the_step_and_resume_continues_exactly(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    cfg = _tiny(iterations=5, checkpoint_every=None, checkpoint_interval_s=1e6, validate_every=2)
+    optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
+    with monkeypatch.context() as patch:
+        _signal_at(patch, "attack_loss", 3)  # during step 3
+        with pytest.raises(AttackInterrupted) as info:
+            optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False)
+    assert info.value.step == 3 and info.value.checkpoint == tmp_path / "part" / "checkpoints" / "last.pt"
+    assert info.value.signal_name == "SIGINT"
+    assert torch.load(info.value.checkpoint, weights_only=True)["step"] == 3
+    assert [s["step"] for s in _log(tmp_path / "part" / "log.jsonl")[0]] == [1, 2, 3]
+    rest = optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
+    assert rest.steps == 2
+    assert (tmp_path / "full" / "log.jsonl").read_text() == (tmp_path / "part" / "log.jsonl").read_text()
+    a = torch.load(tmp_path / "full" / "checkpoints" / "last.pt", weights_only=True)
+    b = torch.load(tmp_path / "part" / "checkpoints" / "last.pt", weights_only=True)
+    for key in a["generator"]:
+        assert torch.equal(a["generator"][key], b["generator"][key]), key
+
+
+def test_sigint_during_validation_validates_first_on_resume(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    cfg = _tiny(iterations=3, num_validation_clips=2, validate_every=2, checkpoint_every=None)
+    optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
+    with monkeypatch.context() as patch:
+        _signal_at(patch, "validate", 1)  # the first validation clip of step 2
+        with pytest.raises(AttackInterrupted) as info:
+            optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False)
+    assert info.value.step == 2
+    state = torch.load(info.value.checkpoint, weights_only=True)
+    assert state["step"] == 2 and state["pending_validation"]
+    assert _log(tmp_path / "part" / "log.jsonl")[1] == []  # the abandoned validation left no record
+    optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
+    assert (tmp_path / "full" / "log.jsonl").read_text() == (tmp_path / "part" / "log.jsonl").read_text()
+    assert (tmp_path / "full" / "best.json").read_text() == (tmp_path / "part" / "best.json").read_text()
+
+
+def test_sigint_while_preparing_clips_leaves_nothing(detector, body, tmp_path, monkeypatch):
+    from davis_rig.attack.optimize import AttackInterrupted
+
+    _signal_at(monkeypatch, "clip", 1)
+    with pytest.raises(AttackInterrupted) as info:
+        optimize_texture(_tiny(), detector, tmp_path / "run", body_model=body, progress=False)
+    assert info.value.step == 0 and info.value.checkpoint is None and not (tmp_path / "run").exists()
+
+
+def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+
+    original = opt.attack_loss
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("out of memory")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(opt, "attack_loss", failing)
+    cfg = _tiny(checkpoint_every=None, checkpoint_interval_s=1e6)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        optimize_texture(cfg, detector, tmp_path / "run", body_model=body, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_checkpoint_period_in_steps_or_wall_time(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+
+    saved = []
+    original = opt._atomic_save
+    monkeypatch.setattr(opt, "_atomic_save", lambda state, path: saved.append(state["step"]) or original(state, path))
+    optimize_texture(_tiny(iterations=5, checkpoint_every=2), detector, tmp_path / "steps", body_model=body,
+                     progress=False)
+    assert saved == [2, 4, 5]  # every 2 steps and after the last one
+    saved.clear()
+    optimize_texture(_tiny(iterations=3, checkpoint_every=None, checkpoint_interval_s=1e6), detector,
+                     tmp_path / "long", body_model=body, progress=False, max_steps=2)
+    assert saved == [2]  # none due by time: only after the last step of the call
+    saved.clear()
+    optimize_texture(_tiny(iterations=3, checkpoint_every=None, checkpoint_interval_s=1e-9), detector,
+                     tmp_path / "short", body_model=body, progress=False)
+    assert saved == [1, 2, 3]
+    # the period is free on resume
+    optimize_texture(_tiny(iterations=3, checkpoint_every=5), detector, tmp_path / "long", body_model=body,
+                     progress=False, resume=True)
 
 
 def test_pool_clip_histograms_and_validation_use_the_clip_window(body, detector):
@@ -453,9 +631,9 @@ def test_pool_clip_histograms_and_validation_use_the_clip_window(body, detector)
     clip = replace(clip, noise_cell=empty, noise_count=empty.float())
     assert clip.window_us == 25_000 and np.array_equal(np.diff(clip.window_end_us), [25_000, 25_000])
     grid = torch.rand(4, 4, generator=torch.Generator().manual_seed(0))
-    expected = torch.clamp(v2e_histograms(clip.video(grid), clip.t_us, clip.window_end_us, window_us=25_000,
-                                          count_cutoff=None, threshold_on=clip.threshold,
-                                          threshold_off=clip.threshold), max=10.0)
+    expected = torch.clamp(v2e_histograms(clip.video(grid).double(), clip.t_us, clip.window_end_us,
+                                          window_us=25_000, count_cutoff=None, threshold_on=clip.threshold.double(),
+                                          threshold_off=clip.threshold.double()), max=10.0).float()
     hist = clip_histograms(grid, clip, gradient="ste")
     assert torch.equal(hist, expected) and hist.sum() > 0
     hard = (grid > 0.5).float().numpy()
@@ -495,11 +673,115 @@ def test_optimize_passes_the_training_motions_to_validation_and_refinement(detec
     seen = []
     original = opt._validation_clips
 
-    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=()):
+    def recording(config, model, mask, num, seed_offset=opt._VAL_SEED_OFFSET, motions=(), on_clip=None):
         seen.append((seed_offset, motions))
-        return original(config, model, mask, num, seed_offset, motions)
+        return original(config, model, mask, num, seed_offset, motions, on_clip)
 
     monkeypatch.setattr(opt, "_validation_clips", recording)
     cfg = _tiny(iterations=1, pool_size=1, refine_passes=1, refine_clips=1, grid_n=2)
     optimize_texture(cfg, detector, tmp_path, body_model=body, motions=motions, progress=False)
     assert seen == [(opt._VAL_SEED_OFFSET, motions), (opt._REFINE_SEED_OFFSET, motions)]
+
+
+def test_the_official_lr_schedule_is_the_default_and_a_run_before_it_resumes_as_constant(detector, body, tmp_path):
+    from davis_rig.attack.lr_schedule import cosine_restarts_lr
+
+    assert (AttackConfig().lr_schedule, AttackConfig().lr_min) == ("cosine_restarts", 1e-7)
+    cfg = _tiny(iterations=3, lr=0.05)
+    optimize_texture(cfg, detector, tmp_path / "cos", body_model=body, progress=False)
+    assert [r["lr"] for r in _log(tmp_path / "cos" / "log.jsonl")[0]] == [cosine_restarts_lr(k, 0.05, 3)
+                                                                          for k in range(3)]
+    old = _tiny(iterations=2, lr=0.05, lr_schedule="constant", eot=replace(TINY_EOT, walk="bundled"))
+    optimize_texture(old, detector, tmp_path / "old", body_model=body, progress=False)
+    path = tmp_path / "old" / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    for name in ("lr_schedule", "lr_min", "lr_period"):  # a run written before the schedule existed ...
+        del state["config"][name]
+    for name in ("walk", "test_sensor_probability"):  # ... the natural walk and the test sensor
+        del state["config"]["eot"][name]
+    torch.save(state, path)
+    with pytest.raises(CheckpointError, match="lr_schedule"):
+        optimize_texture(replace(old, lr_schedule="cosine_restarts", iterations=3), detector, tmp_path / "old",
+                         body_model=body, progress=False, resume=True)
+    for eot in (replace(old.eot, walk="natural"), replace(old.eot, test_sensor_probability=0.5)):
+        with pytest.raises(CheckpointError, match="eot"):
+            optimize_texture(replace(old, eot=eot, iterations=3), detector, tmp_path / "old", body_model=body,
+                             progress=False, resume=True)
+    optimize_texture(replace(old, iterations=3), detector, tmp_path / "old", body_model=body, progress=False,
+                     resume=True)
+    assert [r["lr"] for r in _log(tmp_path / "old" / "log.jsonl")[0]] == [0.05] * 3
+
+
+def test_the_test_sensor_is_drawn_inside_the_training_distribution():
+    mixed, noisy = EoTConfig(), EoTConfig(test_sensor_probability=0.0)
+    assert mixed.test_sensor_probability == 0.5
+    draws = [(draw_scene(mixed, s, 24), draw_scene(noisy, s, 24)) for s in range(200)]
+    test = [m[1] for m, _ in draws if m[1]["test_sensor"]]
+    assert 70 < len(test) < 130  # about half
+    assert all(t["threshold"] == 0.2 and t["threshold_sigma"] == 0.0 and t["noise_rate_hz"] == 0.0 for t in test)
+    assert all(m[0] == n[0] for m, n in draws)  # the scenes are the same draws whatever the probability
+    assert all(m[1] == n[1] for m, n in draws if not m[1]["test_sensor"])
+    with pytest.raises(ValueError, match="test_sensor_probability"):
+        EoTConfig(test_sensor_probability=1.5)
+
+
+def test_validation_scores_as_trained_and_as_tested_batched(body, detector):
+    from davis_rig.attack.optimize import validate
+
+    ideal = replace(TINY_EOT, test_sensor_probability=1.0)
+    clips = [ClipPool(eot, body, 4, size=1, base_seed=3).clips[0] for eot in (ideal, TINY_EOT, TINY_EOT)]
+    assert clips[1].noise_cell.numel() > 0  # a noisy training sensor
+    grid = np.ones((4, 4), np.float32)
+    train = ("dvs", "interval")
+    same = validate(grid, clips[:1], detector, 0.25, train_path=train)
+    assert same["transfer_gap"] == same["mean_top_score"] - same["train_top_score"]
+    both = validate(grid, clips, detector, 0.25, train_path=train, batch=2)
+    alone = [validate(grid, [c], detector, 0.25, train_path=train, batch=1) for c in clips]
+    for key in ("mean_top_score", "train_top_score"):
+        assert both[key] == pytest.approx(np.mean([a[key] for a in alone]), abs=1e-5)
+    assert validate(grid, clips[:1], detector, 0.25)["mean_top_score"] == pytest.approx(same["mean_top_score"])
+    assert set(validate(grid, clips[:1], detector, 0.25, train_path=train, test_path=False)) == {
+        "train_SeqASR", "train_top_score"}
+
+
+def test_validation_records_carry_the_transfer_gap_and_selection_uses_the_training_path(detector, body, tmp_path):
+    cfg = _tiny(iterations=2, validate_every=1, num_validation_clips=2, eot=replace(TINY_EOT,
+                                                                                  test_sensor_probability=0.5))
+    result = optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    vals = _log(tmp_path / "log.jsonl")[1]
+    for v in vals:
+        assert v["transfer_gap"] == pytest.approx(v["mean_top_score"] - v["train_top_score"])
+    assert result.final_validation == vals[-1]
+    assert _better({"SeqASR": 0.0, "mean_top_score": 0.9, "train_SeqASR": 0.5, "train_top_score": 0.1},
+                   {"SeqASR": 1.0, "mean_top_score": 0.1, "train_SeqASR": 0.0, "train_top_score": 0.9})
+
+
+def test_person_anchor_loss_scores_the_anchors_on_the_persons_box(detector, body):
+    from davis_rig.attack.loss import anchor_cells, anchors_on_boxes
+    from davis_rig.attack.optimize import attack_loss
+
+    clips = ClipPool(TINY_EOT, body, 4, size=2, base_seed=3).sample(0, 2)
+    grid = torch.full((4, 4), 0.5)
+    every, person = (attack_loss(grid, clips, detector, _tiny(pool_size=2, clips_per_step=2, loss_anchors=anchors))
+                     for anchors in ("all", "person"))
+    cells = anchor_cells(detector.config.in_res_hw, detector.config.head_strides)
+    boxes = torch.as_tensor(np.stack([c.boxes for c in clips], axis=1))
+    expected = int(anchors_on_boxes(cells, boxes).sum())
+    assert 0 < int(person.num_anchors) == expected < int(every.num_anchors)
+    assert person.total.item() != every.total.item()
+    with pytest.raises(ValueError, match="loss_anchors"):
+        AttackConfig(loss_anchors="box")
+
+
+@pytest.mark.parametrize("events", ["exact", "official_relaxed"])
+def test_validation_simulates_the_active_box_only_with_the_whole_frames_result(body, detector, events):
+    from davis_rig.attack.evaluate import detect_windows
+    from davis_rig.attack.optimize import validate
+
+    clip = ClipPool(TINY_EOT, body, 4, size=1, base_seed=3).clips[0]
+    grid = (np.random.default_rng(1).random((4, 4)) > 0.5).astype(np.float32)
+    with torch.no_grad():
+        decoded, _ = detect_windows(detector, clip.video(torch.as_tensor(grid)), clip.t_us, clip.window_end_us,
+                                    events=events)
+    whole_frame = np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded])
+    assert validate(grid, [clip], detector, 0.25, events)["mean_top_score"] == pytest.approx(whole_frame, abs=1e-6)

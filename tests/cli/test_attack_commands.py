@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
@@ -15,12 +14,9 @@ from davis_rig.cli import _attack_commands as cmd
 
 
 def _parser():
-    parser = argparse.ArgumentParser(prog="davis-attack")
-    sub = parser.add_subparsers(dest="command", required=True)
-    cmd.add_optimize_parser(sub)
-    cmd.add_evaluate_parser(sub)
-    cmd.add_reproduce_parser(sub)
-    return parser
+    from davis_rig.cli.attack import build_parser
+
+    return build_parser()
 
 
 def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
@@ -32,7 +28,8 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
 
     def fake(config, detector, out, **kw):
         calls["run"] = (config, detector, out, kw)
-        return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan)
+        return SimpleNamespace(out_dir=Path(out), steps=3, seconds_per_step=0.5, best_step=3, best_seq_asr=math.nan,
+                               final_validation=None)
 
     monkeypatch.setattr(opt, "optimize_texture", fake)
     args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--cells", "20", "--parts", "torso",
@@ -64,7 +61,8 @@ def test_mocap_folders_map_onto_the_split_loaders(monkeypatch, tmp_path, capsys)
 
     def fake(config, detector, out, **kw):
         seen.update(kw)
-        return SimpleNamespace(out_dir=Path(out), steps=0, seconds_per_step=0.0, best_step=0, best_seq_asr=math.nan)
+        return SimpleNamespace(out_dir=Path(out), steps=0, seconds_per_step=0.0, best_step=0, best_seq_asr=math.nan,
+                               final_validation=None)
 
     monkeypatch.setattr(opt, "optimize_texture", fake)
     base = ["optimize", "--out", str(tmp_path), "--device", "cpu", "--no-progress"]
@@ -104,11 +102,110 @@ def test_evaluate_table1_maps_textures(monkeypatch, tmp_path):
     assert config.headings_rad == (math.pi / 2,) and seen["kw"]["parts"] == ("torso", "arms", "legs")
 
 
-@pytest.mark.parametrize("argv", [["--texture", "nokey"], ["--table", "1", "--texture", "ten=x.npy"], []])
-def test_evaluate_usage_errors(argv, tmp_path, capsys):
-    args = _parser().parse_args(["evaluate", "--out", str(tmp_path), *argv])
-    assert args.func(args) == 2
-    assert "error" in capsys.readouterr().err
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+BAD_VALUES = [  # (argv after the subcommand, the option the one-line message must name)
+    (["optimize", "--lr-min", "1"], "--lr-min"),  # above --lr: ConfigError of AttackConfig
+    (["optimize", "--lr-period", "0"], "--lr-period"),
+    (["optimize", "--test-sensor-probability", "2"], "--test-sensor-probability"),
+    (["optimize", "--walk", "run"], "--walk"),
+    (["optimize", "--loss-anchors", "box"], "--loss-anchors"),
+    (["optimize", "--cells", "0"], "--cells"),
+    (["optimize", "--cells", "300"], "--cells"),  # ConfigError of AttackConfig, mapped onto the option
+    (["optimize", "--iterations", "-1"], "--iterations"),
+    (["optimize", "--lr", "nan"], "--lr"),
+    (["optimize", "--lr", "0"], "--lr"),
+    (["optimize", "--parts", "nose"], "--parts"),
+    (["optimize", "--parts", "all", "torso"], "--parts"),
+    (["optimize", "--clips-per-step", "64"], "--clips-per-step"),
+    (["optimize", "--checkpoint-every", "0"], "--checkpoint-every"),
+    (["optimize", "--box-margin", "-2"], "--box-margin"),
+    (["optimize", "--playback-speed", "inf"], "--playback-speed"),
+    (["optimize", "--threads", "0"], "--threads"),
+    (["optimize", "--device", "gpu"], "--device"),
+    (["optimize", "--seed", "-1"], "--seed"),
+    (["optimize", "--max-steps", "0"], "--max-steps"),
+    (["evaluate", "--texture", "nokey"], "--texture"),
+    (["evaluate", "--table", "1", "--texture", "ten=x.npy"], "--texture"),
+    (["evaluate"], "--texture"),
+    (["evaluate", "--texture", "a=x.npy", "--threshold", "1.5"], "--threshold"),
+    (["evaluate", "--texture", "a=x.npy", "--thresholds", "nan"], "--thresholds"),
+    (["evaluate", "--texture", "a=x.npy", "--scales", "huge"], "--scales"),
+    (["evaluate", "--texture", "a=x.npy", "--phases", "-1"], "--phases"),
+    (["reproduce", "--table", "2", "--combinations", "torso+nose"], "--combinations"),
+    (["reproduce", "--table", "1", "--grids", "0"], "--grids"),
+    (["export", "TEXTURE", "--shape", "-1"], "--shape"),
+    (["export", "TEXTURE", "--ease", "nan"], "--ease"),
+    (["export", "TEXTURE", "--size-mm", "0"], "--size-mm"),
+]
+
+
+@pytest.mark.parametrize("argv, option", BAD_VALUES)
+def test_a_bad_value_exits_2_with_one_line_naming_the_option_and_leaves_nothing(argv, option, tmp_path, capsys):
+    from davis_rig.cli.attack import main
+
+    out = tmp_path / "out"
+    argv = [tmp_path / "grid.npy" if a == "TEXTURE" else a for a in argv]
+    np.save(tmp_path / "grid.npy", np.eye(4, dtype=np.float32))
+    code = main([str(a) for a in argv] + ["--out", str(out), "--device", "cpu", *(["--quiet"] if argv[0] != "export"
+                                                                                  else ["--no-preview"])])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith(f"davis-attack {argv[0]}: error: argument {option}")
+    assert not any(line.startswith("Traceback") for line in err) and not out.exists()
+
+
+@pytest.mark.parametrize("argv", [["optimize", "--detector", "MISSING"], ["evaluate", "--texture", "a=MISSING"],
+                                  ["export", "MISSING"], ["optimize", "--resume", "--detector", "FIXTURE"]])
+def test_a_missing_or_corrupt_file_exits_4_with_one_line_and_leaves_nothing(argv, tmp_path, capsys):
+    from davis_rig.cli.attack import main
+
+    out = tmp_path / "out"
+    if "--resume" in argv:  # a corrupt checkpoint
+        (out / "checkpoints").mkdir(parents=True)
+        (out / "checkpoints" / "last.pt").write_bytes(b"corrupt")
+    argv = [str(FIXTURE) if a == "FIXTURE" else str(tmp_path / "missing.npy") if a == "MISSING" else
+            a.replace("MISSING", str(tmp_path / "missing.npy")) for a in argv]
+    extra = ["--no-preview"] if argv[0] == "export" else ["--device", "cpu", "--quiet"]
+    assert main([*argv, "--out", str(out), *extra]) == 4
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"davis-attack {argv[0]}: error: ")
+    if "--resume" in argv:
+        assert str(out / "checkpoints" / "last.pt") in err[0] and "unreadable attack checkpoint" in err[0]
+    else:
+        assert "missing" in err[0] and not out.exists()
+
+
+def test_help_lists_the_exit_codes_and_the_vocabulary(capsys):
+    from davis_rig.cli.attack import main
+
+    for command in ([], ["optimize"], ["evaluate"], ["reproduce"], ["export"]):
+        assert main([*command, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert "exit codes: 0 ok, 1 internal error, 2 usage" in text and "130 interrupted" in text
+        assert "--no-progress" not in text and "--thresholds" not in text
+    for command in ("optimize", "evaluate", "reproduce"):
+        main([command, "--help"])
+        text = capsys.readouterr().out
+        assert all(option in text for option in ("--quiet", "--threads", "--detector", "--out"))
+    main(["evaluate", "--help"])
+    assert "--threshold T" in capsys.readouterr().out
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.startswith("davis-attack (davis_rig ")
+
+
+def test_threshold_takes_one_value_per_use_comma_lists_and_the_old_spelling(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "--threshold", "0.1,0.25",
+                                 "--thresholds", "0.5", "-q"])
+    assert args.func(args) == 0 and seen["kw"]["eval_config"].thresholds == (0.1, 0.25, 0.5)
+
+
+def test_cli_choices_match_the_library():
+    from davis_rig.attack.texture import ALPHA_SCHEDULES
+    from davis_rig.scene.body import PART_NAMES
+    from davis_rig.scene.camera import TEST_SCALES_PX
+
+    assert cmd.ALPHA_SCHEDULE_CHOICES == tuple(ALPHA_SCHEDULES)
+    assert cmd.PART_CHOICES == (*PART_NAMES, "all") and cmd.SCALE_NAMES == tuple(TEST_SCALES_PX)
 
 
 def test_main_entry_point_exit_codes(tmp_path, capsys):
@@ -119,6 +216,29 @@ def test_main_entry_point_exit_codes(tmp_path, capsys):
                  "--device", "cpu"]) == 4  # CheckpointError -> data exit code, one message
     err = capsys.readouterr().err
     assert "davis-attack optimize: error:" in err and "missing.ckpt" in err
+
+
+def test_optimize_interrupted_exits_130_with_one_line_and_maps_the_checkpoint_period(monkeypatch, tmp_path, capsys):
+    import davis_rig.attack.optimize as opt
+
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "DET")
+    seen = {}
+
+    def fake(config, detector, out, **kw):
+        seen["config"] = config
+        raise opt.AttackInterrupted(7, 11_500, Path(out) / "checkpoints" / "last.pt", "SIGINT")
+
+    monkeypatch.setattr(opt, "optimize_texture", fake)
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--device", "cpu", "--checkpoint-every", "50"])
+    assert args.func(args) == 130
+    assert seen["config"].checkpoint_every == 50
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("davis-attack optimize: loading")  # the first line comes before any slow import
+    assert err[-1] == (f"davis-attack optimize: interrupted (SIGINT: checkpoint {tmp_path}/checkpoints/last.pt "
+                       f"holds step 7 of 11500; continue with --resume)")
+    args = _parser().parse_args(["optimize", "--out", str(tmp_path), "--device", "cpu", "--no-progress"])
+    assert args.func(args) == 130 and seen["config"].checkpoint_every is None
+    assert len(capsys.readouterr().err.splitlines()) == 1
 
 
 def _patch_reproduce(monkeypatch) -> dict:
@@ -224,7 +344,8 @@ def test_reproduce_examples_share_a_folder_only_with_the_same_budget():
     # refinement's may change): two examples writing to one folder with different --lr made the second one fail
     import shlex
 
-    free = ("iterations", "refine_passes", "refine_clips")
+    from davis_rig.attack.optimize import _FREE_ON_RESUME as free
+
     configs: dict[str, list[dict]] = {}
     for line in cmd.REPRODUCE_EPILOG.splitlines():
         if not line.strip().startswith("davis-attack reproduce"):
@@ -275,3 +396,65 @@ def test_help_documents_resume_schedule_refine_start_and_relaxed_gradient():
     assert "alpha schedule then runs over the new total" in text
     assert "better of the best texture and plain white" in text
     assert "replacing --v2e-gradient" in text
+
+
+def test_ctrl_c_on_a_real_run_exits_130_after_a_checkpoint_and_resume_continues(tmp_path):
+    # the command as a user runs it: SIGINT once steps are logged -> exit 130, one line, a checkpoint at the last
+    # logged step; --resume continues at the next step (the library test pins the bit-identical losses)
+    import json
+    import os
+    import signal
+    import subprocess
+    import time
+
+    fixture = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+    run = tmp_path / "run"
+    argv = [sys.executable, "-m", "davis_rig.cli.attack", "optimize", "--out", str(run), "--cells", "2",
+            "--pool-size", "1", "--val-clips", "1", "--iterations", "1000", "--validate-every", "1000",
+            "--detector", str(fixture), "--device", "cpu", "--threads", "1", "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    log = run / "log.jsonl"
+    deadline = time.monotonic() + 240
+    while not (log.is_file() and log.read_text().count("\n") >= 2) and time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stderr.read()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("davis-attack optimize: interrupted")
+    import torch
+
+    step = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["step"]
+    logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert step >= 2 and logged == list(range(1, step + 1))
+    done = subprocess.run([*argv, "--resume", "--max-steps", "2"], capture_output=True, text=True, env=env,
+                          timeout=240)
+    assert done.returncode == 0, done.stderr
+    logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert logged == list(range(1, step + 3))
+
+
+def test_optimizer_fidelity_options_map_onto_the_configs(monkeypatch, tmp_path):
+    seen = _patch_reproduce(monkeypatch)
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "-q"])
+    assert args.func(args) == 0
+    attack, scenes = seen["kw"]["attack"], seen["kw"]["eval_config"]
+    # the defaults: the official schedule, 64 validation clips, the test sensor in half the clips, natural walk
+    assert (attack.lr_schedule, attack.lr_min, attack.lr_period) == ("cosine_restarts", 1e-7, None)
+    assert attack.num_validation_clips == 64 and attack.loss_anchors == "all"
+    assert (attack.eot.test_sensor_probability, attack.eot.walk, scenes.walk) == (0.5, "natural", "natural")
+    args = _parser().parse_args(["reproduce", "--table", "1", "--out", str(tmp_path), "-q", "--lr-schedule",
+                                 "constant", "--lr-period", "300", "--lr-min", "0", "--val-clips", "16",
+                                 "--loss-anchors", "person", "--test-sensor-probability", "0", "--walk", "bundled"])
+    assert args.func(args) == 0
+    attack, scenes = seen["kw"]["attack"], seen["kw"]["eval_config"]
+    assert (attack.lr_schedule, attack.lr_min, attack.lr_period) == ("constant", 0.0, 300)
+    assert attack.num_validation_clips == 16 and attack.loss_anchors == "person"
+    assert (attack.eot.test_sensor_probability, attack.eot.walk, scenes.walk) == (0.0, "bundled", "bundled")
+
+
+def test_cli_limits_match_the_library():
+    from davis_rig.attack.texture import MAX_CELLS
+
+    assert cmd.MAX_CELLS == MAX_CELLS

@@ -157,3 +157,48 @@ def test_scene_renders_a_generated_gait(asset, model, walk):
     widths = clip.boxes[:, 2] - clip.boxes[:, 0]
     heights = clip.boxes[:, 3] - clip.boxes[:, 1]
     assert (heights > 2 * widths).all() or (heights > 100).all()  # an upright person, not a lying one
+
+
+def _rendered_contact(vertices, sides, fps):
+    """Lowest vertex per frame and the single-support slip (m/s): the foot below the other by > 1 cm carries the
+    body; its lowest vertex at frame k must not move in X/Y by frame k + 1."""
+    low = {s: vertices[:, ids, 2].min(axis=1) for s, ids in sides.items()}
+    speeds = []
+    for s, o in (("L", "R"), ("R", "L")):
+        ids = sides[s]
+        single = low[o] - low[s] > 0.01
+        pivot = np.argmin(vertices[:, ids, 2], axis=1)
+        k = np.flatnonzero(single[:-1] & single[1:])
+        speeds.append(np.linalg.norm(vertices[k + 1, ids[pivot[k]], :2] - vertices[k, ids[pivot[k]], :2], axis=1) * fps)
+    return np.minimum(low["L"], low["R"]), np.concatenate(speeds)
+
+
+def test_the_scenes_default_walk_is_natural_and_on_the_ground_at_every_rendered_frame(asset, model, sole_sides):
+    # the bundled cycle moves at 0.53 m/s, 1.2 steps/s, and its 24 Hz keyframes interpolated at 200 fps sink the
+    # feet by up to 7.8 mm and slide the planted foot at up to 80 mm/s; the scenes' default walk is the generator's
+    from davis_rig.scene.gait import natural_walk
+    from davis_rig.scene.scene import SceneSpec, scene_vertices
+
+    walk = natural_walk(asset, 0)
+    assert natural_walk(asset, 0) is walk  # generated once per asset and shape
+    assert walk.speed_m_s == pytest.approx(1.3, rel=1e-3)
+    assert 1.8 < walk.metadata["cadence_steps_min"] / 60 < 2.1  # steps/s (normal walking ~1.9)
+    assert SceneSpec().walk == "natural"
+    lows = {}
+    for name in ("natural", "bundled"):
+        for playback, start in ((1.0, 0.3023), (5 / 3, 0.7011)):  # frames between the walk's own frames
+            spec = SceneSpec(walk=name, duration_s=1.0, playback_speed=playback, motion_start_s=start,
+                             heading_rad=math.pi / 2)
+            v = scene_vertices(spec, model).double().numpy()
+            lowest, slip = _rendered_contact(v, sole_sides, spec.render_rate_hz)
+            lows.setdefault(name, []).append(np.abs(lowest).max())
+            if name == "natural":
+                x = v[:, :, 0].mean(1)
+                assert (x[-1] - x[0]) / (spec.num_frames - 1) * spec.render_rate_hz / playback == pytest.approx(
+                    1.3, rel=0.05)  # walking to the image right at its speed
+                assert lowest.min() > -1e-4 and lowest.max() < 1e-3  # measured -0.05 .. +0.82 mm
+                assert len(slip) > 0.5 * spec.num_frames and np.median(slip) < 1e-3
+                assert np.quantile(slip, 0.95) < 5e-3  # measured <= 1.9 mm/s
+    assert max(lows["natural"]) < 0.2 * max(lows["bundled"])
+    in_place = natural_walk(asset, 0, advance=False)
+    assert in_place.speed_m_s == 0.0 and np.array_equal(in_place.rotations_wxyz, walk.rotations_wxyz)

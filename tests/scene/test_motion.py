@@ -339,3 +339,18 @@ def test_save_load_round_trip(tmp_path, asset):
         Motion.load(tmp_path / "other.npz")
     with pytest.raises(FileNotFoundError):
         Motion.load(tmp_path / "missing.npz")
+
+
+def test_in_place_removes_the_cycles_progression():
+    from davis_rig.scene.motion import in_place
+
+    rot = np.tile(np.array([1.0, 0, 0, 0]), (4, 2, 1))
+    root = np.array([[0.0, 0.0, 0.9], [0.01, -0.3, 0.92], [0.0, -0.6, 0.9], [-0.01, -0.9, 0.92]])
+    walk = Motion(rot, root, 4.0, cycle_advance_m=np.array([0.0, -1.2, 0.0]))
+    still = in_place(walk)
+    assert still.speed_m_s == 0.0 and still.is_cycle and np.array_equal(still.cycle_advance_m, np.zeros(3))
+    np.testing.assert_allclose(still.root_translation_m, [[0, 0, 0.9], [0.01, 0, 0.92], [0, 0, 0.9],
+                                                          [-0.01, 0, 0.92]], atol=1e-7)
+    assert walk.speed_m_s == pytest.approx(1.2)  # the input is unchanged
+    with pytest.raises(ValueError, match="not a cycle"):
+        in_place(Motion(rot, root, 4.0))

@@ -46,7 +46,7 @@ def test_render_clip_outputs(model):
 
 
 def test_heading_walks_right_and_towards_camera(model):
-    spec = SceneSpec(duration_s=0.3, supersample=1, heading_rad=math.pi / 2)
+    spec = SceneSpec(duration_s=0.3, supersample=1, heading_rad=math.pi / 2, walk="bundled")
     v = scene_vertices(spec, model)
     x = v[:, :, 0].mean(1).numpy()
     assert x[-1] - x[0] == pytest.approx(model.asset.walk_cycle(0).speed_m_s * (spec.num_frames - 1) / 200, rel=0.15)
@@ -58,7 +58,7 @@ def test_heading_walks_right_and_towards_camera(model):
 def test_motion_equals_the_walk_cycle_in_place(model):
     walk = model.asset.walk_cycle(2)
     motion = Motion(np.array(walk.rotations_wxyz), np.array(walk.root_translation_m), walk.fps_hz)
-    spec_walk = SceneSpec(shape_index=2, advance=False, duration_s=0.1)
+    spec_walk = SceneSpec(shape_index=2, advance=False, duration_s=0.1, walk="bundled")
     spec_motion = SceneSpec(shape_index=2, motion=motion, duration_s=0.1)
     a = scene_vertices(spec_walk, model)
     b = scene_vertices(spec_motion, model)
