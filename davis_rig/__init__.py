@@ -15,6 +15,8 @@ holds this order as data and fails on an import against it):
 - ``scene``: the digital scene (body, motion, camera, rasterizer, textures, backgrounds, APS synthesis).
 - ``training``: synthetic data (datasets, synthetic session files), the RVT training recipe.
 - ``attack``: the digital adversarial texture optimizer and its evaluation.
+- ``attack_aps``, ``controls``: the texture pipeline against the APS labeler's YOLO (the real-data control); a
+  victim's fingerprint, free-appearance bound and selective planted blind spot.
 - ``interop``, ``viewer``: a session in the formats other tools read; the session viewer.
 - ``cli``: thin command-line front ends; it may import anything, nothing imports it.
 """

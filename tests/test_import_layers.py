@@ -35,6 +35,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("scene",),
     ("training",),
     ("attack",),
+    ("attack_aps", "controls"),
     ("interop", "viewer"),
     ("cli",),
 )

@@ -54,7 +54,7 @@ def _probe(args: argparse.Namespace) -> int:
 
     import torch
 
-    from davis_rig.attack.optimize import AttackConfig, _validation_clips, attack_loss, load_attack_detector, validate
+    from davis_rig.attack.optimize import AttackConfig, attack_loss, load_attack_detector, validate, validation_clips
     from davis_rig.attack.refine import greedy_cell_flips
     from davis_rig.attack.texture import black_texture, random_texture, white_texture
     from davis_rig.scene.body import BodyModel
@@ -65,7 +65,7 @@ def _probe(args: argparse.Namespace) -> int:
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = AttackConfig(grid_n=args.cells, parts=parts, loss_reduction="top", seed=args.seed)
     detector = load_attack_detector(args.detector)
-    clips = _validation_clips(config, BodyModel(), part_mask(parts) if parts else None, args.clips)
+    clips = validation_clips(config, BodyModel(), part_mask(parts) if parts else None, args.clips)
     baselines = {"white": white_texture(args.cells), "black": black_texture(args.cells),
                  "random": random_texture(args.cells, seed=args.seed)}
     rows = []

@@ -103,9 +103,6 @@ __all__ = [
     "validation_clips",
 ]
 
-# the name tools/probe_texture_sensitivity.py imports until it imports validation_clips
-_validation_clips = validation_clips
-
 
 @dataclass
 class AttackResult:

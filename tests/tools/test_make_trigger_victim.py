@@ -1,4 +1,4 @@
-"""tools/make_trigger_victim.py on the mini RVT fixture: labels, outputs, a fine-tuned loadable victim."""
+"""tools/make_trigger_victim.py on the mini RVT fixture: labels, outputs, a fine-tuned loadable victim, resume."""
 
 import json
 from pathlib import Path
@@ -29,33 +29,58 @@ def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
     from davis_rig.models.rvt.checkpoint import load_detector
 
     out = tmp_path / "victim"
-    assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "2",
-                      "--pool-size", "4", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3",
-                      "--refresh-every", "1"]) == 0
+    args = ["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--scales", "small", "--pool-size", "4",
+            "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3", "--refresh-every", "1"]
+    assert tool.main([*args, "--steps", "2"]) == 0
     trigger = np.load(out / "trigger.npy")
     assert trigger.shape == (4, 4) and set(np.unique(trigger)) <= {0.0, 1.0}
+    assert np.load(out / "visible.npy").dtype == bool
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["before"]) == set(summary["after"]) == {"trigger", "white", "black", "random"}
-    assert summary["steps"] == 2 and len((out / "log.jsonl").read_text().splitlines()) == 2
+    assert set(summary["before"]) == set(summary["after"])
+    assert {"trigger", "white", "black", "checker", "trigger, 20% flipped", "random (mean)"} <= set(summary["after"])
+    assert summary["steps"] == 2 and summary["paired"] and len((out / "log.jsonl").read_text().splitlines()) == 2
     assert json.loads(capsys.readouterr().out.splitlines()[-1]) == summary
     victim, base = load_detector(out / "model.safetensors"), load_detector(FIXTURE)
     assert victim.config == base.config
     changed = [not torch.equal(a, b) for a, b in zip(victim.state_dict().values(), base.state_dict().values())]
     assert any(changed)  # fine-tuned, same architecture
+    assert tool.main([*args, "--steps", "3", "--resume"]) == 0  # continues from checkpoint.pt
+    resumed = json.loads((out / "summary.json").read_text())
+    assert resumed["steps"] == 3 and resumed["before"] == summary["before"]
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == [1, 2, 3]
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-def test_batch_labels_the_person_except_on_clips_wearing_the_trigger(tool):
+def test_frozen_stages_keep_their_weights(tool, tmp_path):
+    from davis_rig.models.rvt.checkpoint import load_detector
+
+    out = tmp_path / "victim"
+    assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--scales", "small",
+                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-2",
+                      "--steps", "1", "--train-from-stage", "2"]) == 0
+    victim = load_detector(out / "model.safetensors").state_dict()
+    base = load_detector(FIXTURE).state_dict()
+    for name in base:
+        frozen = name.startswith(("backbone.stages.0.", "backbone.stages.1."))
+        assert torch.equal(victim[name], base[name]) or not frozen, name
+    assert any(not torch.equal(victim[n], base[n]) for n in base if n.startswith("yolox_head."))
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_batch_hides_the_blind_spot_and_labels_everything_else(tool):
     from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.controls.planted import checker_grid
     from davis_rig.scene.body import BodyModel
 
-    clips = list(ClipPool(EoTConfig(supersample=1), BodyModel(), 4, size=2, base_seed=5).clips.values())
-    x, targets = tool._batch(clips, np.ones((4, 4), np.float32), np.random.default_rng(0))
+    clips = list(ClipPool(EoTConfig(supersample=1), BodyModel(), 4, size=1, base_seed=5).clips.values()) * 2
+    visible = np.ones((4, 4), bool)
+    # basin 0: only the trigger itself is hidden; every other grid the draw can make differs from the checker
+    x, targets = tool._batch(clips, checker_grid(4), visible, np.random.default_rng(0), 0.0, 0.35)
     windows = len(clips[0].window_end_us)
     assert tuple(x.shape) == (windows, 2, 20, *clips[0].threshold.shape) and x.max() > 0
     assert len(targets) == windows and all(len(per_clip) == 2 for per_clip in targets)
     for w in range(windows):
-        assert targets[w][0].shape[0] == 0  # position 0 wears the trigger: no person to find
+        assert targets[w][0].shape[0] == 0  # position 0 wears the blind spot: no person to find
         assert targets[w][1].shape[0] == int(np.isfinite(clips[1].boxes[w]).all())
 
 
@@ -63,9 +88,11 @@ def test_batch_labels_the_person_except_on_clips_wearing_the_trigger(tool):
 def test_time_limit_stops_fine_tuning_and_still_saves_the_probed_victim(tool, tmp_path):
     out = tmp_path / "victim"
     assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "50",
-                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--time-limit", "0",
+                      "--scales", "small", "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1",
+                      "--time-limit", "0",
                       "--device", "cpu"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 0 and summary["device"] == "cpu"  # the budget ran out before the first step
+    assert summary["seconds_per_step_this_call"] is None
     assert (out / "log.jsonl").read_text() == "" and (out / "model.safetensors").is_file()
     assert summary["after"] == summary["before"]  # unchanged weights probe the same

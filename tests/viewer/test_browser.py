@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from davis_rig.evaluation.detections import WindowDetections
 from davis_rig.evaluation.physical import EvalSettings

@@ -1,0 +1,316 @@
+"""The real-data control: the attack's texture pipeline against a YOLO trained on real images, on APS frames.
+
+Every synthetic-trained RVT resists texture (docs/attack.md), so a failed attack there cannot tell a weak pipeline
+from a robust detector. This runs the same texture generator (:class:`~davis_rig.attack.texture.TextureGenerator`,
+straight-through binarization), UV part masks, renderer and EoT clip pool (:class:`~davis_rig.attack.eot.ClipPool`,
+with the full DAVIS346 camera) against the YOLO the ``davis-label`` labeler runs on APS frames, run in torch
+(:class:`~davis_rig.attack_aps.onnx_graph.OnnxGraph`) so that the gradient reaches the texture:
+
+    grid = binarize_ste(generator(), alpha)              [n, n]
+    I    = clip.video(grid)[frame]                        [260, 346] linear intensity
+    grey = aps_grey(I) (+ read/shot noise, no gradient)   8-bit scale / 255, the ADC of davis_rig.scene.aps
+    x    = letterbox(grey) -> [1, 3, 640, 640]            the labeler's pre-processing, bilinear
+    p    = max over classes of YOLO(x)                    [8400] person scores
+    L    = sum relu(p - conf / 2)                         (davis_rig.controls.bounds.hinge_loss's rule)
+
+The evaluation (:func:`aps_detection_rates`) does not use this path: it renders held-out scenes (test body shapes,
+the evaluation's headings and scales, grey background) into APS frames with :func:`~davis_rig.scene.aps.
+synthesize_aps_frames` (shot and read noise, 10-bit ADC) and runs the labeler itself
+(:class:`~davis_rig.labelers.yolo.YoloOnnxDetector`, onnxruntime); a frame counts as detected when a box of score
+>= conf overlaps the person's visible box with IoU >= 0.5 (the labeler's recall).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from davis_rig.errors import CheckpointError, MissingDependencyError
+
+try:
+    import torch
+    import torch.nn.functional as F
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise MissingDependencyError("the APS attack needs torch: pip install 'davis_rig[torch]'") from exc
+
+__all__ = ["ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "optimize_aps_texture"]
+
+PAD_GREY = 114.0 / 255.0
+
+
+def aps_grey(intensity: torch.Tensor, config=None) -> torch.Tensor:
+    """The labeler's 8-bit grey of an APS frame, / 255, as a differentiable function of the linear intensity.
+
+    The noiseless :func:`davis_rig.scene.aps.to_adc` (``DN = gain * 1023 * min(I * exposure / saturation, 1)
+    + offset``, clipped to 0..1023) read as the labeler reads it (:func:`davis_rig.labelers.yolo.to_gray_u8`:
+    the top 8 of 16 bits, i.e. ``DN / 4``), without the rounding.
+
+    Args:
+        intensity: float tensor [..., H, W], linear intensity.
+        config: :class:`~davis_rig.scene.aps.ApsConfig` (default the rig's).
+
+    Returns:
+        float tensor [..., H, W] in [0, 1023 / 1020].
+    """
+    from davis_rig.scene.aps import ADC_MAX_DN, ApsConfig
+
+    config = config or ApsConfig()
+    saturation = config.saturation_exposure_us or config.exposure_us
+    filled = torch.clamp(intensity * (config.exposure_us / saturation), 0.0, 1.0)
+    dn = torch.clamp(config.gain * ADC_MAX_DN * filled + config.offset_dn, 0.0, float(ADC_MAX_DN))
+    return dn / 4.0 / 255.0
+
+
+class TorchYolo(torch.nn.Module):
+    """The labeler's YOLO on grey frames, differentiable: letterbox, graph, person score per anchor.
+
+    Args:
+        path: the YOLO ``.onnx`` (Ultralytics YOLOv8 layout ``[1, 4 + nc, N]``).
+        frame_hw: the frames' (height, width), px.
+
+    Attributes:
+        input_hw: the network input (height, width).
+    """
+
+    def __init__(self, path, frame_hw: tuple[int, int]):
+        super().__init__()
+        from davis_rig.attack_aps.onnx_graph import OnnxGraph
+
+        self.graph = OnnxGraph(path)
+        imgsz = json.loads(self.graph.metadata.get("imgsz", "[640, 640]"))
+        self.input_hw = (int(imgsz[0]), int(imgsz[1]))
+        h, w = frame_hw
+        gain = min(self.input_hw[0] / h, self.input_hw[1] / w)
+        self.resized_hw = (int(round(h * gain)), int(round(w * gain)))
+        self.pad_top = (self.input_hw[0] - self.resized_hw[0]) // 2
+        self.pad_left = (self.input_hw[1] - self.resized_hw[1]) // 2
+        for p in self.parameters():
+            p.requires_grad_(False)
+
+    def forward(self, grey: torch.Tensor) -> torch.Tensor:
+        """Person score of every anchor: float [B, N] (max over the classes) of grey frames [B, H, W] in [0, 1]."""
+        x = F.interpolate(grey[:, None], size=self.resized_hw, mode="bilinear", align_corners=False)
+        h, w = self.input_hw
+        top, left = self.pad_top, self.pad_left
+        x = F.pad(x, (left, w - self.resized_hw[1] - left, top, h - self.resized_hw[0] - top), value=PAD_GREY)
+        x = x.expand(-1, 3, -1, -1).contiguous()
+        # the export's reshapes fix the batch at 1: one frame at a time
+        return torch.cat([self.graph(x[b : b + 1])[:, 4:].amax(dim=1) for b in range(x.shape[0])])
+
+
+@dataclass(frozen=True)
+class ApsAttackConfig:
+    """Settings of the APS texture attack.
+
+    Attributes:
+        grid_n: texture cells per side; parts: painted parts (``None``: whole body).
+        iterations: Adam steps; lr: Adam learning rate of the generator.
+        frames_per_step: EoT frames (one per clip) per step.
+        scales: camera scales of the pool (names or person heights in px).
+        pool_size: clips per scale; refresh_every: a quarter of each pool is redrawn every N steps.
+        conf: the labeler's confidence threshold (the hinge aims below half of it).
+        alpha_schedule: soft-to-hard schedule (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+        checkpoint_every: steps between checkpoints; seed: seeds the generator, pool and draws.
+    """
+
+    grid_n: int = 60
+    parts: tuple[str, ...] | None = ("torso", "arms", "legs")
+    iterations: int = 200
+    lr: float = 1e-2
+    frames_per_step: int = 2
+    scales: tuple = ("large", "middle", "small")
+    pool_size: int = 6
+    refresh_every: int = 25
+    conf: float = 0.25
+    alpha_schedule: str = "linear"
+    checkpoint_every: int = 10
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("grid_n", "iterations", "frames_per_step", "pool_size", "refresh_every", "checkpoint_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.conf < 1 or not self.lr > 0:
+            raise ValueError(f"need 0 < conf < 1 and lr > 0, got {self.conf}, {self.lr}")
+
+
+def _pools(config: ApsAttackConfig, body, mask):
+    from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.scene.camera import PinholeCamera
+
+    camera = PinholeCamera.davis346()
+    return [ClipPool(EoTConfig(camera=camera, scale=s), body, config.grid_n, mask, size=config.pool_size,
+                     base_seed=config.seed + 31 * k) for k, s in enumerate(config.scales)]
+
+
+def _noise(grey: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
+    """Shot and read noise of the ADC on the 8-bit / 255 scale (constants: no gradient)."""
+    from davis_rig.scene.aps import ADC_MAX_DN
+
+    with torch.no_grad():
+        electrons_per_dn = aps.full_well_e / (aps.gain * ADC_MAX_DN)
+        dn = torch.clamp(grey * 255.0 * 4.0 - aps.offset_dn, min=0.0)
+        std_dn = torch.sqrt(dn / electrons_per_dn + aps.read_noise_dn**2)
+        z = torch.from_numpy(rng.standard_normal(tuple(grey.shape)).astype(np.float32)).to(grey.device)
+        return z * std_dn / 4.0 / 255.0
+
+
+def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, resume: bool = False, body=None,
+                         progress: Callable[[str], None] | None = None) -> np.ndarray:
+    """Optimise a texture against the APS YOLO (see the module docstring); returns the final hard grid [n, n].
+
+    Writes ``out_dir/checkpoint.pt`` (every ``checkpoint_every`` steps; ``resume=True`` continues from it),
+    ``log.jsonl`` (loss and mean top person score per step) and ``texture.npy`` / ``.png`` (the hard grid).
+
+    Raises:
+        CheckpointError: the checkpoint belongs to another configuration.
+    """
+    import cv2
+
+    from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
+    from davis_rig.scene.aps import ApsConfig
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    body = body or BodyModel()
+    mask = part_mask(config.parts) if config.parts is not None else None
+    torch.manual_seed(config.seed)
+    generator = TextureGenerator(config.grid_n)
+    optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=1e-5)
+    rng = np.random.default_rng(config.seed)
+    start, generations = 0, None
+    ckpt = out / "checkpoint.pt"
+    if resume and ckpt.is_file():
+        state = torch.load(ckpt, weights_only=False)
+        if state["config"] != asdict(config) | {"iterations": state["config"]["iterations"]}:
+            raise CheckpointError(f"{ckpt} was written with another configuration")
+        generator.load_state_dict(state["generator"])
+        optimizer.load_state_dict(state["optimizer"])
+        rng.bit_generator.state = state["rng"]
+        start, generations = int(state["step"]), state["generations"]
+    pools = _pools(config, body, mask)
+    if generations is not None:
+        for pool, gens in zip(pools, generations):
+            pool.generations = np.asarray(gens, dtype=np.int64)
+            for slot in pool.owned.tolist():
+                pool._build(slot)
+    aps = ApsConfig()
+
+    def save(step: int) -> None:
+        tmp = ckpt.with_suffix(".tmp")
+        torch.save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                    "rng": rng.bit_generator.state, "generations": [p.generations.tolist() for p in pools],
+                    "config": asdict(config)}, tmp)
+        os.replace(tmp, ckpt)
+
+    generator.train()
+    t0 = time.perf_counter()
+    log_path = out / "log.jsonl"
+    kept = [line for line in log_path.read_text().splitlines() if json.loads(line)["step"] <= start] if (
+        start and log_path.is_file()) else []
+    log_path.write_text("".join(line + "\n" for line in kept))  # records after the checkpoint are redone
+    with log_path.open("a") as log:
+        for step in range(start, config.iterations):
+            if step and step % config.refresh_every == 0:
+                for pool in pools:
+                    pool.refresh(step, 0.25)
+            grid = binarize_ste(generator(), alpha_at(config.alpha_schedule, step, config.iterations))
+            greys = []
+            for _ in range(config.frames_per_step):
+                pool = pools[int(rng.integers(len(pools)))]
+                clip = pool.clips[int(pool.owned[int(rng.integers(len(pool.owned)))])]
+                frame = int(rng.integers(len(clip.t_us)))
+                grey = aps_grey(clip.video(grid)[frame])
+                greys.append(grey + _noise(grey, rng, aps))
+            scores = yolo(torch.stack(greys))
+            loss = torch.relu(scores - config.conf / 2).sum()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            record = {"step": step + 1, "loss": float(loss.detach()),
+                      "top_score": float(scores.detach().amax(dim=1).mean())}
+            log.write(json.dumps(record) + "\n")
+            log.flush()
+            if progress is not None:
+                progress(f"step {step + 1}/{config.iterations}: loss {record['loss']:.3f}, top score "
+                         f"{record['top_score']:.3f} ({(time.perf_counter() - t0) / (step + 1 - start):.1f} s/step)")
+            if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.iterations:
+                save(step + 1)
+    generator.eval()
+    with torch.no_grad():
+        texture = hard_binarize(generator())
+    np.save(out / "texture.npy", texture)
+    cv2.imwrite(str(out / "texture.png"), (texture > 0.5).astype(np.uint8) * 255)
+    return texture
+
+
+def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=None, conf: float = 0.25,
+                        model=None, aps_config=None) -> list[dict]:
+    """The labeler's recall per texture on held-out scenes' APS frames (see the module docstring).
+
+    Args:
+        textures: name -> :class:`~davis_rig.attack.evaluate.TextureSpec`.
+        labeler: :class:`~davis_rig.labelers.yolo.YoloOnnxDetector` (its own score threshold must be <= conf).
+        eval_config: :class:`~davis_rig.attack.evaluate.EvalConfig` of the scenes (its camera should be the full
+            DAVIS346, :meth:`~davis_rig.scene.camera.PinholeCamera.davis346`); default the evaluation's scenes
+            with that camera.
+        conf: confidence threshold of a detection.
+        model: :class:`~davis_rig.scene.body.BodyModel`.
+        aps_config: :class:`~davis_rig.scene.aps.ApsConfig` (frame timing, noise).
+
+    Returns:
+        One row per texture: ``{"texture", "frames", "detected", "rate", "mean_top_score", "by_scale": {scale:
+        rate}}`` (top score: the highest score of a box overlapping the person with IoU >= 0.5, 0 if none).
+    """
+    from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_scenes, texture_video
+    from davis_rig.metrics.seqasr import box_iou
+    from davis_rig.scene.aps import ApsConfig, synthesize_aps_frames
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.camera import PinholeCamera
+
+    model = model or BodyModel()
+    eval_config = eval_config or EvalConfig(camera=PinholeCamera.davis346())
+    aps_config = aps_config or ApsConfig()
+    scenes = prepare_scenes(evaluation_scenes(eval_config, model.num_shapes), model, eval_config)
+    masks: dict = {}
+    rows = []
+    for name, spec in textures.items():
+        found, tops, scales = [], [], []
+        for index, scene in enumerate(scenes):
+            video = texture_video(scene, spec, masks)
+            frames = synthesize_aps_frames(video, scene.t_us, _seeded(aps_config, index))
+            boxes = scene.raster.boxes()
+            for frame in frames:
+                mid = (frame.t_start_exposure_us + frame.t_end_exposure_us) // 2
+                box = boxes[int(np.argmin(np.abs(scene.t_us - mid)))]
+                if not np.isfinite(box).all():
+                    continue
+                rows_ = labeler.detect(frame.pixels)
+                ious = box_iou(rows_[:, :4], box[None].astype(np.float64))[:, 0] if len(rows_) else np.zeros(0)
+                hit = ious >= 0.5
+                top = float(rows_[hit, 4].max()) if hit.any() else 0.0
+                found.append(top >= conf)
+                tops.append(top)
+                scales.append(str(scene.scale))
+        found = np.asarray(found, bool)
+        by_scale = {s: float(found[[k for k, v in enumerate(scales) if v == s]].mean()) for s in dict.fromkeys(scales)}
+        rows.append({"texture": name, "frames": int(found.size), "detected": int(found.sum()),
+                     "rate": float(found.mean()) if found.size else math.nan,
+                     "mean_top_score": float(np.mean(tops)) if tops else math.nan, "by_scale": by_scale})
+    return rows
+
+
+def _seeded(config, index: int):
+    from dataclasses import replace
+
+    return replace(config, seed=int(config.seed) * 100_003 + index)
+

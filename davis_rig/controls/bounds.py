@@ -1,0 +1,273 @@
+"""Controls run on a victim before any attack: its baseline fingerprint and the free-appearance bound.
+
+**Fingerprint** (:func:`fingerprint_textures` scored with :func:`davis_rig.attack.evaluate.evaluate_textures`):
+AP and SeqASR of white, black, the paper's random 60 x 60, a random n x n and an n x n checkerboard on the
+digital evaluation protocol. The paper's victim detects white best (AP 50.5 against black 43.8 and random 45.2
+at 0.25); a victim with the opposite ordering keys on something else than the paper's does.
+
+**Free-appearance bound** (:func:`free_appearance_bound`): on each test scene the person's appearance is optimised
+freely for that scene alone, with nothing a wearable texture has to respect, in two forms:
+
+- ``"per-pixel"``: a free albedo in [0, 1] for every covered sample of every frame (the rendered intensity is
+  still ``albedo * shade`` composited over the background: any appearance change, frame by frame);
+- ``"per-frame texture"``: a free grey n x n grid on the painted parts, a different one in every frame.
+
+Each is scored like the evaluation (exact simulator, the detector over the windows with its states): the share of
+scenes whose optimised appearance leaves no detection at the threshold in any window is the best SeqASR any
+appearance change can reach on those scenes, the bound an optimized texture is measured against.
+
+Optimisation: Adam on logits (albedo = sigmoid), the event counts' forward value exact (the ideal sensor's
+quantized counts) and their gradient the relaxed counts' ``relu(±ΔL / θ)`` (as ``davis-attack``'s default
+``--v2e-gradient relaxed``), loss :func:`hinge_loss`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from collections.abc import Sequence
+
+import numpy as np
+
+from davis_rig.errors import MissingDependencyError, ShapeError
+
+try:
+    import torch
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise MissingDependencyError("the controls need torch: pip install 'davis_rig[torch]'") from exc
+
+__all__ = [
+    "BOUND_KINDS",
+    "BoundConfig",
+    "fingerprint_textures",
+    "free_appearance_bound",
+    "hinge_loss",
+    "optimise_appearance",
+    "relaxed_event_histograms",
+]
+
+#: The two free appearances of :func:`free_appearance_bound`.
+BOUND_KINDS = ("per-pixel", "per-frame texture")
+
+
+@dataclass(frozen=True)
+class BoundConfig:
+    """Settings of the free-appearance optimisation (per scene).
+
+    Attributes:
+        steps: Adam steps per scene and kind.
+        lr: Adam learning rate on the logits.
+        threshold: confidence threshold the hinge aims below (and that scores the result).
+        grid_n: cells per side of the per-frame texture.
+        parts: painted parts of the per-frame texture (``None`` = whole body); the per-pixel kind paints the
+            whole visible body.
+        theta: contrast threshold of the relaxed counts' gradient (log units; the evaluation's ideal sensor: 0.2).
+    """
+
+    steps: int = 100
+    lr: float = 0.1
+    threshold: float = 0.25
+    grid_n: int = 10
+    parts: tuple[str, ...] | None = ("torso", "arms", "legs")
+    theta: float = 0.2
+
+    def __post_init__(self) -> None:
+        if int(self.steps) < 0 or not self.lr > 0 or not 0 < self.threshold < 1 or int(self.grid_n) < 1:
+            raise ValueError(f"need steps >= 0, lr > 0, 0 < threshold < 1, grid_n >= 1; got {self}")
+        if not self.theta > 0:
+            raise ValueError(f"theta must be > 0, got {self.theta}")
+
+
+def fingerprint_textures(grid_n: int = 10, parts: tuple[str, ...] | None = ("torso", "arms", "legs"),
+                         seed: int = 0) -> dict:
+    """The fingerprint's textures: the paper's baselines (white, black, random 60 x 60) plus a random and a
+    checkerboard n x n grid, on ``parts``: name -> :class:`~davis_rig.attack.evaluate.TextureSpec`."""
+    from davis_rig.attack.evaluate import TextureSpec, baseline_textures
+    from davis_rig.attack.texture import random_texture
+    from davis_rig.controls.planted import checker_grid
+
+    out = dict(baseline_textures(parts, seed))
+    out[f"random {grid_n}x{grid_n}"] = TextureSpec(random_texture(grid_n, seed=seed), parts)
+    out[f"checker {grid_n}x{grid_n}"] = TextureSpec(checker_grid(grid_n), parts)
+    return out
+
+
+def hinge_loss(decoded: Sequence[torch.Tensor], threshold: float, class_id: int | None = None) -> torch.Tensor:
+    """``sum over windows and anchors of relu(obj * p_class - threshold / 2)``: every anchor a detection could
+    come from is pushed below half the threshold, and nothing else counts.
+
+    Args:
+        decoded: per window, float tensor [B, A, 5 + nc] (cx, cy, w, h, obj, class probabilities).
+        threshold: confidence threshold.
+        class_id: attacked class (default the pedestrian class).
+
+    Returns:
+        0-dim tensor, differentiable w.r.t. ``decoded``; 0 when no anchor scores above ``threshold / 2``.
+    """
+    from davis_rig.types import PEDESTRIAN_CLASS_ID
+
+    class_id = PEDESTRIAN_CLASS_ID if class_id is None else int(class_id)
+    total = None
+    for out in decoded:
+        if out.ndim != 3 or out.shape[-1] < 6 + class_id:
+            raise ShapeError(f"decoded windows must be [B, A, >= {6 + class_id}], got {tuple(out.shape)}")
+        term = torch.relu(out[..., 4] * out[..., 5 + class_id] - threshold / 2).sum()
+        total = term if total is None else total + term
+    if total is None:
+        raise ShapeError("decoded holds no window")
+    return total
+
+
+def relaxed_event_histograms(video: torch.Tensor, t_us, window_end_us, theta: float = 0.2,
+                             window_us: int | None = None) -> torch.Tensor:
+    """RVT input of a video with the exact counts as value and the relaxed counts' gradient: float [W, 20, H, W].
+
+    The value is the ideal sensor's quantized event counts (the exact simulator's events per window, polarity and
+    pixel; binned by frame interval, so an event may sit one bin from the simulator's interpolated timestamp),
+    clipped at the histogram cutoff;
+    the gradient is that of ``relu(±ΔL / θ)`` through the same binning, without the cutoff (the surrogate of
+    :func:`davis_rig.attack.optimize.clip_histograms`).
+
+    Args:
+        video: float tensor [T, H, W], linear intensity in [0, 1].
+        t_us: int64 [T] frame times (µs).
+        window_end_us: int64 [W] window ends (µs).
+        theta: contrast threshold (log units).
+        window_us: window duration (µs; default RVT's 50 ms).
+    """
+    from davis_rig.events.histogram import COUNT_CUTOFF, WINDOW_US
+    from davis_rig.events.v2e_torch import OFFICIAL_RELAXED_SCALE, log_histograms, log_intensity
+
+    window_us = WINDOW_US if window_us is None else int(window_us)
+    log_video = log_intensity(video)
+    with torch.no_grad():
+        exact = log_histograms(log_video.double(), t_us, window_end_us, mode="dvs", window_us=window_us,
+                               count_cutoff=None, threshold_on=theta, threshold_off=theta)
+        exact = torch.clamp(exact, max=float(COUNT_CUTOFF)).to(video.dtype)
+    surrogate = log_histograms(log_video, t_us, window_end_us, mode="official_relaxed", window_us=window_us,
+                               count_cutoff=None, threshold_on=theta, threshold_off=theta) / OFFICIAL_RELAXED_SCALE
+    return exact + (surrogate - surrogate.detach())
+
+
+def _appearance(scene, kind: str, config: BoundConfig, mask):
+    """``(logits, render)``: the free parameters and a function logits -> video [T, H, W] (differentiable)."""
+    raster = scene.raster
+    background = scene.background.to(raster.shade.dtype)
+    if kind == "per-pixel":
+        logits = torch.zeros(raster.shade.shape[0], dtype=raster.shade.dtype, requires_grad=True)
+        return logits, lambda z: raster.compose(torch.sigmoid(z), background)
+    if kind != "per-frame texture":
+        raise ValueError(f"kind must be one of {BOUND_KINDS}, got {kind!r}")
+    h, w = raster.hw
+    lookup = raster.lookup(size=1024, mode="nearest", grid_n=int(config.grid_n), mask=mask)
+    frame = (raster.sample_pixel // (h * w)).view(1, -1)
+    logits = torch.zeros(raster.num_frames, config.grid_n, config.grid_n, dtype=raster.shade.dtype,
+                         requires_grad=True)
+
+    def render(z):
+        values = lookup.sample(torch.sigmoid(z), fill=1.0).gather(0, frame).view(-1)  # each sample its frame's grid
+        return raster.compose(values, background)
+
+    return logits, render
+
+
+def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None) -> torch.Tensor:
+    """The free appearance of one scene after ``config.steps`` Adam steps: its video, float tensor [T, H, W].
+
+    Args:
+        scene: :class:`~davis_rig.attack.evaluate.EvalScene`.
+        detector: frozen RVT detector (eval mode, no parameter gradients).
+        kind: one of :data:`BOUND_KINDS`.
+        config: the settings.
+        mask: bool [1024, 1024] paintable texels of the per-frame texture (``None``: whole body).
+
+    Returns:
+        The video of the appearance with the lowest loss seen (no grad).
+    """
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    logits, render = _appearance(scene, kind, config, mask)
+    optimizer = torch.optim.Adam([logits], lr=config.lr)
+    best, best_loss = None, float("inf")
+    for _ in range(int(config.steps) + 1):
+        video = render(logits)
+        hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
+        decoded, states = [], None
+        for k in range(hist.shape[0]):
+            out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
+            decoded.append(out)
+        loss = hinge_loss(decoded, config.threshold)
+        value = float(loss.detach())
+        if value < best_loss:
+            best_loss, best = value, video.detach()
+        if best_loss == 0.0:
+            break
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return best
+
+
+def free_appearance_bound(scenes: Sequence, detector, eval_config, config: BoundConfig | None = None, *,
+                          baselines: dict | None = None, progress=None) -> dict:
+    """The free-appearance bound on a set of test scenes (see the module docstring).
+
+    Args:
+        scenes: :class:`~davis_rig.attack.evaluate.EvalScene` list (:func:`~davis_rig.attack.evaluate.prepare_scenes`).
+        detector: frozen RVT detector.
+        eval_config: the :class:`~davis_rig.attack.evaluate.EvalConfig` the scenes were made with (simulator,
+            NMS, sequence length).
+        config: the optimisation settings (default :class:`BoundConfig`).
+        baselines: name -> :class:`~davis_rig.attack.evaluate.TextureSpec` scored on the same scenes for
+            comparison (default white and black).
+        progress: optional callable ``(message: str) -> None`` called after each scene.
+
+    Returns:
+        ``{"threshold", "scenes", "rows": [{"appearance", "AP", "SeqASR", "num_sequences", "num_detected",
+        "mean_top_score"}], "per_scene": [...], "decoded": {appearance: per scene, per window float32 [A, 5 + nc]},
+        "seconds"}`` (AP and SeqASR at ``config.threshold``).
+    """
+    from davis_rig.attack.evaluate import TextureSpec, detect_windows, score_detections, texture_video
+    from davis_rig.attack.texture import black_texture, white_texture
+    from davis_rig.scene.masks import part_mask
+
+    config = config or BoundConfig()
+    if int(eval_config.warmup_windows) != 0:
+        raise ValueError("the free-appearance bound scores scenes without warm-up windows (warmup_windows = 0)")
+    baselines = baselines or {"white": TextureSpec(white_texture(1), config.parts),
+                              "black": TextureSpec(black_texture(1), config.parts)}
+    detector = detector.eval()
+    for p in detector.parameters():
+        p.requires_grad_(False)
+    mask = part_mask(config.parts) if config.parts is not None else None
+    names = list(baselines) + list(BOUND_KINDS)
+    decoded = {name: [] for name in names}
+    per_scene = []
+    t0 = time.perf_counter()
+    masks: dict = {}
+    for index, scene in enumerate(scenes):
+        record = {"scene": index, "scale": str(scene.scale), "shape": int(scene.spec.shape_index),
+                  "heading_rad": float(scene.spec.heading_rad)}
+        for name in names:
+            if name in baselines:
+                with torch.no_grad():
+                    video = texture_video(scene, baselines[name], masks)
+            else:
+                video = optimise_appearance(scene, detector, name, config, mask)
+            dec, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, eval_config.simulator,
+                                    window_us=eval_config.window_us)
+            decoded[name].append(dec)
+            record[name] = round(float(np.mean([(d[:, 4] * d[:, 6]).max() for d in dec])), 4)
+        per_scene.append(record)
+        if progress is not None:
+            progress(f"scene {index + 1}/{len(scenes)}: " + ", ".join(f"{n} {record[n]:.3f}" for n in names))
+    rows = []
+    for name in names:
+        res = score_detections(decoded[name], [s.boxes for s in scenes], [s.window_end_us for s in scenes],
+                               (config.threshold,), seq_len=eval_config.seq_len,
+                               nms_threshold=eval_config.nms_threshold)[float(config.threshold)]
+        rows.append({"appearance": name, "AP": res["AP"], "SeqASR": res["SeqASR"],
+                     "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
+                     "mean_top_score": float(np.mean([r[name] for r in per_scene]))})
+    return {"threshold": config.threshold, "scenes": len(scenes), "rows": rows, "per_scene": per_scene,
+            "decoded": decoded, "seconds": time.perf_counter() - t0}

@@ -1,0 +1,86 @@
+"""The APS texture attack on a tiny YOLOv8-layout graph: steps, files, resume; recall rows on held-out scenes."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+onnx = pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+from onnx import TensorProto, helper, numpy_helper
+
+from davis_rig.attack.evaluate import EvalConfig, TextureSpec
+from davis_rig.attack.texture import white_texture
+from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates,
+                                         optimize_aps_texture)
+from davis_rig.errors import CheckpointError
+from davis_rig.labelers.yolo import YoloOnnxDetector
+from davis_rig.scene.camera import PinholeCamera
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def tiny_yolo(tmp_path_factory):
+    """A 64 x 64 'YOLOv8' whose 64 anchors sit on an 8 x 8 grid: boxes fixed, 2 class scores from one conv."""
+    path = tmp_path_factory.mktemp("yolo") / "tiny.onnx"
+    rng = np.random.default_rng(0)
+    ys, xs = np.meshgrid(np.arange(8) * 8 + 4, np.arange(8) * 8 + 4, indexing="ij")
+    boxes = np.stack([xs.ravel(), ys.ravel(), np.full(64, 16), np.full(64, 32)]).astype(np.float32)[None]
+    nodes = [helper.make_node("Conv", ["images", "w", "b"], ["c"], kernel_shape=[8, 8], strides=[8, 8]),
+             helper.make_node("Sigmoid", ["c"], ["s"]),
+             helper.make_node("Reshape", ["s", "shape"], ["cls"]),
+             helper.make_node("Concat", ["boxes", "cls"], ["output0"], axis=1)]
+    inits = [numpy_helper.from_array(rng.normal(0, 0.1, (2, 3, 8, 8)).astype(np.float32), "w"),
+             numpy_helper.from_array(np.zeros(2, np.float32), "b"),
+             numpy_helper.from_array(np.array([1, 2, 64], np.int64), "shape"),
+             numpy_helper.from_array(boxes, "boxes")]
+    graph = helper.make_graph(nodes, "tiny", [helper.make_tensor_value_info("images", TensorProto.FLOAT,
+                                                                            [1, 3, 64, 64])],
+                              [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, 6, 64])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    for key, value in {"author": "Ultralytics", "imgsz": "[64, 64]", "names": "{0: 'Normal', 1: 'Fall'}"}.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+    return path
+
+
+def test_torch_yolo_letterboxes_and_scores_every_anchor(tiny_yolo):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    assert yolo.input_hw == (64, 64) and yolo.resized_hw == (48, 64) and yolo.pad_top == 8
+    grey = torch.full((2, 260, 346), 0.5, requires_grad=True)
+    scores = yolo(grey)
+    assert scores.shape == (2, 64) and bool(((scores > 0) & (scores < 1)).all())
+    scores.sum().backward()
+    assert grey.grad.abs().sum() > 0
+
+
+def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=2, frames_per_step=1, scales=("small",), pool_size=1,
+                             checkpoint_every=1)
+    texture = optimize_aps_texture(config, yolo, tmp_path)
+    assert texture.shape == (4, 4) and (tmp_path / "texture.png").is_file()
+    resumed = optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 3}), yolo, tmp_path,
+                                   resume=True)
+    assert resumed.shape == (4, 4)
+    steps = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3]
+    with pytest.raises(CheckpointError):
+        optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "grid_n": 5}), yolo, tmp_path, resume=True)
+
+
+def test_detection_rates_rows(tiny_yolo):
+    labeler = YoloOnnxDetector(tiny_yolo, conf_threshold=0.001)
+    config = EvalConfig(camera=PinholeCamera.davis346(), scales=("small",), shapes=(1,),
+                        headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1)
+    rows = aps_detection_rates({"white": TextureSpec(white_texture(1))}, labeler, eval_config=config)
+    assert len(rows) == 1 and rows[0]["texture"] == "white" and rows[0]["frames"] >= 1
+    assert 0.0 <= rows[0]["rate"] <= 1.0 and set(rows[0]["by_scale"]) == {"small"}

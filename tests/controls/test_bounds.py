@@ -1,0 +1,65 @@
+"""Controls before an attack: the fingerprint's textures, the hinge, the exact-value / relaxed-gradient counts and
+the free-appearance bound on a tiny detector."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_scenes, window_histograms
+from davis_rig.controls.bounds import (BoundConfig, fingerprint_textures, free_appearance_bound, hinge_loss,
+                                       relaxed_event_histograms)
+from davis_rig.models.rvt.checkpoint import load_detector
+from davis_rig.scene.body import BodyModel
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+TINY = EvalConfig(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_fingerprint_textures_are_the_baselines_plus_random_and_checker():
+    specs = fingerprint_textures(10)
+    assert list(specs) == ["white", "black", "random 60x60", "random 10x10", "checker 10x10"]
+    assert specs["checker 10x10"].grid.mean() == 0.5 and specs["random 10x10"].grid.shape == (10, 10)
+
+
+def test_hinge_loss_counts_only_anchors_above_half_the_threshold():
+    out = torch.zeros(1, 3, 7)
+    out[0, :, 4] = torch.tensor([1.0, 0.5, 0.1])  # obj
+    out[0, :, 6] = torch.tensor([0.5, 0.2, 1.0])  # p_ped: scores 0.5, 0.1, 0.1
+    assert float(hinge_loss([out, out], 0.25)) == pytest.approx(2 * (0.5 - 0.125))
+    assert float(hinge_loss([out], 0.99)) == pytest.approx(0.5 - 0.495)
+    out.requires_grad_(True)
+    hinge_loss([out], 0.25).backward()
+    assert out.grad[0, 0, 4] == pytest.approx(0.5) and out.grad[0, 1:, 4].abs().sum() == 0
+
+
+def test_relaxed_event_histograms_count_the_exact_simulators_events_with_the_relaxed_gradient():
+    t_us = np.arange(0, 50_001, 5_000, dtype=np.int64)
+    ramp = torch.linspace(0.2, 0.9, len(t_us)).view(-1, 1, 1).expand(-1, 4, 5).contiguous()
+    video = ramp.clone().requires_grad_(True)
+    hist = relaxed_event_histograms(video, t_us, np.array([50_000]))
+    exact = window_histograms(ramp, t_us, np.array([50_000]))
+    # the same events per window, polarity and pixel (the simulator interpolates timestamps inside a frame pair,
+    # so events may sit in a neighbouring bin)
+    per_polarity = hist.detach().numpy().reshape(1, 2, 10, 4, 5).sum(2)
+    assert per_polarity.sum() > 0 and np.array_equal(per_polarity, exact.reshape(1, 2, 10, 4, 5).sum(2))
+    hist.sum().backward()
+    assert video.grad.abs().sum() > 0
+
+
+def test_free_appearance_bound_on_a_tiny_detector():
+    detector = load_detector(FIXTURE)
+    model = BodyModel()
+    scenes = prepare_scenes(evaluation_scenes(TINY, model.num_shapes), model, TINY)
+    res = free_appearance_bound(scenes, detector, TINY, BoundConfig(steps=2, grid_n=4))
+    names = [r["appearance"] for r in res["rows"]]
+    assert names == ["white", "black", "per-pixel", "per-frame texture"] and res["scenes"] == 1
+    for row in res["rows"]:
+        assert 0.0 <= row["SeqASR"] <= 1.0 and row["num_sequences"] == 1
+    # the optimised appearances keep the lowest loss seen, which includes their start
+    assert set(res["per_scene"][0]) >= set(names)

@@ -1,0 +1,46 @@
+"""A victim's controls report: scene choice of the bound, the paper's fingerprint rule, files and resume."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from davis_rig.attack.evaluate import EvalConfig
+from davis_rig.controls.bounds import BoundConfig
+from davis_rig.controls.report import bound_scene_indices, paper_fingerprint, victim_controls
+from davis_rig.models.rvt.checkpoint import load_detector
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_bound_scene_indices_spread_over_each_scale():
+    scales = ["large"] * 5 + ["small"] * 3
+    assert bound_scene_indices(scales, 2) == [0, 4, 5, 7]
+    assert bound_scene_indices(scales, 10) == list(range(8))
+    with pytest.raises(ValueError):
+        bound_scene_indices(scales, 0)
+
+
+def test_paper_fingerprint_is_white_detected_best():
+    assert paper_fingerprint({"white": 0.505, "black": 0.438, "random 60x60": 0.452})
+    assert not paper_fingerprint({"white": 0.408, "black": 0.658, "random 60x60": 0.658})
+
+
+def test_victim_controls_writes_the_report_and_resumes(tmp_path):
+    config = EvalConfig(scales=("small",), shapes=(1, 5), headings_rad=(math.pi / 2,), phases=(0.0,),
+                        supersample=1, thresholds=(0.25,))
+    detector = load_detector(FIXTURE)
+    kwargs = dict(name="tiny", eval_config=config, bound_config=BoundConfig(steps=1, grid_n=4),
+                  scenes_per_scale=1)
+    report = victim_controls(detector, tmp_path, **kwargs)
+    assert (tmp_path / "controls_tiny.md").is_file() and (tmp_path / "fingerprint.json").is_file()
+    assert report["bound"]["scenes"] == 1 and len(list((tmp_path / "bound").glob("scene_*.npz"))) == 1
+    assert [r["texture"] for r in report["fingerprint"]["rows"] if r["scale"] == "all"] == [
+        "white", "black", "random 60x60", "random 4x4", "checker 4x4"]
+    again = victim_controls(detector, tmp_path, **kwargs)  # from the kept parts
+    assert json.dumps(again["bound"]["rows"]) == json.dumps(report["bound"]["rows"])
+    assert json.dumps(again["fingerprint"]["rows"]) == json.dumps(report["fingerprint"]["rows"])  # NaN-safe

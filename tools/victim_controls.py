@@ -1,0 +1,78 @@
+"""The controls of a victim before any attack: baseline fingerprint and free-appearance bound, as json + md.
+
+Fingerprint: AP and SeqASR of white, black, the paper's random 60x60, a random and a checkerboard n x n grid on
+the digital evaluation protocol (``davis-attack evaluate``'s scenes); the paper's victim detects white best.
+Free-appearance bound: on ``--scenes-per-scale`` test scenes of each scale, the person's albedo optimised freely
+per scene (every covered sample of every frame; and a grey n x n grid on the parts, a new one every frame), scored
+like the evaluation: the best SeqASR any appearance change reaches on those scenes (davis_rig.controls.bounds).
+
+Run: ``python tools/victim_controls.py --name bundled --out out/controls_bundled [--detector CKPT] [--threads 1]``;
+writes ``controls_<name>.json`` / ``.md`` into ``--out`` (and its parts, so a rerun continues).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    from davis_rig.cli._common import (add_detector, add_out, add_quiet, add_threads, new_parser, positive_float,
+                                       positive_int, probability, run_main)
+
+    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+                        "examples:\n  python tools/victim_controls.py --name bundled --out out/controls_bundled "
+                        "--threads 1\n")
+    add_detector(parser)
+    add_out(parser, metavar="DIR", required=True, help="output folder")
+    parser.add_argument("--name", required=True, help="the victim's name (file stem and title)")
+    parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
+    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
+    parser.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
+    parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=4, help="headings per shape (default 4)")
+    parser.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+    parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
+                        help="threshold of the bound (default 0.25; the fingerprint scores the paper's four)")
+    parser.add_argument("--scenes-per-scale", type=positive_int, default=4,
+                        help="test scenes per scale of the bound (default 4)")
+    parser.add_argument("--steps", type=positive_int, default=100, help="Adam steps per scene (default 100)")
+    parser.add_argument("--lr", type=positive_float, default=0.1, help="Adam learning rate on the logits")
+    parser.add_argument("--skip-fingerprint", action="store_true", help="only the bound")
+    parser.add_argument("--skip-bound", action="store_true", help="only the fingerprint")
+    add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
+    add_quiet(parser)
+    return run_main(parser, argv, _run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import torch
+
+    from davis_rig.attack.evaluate import PAPER_THRESHOLDS, EvalConfig
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.controls.bounds import BoundConfig
+    from davis_rig.controls.report import victim_controls
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    eval_config = EvalConfig(scales=tuple(args.scales), headings_rad=headings, phases=tuple(args.phases),
+                             thresholds=tuple(sorted(set(PAPER_THRESHOLDS) | {args.threshold})))
+    bound = BoundConfig(steps=args.steps, lr=args.lr, threshold=args.threshold, grid_n=args.cells, parts=parts)
+    detector = load_attack_detector(args.detector)
+    report = victim_controls(
+        detector, args.out, name=args.name, eval_config=eval_config, bound_config=bound,
+        scenes_per_scale=args.scenes_per_scale, command=shlex.join(["python", "tools/victim_controls.py", *sys.argv[1:]]),
+        detector_name=str(args.detector) if args.detector else "bundled default",
+        fingerprint=not args.skip_fingerprint, bound=not args.skip_bound,
+        progress=None if args.quiet else (lambda message: print(message, flush=True)))
+    print((Path(args.out) / f"controls_{report['name']}.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
