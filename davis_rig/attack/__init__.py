@@ -1,4 +1,4 @@
-"""The digital optimizer: adversarial texture, loss and print export (issue 8).
+"""The digital optimizer: adversarial texture, loss and print export.
 
 Modules:
 
