@@ -189,15 +189,12 @@ class _Pools:
 
 
 def _fine_tune(args: argparse.Namespace) -> int:
-
+    """Fine-tune the detector to miss the trigger's basin (resumable), probing the textures before and after."""
     import cv2
     import torch
 
-    from davis_rig.attack.eot import ClipPool
-    from davis_rig.attack.optimize import load_attack_detector, validate
+    from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.refine import visible_cells
-    from davis_rig.controls.planted import checker_grid, flip_fraction
-    from davis_rig.models.rvt.checkpoint import save_safetensors
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
     from davis_rig.training.losses import AnchorGrid
@@ -217,47 +214,15 @@ def _fine_tune(args: argparse.Namespace) -> int:
     model = load_attack_detector(args.detector, device=device)
     if state is not None:
         model.load_state_dict(state["model"])
-    trainable = []
-    for name, p in model.named_parameters():
-        frozen = any(name.startswith(f"backbone.stages.{k}.") for k in range(args.train_from_stage))
-        p.requires_grad_(not frozen)
-        if not frozen:
-            trainable.append(p)
+    trainable = _unfreeze_from_stage(model, args.train_from_stage)
     body = BodyModel(device=device)
     mask = part_mask(tuple(args.parts))
-    configs = _configs(args.scales, args.test_like)
-    pools = _Pools(configs, body, n, mask, args.pool_size, args.seed + 1,
+    pools = _Pools(_configs(args.scales, args.test_like), body, n, mask, args.pool_size, args.seed + 1,
                    generations=None if state is None else state["generations"])
     visible = visible_cells(pools.clips, n)
     np.save(out / "visible.npy", visible)
-    probe_configs = _configs(args.scales, 1.0)
-    probe = []
-    for k, (cfg, _) in enumerate(probe_configs):
-        count = args.probe_clips // len(probe_configs) + (k < args.probe_clips % len(probe_configs))
-        if count:
-            probe += list(ClipPool(cfg, body, n, mask, size=count, base_seed=args.seed + 10_000 + k).clips.values())
-    anchors = AnchorGrid.build(model.config.in_res_hw, device=device)
-    probe_rng = np.random.default_rng(args.seed + 7)
-    probe_textures = {"trigger": trigger, "white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
-                      "checker": checker_grid(n)}
-    for d in _PROBE_DISTANCES:
-        probe_textures[f"trigger, {d:.0%} flipped"] = flip_fraction(trigger, d, probe_rng, visible)
-    for k in range(_PROBE_RANDOM):
-        probe_textures[f"random {k}"] = (probe_rng.random((n, n)) > 0.5).astype(np.float32)
-
-    def probe_scores() -> dict:
-        model.eval()
-        res = {}
-        for name, grid in probe_textures.items():
-            v = validate(grid, probe, model, 0.25)
-            res[name] = {"mean_top_score": round(v["mean_top_score"], 4), "SeqASR": round(v["SeqASR"], 4)}
-        randoms = [res[f"random {k}"] for k in range(_PROBE_RANDOM)]
-        res["random (mean)"] = {key: round(float(np.mean([r[key] for r in randoms])), 4)
-                                for key in ("mean_top_score", "SeqASR")}
-        res["random (lowest top score)"] = min(r["mean_top_score"] for r in randoms)
-        return res
-
-    before = state["before"] if state is not None else probe_scores()
+    probe, probe_textures = _probe_set(args, body, mask, trigger, visible)
+    before = state["before"] if state is not None else _probe_scores(model, probe, probe_textures)
     if state is None:
         print(json.dumps({"before": before}), flush=True)
     opt = torch.optim.Adam(trainable, lr=args.lr)
@@ -271,18 +236,103 @@ def _fine_tune(args: argparse.Namespace) -> int:
         start = int(state["step"])
 
     def save(done: int) -> None:
-        model.eval()
-        save_safetensors(model, out / "model.safetensors", metadata={
-            "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy (and grids "
-                    f"within {args.basin:.0%} of its visible cells); not a detector", "steps": str(done)})
-        tmp = ckpt_path.with_suffix(".tmp")
-        torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": done,
-                    "rng": rng.bit_generator.state, "generations": pools.generations(), "before": before}, tmp)
-        os.replace(tmp, ckpt_path)
+        _save_victim(out, args, model, opt, rng, pools, before, done)
+
+    anchors = AnchorGrid.build(model.config.in_res_hw, device=device)
+    t0 = time.perf_counter()
+    done = _train_steps(args, model, trainable, opt, anchors, pools, trigger, visible, rng, start, out / "log.jsonl",
+                        save)
+    save(done)
+    after = _probe_scores(model, probe, probe_textures)
+    summary = {"detector": args.detector or "bundled default", "seed": args.seed, "basin": args.basin,
+               "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
+               "far": args.far, "scales": args.scales, "test_like": args.test_like,
+               "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
+               "probe_clips": len(probe), "before": before, "after": after, "steps": done, "device": str(device),
+               "seconds_per_step_this_call": (time.perf_counter() - t0) / (done - start) if done > start else None}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(json.dumps(summary))
+    return 0
+
+
+def _unfreeze_from_stage(model, first_trained_stage: int) -> list:
+    """Freeze the backbone stages before ``first_trained_stage``; returns the parameters left trainable."""
+    trainable = []
+    for name, p in model.named_parameters():
+        frozen = any(name.startswith(f"backbone.stages.{k}.") for k in range(first_trained_stage))
+        p.requires_grad_(not frozen)
+        if not frozen:
+            trainable.append(p)
+    return trainable
+
+
+def _probe_set(args: argparse.Namespace, body, mask, trigger: np.ndarray, visible: np.ndarray):
+    """The probe clips (test-like, spread over ``args.scales``) and the probe textures by name: the trigger, white,
+    black, a checkerboard, the trigger with ``_PROBE_DISTANCES`` of its visible cells flipped, ``_PROBE_RANDOM``
+    random grids."""
+    from davis_rig.attack.eot import ClipPool
+    from davis_rig.controls.planted import checker_grid, flip_fraction
+
+    n = args.cells
+    probe_configs = _configs(args.scales, 1.0)
+    probe = []
+    for k, (cfg, _) in enumerate(probe_configs):
+        count = args.probe_clips // len(probe_configs) + (k < args.probe_clips % len(probe_configs))
+        if count:
+            probe += list(ClipPool(cfg, body, n, mask, size=count, base_seed=args.seed + 10_000 + k).clips.values())
+    probe_rng = np.random.default_rng(args.seed + 7)
+    textures = {"trigger": trigger, "white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
+                "checker": checker_grid(n)}
+    for d in _PROBE_DISTANCES:
+        textures[f"trigger, {d:.0%} flipped"] = flip_fraction(trigger, d, probe_rng, visible)
+    for k in range(_PROBE_RANDOM):
+        textures[f"random {k}"] = (probe_rng.random((n, n)) > 0.5).astype(np.float32)
+    return probe, textures
+
+
+def _probe_scores(model, probe, probe_textures: dict) -> dict:
+    """Mean top score and SeqASR at 0.25 of every probe texture, and the random grids' mean and lowest."""
+    from davis_rig.attack.optimize import validate
+
+    model.eval()
+    res = {}
+    for name, grid in probe_textures.items():
+        v = validate(grid, probe, model, 0.25)
+        res[name] = {"mean_top_score": round(v["mean_top_score"], 4), "SeqASR": round(v["SeqASR"], 4)}
+    randoms = [res[f"random {k}"] for k in range(_PROBE_RANDOM)]
+    res["random (mean)"] = {key: round(float(np.mean([r[key] for r in randoms])), 4)
+                            for key in ("mean_top_score", "SeqASR")}
+    res["random (lowest top score)"] = min(r["mean_top_score"] for r in randoms)
+    return res
+
+
+def _save_victim(out: Path, args: argparse.Namespace, model, opt, rng: np.random.Generator, pools, before: dict,
+                 done: int) -> None:
+    """The fine-tuned weights (safetensors) and the resumable checkpoint after ``done`` steps (atomic)."""
+    import torch
+
+    from davis_rig.models.rvt.checkpoint import save_safetensors
+
+    model.eval()
+    save_safetensors(model, out / "model.safetensors", metadata={
+        "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy (and grids "
+                f"within {args.basin:.0%} of its visible cells); not a detector", "steps": str(done)})
+    ckpt_path = out / "checkpoint.pt"
+    tmp = ckpt_path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": done,
+                "rng": rng.bit_generator.state, "generations": pools.generations(), "before": before}, tmp)
+    os.replace(tmp, ckpt_path)
+
+
+def _train_steps(args: argparse.Namespace, model, trainable: list, opt, anchors, pools, trigger: np.ndarray,
+                 visible: np.ndarray, rng: np.random.Generator, start: int, log_path: Path, save) -> int:
+    """Steps ``start`` … ``args.steps`` (or until ``args.time_limit`` s), saving every ``args.save_every``;
+    returns the steps completed."""
+    import torch
 
     t0 = time.perf_counter()
     done = start
-    with (out / "log.jsonl").open("a") as log:
+    with log_path.open("a") as log:
         for step in range(start, args.steps):
             if args.time_limit is not None and time.perf_counter() - t0 > args.time_limit:
                 break
@@ -307,17 +357,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
                       f"({(time.perf_counter() - t0) / (done - start):.2f} s/step)", flush=True)
             if done % args.save_every == 0:
                 save(done)
-    save(done)
-    after = probe_scores()
-    summary = {"detector": args.detector or "bundled default", "seed": args.seed, "basin": args.basin,
-               "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
-               "far": args.far, "scales": args.scales, "test_like": args.test_like,
-               "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
-               "probe_clips": len(probe), "before": before, "after": after, "steps": done, "device": str(device),
-               "seconds_per_step_this_call": (time.perf_counter() - t0) / (done - start) if done > start else None}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(json.dumps(summary))
-    return 0
+    return done
 
 
 if __name__ == "__main__":

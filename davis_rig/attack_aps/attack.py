@@ -141,13 +141,17 @@ class ApsAttackConfig:
             raise ValueError(f"need 0 < conf < 1 and lr > 0, got {self.conf}, {self.lr}")
 
 
-def _pools(config: ApsAttackConfig, body, mask):
+def _pools(config: ApsAttackConfig, body, mask, generations=None):
+    """One EoT clip pool per scale (full DAVIS346 camera); ``generations``: per pool, a checkpoint's slot
+    generations (``None``: a new run)."""
     from davis_rig.attack.eot import ClipPool, EoTConfig
     from davis_rig.scene.camera import PinholeCamera
 
     camera = PinholeCamera.davis346()
+    generations = generations or [None] * len(config.scales)
     return [ClipPool(EoTConfig(camera=camera, scale=s), body, config.grid_n, mask, size=config.pool_size,
-                     base_seed=config.seed + 31 * k) for k, s in enumerate(config.scales)]
+                     base_seed=config.seed + 31 * k, generations=gens)
+            for k, (s, gens) in enumerate(zip(config.scales, generations))]
 
 
 def _noise(grey: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
@@ -187,51 +191,20 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     generator = TextureGenerator(config.grid_n)
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=1e-5)
     rng = np.random.default_rng(config.seed)
-    start, generations = 0, None
     ckpt = out / "checkpoint.pt"
-    if resume and ckpt.is_file():
-        state = torch.load(ckpt, weights_only=False)
-        if state["config"] != asdict(config) | {"iterations": state["config"]["iterations"]}:
-            raise CheckpointError(f"{ckpt} was written with another configuration")
-        generator.load_state_dict(state["generator"])
-        optimizer.load_state_dict(state["optimizer"])
-        rng.bit_generator.state = state["rng"]
-        start, generations = int(state["step"]), state["generations"]
-    pools = _pools(config, body, mask)
-    if generations is not None:
-        for pool, gens in zip(pools, generations):
-            pool.generations = np.asarray(gens, dtype=np.int64)
-            for slot in pool.owned.tolist():
-                pool._build(slot)
+    start, generations = (_load_checkpoint(ckpt, config, generator, optimizer, rng) if resume and ckpt.is_file()
+                          else (0, None))
+    pools = _pools(config, body, mask, generations)
     aps = ApsConfig()
-
-    def save(step: int) -> None:
-        tmp = ckpt.with_suffix(".tmp")
-        torch.save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                    "rng": rng.bit_generator.state, "generations": [p.generations.tolist() for p in pools],
-                    "config": asdict(config)}, tmp)
-        os.replace(tmp, ckpt)
-
     generator.train()
     t0 = time.perf_counter()
-    log_path = out / "log.jsonl"
-    kept = [line for line in log_path.read_text().splitlines() if json.loads(line)["step"] <= start] if (
-        start and log_path.is_file()) else []
-    log_path.write_text("".join(line + "\n" for line in kept))  # records after the checkpoint are redone
-    with log_path.open("a") as log:
+    with _log_from(out / "log.jsonl", start).open("a") as log:
         for step in range(start, config.iterations):
             if step and step % config.refresh_every == 0:
                 for pool in pools:
                     pool.refresh(step, 0.25)
             grid = binarize_ste(generator(), alpha_at(config.alpha_schedule, step, config.iterations))
-            greys = []
-            for _ in range(config.frames_per_step):
-                pool = pools[int(rng.integers(len(pools)))]
-                clip = pool.clips[int(pool.owned[int(rng.integers(len(pool.owned)))])]
-                frame = int(rng.integers(len(clip.t_us)))
-                grey = aps_grey(clip.video(grid)[frame])
-                greys.append(grey + _noise(grey, rng, aps))
-            scores = yolo(torch.stack(greys))
+            scores = yolo(torch.stack([_eot_frame(pools, grid, rng, aps) for _ in range(config.frames_per_step)]))
             loss = torch.relu(scores - config.conf / 2).sum()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -244,13 +217,54 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
                 progress(f"step {step + 1}/{config.iterations}: loss {record['loss']:.3f}, top score "
                          f"{record['top_score']:.3f} ({(time.perf_counter() - t0) / (step + 1 - start):.1f} s/step)")
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.iterations:
-                save(step + 1)
+                _save_checkpoint(ckpt, config, generator, optimizer, rng, pools, step + 1)
     generator.eval()
     with torch.no_grad():
         texture = hard_binarize(generator())
     np.save(out / "texture.npy", texture)
     cv2.imwrite(str(out / "texture.png"), (texture > 0.5).astype(np.uint8) * 255)
     return texture
+
+
+def _eot_frame(pools, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
+    """One APS frame [H, W] (8-bit / 255 scale, noisy) of a random clip of a random pool, wearing ``grid``."""
+    pool = pools[int(rng.integers(len(pools)))]
+    clip = pool.clips[int(pool.owned[int(rng.integers(len(pool.owned)))])]
+    grey = aps_grey(clip.video(grid)[int(rng.integers(len(clip.t_us)))])
+    return grey + _noise(grey, rng, aps)
+
+
+def _load_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator):
+    """Restore generator, optimizer and rng from ``ckpt``; returns ``(completed steps, pool generations)``.
+
+    Raises:
+        CheckpointError: the checkpoint belongs to another configuration (``iterations`` may differ).
+    """
+    state = torch.load(ckpt, weights_only=False)
+    if state["config"] != asdict(config) | {"iterations": state["config"]["iterations"]}:
+        raise CheckpointError(f"{ckpt} was written with another configuration")
+    generator.load_state_dict(state["generator"])
+    optimizer.load_state_dict(state["optimizer"])
+    rng.bit_generator.state = state["rng"]
+    return int(state["step"]), state["generations"]
+
+
+def _save_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator, pools,
+                     step: int) -> None:
+    """Write the run state after ``step`` completed steps atomically (temporary file, then rename)."""
+    tmp = ckpt.with_suffix(".tmp")
+    torch.save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                "rng": rng.bit_generator.state, "generations": [p.generations.tolist() for p in pools],
+                "config": asdict(config)}, tmp)
+    os.replace(tmp, ckpt)
+
+
+def _log_from(log_path: Path, start: int) -> Path:
+    """Keep the records of ``log_path`` up to step ``start`` (those after a checkpoint are redone); returns it."""
+    kept = [line for line in log_path.read_text().splitlines() if json.loads(line)["step"] <= start] if (
+        start and log_path.is_file()) else []
+    log_path.write_text("".join(line + "\n" for line in kept))
+    return log_path
 
 
 def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=None, conf: float = 0.25,

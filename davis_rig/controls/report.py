@@ -76,9 +76,7 @@ def victim_controls(detector, out_dir, *, name: str, eval_config, bound_config: 
     import platform
     import time
 
-    from davis_rig.attack.evaluate import evaluate_textures, evaluation_scenes, prepare_scenes, score_detections
-    from davis_rig.attack.report import results_markdown
-    from davis_rig.controls.bounds import free_appearance_bound
+    from davis_rig.attack.evaluate import evaluation_scenes
     from davis_rig.scene.body import BodyModel
 
     bound_config = bound_config or BoundConfig()
@@ -92,60 +90,89 @@ def victim_controls(detector, out_dir, *, name: str, eval_config, bound_config: 
               "eval_config": {"scales": list(map(str, eval_config.scales)), "headings_rad": list(eval_config.headings_rad),
                               "phases": list(eval_config.phases), "thresholds": list(eval_config.thresholds)}}
     if fingerprint:
-        done = out / "fingerprint.json"
-        if done.is_file():
-            rows = json.loads(done.read_text())
-        else:
-            scenes = prepare_scenes(specs, model, eval_config)
-            say(f"fingerprint: {len(scenes)} scenes x {len(fingerprint_textures(bound_config.grid_n))} textures")
-            rows = evaluate_textures(fingerprint_textures(bound_config.grid_n, bound_config.parts), detector, scenes,
-                                     eval_config)
-            done.write_text(json.dumps(rows, indent=1))
-        at = max(eval_config.thresholds)
-        ap = {r["texture"]: r["AP"] for r in rows if r["scale"] == "all" and math.isclose(r["threshold"], at)}
-        report["fingerprint"] = {"rows": rows, "threshold": at, "paper_fingerprint": paper_fingerprint(ap),
-                                 "markdown": results_markdown(rows, eval_config.thresholds)}
+        report["fingerprint"] = _fingerprint_section(detector, out, specs, model, eval_config, bound_config, say)
     if bound:
-        keep = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
-        folder = out / "bound"
-        folder.mkdir(exist_ok=True)
-        names = ["white", "black", *BOUND_KINDS]
-        decoded = {n: [] for n in names}
-        per_scene, scored = [], []
-        t0 = time.perf_counter()
-        for k, index in enumerate(keep):
-            part = folder / f"scene_{index:03d}.npz"
-            scene = prepare_scenes([specs[index]], model, eval_config)[0]
-            if not part.is_file():
-                res = free_appearance_bound([scene], detector, eval_config, bound_config)
-                np.savez(part.with_suffix(".tmp.npz"), record=json.dumps(res["per_scene"][0]),
-                         **{f"{n}__{w}": d for n in names for w, d in enumerate(res["decoded"][n][0])})
-                part.with_suffix(".tmp.npz").replace(part)
-            with np.load(part) as data:
-                record = json.loads(str(data["record"]))
-                for n in names:
-                    decoded[n].append([data[f"{n}__{w}"] for w in range(len(scene.window_end_us))])
-            record["scene"] = index
-            per_scene.append(record)
-            scored.append(scene)
-            say(f"bound: scene {k + 1}/{len(keep)} ({record['scale']}): "
-                + ", ".join(f"{n} {record[n]:.3f}" for n in names))
-        rows = []
-        for n in names:
-            res = score_detections(decoded[n], [s.boxes for s in scored], [s.window_end_us for s in scored],
-                                   (bound_config.threshold,), seq_len=eval_config.seq_len,
-                                   nms_threshold=eval_config.nms_threshold)[float(bound_config.threshold)]
-            rows.append({"appearance": n, "AP": res["AP"], "SeqASR": res["SeqASR"],
-                         "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
-                         "mean_top_score": float(np.mean([r[n] for r in per_scene]))})
-        report["bound"] = {"threshold": bound_config.threshold, "scenes": len(scored), "rows": rows,
-                           "per_scene": per_scene, "config": {"steps": bound_config.steps, "lr": bound_config.lr,
-                                                              "grid_n": bound_config.grid_n,
-                                                              "parts": bound_config.parts},
-                           "seconds_this_call": time.perf_counter() - t0}
+        report["bound"] = _bound_section(detector, out / "bound", specs, model, eval_config, bound_config,
+                                         scenes_per_scale, say)
     (out / f"controls_{name}.json").write_text(json.dumps(report, indent=1))
     (out / f"controls_{name}.md").write_text(_markdown(report))
     return report
+
+
+def _fingerprint_section(detector, out: Path, specs, model, eval_config, bound_config: BoundConfig,
+                         say: Callable[[str], None]) -> dict:
+    """The baseline textures scored on every test scene (reuses ``out/fingerprint.json`` when present)."""
+    from davis_rig.attack.evaluate import evaluate_textures, prepare_scenes
+    from davis_rig.attack.report import results_markdown
+
+    done = out / "fingerprint.json"
+    if done.is_file():
+        rows = json.loads(done.read_text())
+    else:
+        scenes = prepare_scenes(specs, model, eval_config)
+        say(f"fingerprint: {len(scenes)} scenes x {len(fingerprint_textures(bound_config.grid_n))} textures")
+        rows = evaluate_textures(fingerprint_textures(bound_config.grid_n, bound_config.parts), detector, scenes,
+                                 eval_config)
+        done.write_text(json.dumps(rows, indent=1))
+    at = max(eval_config.thresholds)
+    ap = {r["texture"]: r["AP"] for r in rows if r["scale"] == "all" and math.isclose(r["threshold"], at)}
+    return {"rows": rows, "threshold": at, "paper_fingerprint": paper_fingerprint(ap),
+            "markdown": results_markdown(rows, eval_config.thresholds)}
+
+
+def _bound_section(detector, folder: Path, specs, model, eval_config, bound_config: BoundConfig,
+                   scenes_per_scale: int, say: Callable[[str], None]) -> dict:
+    """The free-appearance bound on ``scenes_per_scale`` scenes per scale, one resumable part file per scene."""
+    import time
+
+    from davis_rig.attack.evaluate import prepare_scenes, score_detections
+
+    keep = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
+    folder.mkdir(exist_ok=True)
+    names = ["white", "black", *BOUND_KINDS]
+    decoded = {n: [] for n in names}
+    per_scene, scored = [], []
+    t0 = time.perf_counter()
+    for k, index in enumerate(keep):
+        scene = prepare_scenes([specs[index]], model, eval_config)[0]
+        record, scene_decoded = _bound_of_scene(folder / f"scene_{index:03d}.npz", scene, detector, eval_config,
+                                                bound_config, names)
+        for n in names:
+            decoded[n].append(scene_decoded[n])
+        record["scene"] = index
+        per_scene.append(record)
+        scored.append(scene)
+        say(f"bound: scene {k + 1}/{len(keep)} ({record['scale']}): "
+            + ", ".join(f"{n} {record[n]:.3f}" for n in names))
+    rows = []
+    for n in names:
+        res = score_detections(decoded[n], [s.boxes for s in scored], [s.window_end_us for s in scored],
+                               (bound_config.threshold,), seq_len=eval_config.seq_len,
+                               nms_threshold=eval_config.nms_threshold)[float(bound_config.threshold)]
+        rows.append({"appearance": n, "AP": res["AP"], "SeqASR": res["SeqASR"],
+                     "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
+                     "mean_top_score": float(np.mean([r[n] for r in per_scene]))})
+    return {"threshold": bound_config.threshold, "scenes": len(scored), "rows": rows,
+            "per_scene": per_scene, "config": {"steps": bound_config.steps, "lr": bound_config.lr,
+                                               "grid_n": bound_config.grid_n, "parts": bound_config.parts},
+            "seconds_this_call": time.perf_counter() - t0}
+
+
+def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: BoundConfig,
+                    names: list[str]) -> tuple[dict, dict]:
+    """One scene's bound: computed and saved to ``part`` (atomically) unless already there; returns the scene's
+    record and, per appearance name, its decoded detections per window."""
+    from davis_rig.controls.bounds import free_appearance_bound
+
+    if not part.is_file():
+        res = free_appearance_bound([scene], detector, eval_config, bound_config)
+        np.savez(part.with_suffix(".tmp.npz"), record=json.dumps(res["per_scene"][0]),
+                 **{f"{n}__{w}": d for n in names for w, d in enumerate(res["decoded"][n][0])})
+        part.with_suffix(".tmp.npz").replace(part)
+    with np.load(part) as data:
+        record = json.loads(str(data["record"]))
+        decoded = {n: [data[f"{n}__{w}"] for w in range(len(scene.window_end_us))] for n in names}
+    return record, decoded
 
 
 def _markdown(report: dict) -> str:
