@@ -39,6 +39,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 __all__ = [
     "BOUND_KINDS",
     "BoundConfig",
+    "bound_rows",
     "fingerprint_textures",
     "free_appearance_bound",
     "hinge_loss",
@@ -227,7 +228,7 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
         "mean_top_score"}], "per_scene": [...], "decoded": {appearance: per scene, per window float32 [A, 5 + nc]},
         "seconds"}`` (AP and SeqASR at ``config.threshold``).
     """
-    from davis_rig.attack.evaluate import TextureSpec, detect_windows, score_detections, texture_video
+    from davis_rig.attack.evaluate import TextureSpec, detect_windows, texture_video
     from davis_rig.attack.texture import black_texture, white_texture
     from davis_rig.scene.masks import part_mask
 
@@ -261,13 +262,22 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
         per_scene.append(record)
         if progress is not None:
             progress(f"scene {index + 1}/{len(scenes)}: " + ", ".join(f"{n} {record[n]:.3f}" for n in names))
+    rows = bound_rows(decoded, scenes, per_scene, config.threshold, eval_config)
+    return {"threshold": config.threshold, "scenes": len(scenes), "rows": rows, "per_scene": per_scene,
+            "decoded": decoded, "seconds": time.perf_counter() - t0}
+
+
+def bound_rows(decoded: dict, scenes: Sequence, per_scene: Sequence[dict], threshold: float, eval_config) -> list[dict]:
+    """AP and SeqASR at ``threshold`` per appearance of ``decoded`` (name -> per scene, per window detections),
+    with the mean over ``per_scene`` of each appearance's top score: the bound's rows."""
+    from davis_rig.attack.evaluate import score_detections
+
     rows = []
-    for name in names:
-        res = score_detections(decoded[name], [s.boxes for s in scenes], [s.window_end_us for s in scenes],
-                               (config.threshold,), seq_len=eval_config.seq_len,
-                               nms_threshold=eval_config.nms_threshold)[float(config.threshold)]
+    for name, per_window in decoded.items():
+        res = score_detections(per_window, [s.boxes for s in scenes], [s.window_end_us for s in scenes],
+                               (threshold,), seq_len=eval_config.seq_len,
+                               nms_threshold=eval_config.nms_threshold)[float(threshold)]
         rows.append({"appearance": name, "AP": res["AP"], "SeqASR": res["SeqASR"],
                      "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
                      "mean_top_score": float(np.mean([r[name] for r in per_scene]))})
-    return {"threshold": config.threshold, "scenes": len(scenes), "rows": rows, "per_scene": per_scene,
-            "decoded": decoded, "seconds": time.perf_counter() - t0}
+    return rows

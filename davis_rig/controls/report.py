@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig, fingerprint_textures
+from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig, bound_rows, fingerprint_textures
 
 __all__ = ["bound_scene_indices", "paper_fingerprint", "victim_controls"]
 
@@ -125,7 +125,7 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
     """The free-appearance bound on ``scenes_per_scale`` scenes per scale, one resumable part file per scene."""
     import time
 
-    from davis_rig.attack.evaluate import prepare_scenes, score_detections
+    from davis_rig.attack.evaluate import prepare_scenes
 
     keep = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
     folder.mkdir(exist_ok=True)
@@ -144,14 +144,7 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
         scored.append(scene)
         say(f"bound: scene {k + 1}/{len(keep)} ({record['scale']}): "
             + ", ".join(f"{n} {record[n]:.3f}" for n in names))
-    rows = []
-    for n in names:
-        res = score_detections(decoded[n], [s.boxes for s in scored], [s.window_end_us for s in scored],
-                               (bound_config.threshold,), seq_len=eval_config.seq_len,
-                               nms_threshold=eval_config.nms_threshold)[float(bound_config.threshold)]
-        rows.append({"appearance": n, "AP": res["AP"], "SeqASR": res["SeqASR"],
-                     "num_sequences": res["num_sequences"], "num_detected": res["num_detected"],
-                     "mean_top_score": float(np.mean([r[n] for r in per_scene]))})
+    rows = bound_rows(decoded, scored, per_scene, bound_config.threshold, eval_config)
     return {"threshold": bound_config.threshold, "scenes": len(scored), "rows": rows,
             "per_scene": per_scene, "config": {"steps": bound_config.steps, "lr": bound_config.lr,
                                                "grid_n": bound_config.grid_n, "parts": bound_config.parts},
