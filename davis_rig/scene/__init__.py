@@ -65,13 +65,23 @@ from davis_rig.scene.camera import (
     look_at,
     rotation_from_vector,
 )
-from davis_rig.scene.contact import contact_slip, foot_vertex_ids, ground_contact, lock_stance_foot
+from davis_rig.scene.contact import (
+    contact_slip,
+    foot_vertex_ids,
+    ground_contact,
+    lock_stance_foot,
+    lowest_vertex_z,
+    posed_vertices,
+)
 from davis_rig.scene.gait import GaitParams, generate_gait, natural_walk
 from davis_rig.scene.gait_curves import (
     FIT_MAX_ERROR_DEG,
     FOURIER_COEFFICIENTS,
+    FOURIER_ORDER,
+    FOURIER_RIDGE,
     NATIVE_STANCE_FRACTION,
     NORMATIVE_TABLES,
+    blended_stance_fraction,
     evaluate_fourier,
     fit_fourier,
     joint_angles_deg,
@@ -106,7 +116,7 @@ from davis_rig.scene.motion import (
     sample,
     turn,
 )
-from davis_rig.scene.skeleton import SOLE_BAND_M, Rig, descendants, sole_points
+from davis_rig.scene.skeleton import SOLE_BAND_M, Rig, depth_levels, descendants, sole_points
 
 __all__ = [
     "ApsConfig", "aps_frame_times", "synthesize_aps_frames", "to_adc",
@@ -117,15 +127,16 @@ __all__ = [
     "DAVIS346_FOCAL_PX", "DAVIS346_LENS_MM", "DAVIS346_PIXEL_UM", "DEFAULT_PERSON_HEIGHT_M", "TEST_SCALES_PX",
     "TRAIN_SCALE", "EgoMotion", "EoTJitter", "PinholeCamera", "distance_for_height", "look_at",
     "rotation_from_vector",
-    "FIT_MAX_ERROR_DEG", "FOURIER_COEFFICIENTS", "NATIVE_STANCE_FRACTION", "NORMATIVE_TABLES", "GaitParams",
-    "evaluate_fourier", "fit_fourier", "generate_gait", "joint_angles_deg", "natural_walk",
+    "FIT_MAX_ERROR_DEG", "FOURIER_COEFFICIENTS", "FOURIER_ORDER", "FOURIER_RIDGE", "NATIVE_STANCE_FRACTION",
+    "NORMATIVE_TABLES", "GaitParams", "blended_stance_fraction", "evaluate_fourier", "fit_fourier", "generate_gait",
+    "joint_angles_deg", "natural_walk",
     "DEFAULT_PADDING_PX", "EMPTY_LABEL", "MASK_SIZE_PX", "PAINTABLE_COMBINATIONS", "PAINTABLE_PARTS",
     "combination_masks", "part_label_map", "part_mask", "uv_to_texel",
     "MOTION_FORMAT_VERSION", "Motion", "concatenate", "contact_slip", "foot_vertex_ids", "ground_contact",
-    "in_place", "lock_stance_foot", "loop", "motion_from_world_rotations",
+    "in_place", "lock_stance_foot", "loop", "lowest_vertex_z", "posed_vertices", "motion_from_world_rotations",
     "quat_conjugate", "quat_from_matrix", "quat_from_rotvec", "quat_multiply", "quat_slerp", "quat_to_matrix",
     "resample", "rotate_heading", "rotation_about_z", "sample", "turn",
-    "SOLE_BAND_M", "Rig", "descendants", "sole_points",
+    "SOLE_BAND_M", "Rig", "depth_levels", "descendants", "sole_points",
 ]  # fmt: skip
 
 _LAZY = {

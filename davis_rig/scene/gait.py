@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from davis_rig.scene.gait_curves import joint_angles_deg, stance_fraction
+from davis_rig.scene.gait_curves import blended_stance_fraction, joint_angles_deg
 from davis_rig.scene.motion import (
     Motion,
     loop,
@@ -201,7 +201,7 @@ def _world_rotations(rig: Rig, params: GaitParams, phase: np.ndarray, hip_scale:
     ``lift_m``: optional side -> [T] ankle lift (m) of the swing-clearance correction.
     """
     run = params.run
-    s = stance_fraction(run)
+    s = blended_stance_fraction(run)
     t = len(phase)
     v = rng_values
     swing = params.arm_swing_deg if params.arm_swing_deg is not None else 16.0 + 14.0 * run
@@ -432,7 +432,7 @@ class _CycleBuilder:
     @property
     def stance(self) -> float:
         """Toe-off as a fraction of the cycle."""
-        return stance_fraction(self.params.run)
+        return blended_stance_fraction(self.params.run)
 
     def build(self, cadence: float, hip_scale: float, clearance: bool = True):
         """``(period_s, frames, world rotations [T, J, 3, 3], root [T, 3], root-path info)`` of one cycle; with

@@ -37,7 +37,7 @@ __all__ = [
     "evaluate_fourier",
     "fit_fourier",
     "joint_angles_deg",
-    "stance_fraction",
+    "blended_stance_fraction",
 ]
 
 
@@ -140,7 +140,7 @@ def joint_angles_deg(phase, run: float = 0.0, stance_fraction: float | None = No
         ``{"hip", "knee", "ankle"}`` -> float64 [N] degrees (flexion / dorsiflexion positive).
     """
     run = float(np.clip(run, 0.0, 1.0))
-    s = stance_fraction if stance_fraction is not None else stance_fraction(run)
+    s = stance_fraction if stance_fraction is not None else blended_stance_fraction(run)
     out = {}
     for joint in ("hip", "knee", "ankle"):
         walk = evaluate_fourier(FOURIER_COEFFICIENTS[f"walk_{joint}"], _warp(phase, s, NATIVE_STANCE_FRACTION["walk"]))
@@ -149,6 +149,6 @@ def joint_angles_deg(phase, run: float = 0.0, stance_fraction: float | None = No
     return out
 
 
-def stance_fraction(run: float) -> float:
+def blended_stance_fraction(run: float) -> float:
     """Toe-off as a fraction of the cycle for a walk (0) to run (1) blend: the blend of the native 0.62 / 0.39."""
     return (1 - run) * NATIVE_STANCE_FRACTION["walk"] + run * NATIVE_STANCE_FRACTION["run"]

@@ -9,8 +9,8 @@ import pytest
 import davis_rig.scene as scene
 import davis_rig.scene.mocap as mocap
 
-SCENE_MODULES = ("aps", "background", "body", "camera", "gait", "masks", "motion", "skeleton", "rasterize",
-                 "renderer", "shading", "texture", "scene", "smpl")
+SCENE_MODULES = ("aps", "background", "body", "camera", "contact", "gait", "gait_curves", "masks", "motion",
+                 "quaternion", "skeleton", "rasterize", "renderer", "shading", "texture", "scene", "smpl")
 MOCAP_MODULES = ("amass", "bvh", "retarget", "splits")
 #: Functions named like their submodule: not re-exported (the submodule would shadow them once imported).
 SHADOWED = {"rasterize", "retarget"}
