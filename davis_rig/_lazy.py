@@ -1,7 +1,11 @@
 """Deferred imports of heavy optional dependencies (torch, smplx), so that importing a package stays light.
 
 - :func:`optional_import`: import a dependency when a function needs it, or raise
-  :class:`~davis_rig.errors.MissingDependencyError` naming the pip extra that installs it.
+  :class:`~davis_rig.errors.MissingDependencyError` naming the pip extra that installs it;
+  :func:`optional_dependency`: the same for ``import`` statements at the top of a module::
+
+      with optional_dependency("the attack"):
+          import torch
 - :func:`lazy_exports`: PEP 562 package exports loaded from their module on first access::
 
       __getattr__, __dir__ = lazy_exports(__name__, {"davis_rig.events.v2e_torch": ("v2e_histograms",)})
@@ -11,12 +15,13 @@ from __future__ import annotations
 
 import importlib
 import sys
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from types import ModuleType
 
 from davis_rig.errors import MissingDependencyError
 
-__all__ = ["lazy_exports", "optional_import"]
+__all__ = ["lazy_exports", "optional_dependency", "optional_import"]
 
 
 def optional_import(module: str, needed_for: str, extra: str = "torch") -> ModuleType:
@@ -30,9 +35,27 @@ def optional_import(module: str, needed_for: str, extra: str = "torch") -> Modul
     Raises:
         MissingDependencyError: ``module`` cannot be imported.
     """
-    try:
+    with optional_dependency(needed_for, extra):
         return importlib.import_module(module)
+
+
+@contextmanager
+def optional_dependency(needed_for: str, extra: str = "torch") -> Iterator[None]:
+    """Turn an ``ImportError`` inside the block into ``"<needed_for> needs <module>: pip install 'davis_rig[<extra>]'"``.
+
+    Args:
+        needed_for: what needs the imports of the block, e.g. ``"the attack"``.
+        extra: the optional-dependency group of davis_rig that installs them.
+
+    Raises:
+        MissingDependencyError: an import of the block failed (the module it could not find is named).
+    """
+    try:
+        yield
+    except MissingDependencyError:
+        raise
     except ImportError as exc:
+        module = (exc.name or "a dependency").split(".")[0]
         raise MissingDependencyError(f"{needed_for} needs {module}: pip install 'davis_rig[{extra}]'") from exc
 
 

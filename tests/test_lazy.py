@@ -64,3 +64,28 @@ def test_every_exported_name_of_the_packages_resolves(package):
         assert name in dir(module), name
     with pytest.raises(AttributeError, match="no_such_name"):
         module.no_such_name  # noqa: B018
+
+
+def test_optional_dependency_names_the_missing_module_and_the_extra():
+    from davis_rig._lazy import optional_dependency
+    from davis_rig.errors import MissingDependencyError
+
+    with pytest.raises(MissingDependencyError) as info:
+        with optional_dependency("the thing", "report"):
+            import davis_rig_no_such_module.sub  # noqa: F401
+    assert str(info.value) == "the thing needs davis_rig_no_such_module: pip install 'davis_rig[report]'"
+    assert isinstance(info.value, ImportError)
+
+
+def test_optional_dependency_passes_other_errors_and_its_own_through():
+    from davis_rig._lazy import optional_dependency
+    from davis_rig.errors import MissingDependencyError
+
+    inner = MissingDependencyError("already precise")
+    with pytest.raises(MissingDependencyError) as info:
+        with optional_dependency("the thing"):
+            raise inner
+    assert info.value is inner
+    with pytest.raises(KeyError):
+        with optional_dependency("the thing"):
+            raise KeyError("x")

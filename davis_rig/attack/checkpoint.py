@@ -19,14 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.config import AttackConfig
 from davis_rig.attack.eot import EoTConfig
-from davis_rig.errors import CheckpointError, MissingDependencyError
+from davis_rig.errors import CheckpointError
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "FREE_ON_RESUME",

@@ -42,17 +42,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import ConfigError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
 from davis_rig.events.simulator import DEFAULT_THRESHOLD
 from davis_rig.scene.camera import TRAIN_SCALE, EoTJitter, PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "ClipPool",

@@ -40,6 +40,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.scoring import (
     EVENT_MODEL_NAMES,
     EVENT_MODELS,
@@ -48,17 +49,15 @@ from davis_rig.attack.scoring import (
     score_detections,
     window_histograms,
 )
-from davis_rig.errors import ConfigError, MissingDependencyError, ShapeError
+from davis_rig.errors import ConfigError, ShapeError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.events.simulator import SimulatorConfig
 from davis_rig.scene.camera import PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
 
-try:
+with optional_dependency("the attack evaluation"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack evaluation needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "EVENT_MODELS",

@@ -32,13 +32,12 @@ from typing import Sequence
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.loss import AdversarialLoss, adversarial_loss, anchor_cells, anchors_on_boxes
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig.errors import ShapeError
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = ["STEP_MODES", "DetectorLoss", "FixedShapeAttackLoss"]
 

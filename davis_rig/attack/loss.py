@@ -24,13 +24,12 @@ from __future__ import annotations
 
 from typing import NamedTuple, Sequence
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import ShapeError
 from davis_rig.types import PEDESTRIAN_CLASS_ID
 
-try:
+with optional_dependency("the adversarial loss"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the adversarial loss needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "DEFAULT_LAMBDA",

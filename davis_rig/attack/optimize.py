@@ -62,6 +62,7 @@ from typing import Sequence
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.checkpoint import (
     atomic_save,
     check_new_run,
@@ -81,12 +82,10 @@ from davis_rig.attack.step import attack_loss, clip_histograms, soft_grid
 from davis_rig.attack.stop import StopOnSignal, StopRequested, check_stop
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.attack.validation import REFINE_SEED_OFFSET, better, validate, validation_clips
-from davis_rig.errors import CheckpointError, MissingDependencyError
+from davis_rig.errors import CheckpointError
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "AttackConfig",

@@ -15,15 +15,14 @@ from typing import Sequence
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import ShapeError
 from davis_rig.events.histogram import WINDOW_US, stacked_histograms
 from davis_rig.events.simulator import SimulatorConfig, simulate_events
 from davis_rig.types import BBOX_DTYPE, PEDESTRIAN_CLASS_ID
 
-try:
+with optional_dependency("the attack evaluation"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack evaluation needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "EVENT_MODELS",

@@ -15,17 +15,15 @@ from typing import Sequence
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.config import V2E_GRADIENTS, AttackConfig
 from davis_rig.attack.eot import PoolClip
 from davis_rig.attack.loss import AdversarialLoss, adversarial_loss, anchor_cells, anchors_on_boxes
 from davis_rig.attack.texture import TextureGenerator
-from davis_rig.errors import MissingDependencyError
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = ["attack_loss", "clip_histograms", "soft_grid"]
 

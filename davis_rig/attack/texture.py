@@ -25,13 +25,12 @@ import math
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import ShapeError
 
-try:
+with optional_dependency("the texture generator"):
     import torch
     from torch import nn
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the texture generator needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "ALPHA_SCHEDULES",

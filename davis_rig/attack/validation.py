@@ -12,17 +12,15 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.attack.config import AttackConfig
 from davis_rig.attack.eot import PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.scoring import detect_histograms, score_detections, window_histograms
 from davis_rig.attack.step import clip_histograms
 from davis_rig.attack.stop import check_stop
-from davis_rig.errors import MissingDependencyError
 
-try:
+with optional_dependency("the attack"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = ["REFINE_SEED_OFFSET", "VALIDATION_BATCH", "VAL_SEED_OFFSET", "better", "validate", "validation_clips"]
 

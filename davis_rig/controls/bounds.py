@@ -24,17 +24,16 @@ quantized counts) and their gradient the relaxed counts' ``relu(±ΔL / θ)`` (a
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from davis_rig.errors import MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import ShapeError
 
-try:
+with optional_dependency("the controls"):
     import torch
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the controls need torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = [
     "BOUND_KINDS",

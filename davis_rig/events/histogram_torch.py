@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from davis_rig.errors import FormatError, MissingDependencyError, ShapeError
+from davis_rig._lazy import optional_import
+from davis_rig.errors import FormatError, ShapeError
 from davis_rig.events.histogram import NUM_BINS, WINDOW_US
 from davis_rig.types import RVT_HW
 
@@ -24,13 +25,7 @@ __all__ = ["StackedHistogramTorch", "stacked_histogram_torch", "stacked_histogra
 
 
 def _torch():
-    try:
-        import torch
-    except ImportError as exc:  # pragma: no cover - exercised only without torch
-        raise MissingDependencyError(
-            "the differentiable histogram needs torch: pip install 'davis_rig[torch]'"
-        ) from exc
-    return torch
+    return optional_import("torch", "the differentiable histogram")
 
 
 def time_bins_torch(t_us: "torch.Tensor", num_bins: int = NUM_BINS) -> "torch.Tensor":

@@ -16,8 +16,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.errors import ConfigError, ShapeError
-from davis_rig.models.rvt._torch import F, torch
+
+with optional_dependency("training"):
+    import torch
+    import torch.nn.functional as F
 
 __all__ = ["AugmentConfig", "AugmentParams", "sample_params", "apply_augment", "hflip", "zoom_in", "zoom_out"]
 

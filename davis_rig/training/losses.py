@@ -25,8 +25,12 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.errors import ShapeError
-from davis_rig.models.rvt._torch import F, torch
+
+with optional_dependency("training"):
+    import torch
+    import torch.nn.functional as F
 
 __all__ = ["AnchorGrid", "SimOTAResult", "bboxes_iou_cxcywh", "iou_loss", "simota_assign", "yolox_loss",
            "yolox_targets", "init_head_biases"]

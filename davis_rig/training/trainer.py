@@ -29,8 +29,8 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.errors import CheckpointError, FormatError
-from davis_rig.models.rvt._torch import nn, torch
 from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
@@ -46,6 +46,10 @@ from davis_rig.training.losses import AnchorGrid, init_head_biases, yolox_loss, 
 from davis_rig.training.train_config import TrainConfig
 from davis_rig.training.validation import reset_states, validate_detector
 from davis_rig.types import RVT_HW
+
+with optional_dependency("training"):
+    import torch
+    from torch import nn
 
 __all__ = ["TrainConfig", "Trainer", "CHECKPOINT_FORMAT", "read_train_checkpoint"]
 

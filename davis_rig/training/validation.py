@@ -14,13 +14,16 @@ from typing import Any
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.events.histogram import WINDOW_US
-from davis_rig.models.rvt._torch import torch
+from davis_rig.metrics.ap import SKIP_FIRST_US
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.training.batches import StreamingBatches
 from davis_rig.training.dataset import list_sequences
-from davis_rig.metrics.ap import SKIP_FIRST_US
 from davis_rig.types import BBOX_DTYPE, RVT_NMS_IOU
+
+with optional_dependency("training"):
+    import torch
 
 __all__ = ["reset_states", "validate_detector"]
 

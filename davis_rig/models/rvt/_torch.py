@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-from davis_rig.errors import MissingDependencyError
+from davis_rig._lazy import optional_dependency
 
-try:
+with optional_dependency("the RVT PyTorch model"):
     import torch
     import torch.nn.functional as F
     from torch import nn
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError(
-        "the RVT PyTorch model needs torch: pip install 'davis_rig[torch]' (CPU wheel: pip install torch==2.13.0)"
-    ) from exc
 
 __all__ = ["torch", "nn", "F"]
