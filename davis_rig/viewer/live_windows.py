@@ -23,7 +23,7 @@ import numpy as np
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US, stacked_histogram, time_bins
 from davis_rig.types import RVT_HW
 
-__all__ = ["LiveWindow", "WindowHistograms", "crop_parts"]
+__all__ = ["LiveWindow", "WindowHistograms", "bin_starts", "crop_cells"]
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,8 @@ class LiveWindow:
     Attributes:
         end_us: its end, µs (events ``end − window_us ≤ t ≤ end``, both ends inclusive as the official code).
         histogram: uint8 [2 · B, 240, 304], the official stacked histogram of its events in the crop.
-        starts_sequence: the first window after the stream started or its time went back (RVT states reset).
+        starts_sequence: the first window handed out after the stream started or its time went back (RVT states
+            reset).
         completed_at: index, in the array pushed last, of the first event after ``end_us`` (the one that
             completed the window).
         events: events of the window in the crop.
@@ -46,17 +47,42 @@ class LiveWindow:
     events: int
 
 
-def crop_parts(events: np.ndarray, origin_xy: tuple[int, int]):
-    """The events of ``events`` (EVENT_DTYPE [N]) inside the 304x240 crop at ``origin_xy``, as columns
-    ``(x, y, t, p)`` in crop px: x, y int32, t int64 µs, p uint8 (the same events and order as
-    :func:`~davis_rig.events.crop.crop_events`)."""
+def crop_cells(events: np.ndarray, origin_xy: tuple[int, int], num_bins: int = NUM_BINS):
+    """The events of ``events`` (EVENT_DTYPE [N]) inside the 304x240 crop at ``origin_xy`` (the same events and
+    order as :func:`~davis_rig.events.crop.crop_events`), as their histogram cell in time bin 0 and their time.
+
+    Returns:
+        ``(cells, t)``: int32 [M] ``x + 304 · y + p · num_bins · 240 · 304`` (crop px; the cell of time bin ``b`` is
+        ``cells + b · 240 · 304``), int64 [M] µs.
+    """
     x0, y0 = (int(v) for v in origin_xy)
-    x = events["x"].astype(np.int32)
-    x -= x0
-    y = events["y"].astype(np.int32)
-    y -= y0
-    keep = (x >= 0) & (x < RVT_HW[1]) & (y >= 0) & (y < RVT_HW[0])
-    return x[keep], y[keep], events["t"][keep], events["p"][keep]
+    x = events["x"] - np.uint16(x0)  # uint16: left of the crop wraps to a large value
+    y = events["y"] - np.uint16(y0)
+    keep = x < RVT_HW[1]
+    keep &= y < RVT_HW[0]
+    cells = y.astype(np.int32)
+    cells *= RVT_HW[1]
+    cells += x
+    cells += events["p"].astype(np.int32) * (num_bins * RVT_HW[0] * RVT_HW[1])
+    return cells[keep], events["t"][keep]
+
+
+def bin_starts(first_us: int, last_us: int, num_bins: int = NUM_BINS) -> np.ndarray:
+    """The first time of time bins ``1 .. num_bins − 1`` of a window whose first and last events are at
+    ``first_us`` and ``last_us`` (official float32 binning, :func:`~davis_rig.events.histogram.time_bins`): an
+    event at ``t`` is in bin ``b`` iff ``starts[b − 1] <= t < starts[b]`` — so the bins of time-sorted events are
+    runs found by binary search, exactly as the per-event formula bins them (tested over every µs).
+
+    Returns:
+        int64 [num_bins − 1], µs.
+    """
+    span = max(int(last_us) - int(first_us), 1)
+    # the float32 formula is monotone in t and within a µs of the exact b · span / B: search a few µs around it
+    guess = int(first_us) + np.arange(1, num_bins)[:, None] * span // num_bins + np.arange(-3, 5)[None, :]
+    guess = np.maximum(guess, int(first_us))
+    bins = time_bins(guess.ravel(), num_bins, first_us=first_us, last_us=last_us).reshape(guess.shape)
+    above = bins >= np.arange(1, num_bins)[:, None]
+    return guess[np.arange(num_bins - 1), above.argmax(axis=1)]
 
 
 def _between(events: np.ndarray, t0_us: int, t1_us: int | None) -> np.ndarray:
@@ -75,18 +101,20 @@ def _between(events: np.ndarray, t0_us: int, t1_us: int | None) -> np.ndarray:
 
 class _OpenWindow:
     """The counts of the window being filled: uint8 cells (wrapping modulo 256 as the official accumulation),
-    binned as if the window's last event were at its end, and the cropped columns kept for a recount."""
+    binned as if the window's last event were at its end, and the cropped events kept for a recount."""
 
     def __init__(self, end_us: int, num_bins: int):
         self.end_us = end_us
         self.num_bins = num_bins
         self.counts = np.zeros(2 * num_bins * RVT_HW[0] * RVT_HW[1], np.uint8)
-        self.columns: list[tuple[np.ndarray, ...]] = []
+        self.columns: list[tuple[np.ndarray, np.ndarray]] = []  # (cells, t) as added
+        self.events = 0
         self.first_us: int | None = None
         self.last_us: int | None = None  # the running maximum of the times so far
+        self._starts: np.ndarray | None = None  # bin_starts(first, end)
 
-    def add(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
-        """Count cropped events (columns in crop px) of this window, in stream order."""
+    def add(self, cells: np.ndarray, t: np.ndarray) -> None:
+        """Count cropped events (:func:`crop_cells`) of this window, in stream order."""
         if not len(t):
             return
         t = np.maximum.accumulate(t)  # the official reader's running-maximum correction, within the window
@@ -94,19 +122,22 @@ class _OpenWindow:
             np.maximum(t, self.last_us, out=t)
         if self.first_us is None:
             self.first_us = int(t[0])
+            self._starts = bin_starts(self.first_us, self.end_us, self.num_bins)
         self.last_us = int(t[-1])
-        self.columns.append((x, y, t, p))
+        self.columns.append((cells, t))
+        self.events += len(t)
         plane = RVT_HW[0] * RVT_HW[1]
-        bins = time_bins(t, self.num_bins, first_us=self.first_us, last_us=self.end_us)
-        cells = y * RVT_HW[1]
-        cells += x
-        cells += (p.astype(np.int32) * self.num_bins + bins.astype(np.int32)) * plane
-        np.add.at(self.counts, cells, np.uint8(1))
+        bounds = [0, *np.searchsorted(t, self._starts, side="left").tolist(), len(t)]
+        for b in range(self.num_bins):
+            if bounds[b] < bounds[b + 1]:  # bin b: the cells b planes on (np.add.at on uint8 wraps modulo 256)
+                np.add.at(self.counts[b * plane:], cells[bounds[b]:bounds[b + 1]], np.uint8(1))
 
     def histogram(self, count_cutoff: int) -> np.ndarray:
         """The window's stacked histogram, uint8 [2 · B, 240, 304]."""
         if self.last_us is not None and self.last_us != self.end_us:  # binned with the wrong last event: recount
-            x, y, t, p = (np.concatenate(column) for column in zip(*self.columns))
+            cells, t = (np.concatenate(column) for column in zip(*self.columns))
+            p, pixel = np.divmod(cells, self.num_bins * RVT_HW[0] * RVT_HW[1])
+            y, x = np.divmod(pixel, RVT_HW[1])
             return stacked_histogram(x, y, t, p, num_bins=self.num_bins, count_cutoff=count_cutoff)
         out = np.minimum(self.counts, np.uint8(min(max(count_cutoff, 0), 255)))
         return out.reshape(2 * self.num_bins, *RVT_HW)
@@ -137,27 +168,41 @@ class WindowHistograms:
         self._open: _OpenWindow | None = None
         self._tail: list[np.ndarray] = []  # events of the open window that the next window holds too (t >= end)
         self._restart = True
+        #: complete windows not counted: the same push completed a newer one (it would replace them)
+        self.superseded = 0
 
-    def push(self, events: np.ndarray) -> list[LiveWindow]:
-        """Add sensor events (EVENT_DTYPE [N], time-sorted); return the windows they complete, oldest first."""
+    def push(self, events: np.ndarray) -> LiveWindow | None:
+        """Add sensor events (EVENT_DTYPE [N], time-sorted); return the newest window they complete, or ``None``.
+
+        Windows completed by the same push before the newest are not counted, only tallied in :attr:`superseded`
+        (a consumer taking one window at a time would replace them anyway): a consumer that fell behind catches
+        up at the cost of one window.
+        """
         if not len(events):
-            return []
+            return None
         t_first, t_last = int(events["t"][0]), int(events["t"][-1])
         window = self._open
         if window is None or t_first < window.end_us - 2 * self.window_us:
             window = self._open = _OpenWindow(t_first // 1000 * 1000 + self.window_us, self.num_bins)
             self._tail, self._restart = [], True
-        done = []
         parts = [events]
-        while True:
+        while t_last > window.end_us + self.window_us:  # the next window is complete too: skip this one
+            self.superseded += 1
+            end = window.end_us
+            parts = self._tail + [tail for part in parts if len(tail := _between(part, end, None))]
+            window = self._open = _OpenWindow(end + self.window_us, self.num_bins)
+            self._tail = []
+        done = None
+        for _ in range(2):  # the open window, and the next one when the events complete it
             end = window.end_us
             for part in parts:
-                window.add(*crop_parts(_between(part, end - self.window_us, end), self.crop_origin_xy))
+                window.add(*crop_cells(_between(part, end - self.window_us, end), self.crop_origin_xy, self.num_bins))
             self._tail += [tail for part in parts if len(tail := _between(part, end, None))]
             if t_last <= end:
-                return done
-            done.append(LiveWindow(end, window.histogram(self.count_cutoff), self._restart,
-                                   int(np.argmax(events["t"] > end)), sum(len(c[2]) for c in window.columns)))
+                break
+            done = LiveWindow(end, window.histogram(self.count_cutoff), self._restart,
+                              int(np.argmax(events["t"] > end)), window.events)
             self._restart = False
             window = self._open = _OpenWindow(end + self.window_us, self.num_bins)
             parts, self._tail = self._tail, []
+        return done

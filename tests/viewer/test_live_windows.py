@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from davis_rig.events.crop import crop_events
-from davis_rig.events.histogram import stacked_histogram, window_indices
+from davis_rig.events.histogram import stacked_histogram, time_bins, window_indices
 from davis_rig.types import make_events
-from davis_rig.viewer.live_windows import WindowHistograms, crop_parts
+from davis_rig.viewer.live_windows import WindowHistograms, bin_starts, crop_cells
 
 ORIGIN = (21, 10)
 
@@ -42,7 +42,7 @@ def batch_histograms(events, ends, origin=ORIGIN):
 
 
 def push_all(histograms, parts):
-    return [window for part in parts for window in histograms.push(part)]
+    return [window for part in parts if (window := histograms.push(part)) is not None]
 
 
 @settings(max_examples=25, deadline=None)
@@ -51,12 +51,16 @@ def push_all(histograms, parts):
 def test_incremental_histograms_equal_the_batch_histograms(seed, pieces, n, on_ends):
     rng = np.random.default_rng(seed)
     events = stream(rng, n, on_ends=on_ends)
-    cuts = np.sort(rng.integers(0, len(events), pieces - 1))
-    windows = push_all(WindowHistograms(ORIGIN), np.split(events, cuts))
-    ends = 3_000 + 50_000 * np.arange(1, len(windows) + 1)
-    assert [w.end_us for w in windows] == ends.tolist()
-    assert ends[-1] < events["t"][-1] <= ends[-1] + 50_000  # every window an event has passed, no more
-    for window, (expected, count) in zip(windows, batch_histograms(events, ends)):
+    parts = np.split(events, np.sort(rng.integers(0, len(events), pieces - 1)))
+    histograms = WindowHistograms(ORIGIN)
+    windows = push_all(histograms, parts)
+    complete = 3_000 + 50_000 * np.arange(1, (int(events["t"][-1]) - 3_001) // 50_000 + 1)  # an event after each
+    # each push gives the newest window it completes; those before it in the same push are only tallied
+    expected_ends = sorted({int(complete[complete < part["t"][-1]].max()) for part in parts
+                            if len(part) and (complete < part["t"][-1]).any()})
+    assert [w.end_us for w in windows] == expected_ends
+    assert len(windows) + histograms.superseded == len(complete)
+    for window, (expected, count) in zip(windows, batch_histograms(events, expected_ends)):
         np.testing.assert_array_equal(window.histogram, expected)
         assert window.events == count
     assert [w.starts_sequence for w in windows] == [True] + [False] * (len(windows) - 1)
@@ -80,32 +84,49 @@ def test_both_ways_of_binning_give_the_batch_histogram():
 
 
 def test_the_completing_event_is_named_and_windows_need_an_event_after_their_end():
-    events = make_events([1_000, 20_000, 51_000, 51_001, 120_000], [100] * 5, [100] * 5, [1] * 5)
+    events = make_events([1_000, 20_000, 51_000, 51_001, 60_000, 120_000], [100] * 6, [100] * 6, [1] * 6)
     histograms = WindowHistograms(ORIGIN)
-    assert histograms.push(events[:3]) == []  # 51_000 is the first window's end, not after it
-    done = histograms.push(events[3:])
-    assert [(w.end_us, w.completed_at, w.events) for w in done] == [(51_000, 0, 3), (101_000, 1, 2)]
-    assert histograms.push(events[:0]) == []
+    assert histograms.push(events[:3]) is None  # 51_000 is the first window's end, not after it
+    window = histograms.push(events[3:5])
+    assert (window.end_us, window.completed_at, window.events, window.starts_sequence) == (51_000, 0, 3, True)
+    assert histograms.push(events[:0]) is None
 
 
-def test_time_going_back_restarts_the_grid_and_the_sequence():
+def test_a_push_completing_several_windows_gives_the_newest_and_a_new_sequence_stays_new():
     rng = np.random.default_rng(1)
     histograms = WindowHistograms(ORIGIN)
-    assert len(histograms.push(stream(rng, 3_000, span_us=300_000, t0_us=1_000_000))) == 5
-    after = histograms.push(stream(rng, 3_000, span_us=120_000, t0_us=0))
-    assert [(w.end_us, w.starts_sequence) for w in after] == [(50_000, True), (100_000, False)]
+    old = stream(rng, 3_000, span_us=300_000, t0_us=1_000_000)
+    window = histograms.push(old)
+    assert (window.end_us, window.starts_sequence, histograms.superseded) == (1_250_000, True, 4)
+    new = stream(rng, 3_000, span_us=120_000, t0_us=0)  # time went back: a new grid, a new sequence
+    window = histograms.push(new)
+    assert (window.end_us, window.starts_sequence, histograms.superseded) == (100_000, True, 5)
+    np.testing.assert_array_equal(window.histogram, batch_histograms(new, [100_000])[0][0])
 
 
-def test_crop_parts_are_crop_events():
+def test_crop_cells_are_crop_events_in_bin_0():
     events = stream(np.random.default_rng(4), 20_000)
     expected = crop_events(events, ORIGIN)
-    for got, name in zip(crop_parts(events, ORIGIN), "xytp"):
-        np.testing.assert_array_equal(got, expected[name])
+    cells, t = crop_cells(events, ORIGIN)
+    x, y, p = (expected[name].astype(np.int64) for name in "xyp")
+    np.testing.assert_array_equal(cells, x + 304 * y + 10 * 240 * 304 * p)
+    np.testing.assert_array_equal(t, expected["t"])
+
+
+@pytest.mark.parametrize("first_us, last_us", [(0, 50_000), (1_234_567, 1_284_567), (7, 49_999), (3, 3), (5, 11),
+                                                (1_000, 1_000 + 2**23)])
+def test_bin_starts_bin_every_time_as_the_float32_formula(first_us, last_us):
+    t = np.arange(first_us, last_us + 1) if last_us - first_us < 10**6 else \
+        np.unique(np.r_[np.arange(first_us, first_us + 1_000), np.random.default_rng(0).integers(first_us, last_us, 10**6),
+                        last_us])
+    starts = bin_starts(first_us, last_us)
+    np.testing.assert_array_equal(np.searchsorted(starts, t, side="right"),
+                                  time_bins(t, first_us=first_us, last_us=last_us))
 
 
 @pytest.mark.parametrize("origin", [(0, 0), (42, 20)])
 def test_the_crop_origin_is_honoured(origin):
     events = stream(np.random.default_rng(5), 20_000, span_us=120_000)
-    windows = push_all(WindowHistograms(origin), np.array_split(events, 4))
+    windows = push_all(WindowHistograms(origin), np.array_split(events, 12))
     for window, (expected, _) in zip(windows, batch_histograms(events, [w.end_us for w in windows], origin)):
         np.testing.assert_array_equal(window.histogram, expected)
