@@ -20,8 +20,7 @@ the view (threads, and what each does):
 - the web server's threads hand out the latest encoded frame (a page that is slower gets fewer frames).
 
 On Linux the view's threads run at nice +10 (onnxruntime's worker threads inherit it from the detector thread,
-which creates the session) and the display's at +15, so the scheduler serves the capture first on a busy CPU, and
-the detector before the display. The tap holds at most ``max_pending_chunks`` chunks: when the view falls behind,
+which creates the session), so the scheduler serves the capture first on a busy CPU. The tap holds at most ``max_pending_chunks`` chunks: when the view falls behind,
 the oldest are dropped — display data, never recorded data — and counted (``view_dropped_chunks``).
 """
 
@@ -39,19 +38,16 @@ import numpy as np
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
-from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, encode_image, event_counts, render_view
+from davis_rig.viewer.live_windows import WindowHistograms, join_events
+from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, add_event_counts, encode_image, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
 __all__ = ["LiveApp", "LiveTap", "LiveView", "Mailbox", "TappedCamera", "WindowDetector", "lower_priority"]
 
 #: nice increment of the view's threads (Linux), so the capture threads get the CPU first.
 VIEW_NICE = 10
-#: nice increment of the display thread (Linux), so the detector's threads get the CPU before it.
-DISPLAY_NICE = 15
 #: How often the windows thread looks for new chunks, s.
 POLL_S = 0.002
-#: Events of one display frame kept as arrays before they are folded into counts (memory bound if rendering lags).
-FOLD_EVENTS = 2_000_000
 
 
 def lower_priority(increment: int = VIEW_NICE) -> None:
@@ -293,15 +289,13 @@ class LiveView:
     # --- the windows thread -------------------------------------------------------------------
     def _windows_loop(self) -> None:
         """Count the chunks' events into the detector's windows; mail the windows that complete."""
-        from davis_rig.viewer.live_windows import WindowHistograms
-
         lower_priority()
         self._windows = windows = WindowHistograms(self.crop_origin_xy, self.window_us)
         while not self._stop.is_set():
             parts = [(t_offer, events) for t_offer, chunk in self.tap.take(1)
                      if (events := getattr(chunk, "events", None)) is not None and len(events)]
             if parts:  # one push for what came since the last look: a window completed and superseded is skipped
-                events = parts[0][1] if len(parts) == 1 else np.concatenate([events for _, events in parts])
+                events = join_events([events for _, events in parts])
                 if (window := windows.push(events)) is not None:
                     ends = np.cumsum([len(events) for _, events in parts])  # which chunk completed it, read when
                     t_offer = parts[int(np.searchsorted(ends, window.completed_at, side="right"))][0]
@@ -314,9 +308,8 @@ class LiveView:
 
     # --- the view thread ----------------------------------------------------------------------
     def _view_loop(self) -> None:
-        lower_priority(DISPLAY_NICE)
-        shown: list[np.ndarray] = []  # the events of the frame being drawn, one array per chunk
-        counts = np.zeros((2, *DAVIS346_HW), np.int64)
+        lower_priority()
+        counts = np.zeros((2, *DAVIS346_HW), np.int32)  # the events of the frame being drawn, counted as they come
         aps = None
         next_render = next_stats = time.monotonic()
         while not self._stop.is_set():
@@ -325,18 +318,19 @@ class LiveView:
                 if self._t_first_chunk is None:
                     self._t_first_chunk = taken[0][0]
                 aps = self._latest_aps(taken) or aps
-                shown.extend(self._take_events(taken))
-                if sum(len(part) for part in shown) > FOLD_EVENTS:  # keep memory bounded if rendering lags
-                    counts += self._counts(shown)
-                    shown = []
+                parts = [events for _, chunk in taken
+                         if (events := getattr(chunk, "events", None)) is not None and len(events)]
+                if parts:
+                    events = join_events(parts)
+                    add_event_counts(counts, events["x"], events["y"], events["p"])
+                    self._newest_t = int(events["t"][-1])
             now = time.monotonic()
             if now >= next_stats:
                 self._update_stats(now)
                 next_stats = now + 0.5
             if now >= next_render:
-                self._render(counts + self._counts(shown), aps)
+                self._render(counts, aps)
                 counts[...] = 0
-                shown = []
                 next_render = max(next_render + self.period_s, now)
             self._stop.wait(min(0.005, max(next_render - time.monotonic(), 0.0)))
 
@@ -348,20 +342,6 @@ class LiveView:
             if frames:
                 return np.asarray(frames[-1].pixels), (int(frames[-1].position_x), int(frames[-1].position_y))
         return None
-
-    def _take_events(self, taken: list) -> list[np.ndarray]:
-        """The non-empty event arrays of the chunks taken (not copied)."""
-        out = [events for _, chunk in taken if (events := getattr(chunk, "events", None)) is not None and len(events)]
-        if out:
-            self._newest_t = int(out[-1]["t"][-1])
-        return out
-
-    @staticmethod
-    def _counts(parts: list) -> np.ndarray:
-        if not parts:
-            return np.zeros((2, *DAVIS346_HW), np.int64)
-        events = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        return event_counts(events["x"], events["y"], events["p"], DAVIS346_HW)
 
     def _update_stats(self, now: float) -> None:
         t_then, events_then = self._rate

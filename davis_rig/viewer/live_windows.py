@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US, stacked_histogram, time_bins
-from davis_rig.types import RVT_HW
+from davis_rig.types import EVENT_DTYPE, RVT_HW
 
-__all__ = ["LiveWindow", "WindowHistograms", "bin_starts", "crop_cells"]
+__all__ = ["LiveWindow", "WindowHistograms", "bin_starts", "crop_cells", "join_events"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,14 @@ class LiveWindow:
     starts_sequence: bool
     completed_at: int
     events: int
+
+
+def join_events(parts: list[np.ndarray]) -> np.ndarray:
+    """The EVENT_DTYPE arrays ``parts`` as one array (the only part itself, not copied), copied as bytes: a
+    memcpy, where numpy's field-wise copy of the packed structured dtype is ~10x slower."""
+    if len(parts) == 1:
+        return parts[0]
+    return np.concatenate([np.ascontiguousarray(part).view(np.uint8) for part in parts]).view(EVENT_DTYPE)
 
 
 def crop_cells(events: np.ndarray, origin_xy: tuple[int, int], num_bins: int = NUM_BINS):

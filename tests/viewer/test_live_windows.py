@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from davis_rig.events.crop import crop_events
 from davis_rig.events.histogram import stacked_histogram, time_bins, window_indices
 from davis_rig.types import make_events
-from davis_rig.viewer.live_windows import WindowHistograms, bin_starts, crop_cells
+from davis_rig.viewer.live_windows import WindowHistograms, bin_starts, crop_cells, join_events
 
 ORIGIN = (21, 10)
 
@@ -130,3 +130,10 @@ def test_the_crop_origin_is_honoured(origin):
     windows = push_all(WindowHistograms(origin), np.array_split(events, 12))
     for window, (expected, _) in zip(windows, batch_histograms(events, [w.end_us for w in windows], origin)):
         np.testing.assert_array_equal(window.histogram, expected)
+
+
+def test_join_events_is_concatenate():
+    events = stream(np.random.default_rng(6), 1_000)
+    parts = np.array_split(events, 5)
+    np.testing.assert_array_equal(join_events(parts), events)
+    assert join_events(parts[:1]) is parts[0]
