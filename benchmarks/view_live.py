@@ -268,6 +268,9 @@ def main(argv=None) -> int:
     print(f"view process + page client: {r['view_process_cpu_s']:.1f} CPU-s in all (start and model load included); display "
           f"{r['display_fps']:.1f} fps received by the page client ({r['kb_per_frame']:.0f} KiB JPEG), "
           f"{view['frames_rendered']} frames rendered; display chunks dropped {view['view_dropped_chunks']}")
+    if view.get("thread_cpu_s"):
+        print("view process CPU-s by thread (start and model load included): "
+              + ", ".join(f"{name} {cpu:.2f}" for name, cpu in sorted(view["thread_cpu_s"].items())))
     if detector is not None:
         print(f"detector ({args.threads} threads): latency (chunk completing the window read -> boxes) median "
               f"{det['latency_ms_median']:.0f} ms, p95 {det['latency_ms_p95']:.0f} ms, max {det['latency_ms_max']:.0f}"

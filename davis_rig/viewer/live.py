@@ -419,6 +419,26 @@ class LiveView:
         self._served_times.append(time.monotonic())
         return frame
 
+    def thread_cpu_s(self) -> dict[str, float] | None:
+        """CPU s used so far by each running thread of this process: Python threads by name, the others
+        (onnxruntime's workers) summed as ``native``; ``None`` where ``/proc`` has no per-thread times (not Linux)."""
+        names = {str(thread.native_id): thread.name for thread in threading.enumerate()}
+        out: dict[str, float] = {}
+        try:
+            tasks = os.listdir("/proc/self/task")
+        except OSError:
+            return None
+        tick = os.sysconf("SC_CLK_TCK")
+        for task in tasks:
+            try:
+                with open(f"/proc/self/task/{task}/stat") as stat:
+                    fields = stat.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue  # the thread ended meanwhile
+            name = names.get(task, "native")
+            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick  # utime + stime
+        return out
+
     @staticmethod
     def _fps(times: deque) -> float:
         now = time.monotonic()
@@ -438,6 +458,7 @@ class LiveView:
             "frames_rendered": self.frames_rendered,
             "render_fps": self._fps(self._render_times),
             "served_fps": self._fps(self._served_times),
+            "thread_cpu_s": self.thread_cpu_s(),
             "detector": None if self.detector is None else {
                 "model": self.detector.name, "threshold": self.threshold, "windows_scored": self.windows_scored,
                 "windows_skipped": self._windows_skipped(), "latency_ms_median": _percentile(latency, 50),

@@ -36,7 +36,7 @@ from davis_rig.errors import ConfigError, DavisRigError, MissingDependencyError,
 from davis_rig.types import EVENT_DTYPE
 from davis_rig.viewer.live import lower_priority
 
-__all__ = ["EventRing", "LiveViewProcess", "MARK_DTYPE", "RingTap"]
+__all__ = ["EventRing", "LiveViewProcess", "MARK_DTYPE", "RingTap", "retain_freed_memory"]
 
 #: One chunk's mark in the ring: its end (events written after it), last event time, when the recording read it.
 MARK_DTYPE = np.dtype([("end", "<i8"), ("t_last_us", "<i8"), ("t_offer_ns", "<i8")])
@@ -163,8 +163,30 @@ class _Frame:
     position_y: int
 
 
+def retain_freed_memory(mmap_threshold: int = 32 << 20, trim_threshold: int = 256 << 20) -> bool:
+    """Make glibc's malloc serve blocks below ``mmap_threshold`` bytes from its heaps and keep up to
+    ``trim_threshold`` bytes of freed heap memory instead of handing it back (the view process's allocator).
+
+    The view allocates arrays of ~0.1–2 MB hundreds of times a second (ring copies, crops, counts). By default
+    glibc maps such blocks fresh and unmaps them when freed, so every 4 KiB page of every array costs a page
+    fault: measured, about half the CPU of cropping the events. Kept in the heap, freed blocks are reused.
+
+    Returns:
+        Whether the settings were taken (``False`` where the C library has no ``mallopt``: not glibc).
+    """
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
+    return bool(mallopt(m_mmap_threshold, int(mmap_threshold))) and bool(mallopt(m_trim_threshold, int(trim_threshold)))
+
+
 def _child_main(conn, ring_name: str, options: dict) -> None:
     """The view process: LiveView + web server fed from the ring; answers ``ready``/``error`` on ``conn``."""
+    retain_freed_memory()
     from davis_rig.viewer.live import LiveApp, LiveView
     from davis_rig.viewer.server import ViewerServer
 

@@ -125,9 +125,10 @@ class _OpenWindow:
         """Count cropped events (:func:`crop_cells`) of this window, in stream order."""
         if not len(t):
             return
-        t = np.maximum.accumulate(t)  # the official reader's running-maximum correction, within the window
-        if self.last_us is not None:
-            np.maximum(t, self.last_us, out=t)
+        if not (t[1:] >= t[:-1]).all():  # (a tenth of the running maximum's cost where already sorted)
+            t = np.maximum.accumulate(t)  # the official reader's running-maximum correction, within the window
+        if self.last_us is not None and t[0] < self.last_us:
+            np.maximum(t, self.last_us, out=t)  # (t: a new array from crop_cells)
         if self.first_us is None:
             self.first_us = int(t[0])
             self._starts = bin_starts(self.first_us, self.end_us, self.num_bins)

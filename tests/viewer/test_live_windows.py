@@ -137,3 +137,17 @@ def test_join_events_is_concatenate():
     parts = np.array_split(events, 5)
     np.testing.assert_array_equal(join_events(parts), events)
     assert join_events(parts[:1]) is parts[0]
+
+
+def test_times_going_back_within_a_window_are_raised_to_the_running_maximum():
+    events = stream(np.random.default_rng(7), 20_000, span_us=150_000)
+    t = events["t"].copy()
+    inside = np.flatnonzero((t > 60_000) & (t < 90_000))[::50]
+    t[inside] -= 300  # back by 300 µs, away from the window bounds
+    events["t"] = t
+    parts = np.array_split(events, 9)  # some go back across a part's start
+    windows = push_all(WindowHistograms(ORIGIN), parts)
+    expected = batch_histograms(events, [w.end_us for w in windows])
+    assert [w.end_us for w in windows] == [53_000, 103_000, 153_000]
+    for window, (histogram, _) in zip(windows, expected):
+        np.testing.assert_array_equal(window.histogram, histogram)
