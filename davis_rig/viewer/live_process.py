@@ -101,7 +101,11 @@ class EventRing:
 
     def read(self) -> list[tuple[float, np.ndarray]]:
         """Consumer: the chunks written since the last read, ``[(t_offer s, events)]``; a chunk (partly)
-        overwritten before it was copied out is left out and counted in :attr:`dropped_chunks`."""
+        overwritten before it was copied out is left out and counted in :attr:`dropped_chunks`.
+
+        The chunks are copied out in one block and handed out as consecutive views of it, so that a reader can
+        take several as one array without copying again (:func:`~davis_rig.viewer.live_windows.join_events`).
+        """
         marks_written = int(self._header[1])  # the marks first: every chunk they point at is written
         capacity, mark_capacity = self._capacity, len(self._marks)
         first_mark = max(self._read_marks, marks_written - mark_capacity)
@@ -118,12 +122,18 @@ class EventRing:
         ends = marks["end"].tolist()
         # a chunk starts where the one before it ended; unknown after lost marks (that chunk is dropped too)
         begins = [None if lost_marks or self._read_events is None else self._read_events, *ends[:-1]]
-        copies = [(t_ns / 1e9, begin, None if begin is None or end - begin > capacity else self._copy(begin, end))
-                  for t_ns, begin, end in zip(marks["t_offer_ns"].tolist(), begins, ends)]
-        oldest_intact = int(self._header[0]) - capacity  # re-read after copying: what was overwritten meanwhile
-        out = [(t, chunk) for t, begin, chunk in copies if chunk is not None and begin >= oldest_intact]
-        self.dropped_chunks += lost_marks + len(copies) - len(out)
         self._read_events = ends[-1]
+        oldest = int(self._header[0]) - capacity  # what is still in the ring before copying
+        first = next((i for i, begin in enumerate(begins) if begin is not None and begin >= oldest), len(begins))
+        out = []
+        if first < len(begins):
+            block = self._copy(begins[first], ends[-1])
+            oldest_intact = int(self._header[0]) - capacity  # re-read after copying: what was overwritten meanwhile
+            base = begins[first]
+            out = [(t_ns / 1e9, block[begin - base:end - base])
+                   for t_ns, begin, end in zip(marks["t_offer_ns"].tolist()[first:], begins[first:], ends[first:])
+                   if begin >= oldest_intact]
+        self.dropped_chunks += lost_marks + len(begins) - len(out)
         return out
 
     def _copy(self, begin: int, end: int) -> np.ndarray:

@@ -11,6 +11,7 @@ import pytest
 from davis_rig.errors import ModelFormatError
 from davis_rig.types import make_events
 from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, Mailbox, TappedCamera, WindowDetector
+from davis_rig.viewer.live_windows import join_events
 from davis_rig.viewer.server import RequestError
 
 from tests.helpers.eval_data import PERSON_BOX, PERSON_BOX_CROP, moving_blob_events, person_rvt
@@ -153,6 +154,7 @@ def test_event_ring_hands_chunks_over_and_counts_what_was_overwritten():
         got = reader.read()
         assert [t for t, _ in got] == [5.0, 6.0, 7.0] and reader.dropped_chunks == 2
         assert [int(c["t"][0]) for _, c in got] == [120, 150, 180]  # wrapped around the ring's end intact
+        assert np.shares_memory(join_events([c for _, c in got]), got[0][1])  # one block: joined without a copy
         for i in range(10):  # 10 chunks for 8 marks: 2 marks lost, and the chunk after them has no known start
             writer.write(_events(rng, 5, 210 + 5 * i), 10.0 + i)
         got = reader.read()

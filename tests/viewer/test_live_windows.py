@@ -132,22 +132,15 @@ def test_the_crop_origin_is_honoured(origin):
         np.testing.assert_array_equal(window.histogram, expected)
 
 
-def test_join_events_is_concatenate():
+def test_join_events_is_concatenate_and_a_view_where_the_parts_follow_each_other():
     events = stream(np.random.default_rng(6), 1_000)
-    parts = np.array_split(events, 5)
-    np.testing.assert_array_equal(join_events(parts), events)
-    assert join_events(parts[:1]) is parts[0]
-
-
-def test_times_going_back_within_a_window_are_raised_to_the_running_maximum():
-    events = stream(np.random.default_rng(7), 20_000, span_us=150_000)
-    t = events["t"].copy()
-    inside = np.flatnonzero((t > 60_000) & (t < 90_000))[::50]
-    t[inside] -= 300  # back by 300 µs, away from the window bounds
-    events["t"] = t
-    parts = np.array_split(events, 9)  # some go back across a part's start
-    windows = push_all(WindowHistograms(ORIGIN), parts)
-    expected = batch_histograms(events, [w.end_us for w in windows])
-    assert [w.end_us for w in windows] == [53_000, 103_000, 153_000]
-    for window, (histogram, _) in zip(windows, expected):
-        np.testing.assert_array_equal(window.histogram, histogram)
+    adjacent = np.array_split(events, 5)
+    joined = join_events(adjacent)
+    np.testing.assert_array_equal(joined, events)
+    assert np.shares_memory(joined, events) and join_events(adjacent[:1]) is adjacent[0]
+    apart = [adjacent[0], adjacent[2]]  # one buffer, not adjacent: copied
+    joined = join_events(apart)
+    np.testing.assert_array_equal(joined, np.concatenate(apart))
+    assert not np.shares_memory(joined, events)
+    copies = [part.copy() for part in adjacent]
+    np.testing.assert_array_equal(join_events(copies), events)
