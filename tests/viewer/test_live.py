@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 import cv2
@@ -159,6 +160,20 @@ def test_event_ring_hands_chunks_over_and_counts_what_was_overwritten():
             writer.write(_events(rng, 5, 210 + 5 * i), 10.0 + i)
         got = reader.read()
         assert [t for t, _ in got] == [13.0 + i for i in range(7)] and reader.dropped_chunks == 5
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page-fault counts from getrusage (Linux)")
+def test_the_event_ring_is_allocated_before_the_recording_writes_into_it():
+    import resource
+
+    from davis_rig.viewer.live_process import EventRing
+
+    events = _events(np.random.default_rng(8), 1 << 14, 0)
+    with EventRing(capacity=1 << 16, mark_capacity=64) as ring:  # 832 KiB: 208 pages
+        faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for i in range(4):  # one lap
+            ring.write(events, float(i))
+        assert resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults < 20
 
 
 def test_live_view_process_serves_frames_of_the_chunks_given(tmp_path):
