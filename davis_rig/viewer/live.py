@@ -38,7 +38,7 @@ import numpy as np
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
-from davis_rig.viewer.live_windows import WindowHistograms, join_events
+from davis_rig.viewer.live_windows import WindowHistograms, join_events, later_window
 from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, add_event_counts, encode_image, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
@@ -140,11 +140,14 @@ class Mailbox:
         self._cond = threading.Condition()
         self.replaced = 0
 
-    def put(self, item) -> None:
-        """Leave ``item`` (not ``None``) in the slot, replacing what is there."""
+    def put(self, item, merge=None) -> None:
+        """Leave ``item`` (not ``None``) in the slot, replacing what is there (``merge(replaced, item)`` instead of
+        ``item`` when given: what the replaced item carried that must not be lost)."""
         with self._cond:
             if self._item is not None:
                 self.replaced += 1
+                if merge is not None:
+                    item = merge(self._item, item)
             self._item = item
             self._cond.notify()
 
@@ -299,7 +302,8 @@ class LiveView:
                 if (window := windows.push(events)) is not None:
                     ends = np.cumsum([len(events) for _, events in parts])  # which chunk completed it, read when
                     t_offer = parts[int(np.searchsorted(ends, window.completed_at, side="right"))][0]
-                    self._mailbox.put((window, t_offer, time.monotonic()))
+                    self._mailbox.put((window, t_offer, time.monotonic()),
+                                      lambda replaced, item: (later_window(replaced[0], item[0]), *item[1:]))
             self._stop.wait(POLL_S)
 
     def _windows_skipped(self) -> int:

@@ -16,6 +16,7 @@ exactly (tested), at any rate.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +24,7 @@ import numpy as np
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US, stacked_histogram, time_bins
 from davis_rig.types import EVENT_DTYPE, RVT_HW
 
-__all__ = ["LiveWindow", "WindowHistograms", "bin_starts", "crop_cells", "join_events"]
+__all__ = ["LiveWindow", "WindowHistograms", "bin_starts", "crop_cells", "join_events", "later_window"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,14 @@ class LiveWindow:
     starts_sequence: bool
     completed_at: int
     events: int
+
+
+def later_window(replaced: LiveWindow, window: LiveWindow) -> LiveWindow:
+    """``window``, handed on in place of an earlier window that was not scored: it starts a sequence if the
+    replaced one did (the RVT states must still be reset)."""
+    if replaced.starts_sequence and not window.starts_sequence:
+        return dataclasses.replace(window, starts_sequence=True)
+    return window
 
 
 def join_events(parts: list[np.ndarray]) -> np.ndarray:
@@ -221,11 +230,12 @@ class WindowHistograms:
             window = self._open = _OpenWindow(t_first // 1000 * 1000 + self.window_us, self.num_bins)
             self._tail, self._restart = [], True
         parts = [events]
-        while t_last > window.end_us + self.window_us:  # the next window is complete too: skip this one
-            self.superseded += 1
-            end = window.end_us
-            parts = self._tail + [tail for part in parts if len(tail := _between(part, end, None))]
-            window = self._open = _OpenWindow(end + self.window_us, self.num_bins)
+        if t_last > window.end_us + self.window_us:  # later windows are complete too: skip to the newest of them
+            skipped = (t_last - window.end_us - 1) // self.window_us
+            self.superseded += skipped
+            start = window.end_us + (skipped - 1) * self.window_us  # the newest complete window's start
+            parts = [kept for part in self._tail + parts if len(kept := _between(part, start, None))]
+            window = self._open = _OpenWindow(start + self.window_us, self.num_bins)
             self._tail = []
         done = None
         for _ in range(2):  # the open window, and the next one when the events complete it

@@ -27,6 +27,9 @@ def test_the_mailbox_keeps_only_the_newest_item_and_counts_the_replaced():
     assert box.get(0.01) == "c" and box.replaced == 2 and box.get(0.01) is None
     box.put("d")
     assert box.get(0.01) == "d" and box.replaced == 2
+    box.put("e")
+    box.put("f", merge=lambda replaced, item: replaced + item)  # what the replaced item carried is kept
+    assert box.get(0.01) == "ef" and box.replaced == 3
 
 
 def test_the_detector_carries_its_states_over_skipped_windows_and_resets_them_at_a_new_sequence():

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from davis_rig.events.crop import crop_events
 from davis_rig.events.histogram import stacked_histogram, time_bins, window_indices
 from davis_rig.types import make_events
-from davis_rig.viewer.live_windows import WindowHistograms, bin_starts, crop_cells, join_events
+from davis_rig.viewer.live_windows import WindowHistograms, bin_starts, crop_cells, join_events, later_window
 
 ORIGIN = (21, 10)
 
@@ -144,3 +144,21 @@ def test_join_events_is_concatenate_and_a_view_where_the_parts_follow_each_other
     assert not np.shares_memory(joined, events)
     copies = [part.copy() for part in adjacent]
     np.testing.assert_array_equal(join_events(copies), events)
+
+
+def test_a_window_replacing_the_start_of_a_sequence_starts_it():
+    histograms = WindowHistograms(ORIGIN)
+    first = histograms.push(stream(np.random.default_rng(9), 2_000, span_us=60_000))
+    second = histograms.push(stream(np.random.default_rng(10), 2_000, span_us=60_000, t0_us=63_456))
+    assert first.starts_sequence and not second.starts_sequence
+    assert later_window(first, second).starts_sequence and later_window(first, second).end_us == second.end_us
+    assert later_window(second, first) is first and later_window(second, second) is second
+
+
+def test_a_jump_ahead_in_time_skips_to_the_newest_window_at_once():
+    events = make_events([1_000, 2_000, 3_600_000_000_000, 3_600_000_000_001], [100] * 4, [100] * 4, [1] * 4)
+    histograms = WindowHistograms(ORIGIN)
+    assert histograms.push(events[:2]) is None
+    window = histograms.push(events[2:])  # an hour of windows: counted, not built one by one
+    assert window.end_us == 3_599_999_951_000 and window.events == 0
+    assert histograms.superseded == (3_599_999_951_000 - 51_000) // 50_000
