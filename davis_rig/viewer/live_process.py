@@ -185,7 +185,8 @@ def retain_freed_memory(mmap_threshold: int = 32 << 20, trim_threshold: int = 25
 
     The view allocates arrays of ~0.1–2 MB hundreds of times a second (ring copies, crops, counts). By default
     glibc maps such blocks fresh and unmaps them when freed, so every 4 KiB page of every array costs a page
-    fault: measured, about half the CPU of cropping the events. Kept in the heap, freed blocks are reused.
+    fault (measured here: cropping 1 s of 12 M ev/s in 2 ms batches took 0.11 CPU-s, 0.06 with the blocks kept
+    in the heap). Kept in the heap, freed blocks are reused.
 
     Returns:
         Whether the settings were taken (``False`` where the C library has no ``mallopt``: not glibc).
