@@ -179,6 +179,15 @@ def test_the_event_ring_is_allocated_before_the_recording_writes_into_it():
         assert resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults < 20
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_view_process_allocator_keeps_freed_blocks():
+    import platform
+
+    from davis_rig.viewer.live_process import retain_freed_memory
+
+    assert retain_freed_memory() is (platform.libc_ver()[0] == "glibc")
+
+
 def test_live_view_process_serves_frames_of_the_chunks_given(tmp_path):
     import json
     import urllib.request
