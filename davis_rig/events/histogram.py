@@ -83,12 +83,15 @@ def _check_non_decreasing(t_us: np.ndarray, where: str) -> None:
         )
 
 
-def time_bins(t_us: np.ndarray, num_bins: int = NUM_BINS) -> np.ndarray:
+def time_bins(t_us: np.ndarray, num_bins: int = NUM_BINS, *, first_us: int | None = None,
+              last_us: int | None = None) -> np.ndarray:
     """Official time-bin index of every event of one window (first/last-event normalization, float32).
 
     Args:
         t_us: event timestamps of the window, int µs, shape [N], non-decreasing.
         num_bins: number of time bins B.
+        first_us, last_us: the window's first and last event time, µs (default ``t_us[0]``, ``t_us[-1]``; given
+            when ``t_us`` is only a part of the window, as when a live window is binned while it arrives).
 
     Returns:
         int64 array [N] with values in ``0 .. num_bins - 1`` (all zeros when every event shares one timestamp).
@@ -96,9 +99,10 @@ def time_bins(t_us: np.ndarray, num_bins: int = NUM_BINS) -> np.ndarray:
     t_us = np.asarray(t_us, dtype=np.int64)
     if t_us.size == 0:
         return np.zeros(0, dtype=np.int64)
-    span_us = max(int(t_us[-1] - t_us[0]), 1)
+    first_us = int(t_us[0]) if first_us is None else int(first_us)
+    span_us = max((int(t_us[-1]) if last_us is None else int(last_us)) - first_us, 1)
     # torch: int64 tensor / int64 scalar -> both cast to float32, float32 true division, then * B in float32.
-    t_norm = (t_us - t_us[0]).astype(np.float32) / np.float32(span_us)
+    t_norm = (t_us - first_us).astype(np.float32) / np.float32(span_us)
     t_norm = t_norm * np.float32(num_bins)
     bins = np.floor(t_norm)
     np.minimum(bins, np.float32(num_bins - 1), out=bins)

@@ -4,21 +4,24 @@
 (:mod:`davis_rig.viewer.live_process`), so that none of this competes with the recording for the GIL. Inside
 the view (threads, and what each does):
 
-- chunks arrive through :meth:`LiveTap.offer` (one ``deque.append`` of a reference: no copy, no lock, never
-  blocks; :class:`TappedCamera` offers every chunk a camera's ``read`` returns);
-- ``davis-view-live`` takes the chunks every few ms, accumulates the events of the current display frame (ON/OFF
-  counts on the sensor), keeps the latest APS frame, cuts RVT's 50 ms windows (:class:`WindowCutter`, views, no
-  copy), and every ``1 / fps`` s renders a frame (:func:`~davis_rig.viewer.render.render_view`) and encodes it
-  as JPEG;
-- ``davis-view-detector`` crops the newest complete window to 304x240, turns it into a stacked histogram, runs
-  one RVT step (onnxruntime, ``threads`` intra-op threads, LSTM states carried) and post-processes it;
+- chunks arrive through :meth:`LiveTap.offer` (a ``deque.append`` of a reference per reader: no copy, no lock,
+  never blocks; :class:`TappedCamera` offers every chunk a camera's ``read`` returns);
+- with a detector, ``davis-view-windows`` takes the chunks every 2 ms and counts their events into the open
+  50 ms window's stacked histogram of the 304x240 crop (:class:`~davis_rig.viewer.live_windows.WindowHistograms`),
+  so that a window's end only clips its counts; it leaves each complete window in a one-slot :class:`Mailbox`
+  (a window not taken yet is replaced by the newer one: skipped, counted; so is a window that the same look at
+  the tap completed together with a newer one, left uncounted);
+- ``davis-view-detector`` runs one RVT step on the window in the mailbox (onnxruntime, ``threads`` intra-op
+  threads) and post-processes it (:class:`WindowDetector`: the LSTM states are carried over skipped windows and
+  reset where the stream's time restarts);
+- ``davis-view-live`` takes the chunks too (its own queue: the detector's windows never hold up the display),
+  accumulates the events of the current display frame (ON/OFF counts on the sensor), keeps the latest APS frame,
+  and every ``1 / fps`` s renders a frame (:func:`~davis_rig.viewer.render.render_view`) and encodes it as JPEG;
 - the web server's threads hand out the latest encoded frame (a page that is slower gets fewer frames).
 
 On Linux the view's threads run at nice +10 (onnxruntime's worker threads inherit it from the detector thread,
-which creates the session), so the scheduler serves the capture first on a busy CPU. The tap holds at most
-``max_pending_chunks`` chunks: when the view falls behind, the oldest are dropped — display data, never recorded
-data — and counted (``view_dropped_chunks``). A detector slower than the windows skips to the newest complete
-window (its states carried over the skipped ones) and counts them (``windows_skipped``).
+which creates the session), so the scheduler serves the capture first on a busy CPU. The tap holds at most ``max_pending_chunks`` chunks: when the view falls behind,
+the oldest are dropped — display data, never recorded data — and counted (``view_dropped_chunks``).
 """
 
 from __future__ import annotations
@@ -35,68 +38,76 @@ import numpy as np
 from davis_rig.errors import DavisRigError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, RVT_HW, RVT_NMS_IOU
-from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, encode_image, event_counts, render_view
+from davis_rig.viewer.live_windows import WindowHistograms, join_events, later_window
+from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, add_event_counts, encode_image, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
-__all__ = ["LiveApp", "LiveTap", "LiveView", "TappedCamera", "WindowCutter", "crop_columns", "lower_priority"]
+__all__ = ["LiveApp", "LiveTap", "LiveView", "Mailbox", "TappedCamera", "WindowDetector", "lower_priority"]
 
 #: nice increment of the view's threads (Linux), so the capture threads get the CPU first.
 VIEW_NICE = 10
-#: Events of one display frame kept as arrays before they are folded into counts (memory bound if rendering lags).
-FOLD_EVENTS = 2_000_000
+#: How often the windows thread looks for new chunks, s.
+POLL_S = 0.002
 
 
-def lower_priority() -> None:
-    """Raise the calling thread's nice value by :data:`VIEW_NICE` (Linux only: elsewhere ``setpriority`` on a
+def lower_priority(increment: int = VIEW_NICE) -> None:
+    """Raise the calling thread's nice value by ``increment`` (Linux only: elsewhere ``setpriority`` on a
     thread id is not per thread, so nothing is done)."""
     if sys.platform.startswith("linux"):
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
-                           os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + VIEW_NICE)
+                           os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + increment)
         except OSError:
             pass  # not permitted here (a container's seccomp policy): the view runs at normal priority
 
 
 class LiveTap:
-    """Non-blocking hand-off of decoded chunks from the recording loop to the live view.
+    """Non-blocking hand-off of decoded chunks from the recording loop to the live view's readers.
+
+    Every reader gets every chunk, in its own queue, so that a reader that falls behind (the detector's windows)
+    does not hold up another (the display).
 
     Args:
-        max_chunks: chunks kept for the view; beyond, the oldest are dropped (counted in :attr:`dropped_chunks`).
+        max_chunks: chunks kept for each reader; beyond, its oldest are dropped (counted in
+            :attr:`dropped_chunks`).
+        readers: how many readers take chunks (numbered from 0).
     """
 
-    def __init__(self, max_chunks: int = 256):
-        self._queue: deque = deque(maxlen=int(max_chunks))
+    def __init__(self, max_chunks: int = 256, readers: int = 1):
+        self._queues = [deque(maxlen=int(max_chunks)) for _ in range(int(readers))]
+        self._taken = [0] * int(readers)
         self.offered_chunks = 0
         self.offered_events = 0
-        self.taken_chunks = 0
 
     def offer(self, chunk, t_offer_s: float | None = None) -> None:
-        """Hand over one decoded chunk (called by the recording loop; O(1), never blocks, never copies).
+        """Hand over one decoded chunk (called by the recording loop; O(readers), never blocks, never copies).
 
         Args:
             chunk: has ``events`` (EVENT_DTYPE) and/or ``frames`` (APS frames).
             t_offer_s: when the recording read it, ``time.monotonic()`` s (default: now).
         """
-        self._queue.append((time.monotonic() if t_offer_s is None else t_offer_s, chunk))
+        item = (time.monotonic() if t_offer_s is None else t_offer_s, chunk)
+        for queue in self._queues:
+            queue.append(item)
         events = getattr(chunk, "events", None)
         self.offered_chunks += 1
         self.offered_events += 0 if events is None else len(events)
 
-    def take(self) -> list:
-        """All chunks offered since the last call, oldest first, as ``(offer time s (monotonic), chunk)``."""
-        out = []
+    def take(self, reader: int = 0) -> list:
+        """All chunks offered since ``reader``'s last call, oldest first, as ``(offer time s (monotonic), chunk)``."""
+        queue, out = self._queues[reader], []
         while True:
             try:
-                out.append(self._queue.popleft())
+                out.append(queue.popleft())
             except IndexError:
                 break
-        self.taken_chunks += len(out)
+        self._taken[reader] += len(out)
         return out
 
     @property
     def dropped_chunks(self) -> int:
-        """Chunks the view never saw because it fell behind."""
-        return self.offered_chunks - self.taken_chunks - len(self._queue)
+        """Chunks a reader never saw because it fell behind (the most over the readers)."""
+        return max(self.offered_chunks - taken - len(queue) for taken, queue in zip(self._taken, self._queues))
 
 
 class TappedCamera:
@@ -120,101 +131,78 @@ class TappedCamera:
         return chunk
 
 
-class WindowCutter:
-    """Cut a live event stream into RVT's windows: ends at ``t0 + k · window_us``, each ``end − window_us ≤ t ≤ end``.
-
-    ``t0`` is the first event's millisecond (as a session's ``t_offset``). A window is complete once an event
-    after its end has arrived. Nothing is copied or cropped here (the detector crops the windows it scores, and
-    skips the others at no cost): a window is handed out as views into the arrays pushed. Time going back by more
-    than a window (a device timestamp reset) restarts the grid at the new time and marks the next window as the
-    start of a new sequence (RVT states reset).
-
-    Args:
-        window_us: window length, µs.
-    """
-
-    def __init__(self, window_us: int = WINDOW_US):
-        self.window_us = int(window_us)
-        self._end: int | None = None
-        self._pending: list[np.ndarray] = []  # arrays (views) holding the current window's events, in order
-        self._restart = True
-
-    def push(self, events: np.ndarray) -> list[tuple[int, list[np.ndarray], bool]]:
-        """Add time-sorted sensor events (EVENT_DTYPE); return the windows they complete.
-
-        Returns:
-            ``[(end µs, [views whose concatenation is the window's events, end − window_us ≤ t ≤ end],
-            starts_sequence), ...]``, oldest first.
-        """
-        if not len(events):
-            return []
-        t_first, t_last = int(events["t"][0]), int(events["t"][-1])
-        if self._end is None or t_first < self._end - 2 * self.window_us:
-            self._end = t_first // 1000 * 1000 + self.window_us
-            self._pending, self._restart = [], True
-        self._pending.append(events)
-        done = []
-        while t_last > self._end:
-            parts = [_between(part, self._end - self.window_us, self._end) for part in self._pending]
-            done.append((self._end, [part for part in parts if len(part)], self._restart))
-            self._restart = False
-            self._end += self.window_us
-            # keep what the next window (which starts at the old end, inclusive) may hold
-            kept = [_between(part, self._end - self.window_us, None) for part in self._pending]
-            self._pending = [part for part in kept if len(part)]
-        return done
-
-
-def _between(events: np.ndarray, t0_us: int, t1_us: int | None) -> np.ndarray:
-    """The view of time-sorted ``events`` with ``t0_us <= t <= t1_us`` (no upper bound for ``None``); a binary
-    search only where the bounds cut the array (a field of a structured array is strided: searching it copies)."""
-    first, last = int(events["t"][0]), int(events["t"][-1])
-    if first >= t0_us and (t1_us is None or last <= t1_us):
-        return events
-    if last < t0_us or (t1_us is not None and first > t1_us):
-        return events[:0]
-    t = events["t"]
-    lo = 0 if first >= t0_us else int(np.searchsorted(t, t0_us, side="left"))
-    hi = len(events) if t1_us is None or last <= t1_us else int(np.searchsorted(t, t1_us, side="right"))
-    return events[lo:hi]
-
-
-def crop_columns(parts: list[np.ndarray], origin_xy: tuple[int, int]):
-    """The events of ``parts`` (EVENT_DTYPE arrays, in order) inside the 304x240 crop at ``origin_xy``, as
-    columns ``(x, y, t, p)`` in crop px (a new array each; the same events as
-    :func:`~davis_rig.events.crop.crop_events`)."""
-    events = np.concatenate(parts) if len(parts) != 1 else parts[0]
-    x0, y0 = (int(v) for v in origin_xy)
-    x = events["x"].astype(np.int32) - x0
-    y = events["y"].astype(np.int32) - y0
-    keep = (x >= 0) & (x < RVT_HW[1]) & (y >= 0) & (y < RVT_HW[0])
-    return x[keep], y[keep], events["t"][keep], events["p"][keep]
-
-
-class _Mailbox:
-    """One slot between two threads: :meth:`put` replaces what was not taken yet (counted)."""
+class Mailbox:
+    """One slot between two threads: :meth:`put` replaces an item not taken yet (counted in :attr:`replaced`), so
+    the taker always gets the newest and never more than one waits."""
 
     def __init__(self):
         self._item = None
         self._cond = threading.Condition()
         self.replaced = 0
 
-    def put(self, item) -> None:
+    def put(self, item, merge=None) -> None:
+        """Leave ``item`` (not ``None``) in the slot, replacing what is there (``merge(replaced, item)`` instead of
+        ``item`` when given: what the replaced item carried that must not be lost)."""
         with self._cond:
             if self._item is not None:
                 self.replaced += 1
+                if merge is not None:
+                    item = merge(self._item, item)
             self._item = item
             self._cond.notify()
 
     def get(self, timeout_s: float):
+        """Take the item in the slot, waiting up to ``timeout_s`` for one; ``None`` when none came."""
         with self._cond:
             self._cond.wait_for(lambda: self._item is not None, timeout_s)
             item, self._item = self._item, None
             return item
 
 
+class WindowDetector:
+    """RVT over the live windows handed to it, one recurrent step each.
+
+    The LSTM states of a step are the previous step's, also when windows were skipped between them (a detector
+    slower than the windows): the states then span the gap, as for a camera at a lower window rate, instead of
+    starting over at every step, which would leave RVT without its memory whenever it cannot keep up. They are
+    reset at a window that starts a sequence (the stream began or its time went back).
+
+    Args:
+        runner: an :class:`~davis_rig.models.rvt.ort_runner.RVTOnnxRunner` (``step(hist, states)``).
+        threshold: confidence threshold (obj · class).
+        nms_threshold: IoU of the non-maximum suppression.
+    """
+
+    def __init__(self, runner, threshold: float, nms_threshold: float = RVT_NMS_IOU):
+        self.runner = runner
+        self.threshold = float(threshold)
+        self.nms_threshold = float(nms_threshold)
+        self.states = None
+
+    def step(self, histogram: np.ndarray, starts_sequence: bool):
+        """One RVT step on a window's histogram (uint8 [20, 240, 304]); returns the raw decoded output."""
+        if starts_sequence:
+            self.states = None
+        decoded, self.states = self.runner.step(histogram[None], self.states)
+        return decoded
+
+    def boxes(self, decoded) -> np.ndarray:
+        """The step's detections after threshold and NMS: float32 [K, 7] rows ``(x1, y1, x2, y2, obj, class_conf,
+        class_pred)``, crop px."""
+        from davis_rig.models.rvt.postprocess import postprocess
+
+        rows = postprocess(decoded, self.threshold, self.nms_threshold)[0]
+        return np.zeros((0, 7), np.float32) if rows is None else rows
+
+
 def _percentile(values, q: float) -> float | None:
     return float(np.percentile(values, q)) if len(values) else None
+
+
+#: The parts of the detector's latency (``LiveView.stages``), in order: the chunk completing a window read by the
+#: recording -> the window's histogram ready (ring, feed, counting, clip); -> taken by the detector (waiting for a
+#: step in progress); -> RVT step done; -> boxes ready (threshold, NMS).
+STAGES = ("to_window", "wait", "step", "post")
 
 
 class LiveView:
@@ -251,9 +239,9 @@ class LiveView:
         self.stats_source = stats
         self.jpeg_quality = int(jpeg_quality)
         self.nms_threshold = float(nms_threshold)
-        self.tap = LiveTap(max_pending_chunks)
-        self._cutter = WindowCutter(self.window_us)
-        self._mailbox = _Mailbox()
+        self.tap = LiveTap(max_pending_chunks, readers=1 if self.detector is None else 2)  # display, windows
+        self._mailbox = Mailbox()
+        self._windows = None  # the detector's WindowHistograms (made by the windows thread)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._frame_cond = threading.Condition()
@@ -264,6 +252,8 @@ class LiveView:
         #: detector latency of the last 1000 windows scored, ms: the chunk that completed the window was read by the
         #: recording -> its boxes ready
         self.latency_ms: deque = deque(maxlen=1000)
+        #: the same windows' latency in parts (:data:`STAGES`), ms: one tuple per window
+        self.stages_ms: deque = deque(maxlen=1000)
         #: at the last 1000 frames drawn with boxes: newest event − the boxes' window end, ms of device time
         self.behind_ms: deque = deque(maxlen=1000)
         self._render_times: deque = deque(maxlen=200)
@@ -284,6 +274,7 @@ class LiveView:
             if self._detector_error is not None:
                 self.__exit__(None, None, None)
                 raise self._detector_error
+            self._start(self._windows_loop, "davis-view-windows")
         self._start(self._view_loop, "davis-view-live")
         return self
 
@@ -298,31 +289,52 @@ class LiveView:
         self._threads.append(thread)
         thread.start()
 
+    # --- the windows thread -------------------------------------------------------------------
+    def _windows_loop(self) -> None:
+        """Count the chunks' events into the detector's windows; mail the windows that complete."""
+        lower_priority()
+        self._windows = windows = WindowHistograms(self.crop_origin_xy, self.window_us)
+        while not self._stop.is_set():
+            parts = [(t_offer, events) for t_offer, chunk in self.tap.take(1)
+                     if (events := getattr(chunk, "events", None)) is not None and len(events)]
+            if parts:  # one push for what came since the last look: a window completed and superseded is skipped
+                events = join_events([events for _, events in parts])
+                if (window := windows.push(events)) is not None:
+                    ends = np.cumsum([len(events) for _, events in parts])  # which chunk completed it, read when
+                    t_offer = parts[int(np.searchsorted(ends, window.completed_at, side="right"))][0]
+                    self._mailbox.put((window, t_offer, time.monotonic()),
+                                      lambda replaced, item: (later_window(replaced[0], item[0]), *item[1:]))
+            self._stop.wait(POLL_S)
+
+    def _windows_skipped(self) -> int:
+        """Complete windows the detector did not score: superseded in a push, or replaced in the mailbox."""
+        return self._mailbox.replaced + (self._windows.superseded if self._windows is not None else 0)
+
     # --- the view thread ----------------------------------------------------------------------
     def _view_loop(self) -> None:
         lower_priority()
-        shown: list[np.ndarray] = []  # the events of the frame being drawn, one array per chunk
-        counts = np.zeros((2, *DAVIS346_HW), np.int64)
+        counts = np.zeros((2, *DAVIS346_HW), np.int32)  # the events of the frame being drawn, counted as they come
         aps = None
         next_render = next_stats = time.monotonic()
         while not self._stop.is_set():
-            taken = self.tap.take()
+            taken = self.tap.take(0)
             if taken:
                 if self._t_first_chunk is None:
                     self._t_first_chunk = taken[0][0]
                 aps = self._latest_aps(taken) or aps
-                shown.extend(self._take_events(taken))
-                if sum(len(part) for part in shown) > FOLD_EVENTS:  # keep memory bounded if rendering lags
-                    counts += self._counts(shown)
-                    shown = []
+                parts = [events for _, chunk in taken
+                         if (events := getattr(chunk, "events", None)) is not None and len(events)]
+                if parts:
+                    events = join_events(parts)
+                    add_event_counts(counts, events["x"], events["y"], events["p"])
+                    self._newest_t = int(events["t"][-1])
             now = time.monotonic()
             if now >= next_stats:
                 self._update_stats(now)
                 next_stats = now + 0.5
             if now >= next_render:
-                self._render(counts + self._counts(shown), aps)
+                self._render(counts, aps)
                 counts[...] = 0
-                shown = []
                 next_render = max(next_render + self.period_s, now)
             self._stop.wait(min(0.005, max(next_render - time.monotonic(), 0.0)))
 
@@ -334,26 +346,6 @@ class LiveView:
             if frames:
                 return np.asarray(frames[-1].pixels), (int(frames[-1].position_x), int(frames[-1].position_y))
         return None
-
-    def _take_events(self, taken: list) -> list[np.ndarray]:
-        """The non-empty event arrays of the chunks taken (not copied); the detector's windows are cut from them."""
-        out = []
-        for t_offer, chunk in taken:
-            events = getattr(chunk, "events", None)
-            if events is None or not len(events):
-                continue
-            out.append(events)
-            self._newest_t = int(events["t"][-1])
-            for end, parts, restart in self._cutter.push(events):  # complete since this chunk was read
-                self._mailbox.put((end, parts, restart, t_offer))
-        return out
-
-    @staticmethod
-    def _counts(parts: list) -> np.ndarray:
-        if not parts:
-            return np.zeros((2, *DAVIS346_HW), np.int64)
-        events = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        return event_counts(events["x"], events["y"], events["p"], DAVIS346_HW)
 
     def _update_stats(self, now: float) -> None:
         t_then, events_then = self._rate
@@ -389,9 +381,8 @@ class LiveView:
     # --- the detector thread ------------------------------------------------------------------
     def _detector_loop(self) -> None:
         lower_priority()  # before the session exists: its intra-op threads inherit the nice value
-        from davis_rig.events.histogram import NUM_BINS, stacked_histogram
+        from davis_rig.events.histogram import NUM_BINS
         from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-        from davis_rig.models.rvt.postprocess import postprocess
 
         try:
             runner = RVTOnnxRunner(self.detector, intra_op_threads=self.threads)
@@ -401,23 +392,20 @@ class LiveView:
             return
         finally:
             self._detector_ready.set()
-        states = None
+        detector = WindowDetector(runner, self.threshold, self.nms_threshold)
         while not self._stop.is_set():
             item = self._mailbox.get(0.1)
             if item is None:
                 continue
-            end_us, parts, restart, t_offer = item
-            if restart:
-                states = None
-            if parts:
-                x, y, t, p = crop_columns(parts, self.crop_origin_xy)
-                hist = stacked_histogram(x, y, np.maximum.accumulate(t) if len(t) else t, p)
-            else:
-                hist = np.zeros((2 * NUM_BINS, *RVT_HW), np.uint8)
-            decoded, states = runner.step(hist[None], states)
-            rows = postprocess(decoded, self.threshold, self.nms_threshold)[0]
-            self._boxes = (end_us, np.zeros((0, 7), np.float32) if rows is None else rows)
-            self.latency_ms.append((time.monotonic() - t_offer) * 1000)
+            window, t_offer, t_ready = item
+            t_start = time.monotonic()
+            decoded = detector.step(window.histogram, window.starts_sequence)
+            t_step = time.monotonic()
+            self._boxes = (window.end_us, detector.boxes(decoded))
+            t_done = time.monotonic()
+            self.latency_ms.append((t_done - t_offer) * 1000)
+            self.stages_ms.append(tuple(1000 * d for d in (t_ready - t_offer, t_start - t_ready, t_step - t_start,
+                                                           t_done - t_step)))
             self.windows_scored += 1
 
     # --- what the server asks -----------------------------------------------------------------
@@ -435,6 +423,26 @@ class LiveView:
         self._served_times.append(time.monotonic())
         return frame
 
+    def thread_cpu_s(self) -> dict[str, float] | None:
+        """CPU s used so far by each running thread of this process: Python threads by name, the others
+        (onnxruntime's workers) summed as ``native``; ``None`` where ``/proc`` has no per-thread times (not Linux)."""
+        names = {str(thread.native_id): thread.name for thread in threading.enumerate()}
+        out: dict[str, float] = {}
+        try:
+            tasks = os.listdir("/proc/self/task")
+        except OSError:
+            return None
+        tick = os.sysconf("SC_CLK_TCK")
+        for task in tasks:
+            try:
+                with open(f"/proc/self/task/{task}/stat") as stat:
+                    fields = stat.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue  # the thread ended meanwhile
+            name = names.get(task, "native")
+            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick  # utime + stime
+        return out
+
     @staticmethod
     def _fps(times: deque) -> float:
         now = time.monotonic()
@@ -445,6 +453,7 @@ class LiveView:
         """Counters of the view (JSON-ready); ``display`` holds the same as short texts for the page."""
         latency = list(self.latency_ms)
         behind = list(self.behind_ms)
+        stages = list(self.stages_ms)
         out = {
             "events": self.tap.offered_events,
             "event_rate_hz": self._rate_hz,
@@ -453,12 +462,14 @@ class LiveView:
             "frames_rendered": self.frames_rendered,
             "render_fps": self._fps(self._render_times),
             "served_fps": self._fps(self._served_times),
+            "thread_cpu_s": self.thread_cpu_s(),
             "detector": None if self.detector is None else {
                 "model": self.detector.name, "threshold": self.threshold, "windows_scored": self.windows_scored,
-                "windows_skipped": self._mailbox.replaced, "latency_ms_median": _percentile(latency, 50),
+                "windows_skipped": self._windows_skipped(), "latency_ms_median": _percentile(latency, 50),
                 "latency_ms_p95": _percentile(latency, 95), "latency_ms_max": max(latency) if latency else None,
                 "latency_ms_last": latency[-1] if latency else None, "behind_ms_median": _percentile(behind, 50),
                 "behind_ms_p95": _percentile(behind, 95), "behind_ms_max": max(behind) if behind else None,
+                "stages_ms_median": dict(zip(STAGES, np.median(stages, axis=0).tolist())) if stages else None,
             },
         }
         display = {"event rate": f"{self._rate_hz / 1e6:.2f} Mev/s", "events": f"{self.tap.offered_events:,}",

@@ -25,8 +25,8 @@ import numpy as np
 from davis_rig.errors import ShapeError
 from davis_rig.types import DAVIS346_HW, RVT_HW
 
-__all__ = ["LAYERS", "ImageFormat", "ViewContent", "aps_image", "box_pixels", "draw_boxes", "draw_caption",
-           "draw_outline", "encode_image", "event_counts", "event_image", "render_view", "side_by_side"]
+__all__ = ["LAYERS", "ImageFormat", "ViewContent", "add_event_counts", "aps_image", "box_pixels", "draw_boxes",
+           "draw_caption", "draw_outline", "encode_image", "event_counts", "event_image", "render_view", "side_by_side"]
 
 #: Colours, RGB.
 BACKGROUND_RGB: Final = (0, 0, 0)
@@ -63,6 +63,24 @@ def event_counts(x, y, p, hw: tuple[int, int] = DAVIS346_HW) -> np.ndarray:
     Raises:
         ShapeError: columns of different lengths, or an event outside the image.
     """
+    return np.bincount(_count_cells(x, y, p, hw), minlength=2 * hw[0] * hw[1]).reshape(2, *hw)
+
+
+def add_event_counts(counts: np.ndarray, x, y, p) -> None:
+    """Add the events' counts to ``counts`` in place (a live frame counted chunk by chunk, no copy of the events).
+
+    Args:
+        counts: int32 ``[2, H, W]`` OFF/ON counts (as :func:`event_counts`), C-contiguous.
+        x, y, p: as :func:`event_counts`.
+
+    Raises:
+        ShapeError: as :func:`event_counts`.
+    """
+    np.add.at(counts.reshape(-1), _count_cells(x, y, p, counts.shape[1:]), np.int32(1))  # same dtype: the fast path
+
+
+def _count_cells(x, y, p, hw: tuple[int, int]) -> np.ndarray:
+    """The cell ``(ON · H + y) · W + x`` (int32) of each event, checked."""
     x, y, p = (np.asarray(v).reshape(-1) for v in (x, y, p))
     if not x.shape == y.shape == p.shape:
         raise ShapeError(f"event columns: expected equal lengths, got x {x.shape}, y {y.shape}, p {p.shape}")
@@ -71,10 +89,10 @@ def event_counts(x, y, p, hw: tuple[int, int] = DAVIS346_HW) -> np.ndarray:
         raise ShapeError(f"events outside the {width}x{height} image (w x h): x in [{x.min()}, {x.max()}], "
                          f"y in [{y.min()}, {y.max()}]")
     index = y.astype(np.int32)  # (ON · H + y) · W + x in int32: 2 H W cells fit easily
-    index += (np.asarray(p) > 0).astype(np.int32) * height
+    index += (p > 0).astype(np.int32) * height
     index *= width
     index += x
-    return np.bincount(index, minlength=2 * height * width).reshape(2, height, width)
+    return index
 
 
 def event_image(counts: np.ndarray) -> np.ndarray:

@@ -2,68 +2,53 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from davis_rig.errors import ModelFormatError
-from davis_rig.events.crop import crop_events
-from davis_rig.events.histogram import window_indices
 from davis_rig.types import make_events
-from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, TappedCamera, WindowCutter, crop_columns
+from davis_rig.viewer.live import LiveApp, LiveTap, LiveView, Mailbox, TappedCamera, WindowDetector
+from davis_rig.viewer.live_windows import join_events
 from davis_rig.viewer.server import RequestError
 
 from tests.helpers.eval_data import PERSON_BOX, PERSON_BOX_CROP, moving_blob_events, person_rvt
 from tests.helpers.session_data import Chunk
 
 
-def stream(rng, n=20_000, span_us=400_000, t0_us=3_456):
-    t = np.sort(rng.integers(t0_us, t0_us + span_us, n))
-    t[::997] = (t[::997] // 50_000) * 50_000  # some events exactly on window boundaries
-    t = np.sort(t)
-    return make_events(t, rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n))
+def test_the_mailbox_keeps_only_the_newest_item_and_counts_the_replaced():
+    box = Mailbox()
+    assert box.get(0.01) is None
+    for item in ("a", "b", "c"):
+        box.put(item)
+    assert box.get(0.01) == "c" and box.replaced == 2 and box.get(0.01) is None
+    box.put("d")
+    assert box.get(0.01) == "d" and box.replaced == 2
+    box.put("e")
+    box.put("f", merge=lambda replaced, item: replaced + item)  # what the replaced item carried is kept
+    assert box.get(0.01) == "ef" and box.replaced == 3
 
 
-@settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 10_000), pieces=st.integers(1, 40))
-def test_window_cutter_gives_rvts_windows_of_the_whole_stream(seed, pieces):
-    rng = np.random.default_rng(seed)
-    events = stream(rng)
-    cuts = np.sort(rng.integers(0, len(events), pieces - 1))
-    cutter = WindowCutter(50_000)
-    windows = [w for part in np.split(events, cuts) for w in cutter.push(part)]
-    t0 = int(events["t"][0]) // 1000 * 1000
-    ends = t0 + 50_000 * np.arange(1, len(windows) + 1)
-    assert [w[0] for w in windows] == ends.tolist()
-    assert ends[-1] < events["t"][-1] <= ends[-1] + 50_000  # every window an event has passed, no more
-    starts, stops = window_indices(events["t"], ends, 50_000)
-    for (end, parts, restart), a, b in zip(windows, starts, stops):
-        got = np.concatenate(parts) if parts else events[:0]
-        np.testing.assert_array_equal(got, events[a:b])  # both ends inclusive, boundary events in both
-        assert restart == (end == ends[0])
+def test_the_detector_carries_its_states_over_skipped_windows_and_resets_them_at_a_new_sequence():
+    class Runner:
+        """Records the states each step got; the new states name the step."""
 
+        def __init__(self):
+            self.given = []
 
-def test_window_cutter_restarts_after_a_timestamp_reset():
-    rng = np.random.default_rng(1)
-    cutter = WindowCutter(50_000)
-    assert len(cutter.push(stream(rng, span_us=300_000, t0_us=1_000_000))) == 5
-    after = cutter.push(stream(rng, span_us=120_000, t0_us=0))
-    assert [w[0] for w in after] == [50_000, 100_000] and [w[2] for w in after] == [True, False]
-    assert cutter.push(make_events([], [], [], [])) == []
+        def step(self, hist, states):
+            self.given.append(states)
+            return np.zeros((1, 0, 7), np.float32), f"after {int(hist[0, 0, 0, 0])}"
 
-
-def test_crop_columns_are_crop_events():
-    rng = np.random.default_rng(4)
-    events = stream(rng)
-    parts = np.array_split(events, 7)
-    x, y, t, p = crop_columns(parts, (21, 10))
-    expected = crop_events(events, (21, 10))
-    for got, name in ((x, "x"), (y, "y"), (t, "t"), (p, "p")):
-        np.testing.assert_array_equal(got, expected[name])
+    runner = Runner()
+    detector = WindowDetector(runner, threshold=0.1)
+    for window, starts in ((0, True), (1, False), (4, False), (5, True), (6, False)):  # windows 2, 3 skipped
+        detector.step(np.full((20, 240, 304), window, np.uint8), starts)
+    assert runner.given == [None, "after 0", "after 1", None, "after 5"]
+    assert detector.boxes(np.zeros((1, 0, 7), np.float32)).shape == (0, 7)
 
 
 def test_tap_drops_the_oldest_chunks_and_counts_them():
@@ -75,6 +60,17 @@ def test_tap_drops_the_oldest_chunks_and_counts_them():
     taken = tap.take()
     assert [c is chunks[i] for i, (_, c) in zip(range(2, 5), taken)] == [True, True, True]  # no copies
     assert tap.take() == [] and tap.dropped_chunks == 2
+
+
+def test_each_reader_of_the_tap_gets_every_chunk_and_one_falling_behind_holds_up_no_other():
+    tap = LiveTap(max_chunks=2, readers=2)
+    chunks = [Chunk(events=make_events([i], [0], [0], [1])) for i in range(3)]
+    tap.offer(chunks[0])
+    assert [c for _, c in tap.take(0)] == [chunks[0]]
+    tap.offer(chunks[1])
+    tap.offer(chunks[2])
+    assert [c for _, c in tap.take(0)] == chunks[1:] and tap.dropped_chunks == 1  # reader 1 lost the first
+    assert [c for _, c in tap.take(1)] == chunks[1:] and tap.take(0) == []
 
 
 def test_tapped_camera_offers_every_chunk_read_and_forwards_the_rest():
@@ -162,10 +158,34 @@ def test_event_ring_hands_chunks_over_and_counts_what_was_overwritten():
         got = reader.read()
         assert [t for t, _ in got] == [5.0, 6.0, 7.0] and reader.dropped_chunks == 2
         assert [int(c["t"][0]) for _, c in got] == [120, 150, 180]  # wrapped around the ring's end intact
+        assert np.shares_memory(join_events([c for _, c in got]), got[0][1])  # one block: joined without a copy
         for i in range(10):  # 10 chunks for 8 marks: 2 marks lost, and the chunk after them has no known start
             writer.write(_events(rng, 5, 210 + 5 * i), 10.0 + i)
         got = reader.read()
         assert [t for t, _ in got] == [13.0 + i for i in range(7)] and reader.dropped_chunks == 5
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="page-fault counts from getrusage (Linux)")
+def test_the_event_ring_is_allocated_before_the_recording_writes_into_it():
+    import resource
+
+    from davis_rig.viewer.live_process import EventRing
+
+    events = _events(np.random.default_rng(8), 1 << 14, 0)
+    with EventRing(capacity=1 << 16, mark_capacity=64) as ring:  # 832 KiB: 208 pages
+        faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for i in range(4):  # one lap
+            ring.write(events, float(i))
+        assert resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults < 20
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_view_process_allocator_keeps_freed_blocks():
+    import platform
+
+    from davis_rig.viewer.live_process import retain_freed_memory
+
+    assert retain_freed_memory() is (platform.libc_ver()[0] == "glibc")
 
 
 def test_live_view_process_serves_frames_of_the_chunks_given(tmp_path):

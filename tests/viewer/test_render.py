@@ -8,7 +8,8 @@ import pytest
 
 from davis_rig.errors import ShapeError
 from davis_rig.viewer.render import (BACKGROUND_RGB, CROP_RGB, DETECTION_RGB, GAP_PX, GAP_RGB, LABEL_RGB, OFF_RGB,
-                                     ON_RGB, ViewContent, aps_image, box_pixels, draw_boxes, draw_outline,
+                                     ON_RGB, ViewContent, add_event_counts, aps_image, box_pixels, draw_boxes,
+                                     draw_outline,
                                      encode_image, event_counts, event_image, render_view, side_by_side)
 
 
@@ -19,6 +20,17 @@ def test_event_counts_per_pixel_and_polarity():
     expected[0, 0, 2] = 2  # two OFF and one ON at (x=2, y=0)
     expected[1, 0, 2] = 1
     np.testing.assert_array_equal(counts, expected)
+
+
+def test_event_counts_added_part_by_part_are_the_counts_of_all_the_events():
+    rng = np.random.default_rng(0)
+    x, y, p = rng.integers(0, 346, 5_000), rng.integers(0, 260, 5_000), rng.integers(0, 2, 5_000)
+    counts = np.zeros((2, 260, 346), np.int32)
+    for part in np.array_split(np.arange(5_000), 7):
+        add_event_counts(counts, x[part], y[part], p[part])
+    np.testing.assert_array_equal(counts, event_counts(x, y, p))
+    with pytest.raises(ShapeError, match="outside"):
+        add_event_counts(counts, [346], [0], [1])
 
 
 def test_event_counts_refuses_events_outside_the_image_and_ragged_columns():
