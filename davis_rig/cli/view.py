@@ -253,8 +253,9 @@ def add_live_view_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-detector", action="store_true", help="with --view: no RVT boxes")
     group.add_argument("--threshold", type=probability, default=0.1, metavar="T",
                        help="with --view: RVT confidence threshold (default 0.1)")
-    group.add_argument("--threads", type=positive_int, default=2, metavar="N",
-                       help="with --view: onnxruntime threads of the detector (default 2)")
+    group.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                       help="with --view: onnxruntime threads of the detector (default 2; 1 on a machine of 2 cores "
+                            "or fewer, so that the recording keeps a core)")
     group.add_argument("--view-fps", type=positive_float, default=25.0, metavar="F",
                        help="with --view: display frames per second (default 25)")
     _add_server_arguments(group, host_option="--view-host", port_option="--view-port")

@@ -42,7 +42,21 @@ from davis_rig.viewer.live_windows import WindowHistograms, join_events, later_w
 from davis_rig.viewer.render import LAYERS, ImageFormat, ViewContent, add_event_counts, encode_image, render_view
 from davis_rig.viewer.server import RequestError, Response, int_param, json_response
 
-__all__ = ["LiveApp", "LiveTap", "LiveView", "Mailbox", "TappedCamera", "WindowDetector", "lower_priority"]
+__all__ = ["LiveApp", "LiveTap", "LiveView", "Mailbox", "TappedCamera", "WindowDetector", "default_detector_threads",
+           "lower_priority"]
+
+def default_detector_threads(cpu_count: int | None = None) -> int:
+    """onnxruntime threads of the live detector when none are given: 2, but 1 on a machine of 2 cores or fewer.
+
+    The recording keeps a core to itself: beside a 12 M ev/s recording on 2 cores, the boxes came 122 ms (median)
+    after their window with 1 thread against 164 ms with 2 (``benchmarks/view_live.py``, benchmarks/README.md).
+
+    Args:
+        cpu_count: cores of the machine (default ``os.cpu_count()``).
+    """
+    cores = cpu_count if cpu_count is not None else (os.cpu_count() or 1)
+    return 1 if cores <= 2 else 2
+
 
 #: nice increment of the view's threads (Linux), so the capture threads get the CPU first.
 VIEW_NICE = 10
@@ -211,7 +225,7 @@ class LiveView:
     Args:
         detector: RVT step ONNX, or ``None`` for no boxes.
         threshold: detector confidence threshold (obj · class).
-        threads: onnxruntime intra-op threads of the detector.
+        threads: onnxruntime intra-op threads of the detector (default :func:`default_detector_threads`).
         fps: display frames rendered per second.
         crop_origin_xy: the 304x240 crop, px (default centred).
         window_us: detector window, µs.
@@ -224,7 +238,7 @@ class LiveView:
         ModelFormatError / MissingDependencyError: the detector cannot be loaded (the recording has not started).
     """
 
-    def __init__(self, *, detector: Path | None = None, threshold: float = 0.1, threads: int | None = 2,
+    def __init__(self, *, detector: Path | None = None, threshold: float = 0.1, threads: int | None = None,
                  fps: float = 25.0, crop_origin_xy: tuple[int, int] | None = None, window_us: int = WINDOW_US,
                  stats=None, max_pending_chunks: int = 256, jpeg_quality: int = 80,
                  nms_threshold: float = RVT_NMS_IOU):
@@ -232,7 +246,7 @@ class LiveView:
 
         self.detector = None if detector is None else Path(detector)
         self.threshold = float(threshold)
-        self.threads = threads
+        self.threads = int(threads) if threads is not None else default_detector_threads()
         self.period_s = 1.0 / float(fps)
         self.crop_origin_xy = tuple(crop_origin_xy) if crop_origin_xy is not None else center_crop_origin()
         self.window_us = int(window_us)

@@ -309,7 +309,7 @@ class LiveViewProcess:
         DavisRigError: the view process did not start.
     """
 
-    def __init__(self, *, detector: Path | None = None, threshold: float = 0.1, threads: int | None = 2,
+    def __init__(self, *, detector: Path | None = None, threshold: float = 0.1, threads: int | None = None,
                  fps: float = 25.0, host: str = "127.0.0.1", port: int = 0, allow_remote: bool = False, stats=None,
                  ring_events: int = 1 << 22, start_timeout_s: float = 120.0):
         self.options = {"detector": None if detector is None else Path(detector), "threshold": float(threshold),

@@ -231,3 +231,11 @@ def test_live_view_process_start_errors(tmp_path):
         with pytest.raises(ConfigError, match="cannot listen"):
             with LiveViewProcess(port=busy.getsockname()[1]):
                 pass
+
+
+def test_the_detector_leaves_the_recording_a_core_on_small_machines():
+    from davis_rig.viewer.live import LiveView, default_detector_threads
+
+    assert [default_detector_threads(n) for n in (1, 2, 3, 16)] == [1, 1, 2, 2]
+    assert LiveView(detector=None).threads == default_detector_threads()
+    assert LiveView(detector=None, threads=3).threads == 3
