@@ -53,7 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")
     add_threads(parser, help="torch and onnxruntime CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
-    return run_main(parser, argv, _run)
+
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.evaluate_only and args.resume:
+            parser.error("argument --resume: not allowed with --evaluate-only (nothing is optimised)")
+
+    return run_main(parser, argv, _run, check=check)
 
 
 def _run(args: argparse.Namespace) -> int:
