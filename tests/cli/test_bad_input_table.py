@@ -74,7 +74,7 @@ def _interrupt_after_mkdir(path_argument: int) -> Callable:
 ROWS = [
     # davis-record
     Row("davis-record", "nonexistent file", ["--fake", "{missing}", "--out", "{out}.h5", "-q"], 4,
-        "missing.davisreplay", created=["{out}.h5"]),
+        "missing.davisreplay: no such replay file", created=["{out}.h5"]),
     Row("davis-record", "wrong file type", ["--fake", "{text}", "--out", "{out}.h5", "-q"], 4, "text.h5",
         created=["{out}.h5"]),
     Row("davis-record", "out of range", ["--usb-transfers", "-1", "--out", "{out}.h5"], 2,
@@ -434,5 +434,7 @@ def test_bad_input(row, files, tmp_path, monkeypatch, capsys, load_tool):
     for created in row.created:
         assert not Path(created.format(**names)).exists(), created
     assert not any(Path(names["text"]).parent.glob(".*partial*"))
-    OBSERVED.append((row.command if row.command != "davis-attack" else row.prog, row.case, row.argv, row.code,
-                     lines[-1]))
+    shown = lines[-1]
+    for key, value in sorted(names.items(), key=lambda item: -len(item[1])):  # the fixture names, not tmp paths
+        shown = shown.replace(value, f"{{{key}}}")
+    OBSERVED.append((row.prog if row.command == "davis-attack" else row.command, row.case, row.argv, row.code, shown))
