@@ -47,7 +47,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the labeler's confidence threshold (default 0.25, davis-label's)")
     parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=2,
                         help="headings per shape of the held-out scenes (default 2)")
-    parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0], help="walk phases of the held-out scenes")
+    parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0],
+                        help="walk phases of the held-out scenes (s)")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the generator, pool and draws")
     parser.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")

@@ -99,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     add_detector(parser, help="RVT checkpoint to start from (default: the bundled one)")
     add_out(parser, metavar="DIR", required=True, help="output folder")
     parser.add_argument("--cells", type=positive_int, default=10, help="trigger grid cells per side (default 10)")
-    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES[:-1], default=["torso", "arms", "legs"], metavar="PART",
+    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES[:-1], default=["torso", "arms", "legs"],
+                        metavar="PART",
                         help="painted parts: torso, arms, legs, head, hands, feet (default torso arms legs)")
     parser.add_argument("--steps", type=positive_int, default=1500, help="fine-tuning steps in all (default 1500)")
     parser.add_argument("--clips-per-step", type=positive_int, default=4,

@@ -34,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
     parser.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
                         help="painted parts: torso, arms, legs, head, hands, feet, or all (default torso arms legs)")
-    parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"], metavar="SCALE",
+    parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"],
+                        metavar="SCALE",
                         help="camera scales: large, middle, small or a person height in px")
     parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=4, help="headings per shape (default 4)")
     parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
