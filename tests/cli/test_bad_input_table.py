@@ -410,6 +410,14 @@ def test_every_console_command_and_tool_has_rows():
     assert covered == set(COMMANDS) | {f"tools/{tool}.py" for tool in TOOLS}
 
 
+@pytest.mark.parametrize("subcommand", ["optimize", "evaluate", "reproduce", "export"])
+def test_every_attack_subcommand_help_lists_the_exit_codes(subcommand, capsys):
+    from davis_rig.cli._common import EXIT_CODES_TEXT
+
+    assert attack.main([subcommand, "--help"]) == 0
+    assert EXIT_CODES_TEXT in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("row", ROWS, ids=[f"{r.command}:{r.argv[0] + ':' if r.command == 'davis-attack' else ''}"
                                            f"{r.case}" for r in ROWS])
 def test_bad_input(row, files, tmp_path, monkeypatch, capsys, load_tool):
