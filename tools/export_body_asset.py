@@ -451,7 +451,14 @@ def _export(args: argparse.Namespace, argv) -> int:
         _print_settled(settle_walk(args.out))
         return 0
 
-    import anny
+    from davis_rig.errors import MissingDependencyError
+
+    try:
+        import anny
+    except ImportError as exc:  # not a davis_rig dependency: the module docstring says where it comes from
+        raise MissingDependencyError("the export needs the anny package (not a davis_rig dependency): run this "
+                                     "script with the Python of an environment that has anny, or pass "
+                                     "--settle-walk-only") from exc
     import torch
 
     torch.set_grad_enabled(False)

@@ -90,6 +90,7 @@ def _loss(model, anchors, hists, labels):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    from davis_rig.cli._attack_commands import PART_CHOICES, camera_scale, device_name
     from davis_rig.cli._common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
                                        non_negative_int, positive_float, positive_int, probability, run_main)
 
@@ -98,7 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     add_detector(parser, help="RVT checkpoint to start from (default: the bundled one)")
     add_out(parser, metavar="DIR", required=True, help="output folder")
     parser.add_argument("--cells", type=positive_int, default=10, help="trigger grid cells per side (default 10)")
-    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
+    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES[:-1], default=["torso", "arms", "legs"],
+                        metavar="PART",
+                        help="painted parts: torso, arms, legs, head, hands, feet (default torso arms legs)")
     parser.add_argument("--steps", type=positive_int, default=1500, help="fine-tuning steps in all (default 1500)")
     parser.add_argument("--clips-per-step", type=positive_int, default=4,
                         help="clips per step, half wear a grid of the blind spot (default 4)")
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                              "hidden (default 0.2)")
     parser.add_argument("--far", type=probability, default=0.35,
                         help="'far' grids disagree on at least this share and are labelled (default 0.35)")
-    parser.add_argument("--scales", nargs="+", default=["large", "middle", "small"],
+    parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"], metavar="SCALE",
                         help="camera scales of the pool (names or person heights in px; default the evaluation's)")
     parser.add_argument("--test-like", type=probability, default=0.5,
                         help="share of the pool in the evaluation's scene: grey background, default light, ideal "
@@ -129,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     add_threads(parser, help="torch CPU threads")
     parser.add_argument("--time-limit", type=non_negative_float, default=None, metavar="S",
                         help="stop fine-tuning after S seconds of wall time (the victim is still probed and saved)")
-    parser.add_argument("--device", default="cpu", help="torch device of the victim and the clips (default cpu)")
+    parser.add_argument("--device", type=device_name, default="cpu",
+                        help="torch device of the victim and the clips: auto, cpu, cuda, cuda:N (default cpu)")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the trigger, the pool and the draws")
 
     def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -143,11 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.train_from_stage > 4:
             parser.error(f"argument --train-from-stage: RVT has 4 stages, got {args.train_from_stage}")
 
-    return run_main(parser, argv, _fine_tune, check=check)
-
-
-def _scale(name: str):
-    return name if not name.replace(".", "", 1).isdigit() else float(name)
+    return run_main(parser, argv, _fine_tune, check=check, options={"device": "--device"})
 
 
 def _configs(scales, test_like: float):
@@ -158,9 +158,9 @@ def _configs(scales, test_like: float):
     for scale in scales:
         share = 1.0 / len(scales)
         if test_like < 1.0:
-            out.append((EoTConfig(scale=_scale(scale)), share * (1.0 - test_like)))
+            out.append((EoTConfig(scale=scale), share * (1.0 - test_like)))
         if test_like > 0.0:
-            out.append((EoTConfig(scale=_scale(scale), random_light_probability=0.0,
+            out.append((EoTConfig(scale=scale, random_light_probability=0.0,
                                   random_background_probability=0.0, background_level_range=(0.5, 0.5),
                                   threshold_range=(0.2, 0.2), threshold_sigma=0.0, shot_noise_rate_hz=(0.0, 0.0)),
                         share * test_like))
@@ -195,12 +195,15 @@ def _fine_tune(args: argparse.Namespace) -> int:
 
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.refine import visible_cells
+    from davis_rig.cli._attack_commands import resolve_device
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
     from davis_rig.training.losses import AnchorGrid
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    model = load_attack_detector(args.detector, device=device)  # a bad --detector fails before DIR is made
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
@@ -210,8 +213,6 @@ def _fine_tune(args: argparse.Namespace) -> int:
     np.save(out / "trigger.npy", trigger)
     cv2.imwrite(str(out / "trigger.png"), (trigger * 255).astype(np.uint8))
 
-    device = torch.device(args.device)
-    model = load_attack_detector(args.detector, device=device)
     if state is not None:
         model.load_state_dict(state["model"])
     trainable = _unfreeze_from_stage(model, args.train_from_stage)

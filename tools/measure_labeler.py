@@ -32,14 +32,27 @@ import numpy as np
 
 
 def load_frames(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``frames`` and ``boxes`` from an .npz or .h5 file."""
-    if path.suffix == ".npz":
-        with np.load(path) as data:
-            return data["frames"], data["boxes"].astype(np.float64)
-    import h5py
+    """Read ``frames`` and ``boxes`` from an .npz or .h5 file.
 
-    with h5py.File(path, "r") as f:
-        return f["frames"][:], f["boxes"][:].astype(np.float64)
+    Raises:
+        FormatError: the file is missing, not an .npz / HDF5 file, or has no ``frames`` / ``boxes`` arrays.
+    """
+    from davis_rig.errors import FormatError
+
+    if not path.is_file():
+        raise FormatError(f"{path}: no such frames file")
+    try:
+        if path.suffix == ".npz":
+            with np.load(path) as data:
+                return data["frames"], data["boxes"].astype(np.float64)
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            if not all(isinstance(f.get(key), h5py.Dataset) for key in ("frames", "boxes")):
+                raise KeyError("frames, boxes")
+            return f["frames"][:], f["boxes"][:].astype(np.float64)
+    except (OSError, ValueError, KeyError) as exc:
+        raise FormatError(f"{path}: not a frames file (.npz or .h5 with `frames` and `boxes` arrays; {exc})") from exc
 
 
 def to_detector_image(frame: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    from davis_rig.cli._attack_commands import PART_CHOICES
     from davis_rig.cli._common import (add_detector, add_threads, new_parser, non_negative_int, positive_float,
                                        positive_int, probability, run_main)
 
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
                         "examples:\n  python tools/probe_texture_sensitivity.py --clips 2 --steps 200 --threads 2\n")
     add_detector(parser, help="RVT checkpoint (default: the bundled detector)")
     parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
-    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"],
+    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
                         help="painted body parts (default torso arms legs; 'all' = whole body)")
     parser.add_argument("--clips", type=positive_int, default=2, help="validation clips probed one by one (default 2)")
     parser.add_argument("--steps", type=non_negative_int, default=200, help="Adam steps per clip (default 200)")

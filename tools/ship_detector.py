@@ -25,7 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from davis_rig.cli._common import add_out, add_threshold, new_parser, run_main
+from davis_rig.cli._common import add_out, add_threshold, new_parser, removing_new_empty_dirs, run_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: The bundled detector folder inside the package (written only with --install).
@@ -130,42 +130,43 @@ def _ship(args: argparse.Namespace) -> int:
     from davis_rig.training.evaluate import SplitScoreConfig, evaluate_split, format_scores
 
     config = SplitScoreConfig(seqasr_thresholds=tuple(args.threshold))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
-    try:
-        weights = staging / "rvt_default.safetensors"
-        shutil.copyfile(args.run_dir / "export" / "model_fp16.safetensors", weights)
-        model = load_detector(weights)
-        export_step_onnx(model, staging / "rvt_default.onnx")
-        result = evaluate_split(args.data_dir, weights, config=config)
-        result["weights"] = weights.name
-        (staging / "test_scores.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
-        print(format_scores(result))
+    with removing_new_empty_dirs(out):  # a failure leaves no folder it made (the staging folder is removed)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+        try:
+            weights = staging / "rvt_default.safetensors"
+            shutil.copyfile(args.run_dir / "export" / "model_fp16.safetensors", weights)
+            model = load_detector(weights)
+            export_step_onnx(model, staging / "rvt_default.onnx")
+            result = evaluate_split(args.data_dir, weights, config=config)
+            result["weights"] = weights.name
+            (staging / "test_scores.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+            print(format_scores(result))
 
-        checkpoint = torch.load(args.run_dir / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)
-        dataset_card = json.loads((args.data_dir / "dataset_card.json").read_text(encoding="utf-8"))
-        test_metrics = {}
-        for group, scores in result["groups"].items():
-            row = {"AP": scores["AP"], "AP50": scores["AP_50"], "labels": scores["num_labels"]}
-            for t in config.seqasr_thresholds:
-                row[f"SeqASR@{t:g} %"] = round(100 * scores["seqasr"][t]["seq_asr"], 1)
-            test_metrics[f"test {group}"] = row
-        write_model_card(
-            staging / "MODEL_CARD.md",
-            model_name=f"{args.name}, {metadata_config(weights).name} trained on synthetic events",
-            model_config=metadata_config(weights).to_dict(), train_config=checkpoint["train_config"],
-            dataset_card=dataset_card, validation=checkpoint["best"] if checkpoint["best"].get("AP") is not None
-            else None, test_metrics=test_metrics, compute=_compute(args.run_dir, checkpoint),
-            files={weights.name: "fp16 weights + RVTConfig metadata (safetensors; the attack's default)",
-                   "rvt_default.onnx": "one recurrent step, fp32 ONNX from the fp16 weights (davis-eval's default)",
-                   "test_scores.json": "davis-eval-dataset on the held-out test split (full record)"},
-            commands=_commands(args.run_dir, args.data_dir, checkpoint["train_config"], out.resolve()))
-        sizes = {p.name: p.stat().st_size for p in sorted(staging.iterdir())}
-        out.mkdir(exist_ok=True)
-        for name in sizes:
-            (staging / name).replace(out / name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+            checkpoint = torch.load(args.run_dir / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)
+            dataset_card = json.loads((args.data_dir / "dataset_card.json").read_text(encoding="utf-8"))
+            test_metrics = {}
+            for group, scores in result["groups"].items():
+                row = {"AP": scores["AP"], "AP50": scores["AP_50"], "labels": scores["num_labels"]}
+                for t in config.seqasr_thresholds:
+                    row[f"SeqASR@{t:g} %"] = round(100 * scores["seqasr"][t]["seq_asr"], 1)
+                test_metrics[f"test {group}"] = row
+            write_model_card(
+                staging / "MODEL_CARD.md",
+                model_name=f"{args.name}, {metadata_config(weights).name} trained on synthetic events",
+                model_config=metadata_config(weights).to_dict(), train_config=checkpoint["train_config"],
+                dataset_card=dataset_card, validation=checkpoint["best"] if checkpoint["best"].get("AP") is not None
+                else None, test_metrics=test_metrics, compute=_compute(args.run_dir, checkpoint),
+                files={weights.name: "fp16 weights + RVTConfig metadata (safetensors; the attack's default)",
+                       "rvt_default.onnx": "one recurrent step, fp32 ONNX from the fp16 weights (davis-eval's default)",
+                       "test_scores.json": "davis-eval-dataset on the held-out test split (full record)"},
+                commands=_commands(args.run_dir, args.data_dir, checkpoint["train_config"], out.resolve()))
+            sizes = {p.name: p.stat().st_size for p in sorted(staging.iterdir())}
+            out.mkdir(exist_ok=True)
+            for name in sizes:
+                (staging / name).replace(out / name)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
     print(json.dumps({"out": str(out), "bytes": sizes, "total_mb": round(sum(sizes.values()) / 2**20, 2)}))
     return 0
 

@@ -21,8 +21,9 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import (add_detector, add_out, add_quiet, add_threads, new_parser, positive_float,
-                                       positive_int, probability, run_main)
+    from davis_rig.cli._attack_commands import PART_CHOICES, camera_scale
+    from davis_rig.cli._common import (add_detector, add_out, add_quiet, add_threads, new_parser, non_negative_float,
+                                       positive_float, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/victim_controls.py --name bundled --out out/controls_bundled "
@@ -31,10 +32,13 @@ def main(argv: list[str] | None = None) -> int:
     add_out(parser, metavar="DIR", required=True, help="output folder")
     parser.add_argument("--name", required=True, help="the victim's name (file stem and title)")
     parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
-    parser.add_argument("--parts", nargs="+", default=["torso", "arms", "legs"], help="painted parts")
-    parser.add_argument("--scales", nargs="+", default=["large", "middle", "small"], help="camera scales")
+    parser.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
+                        help="painted parts: torso, arms, legs, head, hands, feet, or all (default torso arms legs)")
+    parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"],
+                        metavar="SCALE",
+                        help="camera scales: large, middle, small or a person height in px")
     parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=4, help="headings per shape (default 4)")
-    parser.add_argument("--phases", type=float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
+    parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0, 0.5], help="walk phases (s)")
     parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
                         help="threshold of the bound (default 0.25; the fingerprint scores the paper's four)")
     parser.add_argument("--scenes-per-scale", type=positive_int, default=4,
@@ -45,7 +49,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-bound", action="store_true", help="only the fingerprint")
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
-    return run_main(parser, argv, _run)
+
+    def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.skip_fingerprint and args.skip_bound:
+            parser.error("argument --skip-bound: not allowed with --skip-fingerprint (nothing would be measured)")
+
+    return run_main(parser, argv, _run, check=check)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -105,16 +105,17 @@ def _cells(text: str) -> int:
     return value
 
 
-def _device_name(text: str) -> str:
-    """``--device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is checked when the command runs)."""
+def device_name(text: str) -> str:
+    """``--device`` (``type=`` validator, also of tools/): ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is
+    checked when the command runs, by :func:`resolve_device`)."""
     kind, _, index = text.partition(":")
     if text == "auto" or (kind in ("cpu", "cuda") and (not index or (kind == "cuda" and index.isdigit()))):
         return text
     raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
 
 
-def _scale(text: str) -> str | float:
-    """``--scales``: a scale name or a person height in px (> 0)."""
+def camera_scale(text: str) -> str | float:
+    """``--scales`` (``type=`` validator, also of tools/): a scale name or a person height in px (> 0)."""
     if text in SCALE_NAMES:
         return text
     try:
@@ -144,7 +145,7 @@ def _common_run_args(parser: argparse.ArgumentParser) -> None:
     """--detector, --device, --threads, --quiet (hidden --no-progress) and the motion sources."""
     add_detector(parser, metavar="CKPT", help="RVT checkpoint (.ckpt/.pt/.safetensors, official RVT included); "
                                               "default: the bundled detector")
-    parser.add_argument("--device", type=_device_name, default="auto",
+    parser.add_argument("--device", type=device_name, default="auto",
                         help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
     add_threads(parser, help="CPU threads of torch (default: torch's)")
     add_quiet(parser, help="no progress output on stderr")
@@ -245,7 +246,7 @@ def _scene_args(p: argparse.ArgumentParser) -> None:
     add_threshold(p, aliases=("--thresholds",),
                   help="confidence threshold (default: 0.001, 0.01, 0.1, 0.25 for Table 1 and named textures, "
                        "0.25 for Table 2)")
-    p.add_argument("--scales", type=_scale, nargs="+", default=list(SCALE_NAMES), metavar="SCALE",
+    p.add_argument("--scales", type=camera_scale, nargs="+", default=list(SCALE_NAMES), metavar="SCALE",
                    help="camera scales: large, middle, small or a person height in px (default: all three names)")
     p.add_argument("--headings", type=int, choices=[1, 2, 4], default=4,
                    help="person headings per shape: 1, 2 or 4 (default 4)")
@@ -357,7 +358,7 @@ def _check_evaluate(parser: argparse.ArgumentParser, args) -> None:
         parser.error("argument --texture: give at least one --texture NAME=PATH (or --table 1 / 2)")
 
 
-def _device(name: str):
+def resolve_device(name: str):
     """The torch device of ``--device``; a device that is not there is a usage error naming the option."""
     import torch
 
@@ -443,7 +444,7 @@ def optimize_command(args) -> int:
     _set_threads(args)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = _attack_config(args, args.cells, parts)
-    device = _init_distributed(_device(args.device))
+    device = _init_distributed(resolve_device(args.device))
     detector = load_attack_detector(args.detector, device=device)
     motions = _motions(args, "train")
     try:
@@ -503,7 +504,7 @@ def evaluate_command(args) -> int:
         grids = {int(k): load_texture_grid(p, args.cells) for k, p in textures.items()}
     else:
         grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
-    device = _device(args.device)
+    device = resolve_device(args.device)
     detector = load_attack_detector(args.detector, device=device)
     command = _command_line()
     model = BodyModel()
@@ -546,7 +547,7 @@ def reproduce_command(args) -> int:
     _set_threads(args)
     default_thr = (ev.TABLE2_THRESHOLD,) if args.table == 2 else ev.PAPER_THRESHOLDS
     attack, eval_config = _attack_config(args, 10, None), _eval_config(args, default_thr)
-    device = _device(args.device)
+    device = resolve_device(args.device)
     detector = load_attack_detector(args.detector, device=device)
     try:
         with removing_new_empty_dirs(args.out):

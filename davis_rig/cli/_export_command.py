@@ -44,9 +44,14 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
 
 def export_command(args) -> int:
     """Run ``davis-attack export``; prints the written files."""
+    from pathlib import Path
+
     from davis_rig.attack.export import export_texture, load_texture_grid
     from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.errors import FormatError
 
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise FormatError(f"{args.out}: --out is a file; the pattern pieces need an output folder")
     grid = load_texture_grid(args.texture, args.cells)
     with removing_new_empty_dirs(args.out):
         written = export_texture(grid, args.out, parts=args.parts, paper=args.paper, texture_mm=args.size_mm,

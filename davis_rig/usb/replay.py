@@ -207,8 +207,15 @@ class ReplayReader:
         self._data_offset = 0
 
     def open(self) -> "ReplayReader":
-        """Open the file and parse the header."""
-        f = open(self.path, "rb")
+        """Open the file and parse the header.
+
+        Raises:
+            FormatError: no such file, or not a replay (the message names the file).
+        """
+        try:
+            f = open(self.path, "rb")
+        except FileNotFoundError:
+            raise FormatError(f"{self.path}: no such replay file") from None
         try:
             pre = f.read(_PREAMBLE.size)
             if len(pre) < _PREAMBLE.size:
