@@ -175,7 +175,7 @@ def test_the_package_docstring_lists_the_layers_in_order():
 
 
 @pytest.mark.parametrize(("source", "named"), [
-    ("from davis_rig.cli._common import run_main\n", "imports davis_rig.cli._common"),
+    ("from davis_rig.cli.common import run_main\n", "imports davis_rig.cli.common"),
     ("def later():\n    from davis_rig.attack import optimize\n", "imports davis_rig.attack.optimize"),
     ("import davis_rig.device.camera\n", None),  # device is below scene: allowed
     ("from ..training import synthetic\n", "imports davis_rig.training.synthetic"),

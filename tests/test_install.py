@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 import davis_rig
-from davis_rig.cli._common import EXIT_CODES_TEXT
+from davis_rig.cli.common import EXIT_CODES_TEXT
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def _env() -> dict[str, str]:
 
 
 def test_the_package_has_modules_and_commands():
-    assert len(MODULES) > 50 and "davis_rig.cli._common" in MODULES
+    assert len(MODULES) > 50 and "davis_rig.cli.common" in MODULES
     assert {"davis-record", "davis-label", "davis-eval", "davis-eval-dataset", "davis-train", "davis-make-dataset",
             "davis-attack"} <= set(SCRIPTS), "davis_rig is not installed (pip install -e .), or a script is missing"
 

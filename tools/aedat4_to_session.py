@@ -14,7 +14,7 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run :func:`davis_rig.session.aedat4.import_aedat4`, print a summary; returns the exit code."""
-    from davis_rig.cli._common import new_parser, run_main
+    from davis_rig.cli.common import new_parser, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/aedat4_to_session.py in.aedat4 out.h5   # needs davis_rig[aedat4]\n")

@@ -125,7 +125,7 @@ def _count_until(cam: Davis346, deadline: float, clock: Callable[[], float],
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit code."""
-    from davis_rig.cli._common import new_parser, non_negative_int, positive_float, run_main
+    from davis_rig.cli.common import new_parser, non_negative_int, positive_float, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
                         "examples:\n  python tools/capture_replay.py recordings/scene.davisreplay --duration-s 10\n\n"

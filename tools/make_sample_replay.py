@@ -53,7 +53,7 @@ def make_sample_replay(session_path: Path, out_path: Path) -> dict[str, int]:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit code."""
-    from davis_rig.cli._common import new_parser, run_main
+    from davis_rig.cli.common import new_parser, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.split("\n\n")[0],
                         "examples:\n  python tools/make_sample_replay.py --session recordings/sample.h5 "

@@ -21,7 +21,7 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import float_in, new_parser, non_negative_int, positive_float, positive_int, run_main
+    from davis_rig.cli.common import float_in, new_parser, non_negative_int, positive_float, positive_int, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.split("\n")[0],
                         "examples:\n  python tools/make_sample_session.py --out recordings/sample.h5 --overwrite\n")

@@ -90,8 +90,8 @@ def _loss(model, anchors, hists, labels):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._attack_commands import PART_CHOICES, camera_scale, device_name
-    from davis_rig.cli._common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
+    from davis_rig.cli.common import PART_CHOICES, camera_scale, device_name
+    from davis_rig.cli.common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
                                        non_negative_int, positive_float, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
@@ -195,7 +195,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
 
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.refine import visible_cells
-    from davis_rig.cli._attack_commands import resolve_device
+    from davis_rig.cli.common import resolve_device
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
     from davis_rig.training.losses import AnchorGrid

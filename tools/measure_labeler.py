@@ -156,7 +156,7 @@ def _nan_to_none(obj):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._common import (add_hidden_alias, add_out, add_threads, new_parser,
+    from davis_rig.cli.common import (add_hidden_alias, add_out, add_threads, new_parser,
                                        non_negative_int, positive_int, probability, run_main)
     from davis_rig.labelers.yolo import YOLO_NMS_IOU
 

@@ -29,8 +29,8 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._attack_commands import PART_CHOICES
-    from davis_rig.cli._common import (add_detector, add_threads, new_parser, non_negative_int, positive_float,
+    from davis_rig.cli.common import PART_CHOICES
+    from davis_rig.cli.common import (add_detector, add_threads, new_parser, non_negative_int, positive_float,
                                        positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],

@@ -25,7 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from davis_rig.cli._common import add_out, add_threshold, new_parser, removing_new_empty_dirs, run_main
+from davis_rig.cli.common import add_out, add_threshold, new_parser, removing_new_empty_dirs, run_main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: The bundled detector folder inside the package (written only with --install).

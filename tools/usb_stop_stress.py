@@ -48,7 +48,7 @@ def fault_sets(emu_module) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from davis_rig.cli._common import new_parser, non_negative_float, positive_int, run_main
+    from davis_rig.cli.common import new_parser, non_negative_float, positive_int, run_main
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/usb_stop_stress.py --cycles 500\n"

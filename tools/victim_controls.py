@@ -21,8 +21,8 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli._attack_commands import PART_CHOICES, camera_scale
-    from davis_rig.cli._common import (add_detector, add_out, add_quiet, add_threads, new_parser, non_negative_float,
+    from davis_rig.cli.common import PART_CHOICES, camera_scale
+    from davis_rig.cli.common import (add_detector, add_out, add_quiet, add_threads, new_parser, non_negative_float,
                                        positive_float, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],

@@ -1,9 +1,10 @@
-"""cli: thin command-line front ends, one API call per command; nothing imports this package.
+"""cli: thin command-line front ends, one API call per command; no library module imports this package.
 
 Commands: ``davis-record``, ``davis-label``, ``davis-eval``, ``davis-eval-dataset``, ``davis-train``,
-``davis-make-dataset``, ``davis-attack`` (one module each). The option vocabulary they share (``--quiet``,
-``--threads``, ``--detector``, ``--threshold``, ``--out``, ``--version``), the argument validators, the exit codes
-and the error -> message handling live in :mod:`davis_rig.cli._common`.
+``davis-make-dataset``, ``davis-attack``, ``davis-info``, ``davis-export``, ``davis-view`` (one module each). The
+option vocabulary they share (``--quiet``, ``--threads``, ``--detector``, ``--threshold``, ``--out``, ``--version``,
+and the attack's ``--parts``, ``--scales``, ``--device``), the argument validators, the exit codes and the
+error -> message handling live in :mod:`davis_rig.cli.common`, which the scripts in ``tools/`` use too.
 
 Every command runs with OpenMP's passive wait policy unless the user set ``OMP_WAIT_POLICY``: with the default
 spin-waiting, eager torch on a loaded 2-core machine stalled for seconds per RVT step (2.2-2.5 s median against

@@ -14,18 +14,23 @@ import os
 import shlex
 import sys
 
-from davis_rig.cli._common import (
+from davis_rig.cli.common import (
+    PART_CHOICES,
+    SCALE_NAMES,
     add_detector,
     add_out,
     add_quiet,
     add_threads,
     add_threshold,
+    camera_scale,
+    device_name,
     epilog,
     non_negative_float,
     non_negative_int,
     positive_float,
     positive_int,
     probability,
+    resolve_device,
 )
 
 OPTIMIZE_EPILOG = """\
@@ -72,14 +77,10 @@ counts instead, to compare with the paper's numbers).
 """
 
 
-#: Body parts of ``--parts`` (:data:`davis_rig.scene.body.PART_NAMES`) and ``all`` (the whole body, no mask).
-PART_CHOICES = ("torso", "arms", "legs", "head", "hands", "feet", "all")
 #: Binarization schedules of ``--alpha-schedule`` (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
 ALPHA_SCHEDULE_CHOICES = ("linear", "cosine", "step", "hard", "soft")
 #: Learning-rate schedules of ``--lr-schedule`` (:data:`davis_rig.attack.lr_schedule.LR_SCHEDULES`).
 LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
-#: Named camera scales of ``--scales`` (:data:`davis_rig.scene.camera.TEST_SCALES_PX`).
-SCALE_NAMES = ("large", "middle", "small")
 #: Library field -> the option that sets it: a :class:`~davis_rig.errors.ConfigError` names the option.
 CONFIG_OPTIONS = {
     "grid_n": "--cells", "iterations": "--iterations", "clips_per_step": "--clips-per-step",
@@ -103,26 +104,6 @@ def _cells(text: str) -> int:
     if value > MAX_CELLS:
         raise argparse.ArgumentTypeError(f"expected an integer in [1, {MAX_CELLS}], got {text!r}")
     return value
-
-
-def device_name(text: str) -> str:
-    """``--device`` (``type=`` validator, also of tools/): ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is
-    checked when the command runs, by :func:`resolve_device`)."""
-    kind, _, index = text.partition(":")
-    if text == "auto" or (kind in ("cpu", "cuda") and (not index or (kind == "cuda" and index.isdigit()))):
-        return text
-    raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
-
-
-def camera_scale(text: str) -> str | float:
-    """``--scales`` (``type=`` validator, also of tools/): a scale name or a person height in px (> 0)."""
-    if text in SCALE_NAMES:
-        return text
-    try:
-        return positive_float(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"expected {', '.join(SCALE_NAMES)} or a height in px > 0, "
-                                         f"got {text!r}") from None
 
 
 def _texture_item(text: str) -> tuple[str, str]:
@@ -358,22 +339,6 @@ def _check_evaluate(parser: argparse.ArgumentParser, args) -> None:
         parser.error("argument --texture: give at least one --texture NAME=PATH (or --table 1 / 2)")
 
 
-def resolve_device(name: str):
-    """The torch device of ``--device``; a device that is not there is a usage error naming the option."""
-    import torch
-
-    from davis_rig.errors import ConfigError
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device", f"{name!r}: CUDA is not available on this machine")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise ConfigError("device", f"{name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
-    return device
-
-
 def _init_distributed(device):
     """Process group from torchrun's environment (WORLD_SIZE > 1); returns the rank's device."""
     import torch
@@ -486,7 +451,7 @@ def _command_line() -> str:
 
 def evaluate_command(args) -> int:
     """Action of ``davis-attack evaluate``: Table 1, Table 2 or named textures (one API call each)."""
-    from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.cli.common import removing_new_empty_dirs
 
     _starting("evaluate", args)
     from davis_rig.attack import evaluate as ev
@@ -537,7 +502,7 @@ def evaluate_command(args) -> int:
 
 def reproduce_command(args) -> int:
     """Action of ``davis-attack reproduce``: one :func:`davis_rig.attack.reproduce.reproduce_table` call."""
-    from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.cli.common import removing_new_empty_dirs
 
     _starting("reproduce", args)
     from davis_rig.attack import evaluate as ev

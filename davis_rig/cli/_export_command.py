@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from davis_rig.cli._common import add_out, epilog, non_negative_int, positive_float, positive_int
+from davis_rig.cli.common import add_out, epilog, non_negative_int, positive_float, positive_int
 
 EXAMPLES = """\
 examples:
@@ -47,7 +47,7 @@ def export_command(args) -> int:
     from pathlib import Path
 
     from davis_rig.attack.export import export_texture, load_texture_grid
-    from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.cli.common import removing_new_empty_dirs
     from davis_rig.errors import FormatError
 
     if Path(args.out).exists() and not Path(args.out).is_dir():

@@ -2,7 +2,7 @@
 
 Each subcommand maps its arguments onto one API call (:mod:`davis_rig.cli._attack_commands` for ``optimize``,
 ``evaluate`` and ``reproduce``; :mod:`davis_rig.cli._export_command` for ``export``); bad values exit 2 naming the
-option, errors become one message and an exit code in :mod:`davis_rig.cli._common`. Heavy imports happen in the
+option, errors become one message and an exit code in :mod:`davis_rig.cli.common`. Heavy imports happen in the
 actions, so ``--help`` is fast. Under torchrun:
 ``torchrun --nproc_per_node N -m davis_rig.cli.attack optimize ...``.
 """
@@ -18,7 +18,7 @@ from davis_rig.cli._attack_commands import (
     add_optimize_parser,
     add_reproduce_parser,
 )
-from davis_rig.cli._common import EXIT_USAGE, new_parser, run_command
+from davis_rig.cli.common import EXIT_USAGE, new_parser, run_command
 from davis_rig.cli._export_command import add_export_parser
 
 NAME = "davis-attack"

@@ -3,7 +3,7 @@
 Thin front end over :func:`davis_rig.evaluation.physical.evaluate_sessions` and
 :func:`davis_rig.evaluation.report.write_report`; with ``--yolo`` an unlabelled session is first labelled by
 :func:`davis_rig.labelers.session_labels.label_session` (exactly what ``davis-label`` stores). Errors become one
-message and an exit code in :mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so
+message and an exit code in :mod:`davis_rig.cli.common`. Heavy imports happen after argument parsing so
 ``--help`` is fast.
 """
 
@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from davis_rig.cli._common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold,
+from davis_rig.cli.common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold,
                                    new_parser, non_negative_float, non_negative_int, positive_int,
                                    probability, run_main)
 
@@ -145,7 +145,7 @@ def _label_unlabelled(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from davis_rig.cli._common import removing_new_empty_dirs
+    from davis_rig.cli.common import removing_new_empty_dirs
     from davis_rig.errors import FormatError
     from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
     from davis_rig.evaluation.report import check_report_dependencies, markdown_table, write_report

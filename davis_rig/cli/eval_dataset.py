@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from davis_rig.cli._common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold, new_parser,
+from davis_rig.cli.common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold, new_parser,
                                    non_negative_float, positive_int, run_main)
 from davis_rig.metrics.ap import SKIP_FIRST_US
 

@@ -1,7 +1,7 @@
 """``davis-export``: a session.h5 as AEDAT4, Prophesee .dat + _bbox.npy, RVT's preprocessed layout, or tonic .npz.
 
 Thin front end over :func:`davis_rig.interop.export_session`; errors become one message and an exit code in
-:mod:`davis_rig.cli._common`.
+:mod:`davis_rig.cli.common`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import contextlib
 import json
 import sys
 
-from davis_rig.cli._common import (EXIT_OK, add_out, add_quiet, new_parser, non_negative_int, removing_new_empty_dirs,
+from davis_rig.cli.common import (EXIT_OK, add_out, add_quiet, new_parser, non_negative_int, removing_new_empty_dirs,
                                    run_main)
 from davis_rig.interop.formats import ExportFormat
 

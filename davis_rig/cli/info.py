@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from davis_rig.cli._common import EXIT_OK, error_message, exit_code_for, new_parser, run_main
+from davis_rig.cli.common import EXIT_OK, error_message, exit_code_for, new_parser, run_main
 from davis_rig.errors import DavisRigError
 
 NAME = "davis-info"

@@ -1,7 +1,7 @@
 """``davis-label``: label a session's APS frames with a YOLO ONNX model and store the boxes in the session.
 
 Thin front end over :func:`davis_rig.labelers.session_labels.label_session`; errors become one message and an
-exit code in :mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so ``--help`` is fast.
+exit code in :mod:`davis_rig.cli.common`. Heavy imports happen after argument parsing so ``--help`` is fast.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_quiet, add_threads,
+from davis_rig.cli.common import (EXIT_OK, add_hidden_alias, add_quiet, add_threads,
                                    new_parser, non_negative_int, probability, run_main)
 
 NAME = "davis-label"

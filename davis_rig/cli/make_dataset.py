@@ -1,7 +1,7 @@
 """``davis-make-dataset``: generate a synthetic pedestrian event dataset in RVT's layout (resumable).
 
 Thin front end over :func:`davis_rig.training.synthetic.generate_dataset`; errors become one message and an exit
-code in :mod:`davis_rig.cli._common`. torch is imported after argument parsing so ``--help`` is fast.
+code in :mod:`davis_rig.cli.common`. torch is imported after argument parsing so ``--help`` is fast.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from davis_rig.cli._common import (EXIT_OK, add_out, add_quiet, add_threads, float_in, new_parser,
+from davis_rig.cli.common import (EXIT_OK, add_out, add_quiet, add_threads, float_in, new_parser,
                                    non_negative_int, positive_float, positive_int, probability,
                                    removing_new_empty_dirs, run_main)
 

@@ -2,7 +2,7 @@
 
 Thin front end: the arguments map onto :func:`davis_rig.session.record.record_session` (or
 :func:`davis_rig.session.recovery.recover_session`); errors become one message and an exit code in
-:mod:`davis_rig.cli._common`. Heavy imports (h5py, pyusb) happen after argument parsing so ``--help`` is fast.
+:mod:`davis_rig.cli.common`. Heavy imports (h5py, pyusb) happen after argument parsing so ``--help`` is fast.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 
-from davis_rig.cli._common import (EXIT_DATA, EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
+from davis_rig.cli.common import (EXIT_DATA, EXIT_OK, add_quiet, int_in, new_parser, non_negative_float, non_negative_int,
                                    run_main)
 from davis_rig.cli.view import add_live_view_arguments, check_live_view_arguments, live_view
 from davis_rig.usb.async_bulk import DEFAULT_TRANSFERS

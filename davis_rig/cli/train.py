@@ -1,7 +1,7 @@
 """``davis-train``: train an RVT detector on a dataset in RVT's preprocessed layout (resumable).
 
 Thin front end over :func:`davis_rig.training.trainer.train`; errors become one message and an exit code in
-:mod:`davis_rig.cli._common`. torch is imported after argument parsing so ``--help`` is fast.
+:mod:`davis_rig.cli.common`. torch is imported after argument parsing so ``--help`` is fast.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from davis_rig.cli._common import (EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
+from davis_rig.cli.common import (EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
                                    non_negative_float, non_negative_int, positive_float, positive_int,
                                    removing_new_empty_dirs, run_main)
 from davis_rig.metrics.ap import SKIP_FIRST_US

@@ -3,7 +3,7 @@ export the view as MP4/GIF; also the live view of ``davis-record --view`` (:func
 :func:`live_view`).
 
 Thin front end over :mod:`davis_rig.viewer`; errors become one message and an exit code in
-:mod:`davis_rig.cli._common`. Heavy imports happen after argument parsing so ``--help`` is fast.
+:mod:`davis_rig.cli.common`. Heavy imports happen after argument parsing so ``--help`` is fast.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-from davis_rig.cli._common import (EXIT_OK, add_detector, add_quiet, add_threads, add_threshold,
+from davis_rig.cli.common import (EXIT_OK, add_detector, add_quiet, add_threads, add_threshold,
                                    int_in, new_parser, non_negative_float, non_negative_int, positive_float,
                                    positive_int, probability, run_main)
 

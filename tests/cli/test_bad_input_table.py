@@ -412,7 +412,7 @@ def test_every_console_command_and_tool_has_rows():
 
 @pytest.mark.parametrize("subcommand", ["optimize", "evaluate", "reproduce", "export"])
 def test_every_attack_subcommand_help_lists_the_exit_codes(subcommand, capsys):
-    from davis_rig.cli._common import EXIT_CODES_TEXT
+    from davis_rig.cli.common import EXIT_CODES_TEXT
 
     assert attack.main([subcommand, "--help"]) == 0
     assert EXIT_CODES_TEXT in capsys.readouterr().out

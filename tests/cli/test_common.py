@@ -8,7 +8,7 @@ import pickle
 import pytest
 
 from davis_rig import __version__
-from davis_rig.cli import _common as common
+from davis_rig.cli import common
 from davis_rig.errors import (CheckpointError, ConfigError, DeviceNotFoundError, FormatError,
                               MissingDependencyError)
 

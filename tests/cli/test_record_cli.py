@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from davis_rig.cli import record as cli
-from davis_rig.cli._common import EXIT_DATA, EXIT_DEVICE, EXIT_USAGE
+from davis_rig.cli.common import EXIT_DATA, EXIT_DEVICE, EXIT_USAGE
 from davis_rig.errors import DeviceNotFoundError, SessionError
 from davis_rig.session.record import RecordingSummary
 
@@ -154,7 +154,7 @@ def test_bad_number_is_a_usage_error(capsys):
 def test_help_names_only_files_that_exist_and_the_exit_codes(capsys):
     import re
 
-    from davis_rig.cli._common import EXIT_CODES_TEXT
+    from davis_rig.cli.common import EXIT_CODES_TEXT
 
     assert cli.main(["--help"]) == 0
     text = capsys.readouterr().out

@@ -219,6 +219,49 @@ non_negative_float = float_in(0.0)
 positive_float = float_in(0.0, low_open=True)
 
 
+# --- the attack's vocabulary, shared by davis-attack and the tools that render or train on the attack's scenes
+#: Body parts of ``--parts`` (:data:`davis_rig.scene.body.PART_NAMES`) and ``all`` (the whole body, no mask).
+PART_CHOICES = ("torso", "arms", "legs", "head", "hands", "feet", "all")
+#: Named camera scales of ``--scales`` (:data:`davis_rig.scene.camera.TEST_SCALES_PX`).
+SCALE_NAMES = ("large", "middle", "small")
+
+
+def device_name(text: str) -> str:
+    """``--device`` (``type=`` validator, also of tools/): ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is
+    checked when the command runs, by :func:`resolve_device`)."""
+    kind, _, index = text.partition(":")
+    if text == "auto" or (kind in ("cpu", "cuda") and (not index or (kind == "cuda" and index.isdigit()))):
+        return text
+    raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda or cuda:N, got {text!r}")
+
+
+def camera_scale(text: str) -> str | float:
+    """``--scales`` (``type=`` validator, also of tools/): a scale name or a person height in px (> 0)."""
+    if text in SCALE_NAMES:
+        return text
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected {', '.join(SCALE_NAMES)} or a height in px > 0, "
+                                         f"got {text!r}") from None
+
+
+def resolve_device(name: str):
+    """The torch device of ``--device``; a device that is not there is a usage error naming the option."""
+    import torch
+
+    from davis_rig.errors import ConfigError
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device", f"{name!r}: CUDA is not available on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ConfigError("device", f"{name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
 def threshold_list(text: str) -> list[float]:
     """A comma-separated list of confidences in [0, 1] (``type=`` validator of ``--threshold``)."""
     items = [item.strip() for item in text.split(",")]
