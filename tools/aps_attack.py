@@ -26,6 +26,7 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    from davis_rig.attack.texture import ALPHA_SCHEDULES
     from davis_rig.cli._common import (add_out, add_quiet, add_threads, new_parser, non_negative_int,
                                        positive_float, positive_int, probability, run_main)
 
@@ -39,6 +40,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iterations", type=positive_int, default=200, help="Adam steps (default 200)")
     parser.add_argument("--lr", type=positive_float, default=1e-2, help="Adam learning rate (default 1e-2)")
     parser.add_argument("--frames-per-step", type=positive_int, default=2, help="EoT frames per step (default 2)")
+    parser.add_argument("--loss", choices=["sum", "top", "lse"], default="sum",
+                        help="sum: every anchor above threshold/2 (default); top: each frame's best anchor; "
+                             "lse: its soft maximum (--temperature)")
+    parser.add_argument("--temperature", type=positive_float, default=0.02,
+                        help="temperature of --loss lse, score units (default 0.02)")
+    parser.add_argument("--alpha-schedule", choices=sorted(ALPHA_SCHEDULES), default="linear",
+                        help="soft-to-hard binarization schedule (default linear; hard: binary from the start)")
+    parser.add_argument("--scale-draw", choices=["random", "cycle"], default="random",
+                        help="scale of each EoT frame: random (default) or cycle (balanced across scales)")
+    parser.add_argument("--probe-every", type=non_negative_int, default=10,
+                        help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
     parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
                         help="the labeler's confidence threshold (default 0.25, davis-label's)")
@@ -73,7 +85,8 @@ def _run(args: argparse.Namespace) -> int:
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = ApsAttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, lr=args.lr,
                              frames_per_step=args.frames_per_step, pool_size=args.pool_size, conf=args.threshold,
-                             seed=args.seed)
+                             alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
+                             scale_draw=args.scale_draw, probe_every=args.probe_every, seed=args.seed)
     camera = PinholeCamera.davis346()
     t0 = time.perf_counter()
     if args.evaluate_only:
@@ -94,6 +107,8 @@ def _run(args: argparse.Namespace) -> int:
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
+                         "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
+                         "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
