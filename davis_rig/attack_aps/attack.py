@@ -41,8 +41,8 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without torch
     raise MissingDependencyError("the APS attack needs torch: pip install 'davis_rig[torch]'") from exc
 
-__all__ = ["APS_LOSSES", "ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "frame_loss",
-           "optimize_aps_texture", "pool_order"]
+__all__ = ["APS_LOSSES", "ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "aps_pools",
+           "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order"]
 
 PAD_GREY = 114.0 / 255.0
 #: The losses of :func:`frame_loss`.
@@ -206,7 +206,7 @@ class ApsAttackConfig:
                              f"{self.loss!r}, {self.scale_draw!r}")
 
 
-def _pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: bool = False):
+def aps_pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: bool = False):
     """One EoT clip pool per scale (full DAVIS346 camera); ``generations``: per pool, a checkpoint's slot
     generations (``None``: a new run). ``probe``: the probe's pools instead (``probe_clips`` slots, seeds apart)."""
     from davis_rig.attack.eot import ClipPool, EoTConfig
@@ -226,7 +226,7 @@ class _Probe:
     def __init__(self, config: ApsAttackConfig, body, mask, aps):
         self.aps = aps
         self.seed = config.seed
-        self.clips = [(str(pool.config.scale), clip) for pool in _pools(config, body, mask, probe=True)
+        self.clips = [(str(pool.config.scale), clip) for pool in aps_pools(config, body, mask, probe=True)
                       for clip in pool.clips.values()]
 
     @torch.no_grad()
@@ -282,7 +282,7 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     ckpt = out / "checkpoint.pt"
     start, generations = (_load_checkpoint(ckpt, config, generator, optimizer, rng) if resume and ckpt.is_file()
                           else (0, None))
-    pools = _pools(config, body, mask, generations)
+    pools = aps_pools(config, body, mask, generations)
     aps = ApsConfig()
     probe = _Probe(config, body, mask, aps) if config.probe_every else None
     generator.train()
@@ -330,6 +330,24 @@ def _probed(probe: _Probe, yolo: TorchYolo, generator) -> dict:
         grid = torch.from_numpy(hard_binarize(generator()))
     generator.train()
     return probe.scores(yolo, grid)
+
+
+def cell_footprint(clip, frame: int) -> torch.Tensor:
+    """The APS area of every texture cell in one frame of an EoT clip: float [n * n], pixels² (0: not visible).
+
+    A painted covered sample counts ``1 / supersample²`` of its pixel for the cell its (nearest) texel lies in;
+    samples outside the part mask count for no cell.
+
+    Args:
+        clip: :class:`~davis_rig.attack.eot.PoolClip` (its lookup indexes the n x n grid).
+        frame: frame index in ``[0, len(clip.t_us))``.
+    """
+    y0, y1, x0, x1 = clip.active_box
+    here = (clip.active_pixel // ((y1 - y0) * (x1 - x0))) == int(frame)
+    painted = clip.lookup.painted[here, 0] > 0
+    cells = clip.lookup.index[here, 0][painted]
+    n_cells = clip.lookup.texture_hw[0] * clip.lookup.texture_hw[1]
+    return torch.bincount(cells, minlength=n_cells).float() / float(clip.raster.supersample**2)
 
 
 def _eot_frame(pool, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:

@@ -16,8 +16,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 from davis_rig.attack.evaluate import EvalConfig, TextureSpec
 from davis_rig.attack.texture import white_texture
-from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, frame_loss,
-                                         optimize_aps_texture, pool_order)
+from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, cell_footprint,
+                                         frame_loss, optimize_aps_texture, pool_order)
 from davis_rig.errors import CheckpointError
 from davis_rig.labelers.yolo import YoloOnnxDetector
 from davis_rig.scene.camera import PinholeCamera
@@ -132,3 +132,24 @@ def test_detection_rates_rows(tiny_yolo):
     rows = aps_detection_rates({"white": TextureSpec(white_texture(1))}, labeler, eval_config=config)
     assert len(rows) == 1 and rows[0]["texture"] == "white" and rows[0]["frames"] >= 1
     assert 0.0 <= rows[0]["rate"] <= 1.0 and set(rows[0]["by_scale"]) == {"small"}
+
+
+def test_cell_footprint_counts_each_cells_pixels():
+    from davis_rig.attack_aps.attack import aps_pools
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    config = ApsAttackConfig(grid_n=6, scales=("small",), pool_size=1)
+    clip = next(iter(aps_pools(config, BodyModel(), part_mask(config.parts))[0].clips.values()))
+    frame = len(clip.t_us) // 2
+    area = cell_footprint(clip, frame)
+    assert area.shape == (36,) and float(area.min()) >= 0.0 and int((area > 0).sum()) > 1
+    y0, y1, x0, x1 = clip.active_box
+    shade = clip.raster.shade
+    for cell in torch.nonzero(area > 0)[:3, 0].tolist() + [int(torch.argmin(area))]:
+        one_hot = torch.zeros(36)
+        one_hot[cell] = 1.0
+        # the renderer's own sum of this cell's samples, its shading divided out: the cell's area in pixels
+        values = clip.lookup.sample(one_hot.view(6, 6), fill=0.0) / torch.where(shade > 0, shade, 1.0)
+        rendered = clip.raster.person(values, pixels=clip.active_pixel, hw=(y1 - y0, x1 - x0))[frame].sum()
+        assert float(area[cell]) == pytest.approx(float(rendered), rel=1e-5, abs=1e-6)
