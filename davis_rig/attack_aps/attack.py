@@ -11,7 +11,8 @@ with the full DAVIS346 camera) against the YOLO the ``davis-label`` labeler runs
     grey = aps_grey(I) (+ read/shot noise, no gradient)   8-bit scale / 255, the ADC of davis_rig.scene.aps
     x    = letterbox(grey) -> [1, 3, 640, 640]            the labeler's pre-processing, bilinear
     p    = max over classes of YOLO(x)                    [8400] person scores
-    L    = sum relu(p - conf / 2)                         (davis_rig.controls.bounds.hinge_loss's rule)
+    L    = sum relu(p - conf / 2)                         (davis_rig.controls.bounds.hinge_loss's rule;
+                                                          :func:`frame_loss` has the top-anchor variants)
 
 The evaluation (:func:`aps_detection_rates`) does not use this path: it renders held-out scenes (test body shapes,
 the evaluation's headings and scales, grey background) into APS frames with :func:`~davis_rig.scene.aps.
@@ -26,23 +27,71 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from davis_rig.errors import CheckpointError, MissingDependencyError
+from davis_rig._lazy import optional_dependency
+from davis_rig.errors import CheckpointError
 
-try:
+with optional_dependency("the APS attack"):
     import torch
     import torch.nn.functional as F
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the APS attack needs torch: pip install 'davis_rig[torch]'") from exc
 
-__all__ = ["ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "optimize_aps_texture"]
+__all__ = ["APS_LOSSES", "ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "aps_pools",
+           "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order"]
 
 PAD_GREY = 114.0 / 255.0
+#: The losses of :func:`frame_loss`.
+APS_LOSSES = ("sum", "top", "lse")
+
+
+def frame_loss(scores: torch.Tensor, conf: float, kind: str = "sum", temperature: float = 0.02) -> torch.Tensor:
+    """The attack's loss of a batch of frames' person scores (a scalar, summed over the frames).
+
+    * ``"sum"``: ``sum relu(p - conf / 2)`` over every anchor of every frame (every box above half the threshold);
+    * ``"top"``: ``sum_frames relu(max_anchors p - conf / 2)``: only each frame's best anchor (the one the recall
+      counts);
+    * ``"lse"``: ``sum_frames relu(t * logsumexp(p / t) - conf / 2)``: a soft maximum of temperature ``t``, which
+      spreads the gradient over the anchors within about ``t`` of the best one (and bounds the max from above,
+      by at most ``t * ln N``).
+
+    Args:
+        scores: float tensor [B, N], person score of every anchor of B frames.
+        conf: the labeler's confidence threshold (the hinge aims below ``conf / 2``).
+        kind: one of :data:`APS_LOSSES`.
+        temperature: ``t`` of ``"lse"`` (score units).
+
+    Raises:
+        ValueError: unknown ``kind`` or ``temperature <= 0``.
+    """
+    if kind not in APS_LOSSES:
+        raise ValueError(f"unknown APS loss {kind!r}; expected one of {APS_LOSSES}")
+    if not temperature > 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    if kind == "sum":
+        return torch.relu(scores - conf / 2).sum()
+    top = scores.amax(dim=1) if kind == "top" else temperature * torch.logsumexp(scores / temperature, dim=1)
+    return torch.relu(top - conf / 2).sum()
+
+
+def pool_order(kind: str, step: int, frames_per_step: int, n_pools: int, rng: np.random.Generator) -> list[int]:
+    """The pools (scales) the EoT frames of a step come from.
+
+    ``"random"``: each frame from a pool drawn uniformly (``rng``); ``"cycle"``: frame ``k`` of step ``s`` from pool
+    ``(s * frames_per_step + k) % n_pools``, so that every scale gets the same share of frames (exactly, per step,
+    when ``frames_per_step`` is a multiple of ``n_pools``).
+
+    Raises:
+        ValueError: unknown ``kind``.
+    """
+    if kind == "random":
+        return [int(rng.integers(n_pools)) for _ in range(frames_per_step)]
+    if kind == "cycle":
+        return [(step * frames_per_step + k) % n_pools for k in range(frames_per_step)]
+    raise ValueError(f"unknown scale draw {kind!r}; expected 'random' or 'cycle'")
 
 
 def aps_grey(intensity: torch.Tensor, config=None) -> torch.Tensor:
@@ -117,6 +166,11 @@ class ApsAttackConfig:
         pool_size: clips per scale; refresh_every: a quarter of each pool is redrawn every N steps.
         conf: the labeler's confidence threshold (the hinge aims below half of it).
         alpha_schedule: soft-to-hard schedule (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+        loss: :func:`frame_loss`'s kind (:data:`APS_LOSSES`); temperature: its ``"lse"`` temperature.
+        scale_draw: :func:`pool_order`'s kind: ``"random"`` scale per frame, or ``"cycle"`` (balanced).
+        probe_every: steps between probes of the hard texture (0: none): the generator in ``eval()`` mode (no
+            dropout), hard-binarized, on a fixed probe of ``probe_clips`` clips per scale drawn apart from the
+            training pools (one frame each, fixed noise), its mean top score logged as ``probe_top_score``.
         checkpoint_every: steps between checkpoints; seed: seeds the generator, pool and draws.
     """
 
@@ -130,28 +184,60 @@ class ApsAttackConfig:
     refresh_every: int = 25
     conf: float = 0.25
     alpha_schedule: str = "linear"
+    loss: str = "sum"
+    temperature: float = 0.02
+    scale_draw: str = "random"
+    probe_every: int = 0
+    probe_clips: int = 2
     checkpoint_every: int = 10
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("grid_n", "iterations", "frames_per_step", "pool_size", "refresh_every", "checkpoint_every"):
+        for name in ("grid_n", "iterations", "frames_per_step", "pool_size", "refresh_every", "checkpoint_every",
+                     "probe_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not 0 < self.conf < 1 or not self.lr > 0:
-            raise ValueError(f"need 0 < conf < 1 and lr > 0, got {self.conf}, {self.lr}")
+        if not 0 < self.conf < 1 or not self.lr > 0 or not self.temperature > 0 or self.probe_every < 0:
+            raise ValueError(f"need 0 < conf < 1, lr > 0, temperature > 0 and probe_every >= 0, got {self.conf}, "
+                             f"{self.lr}, {self.temperature}, {self.probe_every}")
+        if self.loss not in APS_LOSSES or self.scale_draw not in ("random", "cycle"):
+            raise ValueError(f"loss must be one of {APS_LOSSES} and scale_draw 'random' or 'cycle', got "
+                             f"{self.loss!r}, {self.scale_draw!r}")
 
 
-def _pools(config: ApsAttackConfig, body, mask, generations=None):
+def aps_pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: bool = False):
     """One EoT clip pool per scale (full DAVIS346 camera); ``generations``: per pool, a checkpoint's slot
-    generations (``None``: a new run)."""
+    generations (``None``: a new run). ``probe``: the probe's pools instead (``probe_clips`` slots, seeds apart)."""
     from davis_rig.attack.eot import ClipPool, EoTConfig
     from davis_rig.scene.camera import PinholeCamera
 
     camera = PinholeCamera.davis346()
     generations = generations or [None] * len(config.scales)
-    return [ClipPool(EoTConfig(camera=camera, scale=s), body, config.grid_n, mask, size=config.pool_size,
-                     base_seed=config.seed + 31 * k, generations=gens)
+    size, offset = (config.probe_clips, 1_000_003) if probe else (config.pool_size, 0)
+    return [ClipPool(EoTConfig(camera=camera, scale=s), body, config.grid_n, mask, size=size,
+                     base_seed=config.seed + offset + 31 * k, generations=gens)
             for k, (s, gens) in enumerate(zip(config.scales, generations))]
+
+
+class _Probe:
+    """The fixed probe of the hard texture: the middle frame of every probe clip, with fixed noise."""
+
+    def __init__(self, config: ApsAttackConfig, body, mask, aps):
+        self.aps = aps
+        self.seed = config.seed
+        self.clips = [(str(pool.config.scale), clip) for pool in aps_pools(config, body, mask, probe=True)
+                      for clip in pool.clips.values()]
+
+    @torch.no_grad()
+    def scores(self, yolo: "TorchYolo", grid: torch.Tensor) -> dict:
+        """``{"probe_top_score": mean top score, "probe_by_scale": {scale: mean top score}}`` of ``grid``."""
+        rng = np.random.default_rng([self.seed, 7])
+        tops: dict[str, list[float]] = {}
+        for scale, clip in self.clips:
+            grey = aps_grey(clip.video(grid)[len(clip.t_us) // 2])
+            tops.setdefault(scale, []).append(float(yolo((grey + _noise(grey, rng, self.aps))[None]).amax()))
+        return {"probe_top_score": float(np.mean([v for vs in tops.values() for v in vs])),
+                "probe_by_scale": {s: float(np.mean(v)) for s, v in tops.items()}}
 
 
 def _noise(grey: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
@@ -171,7 +257,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     """Optimise a texture against the APS YOLO (see the module docstring); returns the final hard grid [n, n].
 
     Writes ``out_dir/checkpoint.pt`` (every ``checkpoint_every`` steps; ``resume=True`` continues from it),
-    ``log.jsonl`` (loss and mean top person score per step) and ``texture.npy`` / ``.png`` (the hard grid).
+    ``log.jsonl`` (loss, alpha, mean top person score per step; the hard texture's probe scores every
+    ``probe_every`` steps) and ``texture.npy`` / ``.png`` (the hard grid).
 
     Raises:
         CheckpointError: the checkpoint belongs to another configuration.
@@ -194,8 +281,9 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     ckpt = out / "checkpoint.pt"
     start, generations = (_load_checkpoint(ckpt, config, generator, optimizer, rng) if resume and ckpt.is_file()
                           else (0, None))
-    pools = _pools(config, body, mask, generations)
+    pools = aps_pools(config, body, mask, generations)
     aps = ApsConfig()
+    probe = _Probe(config, body, mask, aps) if config.probe_every else None
     generator.train()
     t0 = time.perf_counter()
     with _log_from(out / "log.jsonl", start).open("a") as log:
@@ -203,19 +291,25 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
             if step and step % config.refresh_every == 0:
                 for pool in pools:
                     pool.refresh(step, 0.25)
-            grid = binarize_ste(generator(), alpha_at(config.alpha_schedule, step, config.iterations))
-            scores = yolo(torch.stack([_eot_frame(pools, grid, rng, aps) for _ in range(config.frames_per_step)]))
-            loss = torch.relu(scores - config.conf / 2).sum()
+            alpha = alpha_at(config.alpha_schedule, step, config.iterations)
+            grid = binarize_ste(generator(), alpha)
+            order = pool_order(config.scale_draw, step, config.frames_per_step, len(pools), rng)
+            scores = yolo(torch.stack([_eot_frame(pools[k], grid, rng, aps) for k in order]))
+            loss = frame_loss(scores, config.conf, config.loss, config.temperature)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            record = {"step": step + 1, "loss": float(loss.detach()),
+            record = {"step": step + 1, "loss": float(loss.detach()), "alpha": alpha,
                       "top_score": float(scores.detach().amax(dim=1).mean())}
+            if probe is not None and ((step + 1) % config.probe_every == 0 or step + 1 == config.iterations):
+                record |= _probed(probe, yolo, generator)
             log.write(json.dumps(record) + "\n")
             log.flush()
             if progress is not None:
+                probed = f", hard probe {record['probe_top_score']:.3f}" if "probe_top_score" in record else ""
                 progress(f"step {step + 1}/{config.iterations}: loss {record['loss']:.3f}, top score "
-                         f"{record['top_score']:.3f} ({(time.perf_counter() - t0) / (step + 1 - start):.1f} s/step)")
+                         f"{record['top_score']:.3f}{probed} "
+                         f"({(time.perf_counter() - t0) / (step + 1 - start):.1f} s/step)")
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.iterations:
                 _save_checkpoint(ckpt, config, generator, optimizer, rng, pools, step + 1)
     generator.eval()
@@ -226,9 +320,37 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     return texture
 
 
-def _eot_frame(pools, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
-    """One APS frame [H, W] (8-bit / 255 scale, noisy) of a random clip of a random pool, wearing ``grid``."""
-    pool = pools[int(rng.integers(len(pools)))]
+def _probed(probe: _Probe, yolo: TorchYolo, generator) -> dict:
+    """The probe's scores of the generator's hard texture (``eval()`` mode, then back to ``train()``)."""
+    from davis_rig.attack.texture import hard_binarize
+
+    generator.eval()
+    with torch.no_grad():
+        grid = torch.from_numpy(hard_binarize(generator()))
+    generator.train()
+    return probe.scores(yolo, grid)
+
+
+def cell_footprint(clip, frame: int) -> torch.Tensor:
+    """The APS area of every texture cell in one frame of an EoT clip: float [n * n], pixels² (0: not visible).
+
+    A painted covered sample counts ``1 / supersample²`` of its pixel for the cell its (nearest) texel lies in;
+    samples outside the part mask count for no cell.
+
+    Args:
+        clip: :class:`~davis_rig.attack.eot.PoolClip` (its lookup indexes the n x n grid).
+        frame: frame index in ``[0, len(clip.t_us))``.
+    """
+    y0, y1, x0, x1 = clip.active_box
+    here = (clip.active_pixel // ((y1 - y0) * (x1 - x0))) == int(frame)
+    painted = clip.lookup.painted[here, 0] > 0
+    cells = clip.lookup.index[here, 0][painted]
+    n_cells = clip.lookup.texture_hw[0] * clip.lookup.texture_hw[1]
+    return torch.bincount(cells, minlength=n_cells).float() / float(clip.raster.supersample**2)
+
+
+def _eot_frame(pool, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
+    """One APS frame [H, W] (8-bit / 255 scale, noisy) of a random clip of ``pool``, wearing ``grid``."""
     clip = pool.clips[int(pool.owned[int(rng.integers(len(pool.owned)))])]
     grey = aps_grey(clip.video(grid)[int(rng.integers(len(clip.t_us)))])
     return grey + _noise(grey, rng, aps)
@@ -238,10 +360,12 @@ def _load_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, 
     """Restore generator, optimizer and rng from ``ckpt``; returns ``(completed steps, pool generations)``.
 
     Raises:
-        CheckpointError: the checkpoint belongs to another configuration (``iterations`` may differ).
+        CheckpointError: the checkpoint belongs to another configuration (``iterations`` may differ; settings
+            added since it was written count as their defaults).
     """
     state = torch.load(ckpt, weights_only=False)
-    if state["config"] != asdict(config) | {"iterations": state["config"]["iterations"]}:
+    saved = {k: v for k, v in asdict(ApsAttackConfig()).items() if k not in state["config"]} | state["config"]
+    if saved != asdict(config) | {"iterations": saved["iterations"]}:
         raise CheckpointError(f"{ckpt} was written with another configuration")
     generator.load_state_dict(state["generator"])
     optimizer.load_state_dict(state["optimizer"])

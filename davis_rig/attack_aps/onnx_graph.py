@@ -14,13 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from davis_rig._lazy import optional_dependency
 from davis_rig.errors import MissingDependencyError, ModelFormatError
 
-try:
+with optional_dependency("the APS attack"):
     import torch
     import torch.nn.functional as F
-except ImportError as exc:  # pragma: no cover - exercised only without torch
-    raise MissingDependencyError("the APS attack needs torch: pip install 'davis_rig[torch]'") from exc
 
 __all__ = ["SUPPORTED_OPS", "OnnxGraph"]
 

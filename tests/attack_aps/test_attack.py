@@ -16,8 +16,8 @@ from onnx import TensorProto, helper, numpy_helper
 
 from davis_rig.attack.evaluate import EvalConfig, TextureSpec
 from davis_rig.attack.texture import white_texture
-from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates,
-                                         optimize_aps_texture)
+from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, cell_footprint,
+                                         frame_loss, optimize_aps_texture, pool_order)
 from davis_rig.errors import CheckpointError
 from davis_rig.labelers.yolo import YoloOnnxDetector
 from davis_rig.scene.camera import PinholeCamera
@@ -73,8 +73,56 @@ def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
     assert resumed.shape == (4, 4)
     steps = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert steps == [1, 2, 3]
+    # a checkpoint written before the loss and probe settings existed resumes as their defaults
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    for key in ("loss", "temperature", "scale_draw", "probe_every", "probe_clips"):
+        del state["config"][key]
+    torch.save(state, tmp_path / "checkpoint.pt")
+    optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 4}), yolo, tmp_path, resume=True)
     with pytest.raises(CheckpointError):
         optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "grid_n": 5}), yolo, tmp_path, resume=True)
+
+
+def test_frame_loss_kinds_on_known_scores():
+    scores = torch.tensor([[0.05, 0.3, 0.2], [0.1, 0.12, 0.0]])
+    # sum: every anchor above 0.125: (0.3 - 0.125) + (0.2 - 0.125)
+    assert float(frame_loss(scores, 0.25, "sum")) == pytest.approx(0.25)
+    # top: each frame's best anchor only; the second frame is already below 0.125
+    assert float(frame_loss(scores, 0.25, "top")) == pytest.approx(0.175)
+    t = 0.02
+    soft = t * math.log(sum(math.exp(v / t) for v in (0.05, 0.3, 0.2)))
+    soft2 = t * math.log(sum(math.exp(v / t) for v in (0.1, 0.12, 0.0)))
+    assert float(frame_loss(scores, 0.25, "lse", t)) == pytest.approx(soft - 0.125 + max(soft2 - 0.125, 0.0))
+    grad = torch.zeros_like(scores, requires_grad=True)
+    frame_loss(grad + scores, 0.25, "top").backward()
+    assert grad.grad.tolist() == [[0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]
+    with pytest.raises(ValueError, match="unknown APS loss"):
+        frame_loss(scores, 0.25, "mean")
+    with pytest.raises(ValueError, match="temperature"):
+        frame_loss(scores, 0.25, "lse", 0.0)
+
+
+def test_pool_order_cycle_balances_and_random_draws_in_range():
+    rng = np.random.default_rng(0)
+    assert pool_order("cycle", 0, 3, 3, rng) == [0, 1, 2]
+    assert pool_order("cycle", 1, 2, 3, rng) + pool_order("cycle", 2, 2, 3, rng) == [2, 0, 1, 2]
+    draws = pool_order("random", 0, 50, 3, rng)
+    assert len(draws) == 50 and set(draws) == {0, 1, 2}
+    with pytest.raises(ValueError, match="scale draw"):
+        pool_order("balanced", 0, 1, 3, rng)
+
+
+def test_attack_logs_the_hard_probe(tiny_yolo, tmp_path):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=2, frames_per_step=2, scales=("small",), pool_size=1,
+                             loss="top", scale_draw="cycle", alpha_schedule="hard", probe_every=1, probe_clips=1)
+    optimize_aps_texture(config, yolo, tmp_path)
+    records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["alpha"] for r in records] == [1.0, 1.0]
+    for r in records:
+        assert 0.0 < r["probe_top_score"] < 1.0 and set(r["probe_by_scale"]) == {"small"}
+    with pytest.raises(ValueError, match="loss must be"):
+        ApsAttackConfig(loss="max")
 
 
 def test_detection_rates_rows(tiny_yolo):
@@ -84,3 +132,24 @@ def test_detection_rates_rows(tiny_yolo):
     rows = aps_detection_rates({"white": TextureSpec(white_texture(1))}, labeler, eval_config=config)
     assert len(rows) == 1 and rows[0]["texture"] == "white" and rows[0]["frames"] >= 1
     assert 0.0 <= rows[0]["rate"] <= 1.0 and set(rows[0]["by_scale"]) == {"small"}
+
+
+def test_cell_footprint_counts_each_cells_pixels():
+    from davis_rig.attack_aps.attack import aps_pools
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    config = ApsAttackConfig(grid_n=6, scales=("small",), pool_size=1)
+    clip = next(iter(aps_pools(config, BodyModel(), part_mask(config.parts))[0].clips.values()))
+    frame = len(clip.t_us) // 2
+    area = cell_footprint(clip, frame)
+    assert area.shape == (36,) and float(area.min()) >= 0.0 and int((area > 0).sum()) > 1
+    y0, y1, x0, x1 = clip.active_box
+    shade = clip.raster.shade
+    for cell in torch.nonzero(area > 0)[:3, 0].tolist() + [int(torch.argmin(area))]:
+        one_hot = torch.zeros(36)
+        one_hot[cell] = 1.0
+        # the renderer's own sum of this cell's samples, its shading divided out: the cell's area in pixels
+        values = clip.lookup.sample(one_hot.view(6, 6), fill=0.0) / torch.where(shade > 0, shade, 1.0)
+        rendered = clip.raster.person(values, pixels=clip.active_pixel, hw=(y1 - y0, x1 - x0))[frame].sum()
+        assert float(area[cell]) == pytest.approx(float(rendered), rel=1e-5, abs=1e-6)
