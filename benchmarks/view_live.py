@@ -1,6 +1,6 @@
 """Benchmark: the live view of ``davis-record --view`` beside a recording at the DAVIS346 peak — does it slow it?
 
-Run: ``python benchmarks/view_live.py [--rate 12e6] [--seconds 3] [--threads 2] [--fps 25] [--aps-fps 25]
+Run: ``python benchmarks/view_live.py [--rate 12e6] [--seconds 3] [--threads N] [--fps 25] [--aps-fps 25]
 [--queue-mib 8]``
 
 The real ``Davis346`` driver reads the virtual DAVIS346, paced in device real time at ``--rate`` events/s (a
@@ -43,6 +43,7 @@ from _common import metadata_line
 
 from davis_rig.types import DAVIS346_HW, make_events
 from davis_rig.usb.sources import DataSource
+from davis_rig.viewer.live import default_detector_threads
 
 DEFAULT_QUEUE_MIB = 8.0  # as benchmarks/io.py: ~0.17 s of this stream at 12 M ev/s
 
@@ -233,7 +234,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=12e6, help="event rate of the virtual camera, ev/s")
     parser.add_argument("--seconds", type=float, default=3.0, help="length of the scene, s")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads of the detector")
+    parser.add_argument("--threads", type=int, default=default_detector_threads(),
+                        help="onnxruntime threads of the detector (default: davis-record --view's on this machine)")
     parser.add_argument("--fps", type=float, default=25.0, help="display frames rendered per second")
     parser.add_argument("--aps-fps", type=float, default=25.0, help="APS frames per second in the scene (0: none)")
     parser.add_argument("--queue-mib", type=float, default=DEFAULT_QUEUE_MIB,
