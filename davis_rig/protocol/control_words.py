@@ -19,12 +19,15 @@ from davis_rig.protocol.decoded import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, 
 from davis_rig.protocol.imu_assembly import ImuAssembler
 from davis_rig.protocol.layout import SensorLayout
 from davis_rig.protocol.words import (
+    CODE_ADC_SAMPLE,
+    CODE_MISC10,
+    CODE_MISC8,
+    CODE_SPECIAL,
     CODE_SHIFT,
     DATA_MASK,
     MISC8_BYTE_MASK,
     MISC8_SUB_SHIFT,
     MISC10_SUB_SHIFT,
-    Code,
     Misc8,
     Special,
     SpecialType,
@@ -32,11 +35,7 @@ from davis_rig.protocol.words import (
 
 __all__ = ["ControlPass"]
 
-# Plain ints of the word codes: the per-control-word loop avoids enum attribute lookups.
-_SPECIAL: Final = int(Code.SPECIAL)
-_ADC_SAMPLE: Final = int(Code.ADC_SAMPLE)
-_MISC8: Final = int(Code.MISC8)
-_MISC10: Final = int(Code.MISC10)
+# Plain ints of the APS column sub-codes: the per-control-word loop avoids enum attribute lookups.
 _RESET_COLUMN: Final = int(Special.APS_RESET_COLUMN_START)
 _SIGNAL_COLUMN: Final = int(Special.APS_SIGNAL_COLUMN_START)
 #: ROI values arrive as big-endian byte pairs (misc8 payloads).
@@ -127,11 +126,11 @@ class ControlPass:
                     i += 2 * pairs - 1
                     continue
             code = word >> CODE_SHIFT
-            if code == _SPECIAL:
+            if code == CODE_SPECIAL:
                 self._special(block, word & DATA_MASK, times_list[i], cut, chunk)
-            elif code == _MISC8:
+            elif code == CODE_MISC8:
                 self._misc8(block, word & DATA_MASK, cut)
-            elif code == _MISC10:
+            elif code == CODE_MISC10:
                 if (word & DATA_MASK) >> MISC10_SUB_SHIFT:
                     self.stats.unknown_words += 1
                 # sub-code 0 = exposure value parts, only used by libcaer's auto-exposure: consumed.
@@ -141,7 +140,7 @@ class ControlPass:
 
     def _start_block(self, w: np.ndarray, codes: np.ndarray, ctrl_pos: np.ndarray) -> _ControlBlock:
         """Start a block's control pass: its ADC samples go to the APS sample store, cut at each control word."""
-        adc_pos = np.flatnonzero(codes == _ADC_SAMPLE)
+        adc_pos = np.flatnonzero(codes == CODE_ADC_SAMPLE)
         if adc_pos.shape[0]:
             adc_vals = (w[adc_pos] & DATA_MASK).astype(np.int32)
             cut_array = np.searchsorted(adc_pos, ctrl_pos)

@@ -34,6 +34,12 @@ from davis_rig.protocol.control_words import ControlPass
 from davis_rig.protocol.decoded import IMU6_DTYPE, SPECIAL_DTYPE, DecodedChunk, DecoderStats
 from davis_rig.protocol.layout import SensorLayout
 from davis_rig.protocol.words import (
+    CODE_ADC_SAMPLE,
+    CODE_MISC10,
+    CODE_MISC8,
+    CODE_SPECIAL,
+    CODE_TS_WRAP,
+    CODE_Y_ADDR,
     CODE_SHIFT,
     DATA_MASK,
     OVERFLOW_SHIFT,
@@ -81,14 +87,7 @@ _Y_WORD_BASE: Final = np.uint16(int(Code.Y_ADDR) << CODE_SHIFT)
 #: Largest 16-bit word value.
 _WORD_MAX: Final = 0xFFFF
 
-# Plain ints of the word codes: numpy compares arrays with an IntEnum member as int64 (about 10x slower than
-# with a plain int), and the per-control-word loop avoids enum attribute lookups.
-_SPECIAL: Final = int(Code.SPECIAL)
-_Y_ADDR: Final = int(Code.Y_ADDR)
-_ADC_SAMPLE: Final = int(Code.ADC_SAMPLE)
-_MISC8: Final = int(Code.MISC8)
-_MISC10: Final = int(Code.MISC10)
-_TS_WRAP: Final = int(Code.TS_WRAP)
+#: The timestamp-reset word as a plain int (the codes' plain ints: protocol.words).
 _TS_RESET_WORD: Final = int(Special.TIMESTAMP_RESET)  # the whole word: code 0, sub-code 1
 
 #: Decoder kernels: the compiled DVS/timestamp pass, or the vectorised numpy path (the reference and fallback).
@@ -153,12 +152,12 @@ class _WordKinds(NamedTuple):
 
 def _word_kinds(w: np.ndarray, codes: np.ndarray) -> _WordKinds:
     """Classify a block's words (``codes = w >> CODE_SHIFT``; timestamp words give codes 8-15)."""
-    n_special = int(np.count_nonzero(codes == _SPECIAL))
+    n_special = int(np.count_nonzero(codes == CODE_SPECIAL))
     # codes 4-7 (uint16 arithmetic wraps below 4, and timestamp words give 8-15)
-    n_high = int(np.count_nonzero((codes - np.uint16(_ADC_SAMPLE)) <= _TS_WRAP - _ADC_SAMPLE))
+    n_high = int(np.count_nonzero((codes - np.uint16(CODE_ADC_SAMPLE)) <= CODE_TS_WRAP - CODE_ADC_SAMPLE))
     is_wrap, n_wrap = None, 0
     if n_high:
-        is_wrap = codes == _TS_WRAP
+        is_wrap = codes == CODE_TS_WRAP
         n_wrap = int(np.count_nonzero(is_wrap))
     is_reset, n_reset = None, 0
     if n_special:
@@ -520,7 +519,7 @@ class StreamDecoder:
         n = w.shape[0]
         y_data = w - _Y_WORD_BASE  # the row for Y words; >= 0x1000 (so never "in range") for any other word
         valid_y = y_data < self._dvs_rows
-        self._stats.dvs_out_of_range += int(np.count_nonzero(codes == _Y_ADDR)) - int(np.count_nonzero(valid_y))
+        self._stats.dvs_out_of_range += int(np.count_nonzero(codes == CODE_Y_ADDR)) - int(np.count_nonzero(valid_y))
         key_y = np.bitwise_or(idx12, y_data, out=self._key_y[:n])
         np.multiply(key_y, valid_y, out=key_y)
         np.maximum.accumulate(key_y, out=key_y)
@@ -575,7 +574,7 @@ class StreamDecoder:
     @staticmethod
     def _control_times(codes, key_t, offset_in, base: "_WrapBase", big_wrap_pos) -> tuple[np.ndarray, np.ndarray]:
         """Positions of a block's control words (codes 0, 5, 6, big wraps) and the stream time after each, µs."""
-        ctrl_mask = (codes == _SPECIAL) | (codes == _MISC8) | (codes == _MISC10)
+        ctrl_mask = (codes == CODE_SPECIAL) | (codes == CODE_MISC8) | (codes == CODE_MISC10)
         if big_wrap_pos is not None:
             ctrl_mask[big_wrap_pos] = True
         ctrl_pos = np.flatnonzero(ctrl_mask)

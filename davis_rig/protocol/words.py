@@ -20,6 +20,12 @@ from davis_rig.errors import ProtocolError
 
 __all__ = [
     "Code",
+    "CODE_SPECIAL",
+    "CODE_Y_ADDR",
+    "CODE_ADC_SAMPLE",
+    "CODE_MISC8",
+    "CODE_MISC10",
+    "CODE_TS_WRAP",
     "Special",
     "Misc8",
     "SpecialType",
@@ -102,6 +108,16 @@ class Code(IntEnum):
     MISC8 = 5
     MISC10 = 6
     TS_WRAP = 7
+
+
+# Plain ints of the codes for the decoding loops: numpy compares an array with an IntEnum member as int64 (about 10x
+# slower than with a plain int), and a per-word loop avoids enum attribute lookups.
+CODE_SPECIAL: Final = int(Code.SPECIAL)
+CODE_Y_ADDR: Final = int(Code.Y_ADDR)
+CODE_ADC_SAMPLE: Final = int(Code.ADC_SAMPLE)
+CODE_MISC8: Final = int(Code.MISC8)
+CODE_MISC10: Final = int(Code.MISC10)
+CODE_TS_WRAP: Final = int(Code.TS_WRAP)
 
 
 class Special(IntEnum):
