@@ -19,6 +19,7 @@ Layout (numpy ``.npz``, no pickled objects)::
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,6 +94,10 @@ def write_detections(scores, name: str, window_us: int, path: Path) -> Path:
     return path
 
 
+#: The first bytes of an .npz file (a zip archive).
+_NPZ_MAGIC = b"PK\x03\x04"
+
+
 def read_detections(path: Path) -> WindowDetections:
     """Read a file written by :func:`write_detections`.
 
@@ -101,9 +106,17 @@ def read_detections(path: Path) -> WindowDetections:
     """
     path = Path(path)
     try:
+        with path.open("rb") as f:
+            head = f.read(len(_NPZ_MAGIC))
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read as a detections .npz ({exc.strerror or exc})") from exc
+    if head != _NPZ_MAGIC:
+        raise FormatError(f"{path}: not an .npz file (it starts with {head!r}); davis-eval --out writes "
+                          "<name>.detections.npz files")
+    try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise FormatError(f"{path}: cannot read as a detections .npz ({exc})") from exc
     if str(arrays.get("format", "")) != FORMAT_NAME:
         raise FormatError(f"{path}: not a {FORMAT_NAME} file (written by davis-eval --out)")

@@ -211,8 +211,11 @@ def _load_bbox(path: Path) -> np.ndarray:
     """A ``_bbox.npy`` as BBOX_DTYPE (Gen1's ``ts`` spelling of ``t`` accepted)."""
     try:
         raw = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError) as exc:
         raise FormatError(f"{path}: not a readable .npy box file ({exc})") from exc
+    if not isinstance(raw, np.ndarray):
+        raw.close()
+        raise FormatError(f"{path}: an .npz archive, not a .npy box array")
     names = raw.dtype.names or ()
     if "ts" in names and "t" not in names:
         names = tuple("t" if n == "ts" else n for n in names)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import zipfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -399,7 +400,7 @@ class SequenceData:
             with np.load(self.path / "labels_v2" / "labels.npz") as data:
                 self._labels = data["labels"]
                 self._label_starts = data["objframe_idx_2_label_idx"].astype(np.int64)
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise FormatError(f"{self.path}: unreadable sequence files ({exc})") from exc
         ts_path = self.path / "labels_v2" / "timestamps_us.npy"
         self.label_timestamps_us = (np.load(ts_path).astype(np.int64) if ts_path.is_file()

@@ -135,3 +135,16 @@ def test_overview_clips_pieces_even_odd(tmp_path):
         assert b"W*" in ops
     overview = [op for _, op in ContentStream(reader.pages[0].get_contents(), reader.pages[0].pdf).operations]
     assert b"W" not in overview  # every clip of the overview is a piece outline
+
+
+def test_an_empty_or_zipped_npy_texture_is_a_format_error(tmp_path):
+    from davis_rig.attack.export.grid import load_texture_grid
+    from davis_rig.errors import FormatError
+
+    (tmp_path / "empty.npy").write_bytes(b"")
+    with pytest.raises(FormatError, match="empty.npy: not a readable .npy array"):
+        load_texture_grid(tmp_path / "empty.npy")
+    np.savez(tmp_path / "grid.npz", grid=np.ones((4, 4)))
+    (tmp_path / "grid.npz").rename(tmp_path / "zipped.npy")
+    with pytest.raises(FormatError, match="zipped.npy: an .npz archive, not a .npy array"):
+        load_texture_grid(tmp_path / "zipped.npy")

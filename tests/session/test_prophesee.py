@@ -115,3 +115,17 @@ def test_a_box_file_without_the_fields_is_refused(tmp_path):
     with pytest.raises(FormatError, match="missing fields"):
         import_prophesee_dat(tmp_path / "a_td.dat", tmp_path / "s.h5")
     assert not (tmp_path / "s.h5").exists()
+
+
+@pytest.mark.parametrize("content, message", [(b"", "not a readable .npy box file"),
+                                              (None, "an .npz archive, not a .npy box array")])
+def test_an_empty_or_zipped_box_file_is_refused(tmp_path, content, message):
+    _gen1_file(tmp_path / "a_td.dat", pack_dat([0], [0], [0], [0]))
+    if content is None:
+        np.savez(tmp_path / "boxes.npz", t=np.zeros(1))
+        (tmp_path / "boxes.npz").rename(tmp_path / "a_bbox.npy")
+    else:
+        (tmp_path / "a_bbox.npy").write_bytes(content)
+    with pytest.raises(FormatError, match=message):
+        import_prophesee_dat(tmp_path / "a_td.dat", tmp_path / "s.h5")
+    assert not (tmp_path / "s.h5").exists()

@@ -178,3 +178,20 @@ def test_labels_to_tensor_clips_to_frame_and_drops_small():
     # clipped to [0, 303] x [0, 239] (RVT clamp_to_frame_); the 2 px wide box is dropped
     assert out.tolist() == [[1.0, 0.0, 5.0, 20.0, 40.0], [1.0, 300.0, 230.0, 3.0, 9.0]]
     assert labels_to_tensor(None) is None
+
+
+@pytest.mark.parametrize("damage", ["truncated labels", "empty timestamps"])
+def test_damaged_sequence_files_are_a_format_error(tmp_path, damage):
+    from davis_rig.errors import FormatError
+
+    ends = np.array([50_000, 100_000])
+    with DatasetWriter(tmp_path / "ds", name="t") as writer:
+        seq_dir = writer.add_sequence(_random_hist(0, 2), ends, [None, _boxes(100_000, [(1, 2, 3, 4)])], {},
+                                      split="val", name="a")
+    if damage == "truncated labels":
+        labels = seq_dir / "labels_v2" / "labels.npz"
+        labels.write_bytes(labels.read_bytes()[:20])
+    else:
+        (seq_dir / "event_representations_v2" / EV_REPR_NAME / "timestamps_us.npy").write_bytes(b"")
+    with pytest.raises(FormatError, match="unreadable sequence files"):
+        SequenceData(seq_dir)

@@ -105,7 +105,12 @@ def test_detections_file_errors(scene, tmp_path):
         find_stored_detections(tmp_path, scene)  # an empty folder
     bad = tmp_path / "x.detections.npz"
     bad.write_bytes(b"not a zip")
+    with pytest.raises(FormatError, match=r"x.detections.npz: not an .npz file \(it starts with b'not '\)"):
+        read_detections(bad)
     with pytest.raises(FormatError, match="cannot read"):
+        read_detections(tmp_path / "missing.detections.npz")
+    bad.write_bytes(b"PK\x03\x04 truncated zip")
+    with pytest.raises(FormatError, match="cannot read as a detections .npz"):
         read_detections(bad)
     np.savez(bad, format=np.array("something else"))
     with pytest.raises(FormatError, match="not a davis_rig.window_detections"):

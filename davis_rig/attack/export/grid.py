@@ -92,8 +92,11 @@ def load_texture_grid(path: str | Path, n_cells: int | None = None) -> np.ndarra
     if path.suffix.lower() == ".npy":
         try:
             raw = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise FormatError(f"{path}: not a readable .npy array ({exc})") from exc
+        if not isinstance(raw, np.ndarray):
+            raw.close()
+            raise FormatError(f"{path}: an .npz archive, not a .npy array")
         raw = np.squeeze(raw)
     else:
         import cv2
