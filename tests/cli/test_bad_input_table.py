@@ -137,7 +137,7 @@ ROWS = [
         interrupt="davis_rig.training.trainer.train", created=["{out}"]),
     # davis-make-dataset (no input file: its output folder is the file argument; below a file, or a file itself)
     Row("davis-make-dataset", "nonexistent file", ["--out", "{text}/dataset", "--sequences", "3", "-q"], 4,
-        "Not a directory"),
+        "text.h5/dataset: not a directory"),
     Row("davis-make-dataset", "wrong file type", ["--out", "{text}", "--sequences", "3", "-q"], 4, "text.h5"),
     Row("davis-make-dataset", "out of range", ["--out", "{out}", "--sequences", "0"], 2,
         "argument --sequences: expected an integer >= 1, got '0'", created=["{out}"]),
@@ -256,7 +256,7 @@ ROWS = [
     Row("tools/capture_replay.py", "nan", ["{out}.davisreplay", "--duration-s", "nan"], 2,
         "argument --duration-s: expected a finite number, got 'nan'"),
     Row("tools/contact_sheet.py", "wrong file type", ["--out", "{text}/sheet.png", "--grid-n", "1"], 4,
-        "File exists: '{text}'"),
+        "text.h5: file exists"),
     Row("tools/contact_sheet.py", "out of range", ["--out", "{out}.png", "--grid-n", "0"], 2,
         "argument --grid-n: expected an integer >= 1, got '0'"),
     Row("tools/contact_sheet.py", "nan", ["--out", "{out}.png", "--duration-ms", "nan"], 2,

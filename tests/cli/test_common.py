@@ -166,3 +166,14 @@ def test_parse_keeps_subcommand_parsers_working():
     sub = parser.add_subparsers(dest="command", required=True)
     common.add_threshold(sub.add_parser("evaluate"), aliases=("--thresholds",))
     assert common.parse(parser, ["evaluate", "--thresholds", "0.1,0.2"]).threshold == (0.1, 0.2)
+
+
+def test_file_system_errors_read_as_path_and_reason():
+    import errno
+
+    assert common.error_message(NotADirectoryError(errno.ENOTDIR, "Not a directory", "a.h5/out")) == \
+        "a.h5/out: not a directory"
+    assert common.error_message(FileNotFoundError("texture not found: t.npy")) == "texture not found: t.npy"
+    from davis_rig.errors import FormatError
+
+    assert common.error_message(FormatError("s.h5: not a session")) == "s.h5: not a session"
