@@ -46,6 +46,9 @@ CAR_CLASS_ID: Final = 0
 #: in evaluation, training validation, the attack and the viewer alike.
 RVT_NMS_IOU: Final = 0.45
 
+#: The paper's confidence thresholds (its Tables 1-3): the physical and the digital evaluation score at these.
+PAPER_THRESHOLDS: Final = (0.001, 0.01, 0.1, 0.25)
+
 
 def empty_events(n: int = 0) -> np.ndarray:
     """Return a zero-filled event array of length ``n`` with :data:`EVENT_DTYPE`."""

@@ -55,6 +55,7 @@ from davis_rig.events.simulator import SimulatorConfig
 from davis_rig.scene.camera import PinholeCamera
 from davis_rig.scene.scene import MIN_RENDER_RATE_HZ, WALKS, Motion, SceneSpec
 from davis_rig.scene.shading import Light
+from davis_rig.types import PAPER_THRESHOLDS
 
 with optional_dependency("the attack evaluation"):
     import torch
@@ -79,8 +80,6 @@ __all__ = [
     "window_histograms",
 ]
 
-#: The paper's confidence thresholds.
-PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
 #: Table 2's threshold.
 TABLE2_THRESHOLD = 0.25
 

@@ -43,14 +43,12 @@ from davis_rig.errors import ConfigError, FormatError, ModelFormatError, Session
 from davis_rig.evaluation.windows import event_chunks, label_windows, window_grid
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.metrics.ap import MIN_DIAG_PX, MIN_SIDE_PX, SKIP_FIRST_US
-from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PEDESTRIAN_CLASS_ID, RVT_HW, RVT_NMS_IOU
+from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PAPER_THRESHOLDS, PEDESTRIAN_CLASS_ID, RVT_HW, RVT_NMS_IOU
 
 __all__ = ["EvalSettings", "RecordingResult", "SessionScores", "PAPER_THRESHOLDS", "compute_metrics",
            "distinct_names", "evaluate_sessions", "is_labelled", "labels_provenance", "score_session",
            "scoring_crop_origin"]
 
-#: The paper's confidence thresholds (Tables 2 and 3).
-PAPER_THRESHOLDS = (0.001, 0.01, 0.1, 0.25)
 
 
 @dataclass(frozen=True)
