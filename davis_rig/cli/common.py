@@ -290,18 +290,13 @@ def exit_code_for(exc: BaseException) -> int:
 
 def error_message(exc: BaseException, options: Mapping[str, str] | None = None) -> str:
     """The text after ``<command>: error: `` for a toolkit error (a ``ConfigError`` names its option)."""
-    from davis_rig.errors import ConfigError
+    from davis_rig.errors import ConfigError, DavisRigError
 
     if isinstance(exc, ConfigError) and options and exc.field in options:
         return f"argument {options[exc.field]}: {exc.reason}"
-    if type(exc) in _OS_ERRORS and exc.strerror and exc.filename is not None:
+    if isinstance(exc, OSError) and not isinstance(exc, DavisRigError) and exc.strerror and exc.filename is not None:
         return f"{exc.filename}: {exc.strerror.lower()}"  # "out/x: not a directory", not "[Errno 20] Not a ..."
     return str(exc)
-
-
-#: OSErrors from the file system that :func:`error_message` words as ``<path>: <reason>`` (not subclasses of the
-#: toolkit's own errors, which carry their own message).
-_OS_ERRORS = (OSError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
 
 
 def run_command(name: str, action: Callable[[], int | None], options: Mapping[str, str] | None = None) -> int:
