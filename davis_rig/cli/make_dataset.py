@@ -21,6 +21,8 @@ examples:
   davis-make-dataset --out data/synth --sequences 24 --seconds 2       # 18 train, 3 val, 3 test (75/12.5/12.5 %)
   davis-make-dataset --out data/synth --sequences 1000 --split-sizes train=900,val=46,test=54 --workers 4
   davis-make-dataset --out data/synth --sequences 1000 --device cuda    # same command again = resume
+  davis-make-dataset --out data/gen1like --recipe gen1like --sequences 400 --split-sizes train=372,val=10,test=18 \
+      --workers 15 --threads 1 --time-budget-min 3     # as many training sequences as 3 minutes allow
 
 OUT_DIR gets train/ val/ test/ sequences (event_representations_v2/stacked_histogram_dt=50_nbins=10 + labels_v2,
 Gen1 class 1 = pedestrian), generation.json (the settings) and dataset_card.json (counts, sizes, seeds).
@@ -28,6 +30,11 @@ Finished sequences are skipped, so rerunning the command resumes; a resumed run 
 (--seed, --seconds, --compression and every scene option), else it is refused and the differing keys are named.
 Splits are disjoint in body shapes (0-17 / 18-20 / 21-23), seeds and gait speeds; test sequence i is the
 held-out subset (white, black, random 60x60 pattern) x (large, middle, small) number i mod 9.
+--recipe gen1like is a recipe closer to the paper's Gen1 victim (small people, ATIS-like sensor with refractory
+period, low bandwidth, leak and hot pixels, moving camera, plain grey clothing, 1-3 high-contrast painted cars per
+scene; davis_rig.training.synthetic.GEN1_LIKE_SCENES); --clothing, --vehicles, --person-height and
+--test-scale-probability override its values. Validation and test sequences are made first, so a run cut by
+--time-budget-min trains and scores; rerunning it continues.
 OUT_DIR may also be given as the first argument (the older spelling). A run that fails before its first
 sequence leaves no empty OUT_DIR behind.
 """
@@ -77,26 +84,36 @@ def build_parser() -> argparse.ArgumentParser:
     add_threads(parser, help="torch CPU threads per process (default: torch's choice; 1 on a busy machine)")
     parser.add_argument("--compression", choices=["blosc-zstd", "gzip", "lzf", "none"], default="blosc-zstd",
                         help="histogram compression (default: blosc-zstd, as RVT)")
+    parser.add_argument("--recipe", choices=["bundled", "gen1like"], default="bundled",
+                        help="scene recipe: bundled (the bundled detector's, default) or gen1like (closer to the "
+                             "paper's Gen1 victim)")
+    parser.add_argument("--time-budget-min", type=positive_float, default=None, metavar="MIN",
+                        help="start no new sequence after MIN minutes (those started finish; rerun to continue)")
     parser.add_argument("--clothing", nargs="+", default=None, metavar="KIND",
-                        help="clothing kinds of the train/val people (default: all of parts_grey parts_colour "
-                             "stripes checks grid white black pattern60); the test subsets are fixed")
+                        help="clothing kinds of the train/val people (default: the recipe's; bundled: all of "
+                             "parts_grey parts_colour stripes checks grid white black pattern60); the test subsets "
+                             "are fixed")
     parser.add_argument("--vehicles", type=non_negative_int, nargs=2, default=None, metavar=("MIN", "MAX"),
-                        help="labelled side-view cars (Gen1 class 0) per train/val scene, MIN..MAX (default: none, "
-                             "the single-class bundled recipe); the test subsets have none")
+                        help="labelled side-view cars (Gen1 class 0) per train/val scene, MIN..MAX (default: the "
+                             "recipe's; bundled: none, single-class); the test subsets have none")
     parser.add_argument("--person-height", type=positive_float, nargs=2, default=None, metavar=("MIN", "MAX"),
                         help="height range (px) of a 1.75 m train/val person at mid-clip, drawn log-uniformly "
-                             "(default: 50 230); the test subsets stay at the paper's three scales")
+                             "(default: the recipe's; bundled 50 230, gen1like 25 180); the test subsets stay at the "
+                             "paper's three scales")
     parser.add_argument("--test-scale-probability", type=probability, default=None, metavar="P",
                         help="chance that a train/val person stands exactly at one of the paper's scales (131, 150, "
-                             "175 px) instead (default: 0.4; 0 with a Gen1-like --person-height keeps the test "
+                             "175 px) instead (default: the recipe's; bundled 0.4, gen1like 0.1; 0 keeps the test "
                              "scales unseen)")
     add_quiet(parser, help="no progress bar on stderr")
     return parser
 
 
 def _scene_config(args: argparse.Namespace):
-    """The :class:`~davis_rig.training.synthetic.SyntheticSceneConfig` of the flags (ConfigError if invalid)."""
-    from davis_rig.training.synthetic import SyntheticSceneConfig
+    """The :class:`~davis_rig.training.synthetic.SyntheticSceneConfig` of the flags: ``--recipe`` with the other
+    scene options over it (ConfigError if invalid)."""
+    import dataclasses
+
+    from davis_rig.training.synthetic import SCENE_RECIPES
 
     overrides = {}
     if args.clothing is not None:
@@ -107,7 +124,7 @@ def _scene_config(args: argparse.Namespace):
         overrides["person_height_px"] = tuple(args.person_height)
     if args.test_scale_probability is not None:
         overrides["test_scale_probability"] = args.test_scale_probability
-    return SyntheticSceneConfig(**overrides)
+    return dataclasses.replace(SCENE_RECIPES[args.recipe], **overrides)
 
 
 def _make(args: argparse.Namespace) -> int:
@@ -117,7 +134,8 @@ def _make(args: argparse.Namespace) -> int:
     with removing_new_empty_dirs(args.out):
         summary = generate_dataset(args.out, args.sizes, duration_s=args.seconds, seed=args.seed, device=args.device,
                                    workers=args.workers, compression=args.compression, progress=not args.quiet,
-                                   threads=args.threads, config=config)
+                                   threads=args.threads, config=config,
+                                   time_budget_s=None if args.time_budget_min is None else 60.0 * args.time_budget_min)
     print(json.dumps(summary, indent=1, default=str))
     return EXIT_OK
 

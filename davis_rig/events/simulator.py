@@ -28,7 +28,8 @@ Optional v2e-style non-idealities (all off by default, seeded by ``seed``): per-
 v2e), shot noise (``shot_noise_rate_hz``: Poisson ON+OFF noise events per pixel, rate lower for bright pixels as in
 v2e; they leave the reference alone, so the rate is exactly the one asked for), leak (``leak_rate_hz``: the
 reference sinks by ``leak_rate_hz · θ_on`` per second from a random per-pixel phase, which fires spontaneous ON
-events) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz`` scales with intensity (v2e's photoreceptor
+events), hot pixels (``hot_pixel_fraction`` of the pixels, a fixed random set, fire noise at ``hot_pixel_rate_hz``
+whatever the light, as on an ATIS / Gen1 sensor) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz`` scales with intensity (v2e's photoreceptor
 bandwidth model: ``ε = dt · 2π · cutoff_hz · (255 I + 20) / 275``, clipped at 1).
 
 All arithmetic is vectorised over pixels; Python loops run over frames (and, only with a refractory period, over
@@ -77,6 +78,9 @@ class SimulatorConfig:
         refractory_us: refractory period, µs (0 = off).
         shot_noise_rate_hz: shot-noise event rate per pixel (ON + OFF), Hz, at zero intensity (0 = off).
         leak_rate_hz: leak event rate per pixel, Hz (0 = off).
+        hot_pixel_fraction: fraction of the pixels that are hot (a fixed random set drawn from ``seed``), 0 = none.
+        hot_pixel_rate_hz: extra noise event rate (ON + OFF) of each hot pixel, Hz, whatever the intensity (an ATIS
+            / Gen1 sensor's hot pixels fire tens of events per second).
         cutoff_hz: low-pass 3 dB cutoff at full intensity, Hz (0 = no low-pass).
         seed: seed of the noise generator (threshold mismatch, shot noise, leak phases).
         dtype: torch dtype name of the computation, ``"float64"`` (default, exact comparisons) or ``"float32"``.
@@ -95,6 +99,8 @@ class SimulatorConfig:
     refractory_us: int = 0
     shot_noise_rate_hz: float = 0.0
     leak_rate_hz: float = 0.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_rate_hz: float = 0.0
     cutoff_hz: float = 0.0
     seed: int = 0
     dtype: str = "float64"
@@ -105,9 +111,12 @@ class SimulatorConfig:
                 raise ConfigError(name, f"must be > 0, got {getattr(self, name)}")
         if self.timestamps not in ("interpolate", "frame_end"):
             raise ConfigError("timestamps", f"expected 'interpolate' or 'frame_end', got {self.timestamps!r}")
-        for name in ("threshold_sigma", "refractory_us", "shot_noise_rate_hz", "leak_rate_hz", "cutoff_hz"):
+        for name in ("threshold_sigma", "refractory_us", "shot_noise_rate_hz", "leak_rate_hz", "hot_pixel_rate_hz",
+                     "cutoff_hz"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.hot_pixel_fraction <= 1.0:
+            raise ConfigError("hot_pixel_fraction", f"must be in [0, 1], got {self.hot_pixel_fraction}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError("dtype", f"expected 'float32' or 'float64', got {self.dtype!r}")
 
@@ -115,7 +124,12 @@ class SimulatorConfig:
     def ideal(self) -> bool:
         """True when no non-ideality is enabled (the noise-free sensor)."""
         return not (self.threshold_sigma or self.refractory_us or self.shot_noise_rate_hz or self.leak_rate_hz
-                    or self.cutoff_hz)
+                    or self.cutoff_hz or self.hot_pixels)
+
+    @property
+    def hot_pixels(self) -> bool:
+        """True when some pixels are hot (a fraction and a rate above 0)."""
+        return self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0
 
 
 def _as_video(video, device, dtype):
@@ -197,12 +211,18 @@ class EventSimulator:
         ref = log_frame.clone()
         if cfg.leak_rate_hz > 0:  # random leak phase per pixel, so that leak events are not synchronous
             ref -= torch.rand(shape, generator=generator, dtype=frame.dtype, device=frame.device) * theta_on
+        hot_rate_hz = None
+        if cfg.hot_pixels:  # drawn after the other per-pixel draws: a sensor without hot pixels is unchanged
+            draw = torch.rand(shape, generator=generator, dtype=frame.dtype, device=frame.device)
+            hot = draw < cfg.hot_pixel_fraction
+            hot_rate_hz = hot.to(frame.dtype) * cfg.hot_pixel_rate_hz
         self._state = {
             "generator": generator,
             "theta_on": theta_on,
             "theta_off": theta_off,
             "log": log_frame,  # (filtered) log intensity at the last frame
             "ref": ref,
+            "hot_rate_hz": hot_rate_hz,  # [H, W] extra noise rate (ON + OFF), or None
             "t_us": int(t_us),
             "last_event_us": torch.full(shape, np.iinfo(np.int64).min // 2, dtype=torch.int64, device=frame.device),
         }
@@ -290,7 +310,7 @@ class EventSimulator:
 
         if cfg.refractory_us > 0 and pieces:
             pieces = self._refractory(pieces)
-        if cfg.shot_noise_rate_hz > 0:
+        if cfg.shot_noise_rate_hz > 0 or cfg.hot_pixels:
             noise, new_ref = self._shot_noise(frame, new_ref, t0_us, dt_us)
             pieces.extend(noise)
 
@@ -339,15 +359,17 @@ class EventSimulator:
         ]
 
     def _shot_noise(self, frame, ref, t0_us: int, dt_us: int):
-        """Poisson shot-noise events (v2e's rate model): probability per pixel and polarity, uniform time in the
-        interval. They do not move the reference (moving it would make a static pixel answer every noise event with
-        an opposite "signal" event, doubling the rate)."""
+        """Poisson shot-noise events (v2e's rate model) plus the hot pixels' rate: probability per pixel and
+        polarity, uniform time in the interval. They do not move the reference (moving it would make a static pixel
+        answer every noise event with an opposite "signal" event, doubling the rate)."""
         torch = _torch()
         cfg = self.config
         st = self._state
         gen = st["generator"]
         inten01 = torch.clamp(frame, 0.0, 1.0)
         rate_hz = 0.5 * cfg.shot_noise_rate_hz * ((SHOT_NOISE_INTENSITY_FACTOR - 1.0) * inten01 + 1.0)
+        if st["hot_rate_hz"] is not None:
+            rate_hz = rate_hz + 0.5 * st["hot_rate_hz"]
         prob = torch.clamp(rate_hz * dt_us * 1e-6, max=1.0)
         u = torch.rand((2, *prob.shape), generator=gen, dtype=prob.dtype, device=prob.device)
         out = []

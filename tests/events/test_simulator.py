@@ -228,6 +228,31 @@ def test_shot_noise_rate_and_intensity_dependence():
     assert abs(len(ev_bright) - 0.25 * expected) < 5 * math.sqrt(0.25 * expected)
 
 
+def test_hot_pixels_fire_at_their_rate_on_a_fixed_set_whatever_the_light():
+    t_frames, size = 101, 50
+    t_us = np.arange(t_frames) * 10_000  # 1 s
+    kw = dict(hot_pixel_fraction=0.02, hot_pixel_rate_hz=40.0, seed=3)
+    for level in (0.0, 1.0):  # no intensity dependence, unlike shot noise
+        ev = simulate_events(np.full((t_frames, size, size), level), t_us, **kw)
+        pixels = np.unique(ev["y"].astype(int) * size + ev["x"])
+        assert abs(len(pixels) - 0.02 * size * size) < 5 * math.sqrt(0.02 * size * size)
+        expected = 40.0 * len(pixels)  # rate × 1 s × hot pixels
+        assert abs(len(ev) - expected) < 5 * math.sqrt(expected)
+        assert abs(int(ev["p"].sum()) - expected / 2) < 5 * math.sqrt(expected / 2)
+        if level == 0.0:
+            dark_pixels = pixels
+    assert np.array_equal(pixels, dark_pixels)  # the set is fixed by the seed
+    sim = EventSimulator(size, size, SimulatorConfig(**kw))
+    assert not sim.config.ideal
+    # a sensor without hot pixels draws exactly what it drew before the option existed
+    noisy = dict(threshold_sigma=0.03, shot_noise_rate_hz=20.0, leak_rate_hz=1.0, seed=7)
+    video = drifting_video(20, 6, 6)
+    assert np.array_equal(simulate_events(video, t_us[:20], **noisy),
+                          simulate_events(video, t_us[:20], hot_pixel_fraction=0.5, hot_pixel_rate_hz=0.0, **noisy))
+    with pytest.raises(ConfigError):
+        SimulatorConfig(hot_pixel_fraction=1.5)
+
+
 def test_leak_fires_on_events_at_the_leak_rate():
     t_us = np.arange(251) * 10_000  # 2.5 s
     video = np.full((251, 3, 3), 0.5)

@@ -319,7 +319,7 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     ((root, sizes, kw),) = calls
     assert root == str(tmp_path) and sizes == {"train": 7, "val": 0, "test": 3}
     assert kw == {"duration_s": 1.5, "seed": 9, "device": "cuda", "workers": 3, "compression": "blosc-zstd",
-                  "progress": False, "threads": None, "config": syn.SyntheticSceneConfig()}
+                  "progress": False, "threads": None, "config": syn.SyntheticSceneConfig(), "time_budget_s": None}
     assert json.loads(capsys.readouterr().out) == {"ok": 1}
     assert cli.main([str(tmp_path), "--sequences", "4", "--clothing", "white", "stripes"]) == 0
     assert calls[-1][2]["config"].clothing_kinds == ("white", "stripes")
@@ -343,6 +343,62 @@ def test_cli_maps_arguments_onto_generate_dataset(monkeypatch, tmp_path, capsys)
     assert calls[-1][0] == str(tmp_path / "new") and calls[-1][2]["progress"] is False
     assert cli.main([str(tmp_path), "--out", str(tmp_path), "--sequences", "4"]) == 2
     assert "argument --out: not allowed with a positional OUT_DIR" in capsys.readouterr().err
+    # --recipe gen1like, with the scene options over it; --time-budget-min in seconds
+    assert cli.main([str(tmp_path), "--sequences", "4", "--recipe", "gen1like", "--time-budget-min", "2.5"]) == 0
+    assert calls[-1][2]["config"] == syn.GEN1_LIKE_SCENES and calls[-1][2]["time_budget_s"] == 150.0
+    assert cli.main([str(tmp_path), "--sequences", "4", "--recipe", "gen1like", "--vehicles", "0", "0"]) == 0
+    assert calls[-1][2]["config"] == dataclasses.replace(syn.GEN1_LIKE_SCENES, vehicle_counts=(0, 0))
+    assert cli.main([str(tmp_path), "--sequences", "4", "--recipe", "gen2"]) == 2
+    assert cli.main([str(tmp_path), "--sequences", "4", "--time-budget-min", "0"]) == 2
+
+
+def test_gen1like_recipe_draws_an_atis_like_sensor_and_painted_cars_and_keeps_the_test_subsets():
+    recipe = syn.SCENE_RECIPES["gen1like"]
+    assert syn.SCENE_RECIPES["bundled"] == syn.SyntheticSceneConfig()
+    for seed in range(8):
+        scene = syn.sample_scene(np.random.default_rng(seed), "train", recipe)
+        sim = scene.simulator
+        assert 0.25 * 0.85 <= sim.threshold_on <= 0.45 * 1.15 and 500 <= sim.refractory_us <= 2000
+        assert 50 <= sim.cutoff_hz <= 300 and 1e-4 <= sim.hot_pixel_fraction <= 1e-3 and sim.hot_pixel_rate_hz >= 20
+        assert 1 <= len(scene.vehicles) <= 3
+        assert all(c.contrast >= 0.5 and c.pattern in ("stripes", "checks") for c in scene.vehicles)
+        assert all(p.clothing == "parts_grey" for p in scene.people)
+    # the bundled recipe draws exactly what it drew before hot pixels and car paints were options
+    plain = syn.sample_scene(np.random.default_rng(3), "train", syn.SyntheticSceneConfig(vehicle_counts=(1, 2)))
+    assert plain.simulator.hot_pixel_fraction == 0.0
+    assert {c.pattern for seed in range(12) for c in syn.sample_scene(
+        np.random.default_rng(seed), "train", syn.SyntheticSceneConfig(vehicle_counts=(2, 2))).vehicles} == set(
+        syn.PAINT_PATTERNS)
+    for job in syn.dataset_plan({"train": 0, "val": 0, "test": 9}):
+        held_out = syn.scene_for_job(job, 0, recipe)
+        assert held_out.vehicles == () and held_out.people[0].clothing == syn.scene_for_job(job, 0).people[0].clothing
+    with pytest.raises(ValueError, match="vehicle_patterns"):
+        syn.SyntheticSceneConfig(vehicle_patterns=("tartan",))
+
+
+def test_time_budget_renders_val_and_test_first_and_a_rerun_continues(tmp_path, monkeypatch):
+    from davis_rig.training.synthetic import plan
+
+    order = []
+    real = plan._generate_one
+    monkeypatch.setattr(plan, "_generate_one", lambda root, job, *a: order.append(job.split) or real(root, job, *a))
+    sizes = {"train": 2, "val": 1, "test": 1}
+    root = tmp_path / "ds"
+    nothing = syn.generate_dataset(root, sizes, duration_s=0.05, seed=1, compression="gzip", threads=1,
+                                   time_budget_s=0.0)
+    assert (nothing["generated"], nothing["remaining"], order) == (0, 4, [])
+    ticks = iter(range(1000))  # a clock that moves 1 s per reading: the budget of 1.5 s lets one sequence start
+    monkeypatch.setattr(plan.time, "perf_counter", lambda: float(next(ticks)))
+    first = syn.generate_dataset(root, sizes, duration_s=0.05, seed=1, compression="gzip", threads=1,
+                                 time_budget_s=1.5)
+    monkeypatch.undo()
+    monkeypatch.setattr(plan, "_generate_one", lambda root, job, *a: order.append(job.split) or real(root, job, *a))
+    assert (first["generated"], first["remaining"], order) == (1, 3, ["val"])
+    rest = syn.generate_dataset(root, sizes, duration_s=0.05, seed=1, compression="gzip", threads=1)
+    assert (rest["generated"], rest["skipped"], rest["remaining"]) == (3, 1, 0)
+    assert order == ["val", "test", "train", "train"]
+    card = json.loads((root / "dataset_card.json").read_text())
+    assert {k: v["sequences"] for k, v in card["splits"].items()} == sizes
 
 
 def test_held_out_evaluation_scores_each_subset(tiny_dataset, tmp_path):

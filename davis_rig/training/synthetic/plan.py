@@ -213,12 +213,16 @@ def _claim_root(root: Path, settings: Mapping[str, Any], split_sizes: Mapping[st
 
 
 def _run_jobs(root: Path, todo: list[SequenceJob], *, seed: int, config: SyntheticSceneConfig, device: str,
-              compression: str, threads: int | None, workers: int, bar) -> list[dict[str, Any]]:
+              compression: str, threads: int | None, workers: int, bar,
+              deadline: float | None = None) -> list[dict[str, Any]]:
     """Render and write the ``todo`` sequences in this process (``workers == 1``) or in ``workers`` spawned
-    processes; ``bar`` (a tqdm bar or ``None``) advances per finished sequence. Returns their records."""
+    processes; ``bar`` (a tqdm bar or ``None``) advances per finished sequence. Past ``deadline`` (a
+    :func:`time.perf_counter` value) no new sequence starts; those started are finished. Returns their records."""
     results = []
     if workers == 1:
         for job in todo:
+            if deadline is not None and time.perf_counter() > deadline:
+                break
             results.append(_generate_one(str(root), job, seed, config, device, compression, threads))
             if bar is not None:
                 bar.update(1)
@@ -233,9 +237,14 @@ def _run_jobs(root: Path, todo: list[SequenceJob], *, seed: int, config: Synthet
         futures = [pool.submit(_generate_one, str(root), job, seed, config, device, compression, threads)
                    for job in todo]
         for future in as_completed(futures):
+            if future.cancelled():
+                continue
             results.append(future.result())
             if bar is not None:
                 bar.update(1)
+            if deadline is not None and time.perf_counter() > deadline:
+                for pending in futures:
+                    pending.cancel()  # only those not started yet: a running sequence is finished
     return results
 
 
@@ -266,11 +275,13 @@ def _write_card(root: Path, jobs: list[SequenceJob], config: SyntheticSceneConfi
 def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2.0, seed: int = 0,
                      device: str = "cpu", workers: int = 1, compression: str = "blosc-zstd",
                      config: SyntheticSceneConfig | None = None, progress: bool = False,
-                     threads: int | None = None) -> dict[str, Any]:
+                     threads: int | None = None, time_budget_s: float | None = None) -> dict[str, Any]:
     """Generate (or resume) a synthetic dataset in RVT's layout with a dataset card.
 
     Finished sequences (folder with ``meta.json``) are skipped, so an interrupted run continues where it
-    stopped; the settings are stored in ``generation.json`` and a resumed run must use the same ones.
+    stopped; the settings are stored in ``generation.json`` and a resumed run must use the same ones. The validation
+    and test sequences are rendered before the training ones, so a run stopped early (``time_budget_s``) leaves a
+    dataset that trains and scores, with fewer training sequences.
 
     Args:
         root: dataset folder.
@@ -284,9 +295,12 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
         progress: show a progress bar on stderr.
         threads: torch CPU threads per process (default: torch's own choice with one process, the cores split
             among the workers otherwise). On a busy machine 1 is much faster than oversubscribed threads.
+        time_budget_s: start no new sequence after this many seconds (those started are finished; the card lists
+            the finished ones; the same call again continues).
 
     Returns:
-        Summary dict: ``generated``, ``skipped``, ``card`` (path), ``seconds``, ``stage_seconds`` (this call).
+        Summary dict: ``generated``, ``skipped``, ``remaining`` (planned, not generated: the time budget ran
+        out), ``total``, ``card`` (path), ``seconds``, ``stage_seconds`` (this call).
 
     Raises:
         FormatError: ``root`` holds a dataset generated with other settings.
@@ -304,16 +318,18 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
     settings = {"seed": int(seed), "duration_s": float(duration_s), "config": dataclasses.asdict(config),
                 "compression": compression}
     _claim_root(root, settings, split_sizes)
-    todo = [job for job in jobs if not _is_finished(root, job)]
+    # val and test first: small, and what training validates on and scoring reads (a budget cut leaves them whole)
+    todo = sorted((job for job in jobs if not _is_finished(root, job)), key=lambda job: job.split == "train")
     skipped = len(jobs) - len(todo)
     clock = time.perf_counter()
+    deadline = None if time_budget_s is None else clock + float(time_budget_s)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=len(jobs), initial=skipped, unit="seq", desc="synthetic")
     results = _run_jobs(root, todo, seed=seed, config=config, device=device, compression=compression,
-                        threads=threads, workers=int(workers), bar=bar)
+                        threads=threads, workers=int(workers), bar=bar, deadline=deadline)
     if bar is not None:
         bar.close()
     stage = dict.fromkeys(STAGES, 0.0)
@@ -327,5 +343,6 @@ def generate_dataset(root, split_sizes: dict[str, int], *, duration_s: float = 2
                       "an earlier run: training still reads them; they are listed in the dataset card under "
                       "'unplanned_sequences' (delete them to drop them)", RuntimeWarning, stacklevel=2)
     card = _write_card(root, jobs, config, settings, compression, unplanned)
-    return {"generated": len(results), "skipped": skipped, "total": len(jobs), "card": str(card),
+    return {"generated": len(results), "skipped": skipped, "remaining": len(todo) - len(results),
+            "total": len(jobs), "card": str(card),
             "seconds": time.perf_counter() - clock, "stage_seconds": stage}

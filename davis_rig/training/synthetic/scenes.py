@@ -34,6 +34,9 @@ from davis_rig.scene.shading import Light
 
 __all__ = [
     "CLOTHING_KINDS",
+    "GEN1_LIKE_SCENES",
+    "PAINT_PATTERNS",
+    "SCENE_RECIPES",
     "DISTRACTOR_KINDS",
     "SEED_RANGE",
     "SPLIT_SEED_OFFSETS",
@@ -72,6 +75,8 @@ SPLIT_SPEEDS_M_S = {
 }
 #: Distractor object kinds.
 DISTRACTOR_KINDS = ("box", "disc", "bar")
+#: Paints of distractors and car bodies (see :class:`DistractorSpec`).
+PAINT_PATTERNS = ("flat", "stripes", "checks")
 
 
 # ------------------------------------------------------------------------------------------ scene descriptions
@@ -225,6 +230,9 @@ class SyntheticSceneConfig:
         refractory_probability, refractory_us: chance and range of a refractory period (µs).
         shot_noise_rate_hz, leak_rate_hz: ranges of the noise rates (Hz per pixel).
         cutoff_probability, cutoff_hz: chance and range of the photoreceptor low-pass (Hz).
+        hot_pixel_fraction, hot_pixel_rate_hz: ranges of the fraction of hot pixels and of their noise rate (Hz);
+            drawn only when the rate's upper end is above 0 (the default draws nothing, so older datasets stay as
+            they were).
         simulator_dtype: ``"float64"`` (exact) or ``"float32"`` (faster, for big runs).
         clothing_kinds: the kinds :func:`sample_scene` draws clothing from (uniformly; default all of
             :data:`CLOTHING_KINDS`). E.g. without ``"grid"`` and ``"pattern60"`` the detector never sees
@@ -233,6 +241,11 @@ class SyntheticSceneConfig:
         vehicle_counts: (min, max) labelled cars per train/val scene (:class:`VehicleSpec`, Gen1 class 0); the
             default ``(0, 0)`` is the single-class bundled recipe. With cars the detector's class score must
             tell a person from a car, as Gen1's two-class RVT does. The held-out test scenes have none.
+        vehicle_contrast, vehicle_patterns: range of the contrast of a car's body paint around its level, and the
+            patterns it is drawn from (as :class:`DistractorSpec`'s).
+
+    :data:`SCENE_RECIPES` names the two recipes: ``"bundled"`` (these defaults) and ``"gen1like"``
+    (:data:`GEN1_LIKE_SCENES`).
     """
 
     duration_s: float = 2.0
@@ -258,9 +271,13 @@ class SyntheticSceneConfig:
     leak_rate_hz: tuple[float, float] = (0.0, 0.2)
     cutoff_probability: float = 0.3
     cutoff_hz: tuple[float, float] = (100.0, 2000.0)
+    hot_pixel_fraction: tuple[float, float] = (0.0, 0.0)
+    hot_pixel_rate_hz: tuple[float, float] = (0.0, 0.0)
     simulator_dtype: str = "float64"
     clothing_kinds: tuple[str, ...] = CLOTHING_KINDS
     vehicle_counts: tuple[int, int] = (0, 0)
+    vehicle_contrast: tuple[float, float] = (0.0, 0.45)
+    vehicle_patterns: tuple[str, ...] = PAINT_PATTERNS
 
     def __post_init__(self) -> None:
         if not 0 <= self.vehicle_counts[0] <= self.vehicle_counts[1]:
@@ -269,6 +286,9 @@ class SyntheticSceneConfig:
         if not self.clothing_kinds or unknown:
             raise ConfigError("clothing_kinds", f"expected a non-empty subset of {CLOTHING_KINDS}, got "
                              f"{tuple(self.clothing_kinds)}")
+        if not self.vehicle_patterns or set(self.vehicle_patterns) - set(PAINT_PATTERNS):
+            raise ConfigError("vehicle_patterns", f"expected a non-empty subset of {PAINT_PATTERNS}, got "
+                             f"{tuple(self.vehicle_patterns)}")
         if not self.duration_s >= 0.05:
             raise ConfigError("duration_s", f"must be >= 0.05 s (one window), got {self.duration_s}")
         if self.render_rate_hz < 200.0 or (1e6 / self.render_rate_hz) % 1:
@@ -282,6 +302,22 @@ class SyntheticSceneConfig:
             raise ConfigError("person_height_px", f"expected 0 < low <= high, got {self.person_height_px}")
         if not 0.0 <= self.test_scale_probability <= 1.0:
             raise ConfigError("test_scale_probability", f"must be in [0, 1], got {self.test_scale_probability}")
+
+
+#: A recipe closer to the paper's victim, RVT trained on Prophesee Gen1 (car-mounted ATIS, 304 x 240): small
+#: people (most Gen1 pedestrians are 20-120 px tall), an ATIS-like sensor (higher and mismatched thresholds, a
+#: refractory period, limited bandwidth, leak, shot noise and hot pixels), a mostly moving camera, plain grey
+#: clothing, and 1-3 cars with high-contrast painted bodies in every scene, so that dense events inside an object
+#: speak for "car", not "pedestrian" (the direction the paper's L_cls exploits). The test subsets are unchanged.
+GEN1_LIKE_SCENES = SyntheticSceneConfig(
+    person_height_px=(25.0, 180.0), test_scale_probability=0.1, ego_motion_probability=0.8,
+    threshold=(0.25, 0.45), threshold_sigma=(0.02, 0.06), refractory_probability=1.0, refractory_us=(500.0, 2000.0),
+    shot_noise_rate_hz=(0.1, 2.0), leak_rate_hz=(0.1, 1.0), cutoff_probability=1.0, cutoff_hz=(50.0, 300.0),
+    hot_pixel_fraction=(1e-4, 1e-3), hot_pixel_rate_hz=(20.0, 100.0), clothing_kinds=("parts_grey",),
+    vehicle_counts=(1, 3), vehicle_contrast=(0.5, 0.95), vehicle_patterns=("stripes", "checks"),
+)
+#: The named scene recipes of ``davis-make-dataset --recipe``.
+SCENE_RECIPES = {"bundled": SyntheticSceneConfig(), "gen1like": GEN1_LIKE_SCENES}
 
 
 def check_split(split: str) -> None:
@@ -365,12 +401,12 @@ def sample_distractor(rng, split: str, hw: tuple[int, int], duration_s: float,
         kind=kind, size_px=size, start_xy_px=start, velocity_px_s=velocity,
         angle_rad=float(rng.uniform(0, math.pi)), spin_rad_s=float(rng.normal(0, 1.0)),
         level=float(rng.uniform(0.05, 0.95)), contrast=float(rng.uniform(0.0, 0.45)),
-        pattern=str(rng.choice(("flat", "stripes", "checks"))), period_px=float(rng.uniform(4, 30)),
+        pattern=str(rng.choice(PAINT_PATTERNS)), period_px=float(rng.uniform(4, 30)),
         front=bool(rng.random() < front_probability),
     )
 
 
-def _vehicle(rng, hw: tuple[int, int], duration_s: float) -> VehicleSpec:
+def _vehicle(rng, hw: tuple[int, int], duration_s: float, config: SyntheticSceneConfig) -> VehicleSpec:
     h, w = hw
     length = float(rng.uniform(50, 220))
     speed = float(rng.uniform(40, 300)) * float(rng.choice([1.0, -1.0]))
@@ -380,7 +416,7 @@ def _vehicle(rng, hw: tuple[int, int], duration_s: float) -> VehicleSpec:
     start = (mid[0] - velocity[0] * duration_s / 2, mid[1] - velocity[1] * duration_s / 2)
     return VehicleSpec(
         length_px=length, start_xy_px=start, velocity_px_s=velocity, level=float(rng.uniform(0.05, 0.95)),
-        contrast=float(rng.uniform(0.0, 0.45)), pattern=str(rng.choice(("flat", "stripes", "checks"))),
+        contrast=float(rng.uniform(*config.vehicle_contrast)), pattern=str(rng.choice(config.vehicle_patterns)),
         period_px=float(rng.uniform(4, 30)), window_level=float(rng.uniform(0.02, 0.3)),
     )
 
@@ -388,6 +424,10 @@ def _vehicle(rng, hw: tuple[int, int], duration_s: float) -> VehicleSpec:
 def _simulator(rng, split: str, config: SyntheticSceneConfig) -> SimulatorConfig:
     theta = float(rng.uniform(*config.threshold))
     asym = float(rng.uniform(-config.threshold_asymmetry, config.threshold_asymmetry))
+    hot = {}
+    if config.hot_pixel_rate_hz[1] > 0:  # drawn only with hot pixels: other recipes draw what they drew before
+        hot = {"hot_pixel_fraction": float(rng.uniform(*config.hot_pixel_fraction)),
+               "hot_pixel_rate_hz": float(rng.uniform(*config.hot_pixel_rate_hz))}
     return SimulatorConfig(
         threshold_on=theta * (1 + asym), threshold_off=theta * (1 - asym),
         threshold_sigma=float(rng.uniform(*config.threshold_sigma)),
@@ -395,7 +435,7 @@ def _simulator(rng, split: str, config: SyntheticSceneConfig) -> SimulatorConfig
         shot_noise_rate_hz=float(rng.uniform(*config.shot_noise_rate_hz)),
         leak_rate_hz=float(rng.uniform(*config.leak_rate_hz)),
         cutoff_hz=float(rng.uniform(*config.cutoff_hz)) if rng.random() < config.cutoff_probability else 0.0,
-        seed=_seed(rng, split) % (1 << 62), dtype=config.simulator_dtype,
+        seed=_seed(rng, split) % (1 << 62), dtype=config.simulator_dtype, **hot,
     )
 
 
@@ -438,7 +478,7 @@ def sample_scene(rng: np.random.Generator, split: str = "train",
     if config.vehicle_counts[1] == 0:  # draws nothing more: single-class datasets stay as they were
         return scene
     n_vehicles = int(rng.integers(config.vehicle_counts[0], config.vehicle_counts[1] + 1))
-    return dataclasses.replace(scene, vehicles=tuple(_vehicle(rng, camera.hw, config.duration_s)
+    return dataclasses.replace(scene, vehicles=tuple(_vehicle(rng, camera.hw, config.duration_s, config)
                                                      for _ in range(n_vehicles)))
 
 
