@@ -97,7 +97,8 @@ def read_attack_checkpoint(path: str | Path, map_location=None) -> dict:
 
 
 #: Settings that may change when a run is resumed (the others must match the checkpoint's).
-FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_every", "checkpoint_interval_s")
+FREE_ON_RESUME = ("iterations", "refine_passes", "refine_clips", "checkpoint_every", "checkpoint_interval_s",
+                  "detector_step")
 
 
 #: Fields whose default changed after runs were written without them: the value such a run used. A checkpoint

@@ -33,16 +33,17 @@ from typing import Sequence
 import numpy as np
 
 from davis_rig._lazy import optional_dependency
+from davis_rig.attack.config import DETECTOR_STEPS
 from davis_rig.attack.loss import AdversarialLoss, adversarial_loss, anchor_cells, anchors_on_boxes
-from davis_rig.errors import ShapeError
+from davis_rig.errors import ConfigError, ShapeError
 
 with optional_dependency("the attack"):
     import torch
 
 __all__ = ["STEP_MODES", "DetectorLoss", "FixedShapeAttackLoss"]
 
-#: How :class:`FixedShapeAttackLoss` runs the detector part.
-STEP_MODES = ("eager", "cuda_graph", "compile")
+#: How :class:`FixedShapeAttackLoss` runs the detector part (``AttackConfig.detector_step``).
+STEP_MODES = DETECTOR_STEPS
 
 
 class DetectorLoss(torch.nn.Module):
@@ -100,15 +101,17 @@ class FixedShapeAttackLoss:
         mode: one of :data:`STEP_MODES`.
 
     Raises:
-        ValueError: unknown mode, or ``"cuda_graph"`` with a detector that is not on a CUDA device.
+        ConfigError: unknown mode, or ``"cuda_graph"`` with a detector that is not on a CUDA device (field
+            ``detector_step``).
     """
 
     def __init__(self, detector, config, mode: str = "eager"):
         if mode not in STEP_MODES:
-            raise ValueError(f"mode must be one of {STEP_MODES}, got {mode!r}")
+            raise ConfigError("detector_step", f"expected one of {STEP_MODES}, got {mode!r}")
         self.device = next(detector.parameters()).device
         if mode == "cuda_graph" and self.device.type != "cuda":
-            raise ValueError(f"mode 'cuda_graph' records a CUDA graph: the detector is on {self.device}, not CUDA")
+            raise ConfigError("detector_step", f"'cuda_graph' records a CUDA graph: the detector is on {self.device}, "
+                                               "not CUDA (--device cuda)")
         self.config = config
         self.mode = mode
         self.module = DetectorLoss(detector, config)

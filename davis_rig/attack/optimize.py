@@ -52,6 +52,7 @@ Their public names are importable from here too.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -77,6 +78,7 @@ from davis_rig.attack.checkpoint import (
 from davis_rig.attack.config import SELECTION_RULES, V2E_GRADIENTS, AttackConfig
 from davis_rig.attack.detector import load_attack_detector
 from davis_rig.attack.eot import ClipPool, PoolClip
+from davis_rig.attack.fixed_step import FixedShapeAttackLoss
 from davis_rig.attack.lr_schedule import lr_at
 from davis_rig.attack.step import attack_loss, clip_histograms, soft_grid
 from davis_rig.attack.stop import StopOnSignal, StopRequested, check_stop
@@ -166,6 +168,9 @@ class _Run:
         wrote_checkpoint: a checkpoint exists (the run can be resumed).
         last_checkpoint_s: ``time.monotonic()`` of the last checkpoint (the wall-time period).
         log: ``log.jsonl`` open for appending (rank 0, while the steps run).
+        step_loss: ``(grid, clips) -> AdversarialLoss`` of a step: :func:`~davis_rig.attack.step.attack_loss` or,
+            with ``config.detector_step`` other than ``"eager"``, a
+            :class:`~davis_rig.attack.fixed_step.FixedShapeAttackLoss` built once for the run.
         steps_done: steps completed in this call.
     """
 
@@ -189,6 +194,7 @@ class _Run:
     last_checkpoint_s: float = 0.0
     log: object = None
     steps_done: int = 0
+    step_loss: object = None
 
     @property
     def ckpt_path(self) -> Path:
@@ -313,6 +319,10 @@ def _read_state(ckpt_path: Path, resume: bool, config: AttackConfig, device) -> 
     return state
 
 
+def _eager_step_loss(grid, clips, *, detector, config: AttackConfig):
+    return attack_loss(grid, clips, detector, config)
+
+
 def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, device, state: dict | None,
              max_steps: int | None) -> _Run:
     """The generator (seeded by ``config.seed``) and its optimizer, restored from ``state`` when resuming."""
@@ -320,8 +330,12 @@ def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, d
     generator = TextureGenerator(config.grid_n, hidden=config.hidden, dropout=config.dropout).to(device)
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
                                  weight_decay=config.weight_decay)
+    if config.detector_step == "eager":
+        step_loss = functools.partial(_eager_step_loss, detector=detector, config=config)
+    else:
+        step_loss = FixedShapeAttackLoss(detector, config, mode=config.detector_step)
     run = _Run(config=config, detector=detector, out=out, generator=generator, optimizer=optimizer, rank=rank,
-               world=world, device=device, wrote_checkpoint=state is not None)
+               world=world, device=device, wrote_checkpoint=state is not None, step_loss=step_loss)
     if state is not None:
         try:
             generator.load_state_dict(state["generator"])
@@ -444,7 +458,7 @@ def _optimizer_step(run: _Run, step: int) -> tuple["torch.Tensor", float]:
     for group in run.optimizer.param_groups:
         group["lr"] = lr_at(config.lr_schedule, step, config.lr, config.lr_period or config.iterations, config.lr_min)
     grid = binarize_ste(soft_grid(run.generator, config.seed, step), alpha)
-    loss = attack_loss(grid, run.pool.sample(step, config.clips_per_step // run.world), run.detector, config)
+    loss = run.step_loss(grid, run.pool.sample(step, config.clips_per_step // run.world))
     run.optimizer.zero_grad(set_to_none=True)
     loss.total.backward()
     _average_gradients(run.generator.parameters(), run.world)

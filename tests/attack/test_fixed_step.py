@@ -55,16 +55,22 @@ def test_eager_fixed_shape_loss_is_attack_loss_bit_for_bit(detector, clips, over
 
 def test_modes_are_checked(detector):
     config = AttackConfig(grid_n=4, eot=TINY_EOT)
-    with pytest.raises(ValueError, match="mode must be one of"):
+    with pytest.raises(ValueError, match="expected one of"):
         FixedShapeAttackLoss(detector, config, mode="jit")
     with pytest.raises(ValueError, match="records a CUDA graph: the detector is on cpu"):
         FixedShapeAttackLoss(detector, config, mode="cuda_graph")
 
 
 @pytest.mark.gpu
-def test_cuda_graph_replays_the_eager_loss_and_gradient():
+def test_cuda_graph_replays_the_eager_loss_and_gradient(monkeypatch):
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA device")
+    # plain fp32 on both paths (cuDNN's default TF32 convolutions put the two 8.8e-4 apart on an H200). Even then two
+    # eager runs differ: the backward's atomic adds sum in another order each time (on an H200, eager vs eager
+    # 0.3-4.2e-5 of the gradient's norm, graph vs eager 0.3-8.3e-5; single cells up to 4e-4 where terms cancel), so
+    # the gradient is compared by its norm
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
     cuda = torch.device("cuda")
     model = load_detector(FIXTURE).to(cuda).eval()
     for p in model.parameters():
@@ -78,6 +84,6 @@ def test_cuda_graph_replays_the_eager_loss_and_gradient():
         want, want_grad = _loss_and_grad(lambda g: eager(g, moved), grid)
         got, got_grad = _loss_and_grad(lambda g: graphed(g, moved), grid)
         torch.testing.assert_close(got.total, want.total, rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(got_grad, want_grad, rtol=1e-4, atol=1e-7)
+        assert float((got_grad - want_grad).norm() / want_grad.norm()) < 5e-4
     with pytest.raises(ShapeError, match="keep clips_per_step"):
         graphed(grid, moved[:1])

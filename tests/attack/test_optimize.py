@@ -786,3 +786,26 @@ def test_validation_simulates_the_active_box_only_with_the_whole_frames_result(b
                                     events=events)
     whole_frame = np.mean([(d[:, 4] * d[:, 6]).max() for d in decoded])
     assert validate(grid, [clip], detector, 0.25, events)["mean_top_score"] == pytest.approx(whole_frame, abs=1e-6)
+
+
+def test_detector_step_runs_the_fixed_shape_loss_and_resumes_under_another(detector, body, tmp_path, monkeypatch):
+    """config.detector_step other than eager: the loop calls FixedShapeAttackLoss (built once) and learns what the
+    eager loop learns; the mode only changes speed, so a run resumes under another one."""
+    import davis_rig.attack.optimize as opt
+    from davis_rig.attack.fixed_step import FixedShapeAttackLoss
+
+    built = []
+
+    def recording(det, config, mode):  # CPU: the "compile" mode's contract, run eagerly
+        built.append(mode)
+        return FixedShapeAttackLoss(det, config, mode="eager")
+
+    monkeypatch.setattr(opt, "FixedShapeAttackLoss", recording)
+    eager = optimize_texture(_tiny(), detector, tmp_path / "eager", body_model=body, progress=False)
+    fixed = optimize_texture(_tiny(detector_step="compile"), detector, tmp_path / "fixed", body_model=body,
+                             progress=False, max_steps=2)
+    assert built == ["compile"]
+    rest = optimize_texture(_tiny(), detector, tmp_path / "fixed", body_model=body, progress=False, resume=True)
+    assert (fixed.steps, rest.steps) == (2, 2)
+    assert _log(tmp_path / "eager" / "log.jsonl")[0] == _log(tmp_path / "fixed" / "log.jsonl")[0]
+    assert np.array_equal(eager.texture, rest.texture)

@@ -125,6 +125,7 @@ BAD_VALUES = [  # (argv after the subcommand, the option the one-line message mu
     (["optimize", "--device", "gpu"], "--device"),
     (["optimize", "--seed", "-1"], "--seed"),
     (["optimize", "--max-steps", "0"], "--max-steps"),
+    (["optimize", "--detector-step", "cuda_graph", "--device", "cpu"], "--detector-step"),  # needs CUDA
     (["evaluate", "--texture", "nokey"], "--texture"),
     (["evaluate", "--table", "1", "--texture", "ten=x.npy"], "--texture"),
     (["evaluate"], "--texture"),
