@@ -24,6 +24,7 @@ examples:
   davis-train data/synth --out runs/rvt_t --resume              # continue from runs/rvt_t/checkpoints/last.pt
   davis-train data/synth --out runs/t --steps 20000 --chunk-steps 500   # CPU: 500 steps per call, then --resume
   davis-train data/synth --out runs/mini --preset mini --steps 50 --batch 2 --seq-len 3 --device cpu
+  davis-train data/mine --out runs/ft --init rvt-t.ckpt --steps 2000 --lr 1e-4   # fine-tune trained weights
 
 DATA_DIR holds train/ (and val/ for validation AP) sequences in RVT's layout (event_representations_v2/
 stacked_histogram_dt=50_nbins=10 + labels_v2), e.g. a preprocessed Gen1 folder or davis_rig's synthetic data.
@@ -52,6 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="windows per chunk, the TBPTT length (default: 21)")
     parser.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda, cuda:1 ...")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/checkpoints/last.pt")
+    parser.add_argument("--init", metavar="WEIGHTS", default=None,
+                        help="start from these RVT weights (fine-tuning: an official or davis_rig .ckpt, "
+                             ".safetensors, a davis-train last.pt); the architecture is theirs (--preset unused); "
+                             "not with --resume")
     parser.add_argument("--lr", type=positive_float, default=2e-4, help="peak learning rate (default: 2e-4)")
     parser.add_argument("--precision", choices=["auto", "fp32", "bf16", "fp16"], default="auto",
                         help="mixed precision on CUDA (auto: bf16 if supported, else fp16; CPU: fp32)")
@@ -92,7 +97,7 @@ OPTIONS = {"model": "--preset", "steps": "--steps", "batch_size": "--batch", "se
            "val_batch_size": "--val-batch", "val_max_sequences": "--val-max-sequences",
            "val_skip_first_us": "--val-skip-first-ms", "min_box_side_px": "--min-box-side",
            "ckpt_every": "--ckpt-every", "log_every": "--log-every", "num_workers": "--workers",
-           "sampling": "--sampling"}
+           "sampling": "--sampling", "init_weights": "--init"}
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -106,7 +111,7 @@ def _train(args: argparse.Namespace) -> int:
     with removing_new_empty_dirs(args.out):  # e.g. a missing DATA_DIR leaves no empty RUN_DIR/checkpoints
         summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
                         time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
-                        export=not args.no_export)
+                        export=not args.no_export, init_weights=args.init)
     print(json.dumps(summary, indent=1, default=str))
     if not summary["finished"]:
         print(f"{NAME}: stopped at step {summary['step']}; continue with: {NAME} {args.data_dir} --out {args.out} "

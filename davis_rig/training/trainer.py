@@ -30,7 +30,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from davis_rig._lazy import optional_dependency
-from davis_rig.errors import CheckpointError, FormatError
+from davis_rig.errors import CheckpointError, ConfigError, FormatError
 from davis_rig.models.rvt.checkpoint import TRAIN_CHECKPOINT_FORMAT
 from davis_rig.models.rvt.config import RVTConfig
 from davis_rig.models.rvt.detector import RVTDetector, pad_to_input
@@ -176,6 +176,7 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
         self.ema = ModelEMA(self.model, config.ema_decay) if config.ema_decay else None
         self.anchors = AnchorGrid.build(self.model_config.in_res_hw, self.model_config.head_strides, self.device)
+        self.init_source: str | None = None  # the weights the run started from (init_from), None = random
 
         self.train_set = RandomChunkDataset(self.data_dir, "train", config.seq_len, min_side_px=config.min_box_side_px)
         num_stream = config.batch_size // 2 if config.sampling == "mixed" else 0
@@ -324,6 +325,7 @@ class Trainer:
             "batches_done": self.batches_done,
             "train_config": self.config.to_dict(),
             "model_config": self.model_config.to_json(),
+            "init_source": self.init_source,
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
@@ -338,6 +340,21 @@ class Trainer:
             "best": dict(self.best),
             "history_s": self.history_s,
         }
+
+    def init_from(self, detector: nn.Module, source: str) -> None:
+        """Start from a trained detector's weights (fine-tuning): the model and its EMA take them; the optimizer and
+        the schedule stay fresh. ``source`` (the file) goes into the checkpoints and the export metadata.
+
+        Raises:
+            CheckpointError: the detector's architecture is not this run's.
+        """
+        if getattr(detector, "config", None) != self.model_config:
+            raise CheckpointError(f"{source}: the weights are {getattr(detector, 'config', None)}, this run is "
+                                  f"{self.model_config.name}")
+        self.model.load_state_dict(detector.state_dict())
+        if self.ema is not None:
+            self.ema = ModelEMA(self.model, self.config.ema_decay)
+        self.init_source = str(source)
 
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
         """Write the full training state (atomically: temp file + rename); default ``checkpoints/last.pt``."""
@@ -370,6 +387,7 @@ class Trainer:
         if state.get("cuda_rng") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda_rng"]])
         self._states = state.get("states")
+        self.init_source = state.get("init_source")
         if self.stream is not None and state.get("stream") is not None:
             self.stream.load_state_dict(state["stream"])
             self.stream_params = [AugmentParams(**p) if p is not None else None for p in state["stream_params"]]
@@ -480,7 +498,8 @@ class Trainer:
         else:
             model = copy.deepcopy(self.eval_model).to("cpu").float().eval()
             source = f"step {self.step}"
-        meta = {"trained_steps": str(self.step), "source": source, "train_config": json.dumps(self.config.to_dict()),
+        meta = {"trained_steps": str(self.step), "source": source, "init": str(self.init_source),
+                "train_config": json.dumps(self.config.to_dict()),
                 "best_val": json.dumps(self.best), "data": str(self.data_dir.name)}
         half = copy.deepcopy(model).half()
         paths = {"safetensors": save_safetensors(half, out_dir / "model_fp16.safetensors", metadata=meta)}
@@ -503,7 +522,8 @@ class Trainer:
 
 
 def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, resume: bool = False,
-          max_steps: int | None = None, time_budget_s: float | None = None, export: bool = True) -> dict[str, Any]:
+          max_steps: int | None = None, time_budget_s: float | None = None, export: bool = True,
+          init_weights: str | Path | None = None) -> dict[str, Any]:
     """Build a :class:`Trainer`, optionally resume from ``run_dir/checkpoints/last.pt``, fit, export when finished.
 
     Args:
@@ -513,6 +533,9 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
             and its ``log.jsonl`` and ``best.safetensors`` are removed (with a warning).
         max_steps, time_budget_s: stop this call early (resumable chunks).
         export: export the final model when ``config.steps`` is reached.
+        init_weights: a new run starts from these RVT weights (any file :func:`load_detector` reads: an official
+            or davis_rig checkpoint, ``.safetensors``, a davis-train ``last.pt``), fine-tuning them; the
+            architecture is theirs (``config.model`` is not used). Not with ``resume`` (the checkpoint has them).
 
     Returns:
         The :meth:`Trainer.fit` summary plus ``export`` paths (as strings) when exported.
@@ -520,8 +543,16 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
     Raises:
         CheckpointError: ``resume`` without a checkpoint, or an unreadable, foreign or incompatible one.
     """
+    from davis_rig.models.rvt.checkpoint import load_detector
+
     run_dir = Path(run_dir)
     last = run_dir / "checkpoints" / "last.pt"
+    if resume and init_weights is not None:
+        raise ConfigError("init_weights", "a resumed run continues its checkpoint: no initial weights")
+    model_config = init = None
+    if init_weights is not None:  # read before anything in RUN_DIR changes: a bad file leaves an earlier run intact
+        init = load_detector(init_weights)
+        model_config = init.config
     if resume:
         if not last.is_file():
             raise CheckpointError(f"{last}: no checkpoint to resume from")
@@ -531,13 +562,17 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
         except (TypeError, ValueError, FormatError) as exc:
             raise CheckpointError(f"{last}: bad training settings in the checkpoint ({exc})") from exc
         config = replace(saved_cfg, device=config.device, num_workers=config.num_workers, progress=config.progress)
+        if saved.get("model_config") is not None:  # the architecture of the run (of its initial weights, if any)
+            model_config = RVTConfig.from_dict(saved["model_config"])
         del saved
     else:  # a fresh run: nothing of an earlier run in RUN_DIR may be mistaken for this one's
         stale = [p for p in (last, run_dir / "checkpoints" / "best.safetensors", run_dir / "log.jsonl") if p.is_file()]
         if stale:
             warnings.warn(f"{', '.join(map(str, stale))} of an earlier run will be overwritten or removed (pass "
                           "resume=True to continue it)", stacklevel=2)
-    trainer = Trainer(data_dir, run_dir, config)
+    trainer = Trainer(data_dir, run_dir, config, model_config=model_config)
+    if init is not None:
+        trainer.init_from(init, str(init_weights))
     if not resume:  # removed only once the run could start (a bad DATA_DIR keeps the earlier run intact)
         (run_dir / "checkpoints" / "best.safetensors").unlink(missing_ok=True)
         (run_dir / "log.jsonl").unlink(missing_ok=True)

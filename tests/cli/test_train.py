@@ -29,9 +29,19 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
     assert config.ema_decay == 0.999 and config.num_workers == 2 and not config.progress
     assert config.val_skip_first_us == 0 and config.min_box_side_px == 4.0 and config.sampling == "random"
     assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0 and config.stream_augment.zoom_prob == 0
-    assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False}
+    assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False, "init_weights": None}
     out = capsys.readouterr()
     assert json.loads(out.out)["step"] == 7 and "--resume" in out.err
+    assert cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--init", "w.safetensors", "-q"]) == 0
+    assert calls[-1][3]["init_weights"] == "w.safetensors"
+
+
+def test_init_with_resume_is_an_argument_error_naming_init(tmp_path, capsys):
+    assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), "--resume", "--init", "w.pt",
+                     "--preset", "mini", "--device", "cpu", "-q"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "davis-train: error: argument --init: a resumed run continues its checkpoint: no initial weights")
+    assert not (tmp_path / "r").exists()
 
 
 def test_defaults_are_the_rvt_recipe(monkeypatch, tmp_path):

@@ -194,3 +194,32 @@ def test_config_rejects_negative_rates_and_intervals(field, value):
 
     with pytest.raises(ConfigError, match=f"^{field}: "):
         _config(**{field: value})
+
+
+def test_init_weights_fine_tune_a_trained_detector_and_resume_without_them(moving_boxes_dataset, tmp_path):
+    from davis_rig.errors import ConfigError
+    from davis_rig.models.rvt.checkpoint import load_detector
+
+    torch.set_num_threads(2)
+    first = train(moving_boxes_dataset, tmp_path / "first", _config(steps=2), export=False)
+    assert first["finished"]
+    weights = tmp_path / "first" / "checkpoints" / "last.pt"
+    start = load_detector(weights)
+    tuned = Trainer(moving_boxes_dataset, tmp_path / "probe", _config(steps=2, ema_decay=0.99))
+    tuned.init_from(start, str(weights))
+    for (name, a), b in zip(tuned.model.state_dict().items(), start.state_dict().values()):
+        assert torch.equal(a, b), name  # the model and its EMA start at the given weights
+    assert all(torch.equal(a, b) for a, b in zip(tuned.ema.model.state_dict().values(), start.state_dict().values()))
+    summary = train(moving_boxes_dataset, tmp_path / "ft", _config(steps=3, model="tiny"), init_weights=weights,
+                    max_steps=1, export=False)  # the architecture is the weights' (mini), not the preset's
+    assert summary["step"] == 1
+    rest = train(moving_boxes_dataset, tmp_path / "ft", _config(steps=3, model="tiny"), resume=True, export=False)
+    assert rest["finished"] and rest["step"] == 3
+    assert torch.load(tmp_path / "ft" / "checkpoints" / "last.pt", weights_only=False)["init_source"] == str(weights)
+    with pytest.raises(ConfigError, match="no initial weights"):
+        train(moving_boxes_dataset, tmp_path / "ft", _config(steps=3), resume=True, init_weights=weights)
+    with pytest.raises(CheckpointError, match="this run is"):
+        Trainer(moving_boxes_dataset, tmp_path / "other", _config(model="tiny")).init_from(start, "mini.pt")
+    with pytest.raises(CheckpointError):
+        train(moving_boxes_dataset, tmp_path / "bad", _config(), init_weights=tmp_path / "missing.safetensors")
+    assert not (tmp_path / "bad").exists()
