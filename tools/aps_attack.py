@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--probe-every", type=non_negative_int, default=10,
                         help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
+    parser.add_argument("--refresh-every", type=positive_int, default=25,
+                        help="a quarter of each scale's pool is redrawn every N steps (default 25)")
     parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
                         help="the labeler's confidence threshold (default 0.25, davis-label's)")
     parser.add_argument("--headings", type=int, choices=[1, 2, 4], default=2,
@@ -99,7 +101,8 @@ def _run(args: argparse.Namespace) -> int:
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = ApsAttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, lr=args.lr,
-                             frames_per_step=args.frames_per_step, pool_size=args.pool_size, conf=args.threshold,
+                             frames_per_step=args.frames_per_step, pool_size=args.pool_size,
+                             refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every, seed=args.seed)
     camera = PinholeCamera.davis346()
@@ -123,7 +126,7 @@ def _run(args: argparse.Namespace) -> int:
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
-                         "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
+                         "refresh_every": args.refresh_every, "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
                          "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None},
