@@ -516,7 +516,8 @@ class Trainer:
             model_config=self.model_config.to_dict(), train_config=self.config.to_dict(), dataset_card=dataset_card,
             validation=self.best if self.best.get("AP") is not None else None,
             compute={"device": str(self.device), "precision": str(self.amp_dtype or torch.float32),
-                     "steps": self.step, "train_hours": round(self.history_s / 3600, 3)},
+                     "steps": self.step, "train_hours": round(self.history_s / 3600, 3),
+                     **({"initial weights": self.init_source} if self.init_source else {})},
             files=files)
         return paths
 

@@ -216,6 +216,10 @@ def test_init_weights_fine_tune_a_trained_detector_and_resume_without_them(movin
     rest = train(moving_boxes_dataset, tmp_path / "ft", _config(steps=3, model="tiny"), resume=True, export=False)
     assert rest["finished"] and rest["step"] == 3
     assert torch.load(tmp_path / "ft" / "checkpoints" / "last.pt", weights_only=False)["init_source"] == str(weights)
+    card = Trainer(moving_boxes_dataset, tmp_path / "ft", _config(steps=3, model="mini"))
+    card.load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt")
+    paths = card.export(tmp_path / "ft_export", onnx=False)
+    assert f"initial weights: {weights}" in paths["model_card"].read_text()
     with pytest.raises(ConfigError, match="no initial weights"):
         train(moving_boxes_dataset, tmp_path / "ft", _config(steps=3), resume=True, init_weights=weights)
     with pytest.raises(CheckpointError, match="this run is"):
