@@ -319,10 +319,6 @@ def _read_state(ckpt_path: Path, resume: bool, config: AttackConfig, device) -> 
     return state
 
 
-def _eager_step_loss(grid, clips, *, detector, config: AttackConfig):
-    return attack_loss(grid, clips, detector, config)
-
-
 def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, device, state: dict | None,
              max_steps: int | None) -> _Run:
     """The generator (seeded by ``config.seed``) and its optimizer, restored from ``state`` when resuming."""
@@ -331,7 +327,7 @@ def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, d
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
                                  weight_decay=config.weight_decay)
     if config.detector_step == "eager":
-        step_loss = functools.partial(_eager_step_loss, detector=detector, config=config)
+        step_loss = functools.partial(attack_loss, detector=detector, config=config)
     else:
         step_loss = FixedShapeAttackLoss(detector, config, mode=config.detector_step)
     run = _Run(config=config, detector=detector, out=out, generator=generator, optimizer=optimizer, rank=rank,

@@ -29,8 +29,9 @@ v2e), shot noise (``shot_noise_rate_hz``: Poisson ON+OFF noise events per pixel,
 v2e; they leave the reference alone, so the rate is exactly the one asked for), leak (``leak_rate_hz``: the
 reference sinks by ``leak_rate_hz · θ_on`` per second from a random per-pixel phase, which fires spontaneous ON
 events), hot pixels (``hot_pixel_fraction`` of the pixels, a fixed random set, fire noise at ``hot_pixel_rate_hz``
-whatever the light, as on an ATIS / Gen1 sensor) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz`` scales with intensity (v2e's photoreceptor
-bandwidth model: ``ε = dt · 2π · cutoff_hz · (255 I + 20) / 275``, clipped at 1).
+whatever the light, as on an ATIS / Gen1 sensor) and a first-order low-pass of ``L`` whose cutoff ``cutoff_hz``
+scales with intensity (v2e's photoreceptor bandwidth model: ``ε = dt · 2π · cutoff_hz · (255 I + 20) / 275``,
+clipped at 1).
 
 All arithmetic is vectorised over pixels; Python loops run over frames (and, only with a refractory period, over
 the crossing rank within one interval). torch is imported lazily; the simulator runs on any torch device.
