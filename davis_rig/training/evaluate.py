@@ -122,7 +122,9 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
     """Stream sequences through an RVT detector (zero states at each sequence start) and post-process.
 
     Args:
-        model: :class:`~davis_rig.models.rvt.detector.RVTDetector` (put in eval mode, moved to ``device``).
+        model: :class:`~davis_rig.models.rvt.detector.RVTDetector` (put in eval mode, moved to ``device``), or an
+            :class:`~davis_rig.models.rvt.ort_runner.RVTOnnxRunner` (an exported step graph, fp32 or int8;
+            ``device`` is then ignored).
         paths: sequence folders.
         thresholds: confidence thresholds to post-process at (all from one NMS pass, ``postprocess_thresholds``).
         lanes: sequences of equal length run side by side as one batch.
@@ -136,10 +138,9 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
     """
     import torch
 
-    from davis_rig.models.rvt.detector import pad_to_input
     from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
-    model = model.to(device).eval()
+    step = _step_function(model, device)
     data = [SequenceData(p) for p in paths]
     results: list[SequenceDetections | None] = [None] * len(data)
     by_length: dict[int, list[int]] = {}
@@ -154,10 +155,8 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
                 states = None
                 with torch.no_grad():
                     for w in range(length):
-                        hist = torch.from_numpy(np.concatenate([data[i].histograms(w, w + 1) for i in group]))
-                        x = pad_to_input(hist.to(device).float(), model.config.in_res_hw)
-                        features, states = model.forward_backbone(x, states)
-                        decoded = model.forward_detect(features).float().cpu()
+                        hist = np.concatenate([data[i].histograms(w, w + 1) for i in group])
+                        decoded, states = step(hist, states)
                         per_window.append(postprocess_thresholds(decoded, thresholds, nms_threshold))
                         if bar is not None:
                             bar.update(len(group))
@@ -175,6 +174,31 @@ def detect_sequences(model, paths: Sequence[Path], thresholds: Sequence[float], 
         for seq in data:
             seq.close()
     return results  # type: ignore[return-value]
+
+
+def _step_function(model, device: str) -> Callable:
+    """``step(uint8 histograms [B, 20, H, W], states or None) -> (decoded float32 tensor [B, A, 5 + C] on the
+    CPU, new states)`` of a torch RVT or an onnxruntime step graph."""
+    import torch
+
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+
+    if isinstance(model, RVTOnnxRunner):
+        def step(hist, states):
+            decoded, new_states = model.step(hist, states)
+            return torch.from_numpy(decoded), new_states
+
+        return step
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    model = model.to(device).eval()
+
+    def step(hist, states):
+        x = pad_to_input(torch.from_numpy(hist).to(device).float(), model.config.in_res_hw)
+        features, new_states = model.forward_backbone(x, states)
+        return model.forward_detect(features).float().cpu(), new_states
+
+    return step
 
 
 def score_sequences(records: Sequence[SequenceDetections], config: SplitScoreConfig,
@@ -235,33 +259,37 @@ def _groups(records: Sequence[SequenceDetections]) -> dict[str, list[SequenceDet
 
 def evaluate_split(data_dir: str | Path, weights: str | Path | None = None, *,
                    config: SplitScoreConfig = SplitScoreConfig(), device: str = "cpu",
-                   coco_backend: str = "faster_coco_eval", progress: Callable | None = None) -> dict[str, Any]:
+                   coco_backend: str = "faster_coco_eval", progress: Callable | None = None,
+                   threads: int | None = None) -> dict[str, Any]:
     """Score a detector on a dataset split, per group (``all``, clothing, ``clothing/scale``).
 
     Args:
         data_dir: dataset folder (``davis-make-dataset`` output or RVT's preprocessed layout).
-        weights: RVT checkpoint (``.safetensors``, ``.ckpt``, ``.pt``); default: the bundled detector.
+        weights: RVT checkpoint (``.safetensors``, ``.ckpt``, ``.pt``) or exported step graph (``.onnx``, run by
+            onnxruntime on the CPU); default: the bundled detector's weights.
         config: the scoring settings.
-        device: torch device.
+        device: torch device (a checkpoint's).
         coco_backend: COCO evaluation backend.
         progress: see :func:`detect_sequences`.
+        threads: onnxruntime intra-op threads of an ``.onnx`` graph (``None``: onnxruntime's choice).
 
     Returns:
         ``{"weights", "split", "config", "time_s", "groups": {group: score_sequences(...)}}``.
 
     Raises:
         FormatError: the split has no sequences. MissingDependencyError: no weights given and none bundled.
-        CheckpointError: unusable weights.
+        CheckpointError: unusable weights. ModelFormatError: an unusable ``.onnx`` graph.
     """
     from davis_rig.models import default_detector_weights_path
     from davis_rig.models.rvt.checkpoint import load_detector
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
 
     weights = Path(weights) if weights is not None else default_detector_weights_path()
     paths = list_sequences(data_dir, config.split)
     if not paths:
         raise FormatError(f"{Path(data_dir) / config.split}: no sequences")
     start = time.perf_counter()
-    model = load_detector(weights)
+    model = RVTOnnxRunner(weights, intra_op_threads=threads) if weights.suffix.lower() == ".onnx" else load_detector(weights)
     thresholds = sorted({AP_THRESHOLD, *config.seqasr_thresholds})
     records = detect_sequences(model, paths, thresholds, lanes=config.lanes, nms_threshold=config.nms_threshold,
                                device=device, progress=progress)

@@ -16,8 +16,9 @@ from onnx import TensorProto, helper, numpy_helper
 
 from davis_rig.attack.evaluate import EvalConfig, TextureSpec
 from davis_rig.attack.texture import white_texture
-from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, cell_footprint,
-                                         frame_loss, optimize_aps_texture, pool_order)
+from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, aps_scenes,
+                                         cell_footprint, frame_loss, optimize_aps_texture, pool_order,
+                                         validation_shapes)
 from davis_rig.errors import CheckpointError
 from davis_rig.labelers.yolo import YoloOnnxDetector
 from davis_rig.scene.camera import PinholeCamera
@@ -132,6 +133,57 @@ def test_detection_rates_rows(tiny_yolo):
     rows = aps_detection_rates({"white": TextureSpec(white_texture(1))}, labeler, eval_config=config)
     assert len(rows) == 1 and rows[0]["texture"] == "white" and rows[0]["frames"] >= 1
     assert 0.0 <= rows[0]["rate"] <= 1.0 and set(rows[0]["by_scale"]) == {"small"}
+
+
+def test_validation_keeps_the_best_texture_and_resumes_with_it(tiny_yolo, tmp_path):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=3, frames_per_step=1, scales=("small",), pool_size=1,
+                             alpha_schedule="hard", validate_every=1, checkpoint_every=1)
+    # a scripted validator: recall 0.5, then 0.25 (the best), then 0.75
+    rates = iter([0.5, 0.25, 0.75, 0.9])
+    seen = []
+
+    def validate(grid):
+        seen.append(np.array(grid))
+        return {"rate": next(rates), "mean_top_score": 0.3}
+
+    with pytest.raises(ValueError, match="validate callable"):
+        optimize_aps_texture(config, yolo, tmp_path)
+    optimize_aps_texture(config, yolo, tmp_path, validate=validate)
+    records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["val_rate"] for r in records] == [0.5, 0.25, 0.75]
+    assert json.loads((tmp_path / "best.json").read_text()) == {"step": 2, "rate": 0.25, "mean_top_score": 0.3}
+    np.testing.assert_array_equal(np.load(tmp_path / "best_texture.npy"), seen[1])
+    assert set(np.unique(seen[1])) <= {0.0, 1.0}
+    # resuming restores the best from the checkpoint (a later, worse validation does not replace it)
+    (tmp_path / "best.json").unlink()
+    optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 4}), yolo, tmp_path, resume=True,
+                         validate=validate)
+    assert json.loads((tmp_path / "best.json").read_text())["step"] == 2
+    # validating more or less often is free on resume
+    optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 5, "validate_every": 0}), yolo,
+                         tmp_path, resume=True)
+    with pytest.raises(ValueError, match="validate_every"):
+        ApsAttackConfig(validate_every=-1)
+
+
+def test_validation_shapes_are_training_shapes_apart_from_the_test_split():
+    from davis_rig.attack.eot import split_shapes
+
+    train, test = split_shapes(24)
+    shapes = validation_shapes(24, 6)
+    assert len(shapes) == 6 and set(shapes) <= set(train) and not set(shapes) & set(test)
+    assert shapes[0] == train[0] and shapes[-1] == train[-1]
+    assert validation_shapes(24, 100) == train
+
+
+def test_prepared_scenes_score_as_fresh_ones(tiny_yolo):
+    labeler = YoloOnnxDetector(tiny_yolo, conf_threshold=0.001)
+    config = EvalConfig(camera=PinholeCamera.davis346(), scales=("small",), shapes=(1,),
+                        headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1)
+    textures = {"white": TextureSpec(white_texture(1))}
+    assert (aps_detection_rates(textures, labeler, scenes=aps_scenes(config))
+            == aps_detection_rates(textures, labeler, eval_config=config))
 
 
 def test_cell_footprint_counts_each_cells_pixels():

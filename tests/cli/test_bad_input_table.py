@@ -20,7 +20,7 @@ import pytest
 
 import numpy as np
 
-from davis_rig.cli import attack, eval_dataset, export, info, label, make_dataset, record, train, view
+from davis_rig.cli import attack, eval_dataset, export, info, label, make_dataset, quantize, record, train, view
 from davis_rig.cli import eval as eval_cli
 from davis_rig.labelers.session_labels import label_session
 
@@ -29,7 +29,7 @@ from tests.helpers.eval_data import person_rvt, person_yolo, scene_session, sha2
 COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval": eval_cli.main,
             "davis-eval-dataset": eval_dataset.main, "davis-train": train.main,
             "davis-make-dataset": make_dataset.main, "davis-info": info.main, "davis-export": export.main,
-            "davis-view": view.main, "davis-attack": attack.main}
+            "davis-view": view.main, "davis-attack": attack.main, "davis-quantize": quantize.main}
 #: The scripts of tools/ that take arguments (each gets rows below; ``tools/x.py`` runs ``x.main``).
 TOOLS = ("aedat4_to_session", "aps_attack", "capture_replay", "contact_sheet", "convert_checkpoint",
          "export_body_asset", "make_sample_replay", "make_sample_session", "make_trigger_victim", "measure_labeler",
@@ -147,6 +147,21 @@ ROWS = [
         "argument --out: not allowed with a positional OUT_DIR", created=["{out}"]),
     Row("davis-make-dataset", "Ctrl-C", ["--out", "{out}", "--sequences", "3", "-q"], 130, "interrupted",
         interrupt="davis_rig.training.synthetic.generate_dataset", created=["{out}"]),
+    # davis-quantize
+    Row("davis-quantize", "nonexistent file", ["--detector", "{rvt}", "--calibration", "{missing}", "--out",
+                                               "{out}.onnx", "-q"], 4, "missing.davisreplay: no such file or folder",
+        created=["{out}.onnx"]),
+    Row("davis-quantize", "wrong file type", ["--detector", "{text}", "--calibration", "{session}", "--out",
+                                              "{out}.onnx", "-q"], 4, "text.h5", created=["{out}.onnx"]),
+    Row("davis-quantize", "out of range", ["--calibration", "{session}", "--out", "{out}.onnx", "--windows", "0"], 2,
+        "argument --windows: expected an integer >= 1, got '0'", created=["{out}.onnx"]),
+    Row("davis-quantize", "nan", ["--calibration", "{session}", "--out", "{out}.onnx", "--seconds", "nan"], 2,
+        "argument --seconds: expected a finite number, got 'nan'", created=["{out}.onnx"]),
+    Row("davis-quantize", "conflicting options", ["--detector", "{rvt}", "--calibration", "{session}", "--out",
+                                                  "{rvt}"], 2, "argument --out: must differ from --detector"),
+    Row("davis-quantize", "Ctrl-C", ["--detector", "{rvt}", "--calibration", "{session}", "--out", "{out}.onnx",
+                                     "-q"], 130, "interrupted",
+        interrupt="davis_rig.models.rvt.quantize.quantize_step_onnx", created=["{out}.onnx"]),
     # davis-info (no numeric option: nothing out of range, no NaN, no conflicting options)
     Row("davis-info", "nonexistent file", ["{missing}"], 4, "missing.davisreplay: no such session file"),
     Row("davis-info", "wrong file type", ["{text}"], 4, "text.h5: not a session.h5: not an HDF5 file"),
@@ -240,9 +255,9 @@ ROWS = [
     Row("tools/aedat4_to_session.py", "wrong file type", ["{session}", "{out}.h5"], 4,
         "session.h5: not an AEDAT4 file"),
     Row("tools/aps_attack.py", "nonexistent file", ["--out", "{out}", "--yolo", "{missing}", "-q"], 4,
-        "missing.davisreplay: not a readable ONNX model"),
+        "missing.davisreplay: no such YOLO ONNX file"),
     Row("tools/aps_attack.py", "wrong file type", ["--out", "{out}", "--yolo", "{text}", "-q"], 4,
-        "text.h5: not a readable ONNX model"),
+        "text.h5: onnxruntime cannot load the model"),
     Row("tools/aps_attack.py", "out of range", ["--out", "{out}", "--cells", "0"], 2,
         "argument --cells: expected an integer >= 1, got '0'"),
     Row("tools/aps_attack.py", "nan", ["--out", "{out}", "--phases", "nan"], 2,

@@ -109,6 +109,7 @@ def test_arguments_map_onto_evaluate_sessions(monkeypatch, capsys, tmp_path):
     (["--time-tol-ms", "-1"], "argument --time-tol-ms: expected a number in [0, inf), got '-1'"),
     (["--skip-first-ms", "-1"], "argument --skip-first-ms: expected a number in [0, inf), got '-1'"),
     (["--crop-origin", "500", "500"], "argument --crop-origin: the 304x240 crop at (500, 500) leaves the"),
+    (["--int8", "--detector", "m.onnx"], "argument --int8: not allowed with argument --detector"),
 ])
 def test_bad_arguments_exit_2(argv_tail, message, capsys):
     assert cli.main(["x.h5", *argv_tail]) == 2
@@ -186,6 +187,24 @@ def test_missing_bundled_detector_exits_5_and_says_how_to_pass_one(sessions, tmp
     err = capsys.readouterr().err
     assert err.startswith("davis-eval: error:") and "bundled default detector" in err and "--detector" in err, err
     assert sha256(a) == before
+
+
+def test_int8_scores_with_the_bundled_int8_graph(sessions, monkeypatch, capsys):
+    import davis_rig.evaluation.physical as physical
+    from davis_rig.models import default_detector_path
+
+    _, a, _ = sessions
+    used = []
+    original = physical.evaluate_sessions
+
+    def recording(paths, model, *args, **kwargs):
+        used.append(model)
+        return original(paths, model, *args, **kwargs)
+
+    monkeypatch.setattr(physical, "evaluate_sessions", recording)
+    assert cli.main([str(a), "--int8", "--threshold", "0.25", "--quiet"]) == 0
+    assert used == [default_detector_path(int8=True)] and used[0].name == "rvt_default_int8.onnx"
+    assert "| SeqASR ↑ | 0.25 |" in capsys.readouterr().out
 
 
 def _other_sensor_session(path):

@@ -104,7 +104,7 @@ def test_cli_prints_the_table_and_writes_json(monkeypatch, tmp_path, capsys):
 
     calls = []
 
-    def fake_evaluate_split(data_dir, weights, *, config, device, progress):
+    def fake_evaluate_split(data_dir, weights, *, config, device, progress, threads=None):
         calls.append((data_dir, weights, config, device))
         groups = {"all": score_sequences([_record([True] * 3)], config)}
         return {"weights": "w.safetensors", "split": config.split, "time_s": 0.1, "groups": groups,

@@ -39,16 +39,23 @@ def test_parts_have_the_step_signature_and_keep_every_node_once(mini_onnx):
     assert {"Conv", "MatMul"} <= _ops(parts.pre) and "Conv" in _ops(parts.head)
 
 
-def test_loop_bodies_reading_the_outer_graph_are_kept(tmp_path):
-    # graphs exported before the ConvLSTM used torch.split (the bundled detector among them) write each gate split
-    # as a Loop whose body reads tensors of the outer graph: the split keeps those producers in the same part
-    from davis_rig.errors import MissingDependencyError
-    from davis_rig.models import default_detector_path
+def test_loop_bodies_reading_the_outer_graph_are_kept(tmp_path, monkeypatch):
+    # graphs exported while the ConvLSTM used tensor_split write each gate split as a Loop whose body reads tensors
+    # of the outer graph: the split keeps those producers in the same part (such a graph is exported here by
+    # putting tensor_split back for the export)
+    torch = pytest.importorskip("torch")
+    from davis_rig.models.rvt.checkpoint import load_detector
+    from davis_rig.models.rvt.onnx_export import export_step_onnx
 
-    try:
-        path = default_detector_path()
-    except MissingDependencyError:
-        pytest.skip("the bundled detector is not installed")
+    def tensor_split_as_before(tensor, sizes, dim=0):
+        if isinstance(sizes, int):
+            return torch.tensor_split(tensor, tensor.shape[dim] // sizes, dim=dim)
+        return torch.tensor_split(tensor, [int(sum(sizes[:k])) for k in range(1, len(sizes))], dim=dim)
+
+    model = load_detector(Path(__file__).resolve().parents[2] / "fixtures" / "rvt_mini_fixture.safetensors")
+    with monkeypatch.context() as patch:
+        patch.setattr(torch, "split", tensor_split_as_before)
+        path = export_step_onnx(model, tmp_path / "loop.onnx")
     parts = split_step_graph(onnx.load(str(path)))
     assert "Loop" in _ops(parts.recur)
     runner = RVTOnnxRunner(path, intra_op_threads=1)
