@@ -1,7 +1,7 @@
 """Benchmark: the live view of ``davis-record --view`` beside a recording at the DAVIS346 peak — does it slow it?
 
 Run: ``python benchmarks/view_live.py [--rate 12e6] [--seconds 3] [--threads N] [--fps 25] [--aps-fps 25]
-[--queue-mib 8]``
+[--queue-mib 8] [--int8]`` (``--int8``: the bundled detector's int8 graph, as ``davis-record --view --int8``)
 
 The real ``Davis346`` driver reads the virtual DAVIS346, paced in device real time at ``--rate`` events/s (a
 person-sized blob walking across the sensor, 20 % uniform noise, full APS frames at ``--aps-fps``), through its
@@ -241,10 +241,11 @@ def main(argv=None) -> int:
     parser.add_argument("--queue-mib", type=float, default=DEFAULT_QUEUE_MIB,
                         help="nominal capacity of the driver's reader queue, MiB")
     parser.add_argument("--no-detector", action="store_true", help="the view without RVT")
+    parser.add_argument("--int8", action="store_true", help="the bundled detector's int8 graph")
     args = parser.parse_args(argv)
     from davis_rig.models import default_detector_path
 
-    detector = None if args.no_detector else default_detector_path()
+    detector = None if args.no_detector else default_detector_path(int8=args.int8)
     print(metadata_line(("numpy", "onnxruntime", "h5py", "opencv-contrib-python-headless"),
                         detector_threads=args.threads, display_fps_target=args.fps))
     events, frames = scene(args.rate, args.seconds, args.aps_fps)

@@ -42,6 +42,9 @@ def test_version_and_help(capsys):
     (["--no-detector", "--threshold", "0.1"], "argument --no-detector: not allowed with --detector"),
     (["--detections", "run", "--detector", "m.onnx"], "argument --detections: not allowed with --detector"),
     (["--detections", "run", "--threshold", "0.1"], "argument --threshold: with --detections the report's"),
+    (["--int8", "--detector", "m.onnx"], "argument --int8: not allowed with argument --detector"),
+    (["--no-detector", "--int8"], "argument --no-detector: not allowed with --detector, --int8"),
+    (["--detections", "run", "--int8"], "argument --detections: not allowed with --detector or --int8"),
     (["--crop-origin", "100", "100"], "argument --crop-origin: the 304x240 crop at (100, 100) leaves"),
     (["--port", "70000"], "argument --port: expected an integer in [0, 65535]"),
     (["--layers", "events,bogus", "--export", "x.gif"], "argument --layers: unknown layer(s) bogus"),
@@ -145,3 +148,12 @@ def test_ctrl_c_during_an_export_leaves_no_file(scene, tmp_path, monkeypatch, ca
     assert cli.main([str(scene), "--no-detector", "--export", str(tmp_path / "v.mp4")]) == 130
     assert capsys.readouterr().err.strip() == "davis-view: interrupted"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_int8_picks_the_bundled_int8_graph_for_the_session_and_the_live_view():
+    import argparse
+
+    from davis_rig.cli.view import _detector_path
+
+    assert _detector_path(argparse.Namespace(detector=None, int8=True)).name == "rvt_default_int8.onnx"
+    assert _detector_path(argparse.Namespace(detector=None, int8=False)).name == "rvt_default.onnx"

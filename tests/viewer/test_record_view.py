@@ -73,3 +73,7 @@ def test_live_view_options_need_view(capsys):
     assert "argument --view-host: 10.0.0.1 is not this machine's loopback" in capsys.readouterr().err
     assert record.main(["--out", "x.h5", "--view", "--no-detector", "--detector", "m.onnx"]) == 2
     assert "argument --no-detector: not allowed with --detector" in capsys.readouterr().err
+    assert record.main(["--out", "x.h5", "--int8"]) == 2
+    assert "argument --int8: only with --view" in capsys.readouterr().err
+    assert record.main(["--out", "x.h5", "--view", "--int8", "--detector", "m.onnx"]) == 2
+    assert "argument --int8: not allowed with argument --detector" in capsys.readouterr().err
