@@ -81,7 +81,7 @@ from davis_rig.attack.eot import ClipPool, PoolClip
 from davis_rig.attack.fixed_step import FixedShapeAttackLoss
 from davis_rig.attack.lr_schedule import lr_at
 from davis_rig.attack.step import attack_loss, clip_histograms, soft_grid
-from davis_rig.attack.stop import StopOnSignal, StopRequested, check_stop
+from davis_rig.stop import StopOnSignal, StopRequested, check_stop
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.attack.validation import REFINE_SEED_OFFSET, better, validate, validation_clips
 from davis_rig.errors import CheckpointError

@@ -17,7 +17,7 @@ from davis_rig.attack.config import AttackConfig
 from davis_rig.attack.eot import PoolClip, draw_scene, prepare_clip, slot_seed
 from davis_rig.attack.scoring import detect_histograms, score_detections, window_histograms
 from davis_rig.attack.step import clip_histograms
-from davis_rig.attack.stop import check_stop
+from davis_rig.stop import check_stop
 
 with optional_dependency("the attack"):
     import torch
@@ -81,7 +81,7 @@ def validate(grid: np.ndarray, clips: Sequence[PoolClip], detector, threshold: f
         train_path: ``(v2e_mode, v2e_binning)`` of the training (``AttackConfig.v2e_mode``, ``v2e_binning``):
             also score the training path; ``None``: the test path only.
         test_path: score the test path (False needs ``train_path``: the training path alone, half the cost).
-        stop: a :class:`~davis_rig.attack.stop.StopOnSignal` polled between clips (internal: a requested stop
+        stop: a :class:`~davis_rig.stop.StopOnSignal` polled between clips (internal: a requested stop
             abandons the validation).
         batch: clips per detector call (>= 1).
 

@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from davis_rig.cli.common import (EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
+from davis_rig.cli.common import (EXIT_INTERRUPTED, EXIT_OK, add_hidden_alias, add_out, add_quiet, add_threads, float_in, new_parser,
                                    non_negative_float, non_negative_int, positive_float, positive_int,
                                    removing_new_empty_dirs, run_main)
 from davis_rig.metrics.ap import SKIP_FIRST_US
@@ -101,6 +101,7 @@ OPTIONS = {"model": "--preset", "steps": "--steps", "batch_size": "--batch", "se
 
 
 def _train(args: argparse.Namespace) -> int:
+    from davis_rig.stop import StopOnSignal
     from davis_rig.training.trainer import train
 
     config = _config(args)  # a bad combination raises ConfigError before anything is created
@@ -108,11 +109,17 @@ def _train(args: argparse.Namespace) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
-    with removing_new_empty_dirs(args.out):  # e.g. a missing DATA_DIR leaves no empty RUN_DIR/checkpoints
+    # Ctrl-C (or SIGTERM) finishes the step in progress and writes its checkpoint; a second one stops at once
+    with removing_new_empty_dirs(args.out), StopOnSignal() as stop:
         summary = train(args.data_dir, args.out, config, resume=args.resume, max_steps=args.chunk_steps,
                         time_budget_s=None if args.time_budget_min is None else args.time_budget_min * 60.0,
-                        export=not args.no_export, init_weights=args.init)
+                        export=not args.no_export, init_weights=args.init, stop=stop)
     print(json.dumps(summary, indent=1, default=str))
+    if summary["stopped_by"] is not None:
+        print(f"{NAME}: checkpoint of step {summary['step']} written; continue with: {NAME} {args.data_dir} --out "
+              f"{args.out} --resume", file=sys.stderr)
+        print(f"{NAME}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if not summary["finished"]:
         print(f"{NAME}: stopped at step {summary['step']}; continue with: {NAME} {args.data_dir} --out {args.out} "
               "--resume", file=sys.stderr)

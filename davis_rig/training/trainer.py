@@ -418,14 +418,20 @@ class Trainer:
                                        "val_AP_50": f"{result.get('AP_50', float('nan')):.6f}"})
         return result
 
-    def fit(self, max_steps: int | None = None, time_budget_s: float | None = None) -> dict[str, Any]:
+    def fit(self, max_steps: int | None = None, time_budget_s: float | None = None, stop=None) -> dict[str, Any]:
         """Train until ``config.steps`` (or for at most ``max_steps`` more steps / ``time_budget_s`` seconds).
 
         A checkpoint is written every ``ckpt_every`` steps and when the call returns, so a run can proceed in
         resumable chunks (``Trainer(...).load_checkpoint(last.pt)`` then ``fit`` again).
 
+        Args:
+            max_steps, time_budget_s: stop this call early.
+            stop: a :class:`~davis_rig.stop.StopOnSignal` polled between steps: a requested stop (Ctrl-C) ends the
+                call after the step in progress, with its checkpoint written (``None``: never).
+
         Returns:
-            Summary: step, finished, last train losses, last validation result, best, seconds of this call.
+            Summary: step, finished, last train losses, last validation result, best, seconds of this call, and
+            ``stopped_by``: the signal that stopped it (``"SIGINT"``) or ``None``.
         """
         cfg = self.config
         start = time.perf_counter()
@@ -442,6 +448,8 @@ class Trainer:
         try:
             while self.step < target:
                 if time_budget_s is not None and time.perf_counter() - start > time_budget_s:
+                    break
+                if stop is not None and stop.requested:
                     break
                 batch = next(batches)
                 last_losses = self.train_step(batch)
@@ -464,13 +472,14 @@ class Trainer:
                 bar.close()
             batches.close()
         finished = self.step >= cfg.steps
-        if finished and (not cfg.val_every or self.step % cfg.val_every != 0):  # val_every 0: only at the end
+        stopped_by = stop.signal_name if stop is not None else None
+        if finished and stopped_by is None and (not cfg.val_every or self.step % cfg.val_every != 0):  # val_every 0: only at the end
             last_val = self._validate_and_select()
         self.history_s += time.perf_counter() - start
         self.save_checkpoint()
         return {"step": self.step, "finished": finished, "train": last_losses, "val": last_val,
                 "best": dict(self.best), "seconds": round(time.perf_counter() - start, 3),
-                "total_seconds": round(self.history_s, 3)}
+                "total_seconds": round(self.history_s, 3), "stopped_by": stopped_by}
 
     # ------------------------------------------------------------------ export
     def export(self, out_dir: str | Path | None = None, *, use_best: bool = True, onnx: bool = True) -> dict[str, Path]:
@@ -524,7 +533,7 @@ class Trainer:
 
 def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, resume: bool = False,
           max_steps: int | None = None, time_budget_s: float | None = None, export: bool = True,
-          init_weights: str | Path | None = None) -> dict[str, Any]:
+          init_weights: str | Path | None = None, stop=None) -> dict[str, Any]:
     """Build a :class:`Trainer`, optionally resume from ``run_dir/checkpoints/last.pt``, fit, export when finished.
 
     Args:
@@ -537,6 +546,7 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
         init_weights: a new run starts from these RVT weights (any file :func:`load_detector` reads: an official
             or davis_rig checkpoint, ``.safetensors``, a davis-train ``last.pt``), fine-tuning them; the
             architecture is theirs (``config.model`` is not used). Not with ``resume`` (the checkpoint has them).
+        stop: see :meth:`Trainer.fit` (a stopped run is not exported).
 
     Returns:
         The :meth:`Trainer.fit` summary plus ``export`` paths (as strings) when exported.
@@ -579,7 +589,7 @@ def train(data_dir: str | Path, run_dir: str | Path, config: TrainConfig, *, res
         (run_dir / "log.jsonl").unlink(missing_ok=True)
     if resume:
         trainer.load_checkpoint(last)
-    summary = trainer.fit(max_steps=max_steps, time_budget_s=time_budget_s)
-    if export and summary["finished"]:
+    summary = trainer.fit(max_steps=max_steps, time_budget_s=time_budget_s, stop=stop)
+    if export and summary["finished"] and summary["stopped_by"] is None:
         summary["export"] = {k: str(v) for k, v in trainer.export().items()}
     return summary

@@ -3,8 +3,8 @@ line, no traceback, and the output state each command documents.
 
 davis-label, davis-eval, davis-eval-dataset, davis-export and davis-view --export leave nothing (the input
 unchanged, no output, no staging file); davis-make-dataset keeps the finished sequences (a rerun continues);
-davis-train keeps its last checkpoint and log (``--resume`` continues). Elsewhere: davis-record stops cleanly
-(exit 0, a complete file: tests/session/test_capture_end_to_end.py), the davis-view server stops (exit 0:
+davis-train finishes the step in progress and writes its checkpoint (``--resume`` continues). Elsewhere:
+davis-record stops cleanly (exit 0, a complete file: tests/session/test_capture_end_to_end.py), the davis-view server stops (exit 0:
 tests/viewer/test_cli.py) and davis-attack optimize writes a checkpoint and exits 130
 (tests/cli/test_attack_commands.py). See :mod:`tests.helpers.interrupt` for how the commands are caught mid-work.
 """
@@ -115,15 +115,17 @@ def test_make_dataset_keeps_the_finished_sequences(tmp_path):
 
 
 @pytest.mark.slow  # the dataset fixture, then torch and the model load in the subprocess: > 10 s
-def test_train_keeps_its_last_checkpoint(dataset, tmp_path):
+def test_train_finishes_its_step_and_writes_its_checkpoint(dataset, tmp_path):
     torch = pytest.importorskip("torch")
     run = tmp_path / "run"
-    result = interrupt_while_working(
+    result = interrupt_while_working(  # no periodic checkpoint before step 1000: the Ctrl-C writes the one there is
         "davis_rig.cli.train:main", [str(dataset), "--out", str(run), "--preset", "mini", "--steps", "100",
-                                     "--batch", "2", "--seq-len", "2", "--val-every", "0", "--ckpt-every", "1",
-                                     "--log-every", "1", "--device", "cpu", "--threads", "1", "-q"],
-        "davis_rig.training.trainer:Trainer.train_step", tmp_path, after_items=2)  # step 1 is checkpointed
+                                     "--batch", "2", "--seq-len", "2", "--val-every", "0", "--log-every", "1",
+                                     "--device", "cpu", "--threads", "1", "-q"],
+        "davis_rig.training.trainer:Trainer.train_step", tmp_path, after_items=2)
     _assert_interrupted(result, "davis-train")
     step = torch.load(run / "checkpoints" / "last.pt", map_location="cpu", weights_only=False)["step"]
     logged = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
-    assert 1 <= step < 100 and logged[-1] >= step  # readable, at a step the log reached: --resume continues there
+    assert 2 <= step < 100 and logged[-1] == step  # the step in progress finished: --resume continues after it
+    assert f"checkpoint of step {step} written" in result.stderr and "--resume" in result.stderr
+    assert not (run / "export").exists()

@@ -15,7 +15,7 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
 
     def fake_train(data_dir, run_dir, config, **kwargs):
         calls.append((data_dir, run_dir, config, kwargs))
-        return {"step": 7, "finished": False}
+        return {"step": 7, "finished": False, "stopped_by": None}
 
     monkeypatch.setattr("davis_rig.training.trainer.train", fake_train)
     code = cli.main([str(tmp_path / "data"), "--out", str(tmp_path / "run"), "--preset", "small", "--steps", "100",
@@ -29,6 +29,9 @@ def test_arguments_map_onto_one_train_call(monkeypatch, tmp_path, capsys):
     assert config.ema_decay == 0.999 and config.num_workers == 2 and not config.progress
     assert config.val_skip_first_us == 0 and config.min_box_side_px == 4.0 and config.sampling == "random"
     assert config.augment.prob_hflip == 0 and config.augment.zoom_prob == 0 and config.stream_augment.zoom_prob == 0
+    from davis_rig.stop import StopOnSignal
+
+    assert isinstance(kwargs.pop("stop"), StopOnSignal)
     assert kwargs == {"resume": True, "max_steps": 7, "time_budget_s": None, "export": False, "init_weights": None}
     out = capsys.readouterr()
     assert json.loads(out.out)["step"] == 7 and "--resume" in out.err
@@ -47,7 +50,7 @@ def test_init_with_resume_is_an_argument_error_naming_init(tmp_path, capsys):
 def test_defaults_are_the_rvt_recipe(monkeypatch, tmp_path):
     seen = {}
     monkeypatch.setattr("davis_rig.training.trainer.train",
-                        lambda d, r, c, **k: seen.update(config=c, kwargs=k) or {"step": 1, "finished": True})
+                        lambda d, r, c, **k: seen.update(config=c, kwargs=k) or {"step": 1, "finished": True, "stopped_by": None})
     assert cli.main([str(tmp_path), "--out", str(tmp_path / "r")]) == 0
     config = seen["config"]
     assert (config.model, config.steps, config.batch_size, config.seq_len, config.lr) == ("tiny", 400_000, 8, 21, 2e-4)
@@ -68,7 +71,7 @@ def test_bad_arguments_exit_2(tmp_path, argv, capsys):
 def test_the_old_model_option_is_a_hidden_alias_of_preset(monkeypatch, tmp_path, capsys):
     seen = {}
     monkeypatch.setattr("davis_rig.training.trainer.train",
-                        lambda d, r, c, **k: seen.update(config=c) or {"step": 1, "finished": True})
+                        lambda d, r, c, **k: seen.update(config=c) or {"step": 1, "finished": True, "stopped_by": None})
     assert cli.main([str(tmp_path), "--out", str(tmp_path / "r"), "--model", "mini", "--threads", "1", "-q"]) == 0
     assert seen["config"].model == "mini" and not seen["config"].progress
     assert "--model" not in cli.build_parser().format_help()

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from davis_rig.attack.stop import StopOnSignal
+from davis_rig.stop import StopOnSignal
 
 
 @pytest.mark.parametrize("signum, name", [(signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")])

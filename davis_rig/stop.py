@@ -1,6 +1,6 @@
 """Stop requests: SIGINT / SIGTERM turned into a flag that a long loop polls between units of work.
 
-A loop that can save its state (the attack's optimisation) must not die in the middle of a step: inside
+A loop that can save its state (the attack's optimisation, training) must not die in the middle of a step: inside
 :class:`StopOnSignal` the first SIGINT (Ctrl-C) or SIGTERM only sets :attr:`StopOnSignal.signal_name`; the loop
 finishes the unit it is in, saves its state and stops. A second signal restores the previous handlers and raises
 :class:`KeyboardInterrupt` at once (the last saved state stays as it was: it is written atomically).
