@@ -74,8 +74,8 @@ class DatasetSequence:
 
 
 def calibration_sequences(paths, *, split: str, seconds: float) -> list[tuple[str, object]]:
-    """``(name, histograms)`` of every calibration source: a session's first ``seconds`` (uint8 [T, 20, 240, 304],
-    in memory), each sequence of a dataset folder (:class:`DatasetSequence`, read on demand).
+    """``(name, histograms)`` of every calibration source: a session's first ``seconds`` (:class:`SessionSequence`),
+    each sequence of a dataset folder (:class:`DatasetSequence`); both read window by window on demand.
 
     Raises:
         FormatError / SessionError: a path is neither a readable session nor a dataset folder.
@@ -86,7 +86,7 @@ def calibration_sequences(paths, *, split: str, seconds: float) -> list[tuple[st
     out: list[tuple[str, object]] = []
     for path in map(Path, paths):
         if path.is_file():
-            out.append((path.name, _session_histograms(path, seconds)))
+            out.append((path.name, SessionSequence(path, seconds)))
             continue
         if not path.is_dir():
             raise FormatError(f"{path}: no such file or folder")
@@ -107,24 +107,44 @@ def source_names(paths, split: str) -> list[str]:
     return [f"{Path(p).name} ({split} split)" if (Path(p) / split).is_dir() else Path(p).name for p in paths]
 
 
-def _session_histograms(path: Path, seconds: float):
-    """The first ``seconds`` of a session as davis-eval's windows (its crop origin, 50 ms, back to back)."""
-    from davis_rig.evaluation.physical import scoring_crop_origin
-    from davis_rig.events.crop import crop_events
-    from davis_rig.events.histogram import WINDOW_US, stacked_histograms
-    from davis_rig.evaluation.windows import window_grid
-    from davis_rig.errors import SessionError
-    from davis_rig.session.reader import SessionReader
+class SessionSequence:
+    """The first ``seconds`` of a session as davis-eval's windows (its crop origin, 50 ms, back to back), read
+    window by window: ``len()`` and ``seq[a:b]`` (uint8 histograms [b - a, 20, 240, 304]).
 
-    with SessionReader(path) as reader:
-        t0 = int(reader.t_offset_us)
-        events = reader.events_between(t0, t0 + int(seconds * 1e6))
-        attrs = reader.labels_attrs()
-    if not len(events):
-        raise SessionError(f"{path}: no events in its first {seconds:g} s to calibrate on")
-    origin = scoring_crop_origin(path, None, attrs)
-    ends = window_grid(t0, int(events["t"][-1]), WINDOW_US)
-    return stacked_histograms(crop_events(events, origin), ends)
+    Raises:
+        SessionError / FormatError: the session cannot be read or has no events in that span.
+    """
+
+    def __init__(self, path: Path, seconds: float):
+        from davis_rig.errors import SessionError
+        from davis_rig.evaluation.physical import scoring_crop_origin
+        from davis_rig.evaluation.windows import window_grid
+        from davis_rig.events.histogram import WINDOW_US
+        from davis_rig.session.reader import SessionReader
+
+        self.path = path
+        with SessionReader(path) as reader:
+            t0 = int(reader.t_offset_us)
+            last = reader.events_between(t0, t0 + int(seconds * 1e6))["t"][-1:]
+            attrs = reader.labels_attrs()
+        if not len(last):
+            raise SessionError(f"{path}: no events in its first {seconds:g} s to calibrate on")
+        self.origin = scoring_crop_origin(path, None, attrs)
+        self.window_end_us = window_grid(t0, int(last[0]), WINDOW_US)
+        self.window_us = WINDOW_US
+
+    def __len__(self) -> int:
+        return len(self.window_end_us)
+
+    def __getitem__(self, window: slice):
+        from davis_rig.events.crop import crop_events
+        from davis_rig.events.histogram import stacked_histograms
+        from davis_rig.session.reader import SessionReader
+
+        ends = self.window_end_us[window]
+        with SessionReader(self.path) as reader:  # windows are inclusive at both ends: read to end + 1 µs
+            events = reader.events_between(int(ends[0]) - self.window_us, int(ends[-1]) + 1)
+        return stacked_histograms(crop_events(events, self.origin), ends, window_us=self.window_us)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -98,3 +98,18 @@ def test_bad_sources_and_graphs_exit_4_and_write_nothing(mini_onnx, tmp_path, ca
     assert cli.main(["--detector", str(not_onnx), "--calibration", str(SAMPLE), "--out", str(out)]) == 4
     assert "davis-quantize: error:" in capsys.readouterr().err
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["empty", "model.onnx"]
+
+
+def test_a_session_is_read_window_by_window_as_davis_eval_windows_it():
+    from davis_rig.cli.quantize import SessionSequence
+    from davis_rig.events.crop import crop_events
+    from davis_rig.events.histogram import stacked_histograms
+    from davis_rig.session.reader import SessionReader
+
+    sequence = SessionSequence(SAMPLE, 10.0)
+    with SessionReader(SAMPLE) as reader:
+        whole = stacked_histograms(crop_events(reader.events(), sequence.origin), sequence.window_end_us)
+    assert len(sequence) == len(whole) > 2
+    np.testing.assert_array_equal(np.concatenate([sequence[w : w + 1] for w in range(len(sequence))]), whole)
+    np.testing.assert_array_equal(sequence[1:3], whole[1:3])
+    assert len(SessionSequence(SAMPLE, 0.06)) == 2  # only the first --seconds
