@@ -34,8 +34,9 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.attack.texture import ALPHA_SCHEDULES
-    from davis_rig.cli.common import (PART_CHOICES, add_out, add_quiet, add_threads, new_parser, non_negative_float,
-                                      non_negative_int, positive_float, positive_int, probability, run_main)
+    from davis_rig.cli.common import (PART_CHOICES, add_out, add_quiet, add_threads, camera_scale, new_parser,
+                                      non_negative_float, non_negative_int, positive_float, positive_int,
+                                      probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/aps_attack.py --out out/aps --iterations 200 --threads 1\n")
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="soft-to-hard binarization schedule (default linear; hard: binary from the start)")
     parser.add_argument("--scale-draw", choices=["random", "cycle"], default="random",
                         help="scale of each EoT frame: random (default) or cycle (balanced across scales)")
+    parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"],
+                        metavar="SCALE", help="one EoT pool per entry: large, middle, small or a person height in "
+                                              "px; repeat a scale to draw it more often (default large middle small)")
     parser.add_argument("--probe-every", type=non_negative_int, default=10,
                         help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
     parser.add_argument("--validate-every", type=non_negative_int, default=0, metavar="N",
@@ -113,7 +117,8 @@ def _run(args: argparse.Namespace) -> int:
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     config = ApsAttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, lr=args.lr,
-                             frames_per_step=args.frames_per_step, pool_size=args.pool_size,
+                             frames_per_step=args.frames_per_step, scales=tuple(args.scales),
+                             pool_size=args.pool_size,
                              refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every,
@@ -154,6 +159,7 @@ def _run(args: argparse.Namespace) -> int:
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
+                         "scales": list(args.scales),
                          "refresh_every": args.refresh_every, "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
                          "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
