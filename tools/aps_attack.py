@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
                              "kept as best_texture.npy (default 0: none)")
     parser.add_argument("--validation-shapes", type=positive_int, default=6, metavar="K",
                         help="training-split body shapes of the validation scenes (default 6)")
+    parser.add_argument("--hold-out-validation-shapes", action="store_true",
+                        help="leave the validation shapes out of the EoT clips, so that validation measures how the "
+                             "texture does on bodies it was not optimised on (as the test does)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
     parser.add_argument("--refresh-every", type=positive_int, default=25,
                         help="a quarter of each scale's pool is redrawn every N steps (default 25)")
@@ -116,19 +119,23 @@ def _run(args: argparse.Namespace) -> int:
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
-    config = ApsAttackConfig(grid_n=args.cells, parts=parts, iterations=args.iterations, lr=args.lr,
-                             frames_per_step=args.frames_per_step, scales=tuple(args.scales),
-                             pool_size=args.pool_size,
-                             refresh_every=args.refresh_every, conf=args.threshold,
+    body = BodyModel()
+    val_shapes = validation_shapes(body.num_shapes, args.validation_shapes)
+    eot_shapes = None
+    if args.hold_out_validation_shapes:
+        from davis_rig.attack.eot import split_shapes
+
+        eot_shapes = tuple(s for s in split_shapes(body.num_shapes)[0] if s not in val_shapes)
+    config = ApsAttackConfig(grid_n=args.cells, shapes=eot_shapes, parts=parts, iterations=args.iterations,
+                             lr=args.lr, frames_per_step=args.frames_per_step, scales=tuple(args.scales),
+                             pool_size=args.pool_size, refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every,
                              validate_every=args.validate_every, seed=args.seed)
     camera = PinholeCamera.davis346()
-    body = BodyModel()
     labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
     headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
     eval_config = EvalConfig(camera=camera, headings_rad=headings, phases=tuple(args.phases))
-    val_shapes = validation_shapes(body.num_shapes, args.validation_shapes)
     t0 = time.perf_counter()
     if args.evaluate_only:
         texture = np.load(out / "texture.npy")
@@ -165,7 +172,8 @@ def _run(args: argparse.Namespace) -> int:
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None,
                          "validate_every": args.validate_every, "best_on_validation": best,
-                         "validation_shapes": list(val_shapes)},
+                         "validation_shapes": list(val_shapes),
+                         "eot_shapes": "training split" if eot_shapes is None else list(eot_shapes)},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
                            "scales": ["large", "middle", "small"]},
               "command": shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]),

@@ -163,6 +163,8 @@ class ApsAttackConfig:
         iterations: Adam steps; lr: Adam learning rate of the generator.
         frames_per_step: EoT frames (one per clip) per step.
         scales: camera scales of the pool (names or person heights in px).
+        shapes: body shapes of the EoT clips (``None``: the training split of
+            :func:`~davis_rig.attack.eot.split_shapes`; the tool leaves the validation shapes out of it).
         pool_size: clips per scale; refresh_every: a quarter of each pool is redrawn every N steps.
         conf: the labeler's confidence threshold (the hinge aims below half of it).
         alpha_schedule: soft-to-hard schedule (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
@@ -183,6 +185,7 @@ class ApsAttackConfig:
     lr: float = 1e-2
     frames_per_step: int = 2
     scales: tuple = ("large", "middle", "small")
+    shapes: tuple[int, ...] | None = None
     pool_size: int = 6
     refresh_every: int = 25
     conf: float = 0.25
@@ -220,7 +223,7 @@ def aps_pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: b
     camera = PinholeCamera.davis346()
     generations = generations or [None] * len(config.scales)
     size, offset = (config.probe_clips, 1_000_003) if probe else (config.pool_size, 0)
-    return [ClipPool(EoTConfig(camera=camera, scale=s), body, config.grid_n, mask, size=size,
+    return [ClipPool(EoTConfig(camera=camera, scale=s, shapes=config.shapes), body, config.grid_n, mask, size=size,
                      base_seed=config.seed + offset + 31 * k, generations=gens)
             for k, (s, gens) in enumerate(zip(config.scales, generations))]
 

@@ -167,6 +167,15 @@ def test_validation_keeps_the_best_texture_and_resumes_with_it(tiny_yolo, tmp_pa
         ApsAttackConfig(validate_every=-1)
 
 
+def test_pools_draw_only_the_configured_shapes():
+    from davis_rig.attack_aps.attack import aps_pools
+    from davis_rig.scene.body import BodyModel
+
+    config = ApsAttackConfig(grid_n=4, scales=("small",), pool_size=4, shapes=(2, 6))
+    (pool,) = aps_pools(config, BodyModel(), None)
+    assert {clip.spec.shape_index for clip in pool.clips.values()} <= {2, 6}
+
+
 def test_validation_shapes_are_training_shapes_apart_from_the_test_split():
     from davis_rig.attack.eot import split_shapes
 
