@@ -151,6 +151,7 @@ def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from davis_rig.models import default_detector_path
+    from davis_rig.models.rvt.onnx_export import INPUT_NAME
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
     from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
 
@@ -171,7 +172,7 @@ def _run(args: argparse.Namespace) -> int:
         for name, runner in (("fp32", fp32), ("int8", int8)):
             states = [(feed[f"h{k}"], feed[f"c{k}"]) for k in range(1, 5)]
             start = time.process_time()
-            decoded, _ = runner.step(feed["histogram"], states)
+            decoded, _ = runner.step(feed[INPUT_NAME], states)
             cpu[name].append(time.process_time() - start)
             scores[name] = decoded[0, :, 4] * decoded[0, :, 5:].max(axis=1)
         diffs.append(np.abs(scores["int8"] - scores["fp32"]))
