@@ -19,6 +19,7 @@ hits the modes alike):
 
 * ``pipelined`` (davis-eval's default): the step split into three parts of consecutive windows running side by
   side (``EvalSettings(pipeline=True)``: the recurrent part on 2 onnxruntime threads, the others on 1);
+* ``pipelined-1``: the same with the recurrent part on one thread (``davis-eval --threads 1``);
 * ``whole``: one session of ``--threads`` intra-op threads runs whole steps (the previous default).
 
 ``score_session`` overlaps its stages in threads, so the table gives each stage's **busy** seconds (read = h5
@@ -184,7 +185,8 @@ def int8_graph(fp32: Path, calibration_session: Path, tmp: Path) -> Path:
 
 
 STAGES = ("read", "histogram", "inference", "postprocess", "wall", "metrics", "total")
-MODES = {"pipelined": True, "whole": False}
+#: mode -> (pipelined, onnxruntime threads of the recurrent part or of the whole step; None: --threads / davis-eval's)
+MODES = {"pipelined": (True, None), "pipelined-1": (True, 1), "whole": (False, None)}
 
 
 def main() -> None:
@@ -195,7 +197,7 @@ def main() -> None:
     parser.add_argument("--onnx", nargs="*", type=Path, default=None,
                         help="trained RVT step graphs (default: the bundled detector, if present)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads of the whole step")
-    parser.add_argument("--modes", nargs="+", choices=list(MODES), default=list(MODES))
+    parser.add_argument("--modes", nargs="+", choices=list(MODES), default=["pipelined", "whole"])
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--session", type=Path, default=None,
                         help="reuse this benchmark session (written first if missing)")
@@ -222,7 +224,8 @@ def main() -> None:
                   f"session write {synth['write_s']:.2f} s")
         warm = tmp / "warm.h5"
         synthesize_session(warm, min(2.0, args.duration_s), args.rate_mevs, seed=1)
-        settings = {mode: EvalSettings(intra_op_threads=None if MODES[mode] else args.threads, pipeline=MODES[mode])
+        settings = {mode: EvalSettings(intra_op_threads=MODES[mode][1] if MODES[mode][0] else args.threads,
+                                       pipeline=MODES[mode][0])
                     for mode in args.modes}
         models = [(f"{variant} (random)", lambda v=variant: export_model(v, tmp)) for variant in args.models]
         trained = bundled_detector() if args.onnx is None else args.onnx
