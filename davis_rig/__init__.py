@@ -3,7 +3,8 @@
 Layout (imports run one way: a package imports only the packages listed before it; ``tests/test_import_layers.py``
 holds this order as data and fails on an import against it):
 
-- ``errors``, ``types``: the exception tree, the canonical event dtype and sensor geometry.
+- ``errors``, ``types``, ``stop``: the exception tree, the canonical event dtype and sensor geometry; stop
+  requests (Ctrl-C as a flag that long loops poll between steps).
 - ``protocol``: bytes <-> events, pure (USB word decoder/encoder, config and bias encoding).
 - ``usb``: the only package that imports ``usb`` (pyusb transport, virtual DAVIS346 backend).
 - ``device``: the camera (configure, start/stop, reader thread).

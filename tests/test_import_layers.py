@@ -23,7 +23,7 @@ PACKAGE = ROOT / "davis_rig"
 #: layer; the packages of one layer do not import each other. ``__init__`` is the package root (``__version__``).
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("__init__", "errors"),
-    ("types", "_lazy"),
+    ("types", "_lazy", "stop"),
     ("protocol",),
     ("usb",),
     ("device",),

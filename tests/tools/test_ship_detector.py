@@ -47,8 +47,8 @@ def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_p
     assert load_tool("ship_detector").main([str(run), str(data), "--out", str(out), "--threshold", "0.1,0.25",
                                             "--name", "undefended test detector"]) == 0
     printed = capsys.readouterr().out
-    assert {p.name for p in out.iterdir()} == {"rvt_default.safetensors", "rvt_default.onnx", "test_scores.json",
-                                                 "MODEL_CARD.md"}
+    assert {p.name for p in out.iterdir()} == {"rvt_default.safetensors", "rvt_default.onnx",
+                                                 "rvt_default_int8.onnx", "test_scores.json", "MODEL_CARD.md"}
     # the weights are the run's exported fp16 file, byte for byte
     assert (out / "rvt_default.safetensors").read_bytes() == (run / "export" / "model_fp16.safetensors").read_bytes()
     # the ONNX step scores what the safetensors model scores
@@ -63,6 +63,10 @@ def test_ship_writes_weights_onnx_scores_and_card(load_tool, finished_run, tmp_p
     assert set(scores["groups"]["white"]["seqasr"]) == {"0.1", "0.25"}
     card = (out / "MODEL_CARD.md").read_text()
     assert "synthetic" in card and "test white/large" in card and "SeqASR@0.25 %" in card
+    assert "test all, int8 graph" in card and "rvt_default_int8.onnx" in card
+    from davis_rig.models.rvt.quantize import quantization_info
+
+    assert quantization_info(out / "rvt_default_int8.onnx")["calibration_sources"] == [f"{data.name} (train split)"]
     assert "## Reproduce" in card and f"davis-train {data.name} --out {run.name} --preset mini --steps 2" in card
     assert "undefended test detector, " in card and f"ship_detector.py {run.name} {data.name} --out {out}" in card
     assert "--clothing" not in card  # the fixture dataset draws every clothing kind
