@@ -171,17 +171,13 @@ def bundled_detector() -> list[Path]:
 def int8_graph(fp32: Path, calibration_session: Path, tmp: Path) -> Path:
     """The int8 graph of ``fp32``: the bundled one for the bundled detector, else quantized on 32 windows of
     ``calibration_session``."""
+    from davis_rig.cli.quantize import quantize_from_sources
     from davis_rig.models import default_detector_path
-    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
 
     if bundled_detector() == [fp32]:
         return default_detector_path(int8=True)
-    from davis_rig.cli.quantize import calibration_sequences
-
-    sequences = [h for _, h in calibration_sequences([calibration_session], split="train", seconds=2.0)]
-    feeds = calibration_feeds(RVTOnnxRunner(fp32, intra_op_threads=1), sequences, 32)
-    return quantize_step_onnx(fp32, tmp / f"{fp32.stem}_int8.onnx", feeds)
+    return quantize_from_sources(fp32, tmp / f"{fp32.stem}_int8.onnx", [calibration_session], seconds=2.0,
+                                 windows=32, threads=1)[0]
 
 
 STAGES = ("read", "histogram", "inference", "postprocess", "wall", "metrics", "total")

@@ -182,13 +182,9 @@ def _ship(args: argparse.Namespace) -> int:
 
 def _quantize(fp32: Path, out: Path, data_dir: Path) -> None:
     """``fp32``'s int8 graph, calibrated on 64 windows of the train split (``davis-quantize``'s recipe)."""
-    from davis_rig.cli.quantize import calibration_sequences, source_names
-    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
+    from davis_rig.cli.quantize import quantize_from_sources
 
-    sequences = calibration_sequences([data_dir], split="train", seconds=0.0)
-    feeds = calibration_feeds(RVTOnnxRunner(fp32), [h for _, h in sequences], 64)
-    quantize_step_onnx(fp32, out, feeds, sources=source_names([data_dir], "train"))
+    quantize_from_sources(fp32, out, [data_dir], split="train", windows=64)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -147,22 +147,31 @@ class SessionSequence:
         return stacked_histograms(crop_events(events, self.origin), ends, window_us=self.window_us)
 
 
+def quantize_from_sources(src: Path, out, paths, *, split: str = "train", seconds: float = 10.0, windows: int = 64,
+                          threads: int | None = None):
+    """Calibrate on ``paths`` (sessions / dataset folders, :func:`calibration_sequences`) and write ``src``'s int8
+    graph to ``out``; returns ``(out, fp32 runner, calibration feeds)``."""
+    from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
+    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
+
+    fp32 = RVTOnnxRunner(src, intra_op_threads=threads)
+    sequences = calibration_sequences(paths, split=split, seconds=seconds)
+    feeds = calibration_feeds(fp32, [h for _, h in sequences], windows)
+    return quantize_step_onnx(src, out, feeds, sources=source_names(paths, split)), fp32, feeds
+
+
 def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from davis_rig.models import default_detector_path
     from davis_rig.models.rvt.onnx_export import INPUT_NAME
     from davis_rig.models.rvt.ort_runner import RVTOnnxRunner
-    from davis_rig.models.rvt.quantize import calibration_feeds, quantize_step_onnx
 
     say = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
     src = Path(args.detector) if args.detector is not None else default_detector_path()
-    fp32 = RVTOnnxRunner(src, intra_op_threads=args.threads)
-    sequences = calibration_sequences(args.calibration, split=args.split, seconds=args.seconds)
-    say(f"{NAME}: {len(sequences)} calibration sequences, {sum(len(h) for _, h in sequences)} windows")
-    feeds = calibration_feeds(fp32, [h for _, h in sequences], args.windows)
     t0 = time.perf_counter()
-    out = quantize_step_onnx(src, args.out, feeds, sources=source_names(args.calibration, args.split))
+    out, fp32, feeds = quantize_from_sources(src, args.out, args.calibration, split=args.split, seconds=args.seconds,
+                                             windows=args.windows, threads=args.threads)
     say(f"{NAME}: calibrated on {len(feeds)} windows in {time.perf_counter() - t0:.1f} s")
     int8 = RVTOnnxRunner(out, intra_op_threads=args.threads)
     cpu = {"fp32": [], "int8": []}
