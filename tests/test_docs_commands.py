@@ -117,3 +117,18 @@ def test_documented_options_exist(doc):
             assert (ROOT / command).is_file(), f"{doc}: `{line}`: no such file {command}"
         bad = unknown_options(command, arguments)
         assert not bad, f"{doc}: `{line}`: {command} has no option {', '.join(bad)}"
+
+
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_help_examples_use_existing_options(script):
+    """The examples in each command's ``--help`` epilog (and its subcommands') use options that exist."""
+    parser = importlib.import_module(f"davis_rig.cli.{SCRIPTS[script]}").build_parser()
+    epilogs = [parser.epilog or ""] + [sub.epilog or "" for action in parser._actions
+                                       if isinstance(action, argparse._SubParsersAction)
+                                       for sub in action.choices.values()]
+    examples = [command_of(line.split(" #")[0].strip()) for text in epilogs for line in text.splitlines()]
+    examples = [e for e in examples if e is not None]
+    assert examples, f"{script} --help shows no example"
+    for command, arguments in examples:
+        bad = unknown_options(command, arguments)
+        assert not bad, f"{script} --help example `{command} {' '.join(arguments)}`: no option {', '.join(bad)}"
