@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hold-out-validation-shapes", action="store_true",
                         help="leave the validation shapes out of the EoT clips, so that validation measures how the "
                              "texture does on bodies it was not optimised on (as the test does)")
+    parser.add_argument("--blend-shapes", type=non_negative_int, default=0, metavar="K",
+                        help="add K in-between bodies, each two of the EoT clips' shapes blended, to the shapes the "
+                             "clips draw from (default 0: the sampled shapes only)")
     parser.add_argument("--pool-size", type=positive_int, default=6, help="EoT clips per scale (default 6)")
     parser.add_argument("--refresh-every", type=positive_int, default=25,
                         help="a quarter of each scale's pool is redrawn every N steps (default 25)")
@@ -131,7 +134,7 @@ def _run(args: argparse.Namespace) -> int:
                              pool_size=args.pool_size, refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every,
-                             validate_every=args.validate_every, seed=args.seed)
+                             validate_every=args.validate_every, blend_shapes=args.blend_shapes, seed=args.seed)
     camera = PinholeCamera.davis346()
     labeler = YoloOnnxDetector(path, conf_threshold=min(0.001, args.threshold), intra_op_threads=args.threads)
     headings = (math.pi / 2, -math.pi / 2, 0.0, math.pi)[: args.headings]
@@ -173,7 +176,8 @@ def _run(args: argparse.Namespace) -> int:
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None,
                          "validate_every": args.validate_every, "best_on_validation": best,
                          "validation_shapes": list(val_shapes),
-                         "eot_shapes": "training split" if eot_shapes is None else list(eot_shapes)},
+                         "eot_shapes": "training split" if eot_shapes is None else list(eot_shapes),
+                         "blend_shapes": args.blend_shapes},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
                            "scales": ["large", "middle", "small"]},
               "command": shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]),

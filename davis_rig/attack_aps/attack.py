@@ -41,7 +41,8 @@ with optional_dependency("the APS attack"):
     import torch.nn.functional as F
 
 __all__ = ["APS_LOSSES", "ApsAttackConfig", "TorchYolo", "aps_detection_rates", "aps_grey", "aps_pools",
-           "aps_scenes", "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order", "validation_shapes"]
+           "aps_scenes", "blended_body", "cell_footprint", "frame_loss", "optimize_aps_texture", "pool_order",
+           "shape_blends", "validation_shapes"]
 
 PAD_GREY = 114.0 / 255.0
 #: The losses of :func:`frame_loss`.
@@ -165,6 +166,9 @@ class ApsAttackConfig:
         scales: camera scales of the pool (names or person heights in px).
         shapes: body shapes of the EoT clips (``None``: the training split of
             :func:`~davis_rig.attack.eot.split_shapes`; the tool leaves the validation shapes out of it).
+        blend_shapes: in-between bodies added to the EoT clips' shapes (0: none): each blends two of ``shapes``
+            at a weight drawn in [0.25, 0.75] (:func:`shape_blends`, :meth:`~davis_rig.scene.body.BodyAsset.
+            with_blended_shapes`), so that a texture meets more bodies than the sampled ones it is optimised on.
         pool_size: clips per scale; refresh_every: a quarter of each pool is redrawn every N steps.
         conf: the labeler's confidence threshold (the hinge aims below half of it).
         alpha_schedule: soft-to-hard schedule (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
@@ -186,6 +190,7 @@ class ApsAttackConfig:
     frames_per_step: int = 2
     scales: tuple = ("large", "middle", "small")
     shapes: tuple[int, ...] | None = None
+    blend_shapes: int = 0
     pool_size: int = 6
     refresh_every: int = 25
     conf: float = 0.25
@@ -204,14 +209,51 @@ class ApsAttackConfig:
                      "probe_clips"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.validate_every < 0:
-            raise ValueError(f"validate_every must be >= 0, got {self.validate_every}")
+        if self.validate_every < 0 or self.blend_shapes < 0:
+            raise ValueError(f"validate_every and blend_shapes must be >= 0, got {self.validate_every}, "
+                             f"{self.blend_shapes}")
         if not 0 < self.conf < 1 or not self.lr > 0 or not self.temperature > 0 or self.probe_every < 0:
             raise ValueError(f"need 0 < conf < 1, lr > 0, temperature > 0 and probe_every >= 0, got {self.conf}, "
                              f"{self.lr}, {self.temperature}, {self.probe_every}")
         if self.loss not in APS_LOSSES or self.scale_draw not in ("random", "cycle"):
             raise ValueError(f"loss must be one of {APS_LOSSES} and scale_draw 'random' or 'cycle', got "
                              f"{self.loss!r}, {self.scale_draw!r}")
+
+
+def shape_blends(shapes, count: int, seed: int) -> list[tuple[int, int, float]]:
+    """``count`` in-between bodies of ``shapes``: ``(a, b, w)`` triples, ``a != b`` drawn uniformly from ``shapes``,
+    ``w`` uniform in [0.25, 0.75]; the same ``seed`` draws the same triples.
+
+    Raises:
+        ValueError: ``count > 0`` with fewer than two shapes.
+    """
+    shapes = [int(s) for s in shapes]
+    if count > 0 and len(shapes) < 2:
+        raise ValueError(f"blending needs at least two shapes, got {shapes}")
+    rng = np.random.default_rng([int(seed), 0xB1E4D])
+    out = []
+    for _ in range(int(count)):
+        a, b = rng.choice(len(shapes), size=2, replace=False)
+        out.append((shapes[int(a)], shapes[int(b)], float(rng.uniform(0.25, 0.75))))
+    return out
+
+
+def blended_body(config: ApsAttackConfig, body):
+    """The body model and config of the EoT clips: ``(body, config)`` as given when ``config.blend_shapes`` is 0,
+    else a model of ``body``'s asset with the :func:`shape_blends` of the config's shapes appended and a config
+    whose ``shapes`` lists them beside the originals."""
+    from dataclasses import replace
+
+    from davis_rig.attack.eot import split_shapes
+    from davis_rig.scene.body import BodyModel
+
+    if not config.blend_shapes:
+        return body, config
+    shapes = tuple(config.shapes) if config.shapes is not None else split_shapes(body.num_shapes)[0]
+    blends = shape_blends(shapes, config.blend_shapes, config.seed)
+    blended = BodyModel(body.asset.with_blended_shapes(blends), device=body.device, dtype=body.dtype)
+    new = tuple(range(body.num_shapes, body.num_shapes + len(blends)))
+    return blended, replace(config, shapes=shapes + new)
 
 
 def aps_pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: bool = False):
@@ -302,9 +344,10 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
                                 if resume and ckpt.is_file() else (0, None, None))
     if best is not None:
         _write_best(out, best)
-    pools = aps_pools(config, body, mask, generations)
+    clip_body, clip_config = blended_body(config, body)
+    pools = aps_pools(clip_config, clip_body, mask, generations)
     aps = ApsConfig()
-    probe = _Probe(config, body, mask, aps) if config.probe_every else None
+    probe = _Probe(clip_config, clip_body, mask, aps) if config.probe_every else None
     generator.train()
     t0 = time.perf_counter()
     with _log_from(out / "log.jsonl", start).open("a") as log:

@@ -305,6 +305,73 @@ class BodyAsset:
             speed_m_s=float(self.walk_speed_m_s[shape_index]),
         )
 
+    def with_blended_shapes(self, blends: Sequence[tuple[int, int, float]]) -> "BodyAsset":
+        """A copy of the asset with in-between bodies appended after its own shapes.
+
+        Blend ``(a, b, w)`` is the body ``w`` of the way from shape ``a`` to shape ``b`` (one topology, one rig,
+        one set of skinning weights): rest vertices, phenotypes, bone-frame origins, walk root translations and
+        speeds interpolated linearly, bone-frame and walk rotations by quaternion slerp (so the frames stay
+        rigid). ``w = 0`` gives shape ``a`` exactly, ``w = 1`` shape ``b`` (up to the rotations' float rounding).
+        The new shapes get the indices ``num_shapes, num_shapes + 1, ...`` in the order given; the original
+        shapes keep theirs. Used to widen the body distribution an optimisation sees beyond the sampled shapes.
+
+        Args:
+            blends: ``(shape a, shape b, w)`` triples, ``0 <= w <= 1``.
+
+        Returns:
+            A new :class:`BodyAsset` with ``num_shapes + len(blends)`` shapes; ``metadata["blended_shapes"]`` lists
+            the triples.
+
+        Raises:
+            IndexError: a shape index out of range. ValueError: ``w`` outside [0, 1].
+        """
+        from davis_rig.scene.quaternion import quat_from_matrix, quat_slerp, quat_to_matrix
+
+        blends = [(int(a), int(b), float(w)) for a, b, w in blends]
+        for a, b, w in blends:
+            _check_shape_index(a, self.num_shapes)
+            _check_shape_index(b, self.num_shapes)
+            if not 0.0 <= w <= 1.0:
+                raise ValueError(f"blend weight must be in [0, 1], got {w}")
+        if not blends:
+            return self
+        a_idx, b_idx, w = (np.array(column) for column in zip(*blends))
+
+        def lerp(array: np.ndarray) -> np.ndarray:
+            weights = w.reshape((-1,) + (1,) * (array.ndim - 1))
+            return ((1.0 - weights) * array[a_idx] + weights * array[b_idx]).astype(array.dtype)
+
+        def slerp(quaternions: np.ndarray) -> np.ndarray:  # [S, ..., 4]
+            weights = np.broadcast_to(w.reshape((-1,) + (1,) * (quaternions.ndim - 2)),
+                                      (len(w),) + quaternions.shape[1:-1])
+            return quat_slerp(quaternions[a_idx], quaternions[b_idx], weights)
+
+        poses = self.rest_bone_poses.astype(np.float64)
+        blended_poses = np.zeros((len(w),) + poses.shape[1:])
+        blended_poses[..., :3, :3] = quat_to_matrix(slerp(quat_from_matrix(poses[..., :3, :3])))
+        blended_poses[..., :3, 3] = lerp(poses[..., :3, 3])
+        blended_poses[..., 3, 3] = 1.0
+        walk = self.walk_rotations_wxyz
+        metadata = dict(self.metadata)
+        metadata["blended_shapes"] = list(metadata.get("blended_shapes", [])) + [list(t) for t in blends]
+        return BodyAsset(
+            faces=self.faces, uv_table=self.uv_table, face_uv_index=self.face_uv_index,
+            rest_vertices_m=np.concatenate([self.rest_vertices_m, lerp(self.rest_vertices_m)]),
+            skin_indices=self.skin_indices, skin_weights=self.skin_weights, bone_names=self.bone_names,
+            bone_parents=self.bone_parents,
+            rest_bone_poses=np.concatenate([self.rest_bone_poses,
+                                            blended_poses.astype(self.rest_bone_poses.dtype)]),
+            face_parts=self.face_parts, bone_groups=self.bone_groups, part_names=self.part_names,
+            phenotype_names=self.phenotype_names,
+            phenotypes=np.concatenate([self.phenotypes, lerp(self.phenotypes)]),
+            walk_rotations_wxyz=np.concatenate([walk, slerp(walk).astype(walk.dtype)]),
+            walk_root_translation_m=np.concatenate([self.walk_root_translation_m,
+                                                    lerp(self.walk_root_translation_m)]),
+            walk_fps_hz=self.walk_fps_hz,
+            walk_speed_m_s=np.concatenate([self.walk_speed_m_s, lerp(self.walk_speed_m_s)]),
+            metadata=metadata,
+        )
+
 
 def _part_code(part: str) -> int:
     if part not in PART_NAMES:

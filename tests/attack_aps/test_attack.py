@@ -176,6 +176,27 @@ def test_pools_draw_only_the_configured_shapes():
     assert {clip.spec.shape_index for clip in pool.clips.values()} <= {2, 6}
 
 
+def test_blended_shapes_join_the_clips_shapes():
+    from davis_rig.attack_aps.attack import aps_pools, blended_body, shape_blends
+    from davis_rig.scene.body import BodyModel
+
+    blends = shape_blends((2, 6, 10), 5, seed=3)
+    assert blends == shape_blends((2, 6, 10), 5, seed=3) != shape_blends((2, 6, 10), 5, seed=4)
+    assert all(a != b and {a, b} <= {2, 6, 10} and 0.25 <= w <= 0.75 for a, b, w in blends)
+    with pytest.raises(ValueError, match="two shapes"):
+        shape_blends((2,), 1, seed=0)
+    body = BodyModel()
+    config = ApsAttackConfig(grid_n=4, scales=("small",), pool_size=6, shapes=(2, 6), blend_shapes=3)
+    assert blended_body(ApsAttackConfig(shapes=(2, 6)), body) == (body, ApsAttackConfig(shapes=(2, 6)))
+    clip_body, clip_config = blended_body(config, body)
+    assert clip_body.num_shapes == body.num_shapes + 3 and clip_config.shapes == (2, 6, 24, 25, 26)
+    (pool,) = aps_pools(clip_config, clip_body, None)
+    drawn = {clip.spec.shape_index for clip in pool.clips.values()}
+    assert drawn <= set(clip_config.shapes) and drawn & {24, 25, 26}
+    with pytest.raises(ValueError, match="blend_shapes"):
+        ApsAttackConfig(blend_shapes=-1)
+
+
 def test_validation_shapes_are_training_shapes_apart_from_the_test_split():
     from davis_rig.attack.eot import split_shapes
 

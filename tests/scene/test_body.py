@@ -199,6 +199,43 @@ def test_gradients_flow_to_rotations_and_translation(model, asset):
     torch.testing.assert_close(root.grad, torch.tensor([[0.0, 0.0, 1.0]]), atol=1e-6, rtol=0)
 
 
+def test_blended_shapes_interpolate_between_their_pair(asset):
+    blended = asset.with_blended_shapes([(0, 7, 0.0), (0, 7, 1.0), (0, 7, 0.5), (3, 2, 0.25)])
+    n = asset.num_shapes
+    assert blended.num_shapes == n + 4 and blended.metadata["blended_shapes"][-1] == [3, 2, 0.25]
+    blended._validate("blended")
+    for key in ("rest_vertices_m", "rest_bone_poses", "phenotypes", "walk_rotations_wxyz", "walk_root_translation_m",
+                "walk_speed_m_s"):
+        values = getattr(blended, key)
+        np.testing.assert_array_equal(values[:n], getattr(asset, key))  # the sampled shapes keep their indices
+        np.testing.assert_allclose(values[n], getattr(asset, key)[0], atol=1e-6)  # w = 0: shape a
+        np.testing.assert_allclose(values[n + 1], getattr(asset, key)[7], atol=1e-6)  # w = 1: shape b
+    np.testing.assert_allclose(blended.rest_vertices_m[n + 2],
+                               (asset.rest_vertices_m[0] + asset.rest_vertices_m[7]) / 2, atol=1e-6)
+    rot = blended.rest_bone_poses[n:, :, :3, :3].astype(np.float64)  # slerped frames stay rigid
+    np.testing.assert_allclose(rot @ np.swapaxes(rot, -1, -2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(blended.walk_rotations_wxyz[n:], axis=-1), 1.0, atol=1e-5)
+    heights = blended.rest_vertices_m[..., 2].max(axis=1) - blended.rest_vertices_m[..., 2].min(axis=1)
+    assert min(heights[0], heights[7]) < heights[n + 2] < max(heights[0], heights[7])
+    assert asset.with_blended_shapes([]) is asset
+    with pytest.raises(IndexError):
+        asset.with_blended_shapes([(0, n, 0.5)])
+    with pytest.raises(ValueError, match="blend weight"):
+        asset.with_blended_shapes([(0, 1, 1.5)])
+
+
+def test_blended_body_walks_like_a_body(asset):
+    from davis_rig.scene.body import BodyModel
+
+    model = BodyModel(asset.with_blended_shapes([(3, 7, 0.4)]))
+    walk = model.asset.walk_cycle(asset.num_shapes)
+    verts = model.pose(asset.num_shapes, torch.as_tensor(np.array(walk.rotations_wxyz)),
+                       torch.as_tensor(np.array(walk.root_translation_m))).numpy()
+    z = verts[..., 2]
+    assert ((z.max(axis=1) - z.min(axis=1) > 1.4) & (z.max(axis=1) - z.min(axis=1) < 2.0)).all()
+    np.testing.assert_allclose(z.min(axis=1), 0.0, atol=0.01)  # on the ground, within a centimetre
+
+
 # ----------------------------------------------------------------------------- walk cycle
 def test_walk_cycle_arrays(asset):
     walk = asset.walk_cycle(0)
