@@ -177,6 +177,7 @@ def run(items, total_bytes: int, span_s: float, queue_bytes: int, view_options: 
             from davis_rig.viewer.live import TappedCamera
             from davis_rig.viewer.live_process import LiveViewProcess
 
+            children0 = children_cpu_s()  # the children of earlier runs (--runs) ended before this one
             context = multiprocessing.get_context("spawn")
             client_stop = context.Event()
             receiver, sender = context.Pipe(duplex=False)
@@ -198,7 +199,7 @@ def run(items, total_bytes: int, span_s: float, queue_bytes: int, view_options: 
                 connection.request("GET", "/api/live/stats")
                 out["view"] = json.loads(connection.getresponse().read())
                 connection.close()
-            out["view_process_cpu_s"] = children_cpu_s()  # the view process and the page client
+            out["view_process_cpu_s"] = children_cpu_s() - children0  # the view process and the page client
             t_first, t_last = timed.first[0], timed.last[0]
             shown = [t for t, _ in received if t_first <= t <= t_last]
             out["display_fps"] = len(shown) / (t_last - t_first)
