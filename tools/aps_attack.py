@@ -192,11 +192,14 @@ def _run(args: argparse.Namespace) -> int:
              + (f" The best-on-validation texture was chosen on the same scenes with training body shapes "
                 f"{list(val_shapes)} (recall {100 * best['rate']:.1f} % there)." if best else ""), "",
              "```bash", report["command"], "```", "",
-             "| texture | frames | recall % | large | middle | small | mean top score |", "|---|---|---|---|---|---|---|"]
+             "| texture | frames | recall % | large | middle | small | "
+             + "".join(f"heading {h}° | " for h in rows[0]["by_heading"]) + "mean top score |",
+             "|---|---|---|---|---|---|" + "---|" * len(rows[0]["by_heading"]) + "---|"]
     for r in rows:
         by = r["by_scale"]
         lines.append(f"| {r['texture']} | {r['frames']} | {100 * r['rate']:.1f} | "
                      + " | ".join(f"{100 * by.get(s, math.nan):.1f}" for s in ("large", "middle", "small"))
+                     + "".join(f" | {100 * rate:.1f}" for rate in r["by_heading"].values())
                      + f" | {r['mean_top_score']:.3f} |")
     (out / "aps_control.md").write_text("\n".join(lines) + "\n")
     print((out / "aps_control.md").read_text())

@@ -525,7 +525,8 @@ def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=
 
     Returns:
         One row per texture: ``{"texture", "frames", "detected", "rate", "mean_top_score", "by_scale": {scale:
-        rate}}`` (top score: the highest score of a box overlapping the person with IoU >= 0.5, 0 if none).
+        rate}, "by_heading": {heading in degrees, e.g. "90": rate}}`` (top score: the highest score of a box
+        overlapping the person with IoU >= 0.5, 0 if none; heading 0 = towards the camera, ±90 = walking across).
     """
     from davis_rig.attack.evaluate import texture_video
     from davis_rig.metrics.seqasr import box_iou
@@ -536,7 +537,7 @@ def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=
     masks: dict = {}
     rows = []
     for name, spec in textures.items():
-        found, tops, scales = [], [], []
+        found, tops, scales, headings = [], [], [], []
         for index, scene in enumerate(scenes):
             video = texture_video(scene, spec, masks)
             frames = synthesize_aps_frames(video, scene.t_us, _seeded(aps_config, index))
@@ -553,12 +554,19 @@ def aps_detection_rates(textures: Mapping[str, object], labeler, *, eval_config=
                 found.append(top >= conf)
                 tops.append(top)
                 scales.append(str(scene.scale))
+                headings.append(f"{math.degrees(scene.spec.heading_rad):g}")
         found = np.asarray(found, bool)
-        by_scale = {s: float(found[[k for k, v in enumerate(scales) if v == s]].mean()) for s in dict.fromkeys(scales)}
         rows.append({"texture": name, "frames": int(found.size), "detected": int(found.sum()),
                      "rate": float(found.mean()) if found.size else math.nan,
-                     "mean_top_score": float(np.mean(tops)) if tops else math.nan, "by_scale": by_scale})
+                     "mean_top_score": float(np.mean(tops)) if tops else math.nan,
+                     "by_scale": _rate_by(found, scales), "by_heading": _rate_by(found, headings)})
     return rows
+
+
+def _rate_by(found: np.ndarray, keys: list[str]) -> dict[str, float]:
+    """``{key: share of True in found}`` over the frames of each key, keys in first-seen order."""
+    keys_array = np.asarray(keys)
+    return {key: float(found[keys_array == key].mean()) for key in dict.fromkeys(keys)}
 
 
 def _seeded(config, index: int):

@@ -133,6 +133,14 @@ def test_detection_rates_rows(tiny_yolo):
     rows = aps_detection_rates({"white": TextureSpec(white_texture(1))}, labeler, eval_config=config)
     assert len(rows) == 1 and rows[0]["texture"] == "white" and rows[0]["frames"] >= 1
     assert 0.0 <= rows[0]["rate"] <= 1.0 and set(rows[0]["by_scale"]) == {"small"}
+    assert rows[0]["by_heading"] == {"90": rows[0]["rate"]}
+
+
+def test_rates_by_key_are_the_share_of_each_keys_frames():
+    from davis_rig.attack_aps.attack import _rate_by
+
+    found = np.array([True, False, True, True, False, False])
+    assert _rate_by(found, ["90", "90", "0", "0", "-90", "90"]) == {"90": 1 / 3, "0": 1.0, "-90": 0.0}
 
 
 def test_validation_keeps_the_best_texture_and_resumes_with_it(tiny_yolo, tmp_path):
