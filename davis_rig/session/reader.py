@@ -171,16 +171,17 @@ class SessionReader:
         schema.import_hdf5plugin()
         if not self.path.exists():
             raise SessionError(f"{self.path}: no such session file")
-        if self.path.is_file() and self.path.stat().st_size == 0:
+        if not self.path.is_file():
+            raise SessionError(f"{self.path}: not a file (a session.h5 is one HDF5 file)")
+        if self.path.stat().st_size == 0:
             raise SessionError(f"{self.path}: the file is empty (0 bytes), not a recorded session"
                                + _recover_hint(self.path))
         try:
             self._file = h5py.File(self.path, "r", locking=False)
         except OSError as exc:
-            raise SessionError(
-                f"{self.path}: cannot open as HDF5 ({exc}); the file is truncated or corrupt — if a "
-                f"{self.path.name}.journal exists next to it, run `davis-record --recover {self.path}`"
-            ) from exc
+            detail = " ".join(str(exc).split())  # HDF5's messages can hold line breaks
+            raise SessionError(f"{self.path}: cannot open as HDF5 ({detail}); the file is truncated or corrupt"
+                               + _recover_hint(self.path)) from exc
         try:
             self._validate()
         except SessionError:

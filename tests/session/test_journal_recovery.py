@@ -97,8 +97,9 @@ def test_recover_rebuilds_an_unreadable_file(tmp_path, rng):
 def test_recover_without_journal_and_unreadable_file_fails(tmp_path):
     path = tmp_path / "s.h5"
     path.write_bytes(b"not hdf5")
-    with pytest.raises(SessionError, match="no journal"):
+    with pytest.raises(SessionError, match="no journal") as info:
         recover_session(path)
+    assert "--recover" not in str(info.value)  # no advice to run what failed
 
 
 RECORDER = textwrap.dedent(

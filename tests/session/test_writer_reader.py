@@ -276,6 +276,23 @@ def test_missing_group_and_foreign_files(tmp_path):
         SessionReader(not_hdf5).open()
 
 
+def test_a_folder_or_unreadable_file_is_one_line_naming_the_file_and_the_journal_only_when_there_is_one(tmp_path):
+    folder = tmp_path / "folder.h5"
+    folder.mkdir()
+    with pytest.raises(SessionError) as info:
+        SessionReader(folder).open()
+    assert str(info.value) == f"{folder}: not a file (a session.h5 is one HDF5 file)"
+    not_hdf5 = tmp_path / "text.h5"
+    not_hdf5.write_text("hello")
+    with pytest.raises(SessionError) as info:
+        SessionReader(not_hdf5).open()
+    message = str(info.value)
+    assert "\n" not in message and "truncated or corrupt" in message and "--recover" not in message
+    journal_path(not_hdf5).write_bytes(b"x")
+    with pytest.raises(SessionError, match=r"text\.h5\.journal exists next to it: run `davis-record --recover"):
+        SessionReader(not_hdf5).open()
+
+
 def test_root_attributes(tmp_path):
     path = write_session(tmp_path / "s.h5", [], start_unix_us=1_700_000_000_000_000)
     with h5py.File(path, "r") as f:
