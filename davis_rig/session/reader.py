@@ -325,12 +325,20 @@ class SessionReader:
         return self._ms_to_idx.copy()
 
     # --- other streams ------------------------------------------------------------------------
-    def _table(self, group_name: str) -> np.ndarray | None:
+    def _table(self, group_name: str, required: tuple[str, ...]) -> np.ndarray | None:
+        """The column datasets of ``/<group_name>`` as one structured array (``None``: no such group, or empty).
+
+        Raises:
+            SessionError: a ``required`` column is missing, the columns differ in length, or a read fails.
+        """
         f = self._require_open()
         if group_name not in f or not len(f[group_name]):
             return None
         group = f[group_name]
         names = list(group.keys())
+        for name in required:
+            if name not in names:
+                raise SessionError(f"{self.path}: missing dataset /{group_name}/{name}")
         if "t" in names:
             names.remove("t")
             names.insert(0, "t")
@@ -344,12 +352,12 @@ class SessionReader:
 
     def specials(self) -> np.ndarray:
         """Return the special events (structured [S]: ``t`` device µs, ``type`` libcaer id), maybe empty."""
-        table = self._table(schema.SPECIALS_GROUP)
+        table = self._table(schema.SPECIALS_GROUP, ("t", "type"))
         return table if table is not None else np.zeros(0, dtype=[("t", "<i8"), ("type", "u1")])
 
     def imu(self) -> np.ndarray | None:
         """Return the IMU samples (structured [K], ``t`` device µs) or ``None`` when the session has none."""
-        return self._table(schema.IMU_GROUP)
+        return self._table(schema.IMU_GROUP, ("t",))
 
     def labels(self) -> np.ndarray | None:
         """Return the labels (BBOX_DTYPE [B]) or ``None`` when the session has no /labels group."""

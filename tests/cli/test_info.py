@@ -66,6 +66,22 @@ def test_truncated_session_in_a_fresh_process(tmp_path):
     assert "Traceback" not in run.stderr
 
 
+@pytest.mark.parametrize("group, missing", [("specials", "type"), ("imu", "t")])
+def test_a_special_or_imu_table_without_its_columns_is_a_one_line_error(tmp_path, capsys, group, missing):
+    import h5py
+
+    path = tmp_path / "s.h5"
+    path.write_bytes((RECORDINGS / "sample.h5").read_bytes())
+    with h5py.File(path, "a") as f:
+        table = f.require_group(group)
+        table.require_dataset("ax", shape=(len(f["specials/t"]),), dtype="f4")  # a column that stays
+        if missing in table:
+            del table[missing]
+    assert cli.main([str(path)]) == 4
+    err = capsys.readouterr().err
+    assert err == f"davis-info: error: {path}: missing dataset /{group}/{missing}\n"
+
+
 def test_usage_and_version(capsys):
     assert cli.main([]) == 2
     assert "the following arguments are required: FILE" in capsys.readouterr().err
