@@ -394,6 +394,22 @@ def run_main(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     return run_command(parser.prog, lambda: action(args), options)
 
 
+def check_out_folder(path: str | Path) -> None:
+    """Refuse, before any work, an ``--out`` folder that cannot be created: it, or a folder above it, is a file.
+
+    Raises:
+        FormatError: the message names ``path`` and the file in the way.
+    """
+    from davis_rig.errors import FormatError
+
+    path = Path(path)
+    for existing in (path, *path.parents):
+        if existing.exists():
+            if not existing.is_dir():
+                raise FormatError(f"{path}: --out needs a folder, and {existing} is a file")
+            return
+
+
 @contextlib.contextmanager
 def removing_new_empty_dirs(path: str | Path) -> Iterator[None]:
     """On failure (any exception, Ctrl-C included), remove the empty folders at and under ``path`` that the

@@ -146,7 +146,7 @@ def _label_unlabelled(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from davis_rig.cli.common import removing_new_empty_dirs
+    from davis_rig.cli.common import check_out_folder, removing_new_empty_dirs
     from davis_rig.errors import FormatError
     from davis_rig.evaluation.physical import EvalSettings, evaluate_sessions
     from davis_rig.evaluation.report import check_report_dependencies, markdown_table, write_report
@@ -158,6 +158,7 @@ def _eval(args: argparse.Namespace) -> int:
         skip_first_us=int(round(args.skip_first_ms * 1000)), time_tol_us=int(round(args.time_tol_ms * 1000)),
         coco_backend=args.coco_backend, intra_op_threads=args.threads, gif_windows=gif_windows)
     if args.out:
+        check_out_folder(args.out)
         check_report_dependencies(plot=not args.no_plot, gif=gif_windows > 0)
     detector = detector_onnx(args)
     if not detector.is_file():  # before --yolo writes labels into a session

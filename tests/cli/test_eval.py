@@ -334,3 +334,21 @@ def test_no_label_left_after_the_filters_gives_ap_zero_with_a_warning(sessions, 
     captured = capsys.readouterr()
     assert "| AP ↓ | 0.25 | 0.0% |" in captured.out
     assert "a: no label left after --skip-first-ms 100000 and the box size filter: AP is 0" in captured.err
+
+
+@pytest.mark.parametrize("out", ["taken.txt", "taken.txt/report"])
+def test_an_out_that_cannot_be_a_folder_fails_before_scoring_and_before_yolo_writes_labels(tmp_path, capsys,
+                                                                                            monkeypatch, out):
+    import davis_rig.evaluation.physical as physical
+
+    fresh = scene_session(tmp_path, "fresh.h5")
+    before = sha256(fresh)
+    (tmp_path / "taken.txt").write_text("mine")
+    monkeypatch.setattr(physical, "evaluate_sessions", lambda *a, **k: pytest.fail("scored before --out was checked"))
+    argv = [str(fresh), "--detector", str(person_rvt(tmp_path)), "--yolo", str(person_yolo(tmp_path)),
+            "--threshold", "0.25", "--out", str(tmp_path / out), "--quiet"]
+    assert cli.main(argv) == 4
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == (f"davis-eval: error: {tmp_path / out}: --out needs a folder, "
+                                                   f"and {tmp_path / 'taken.txt'} is a file\n")
+    assert sha256(fresh) == before and (tmp_path / "taken.txt").read_text() == "mine"
