@@ -10,8 +10,8 @@ import contextlib
 import json
 import sys
 
-from davis_rig.cli.common import (EXIT_OK, add_out, add_quiet, new_parser, non_negative_int, removing_new_empty_dirs,
-                                   run_main)
+from davis_rig.cli.common import (EXIT_OK, add_out, add_quiet, check_out_folder, new_parser, non_negative_int,
+                                   removing_new_empty_dirs, run_main)
 from davis_rig.interop.formats import ExportFormat
 
 NAME = "davis-export"
@@ -59,6 +59,8 @@ def _check(parser, args) -> None:
 def _export(args) -> int:
     from davis_rig.interop import export_session
 
+    if args.to == ExportFormat.RVT:
+        check_out_folder(args.out)
     bar = None
 
     def progress(done: int, total: int) -> None:

@@ -35,10 +35,12 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
         the block did not create is skipped when moving.
 
     Raises:
-        FormatError: a destination exists and ``overwrite`` is false, or its folder does not exist.
+        FormatError: a destination exists and ``overwrite`` is false, is a folder, or its folder does not exist.
     """
     targets = [Path(p) for p in paths]
     for target in targets:
+        if target.is_dir():
+            raise FormatError(f"{target}: a folder, not a file that can be replaced")
         if target.exists() and not overwrite:
             raise FormatError(f"{target}: file exists (pass overwrite=True / --overwrite to replace it)")
         if not target.parent.is_dir():
@@ -51,6 +53,11 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
         raise
-    for tmp, target in zip(staged, targets):
-        if tmp.exists():
-            os.replace(tmp, target)
+    try:
+        for tmp, target in zip(staged, targets):
+            if tmp.exists():
+                os.replace(tmp, target)
+    finally:  # a move that failed leaves no temporary file behind
+        for tmp in staged:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)

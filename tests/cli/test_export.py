@@ -92,3 +92,19 @@ def test_help_and_version(capsys):
     assert "{aedat4,prophesee-dat,rvt,npz}" in text and "exit codes: 0 ok" in text and "validation.py" in text
     assert cli.main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == "davis-export (davis_rig 0.1.0)"
+
+
+@pytest.mark.parametrize("to, out, says", [
+    ("npz", "taken", "taken: a folder, not a file that can be replaced"),
+    ("prophesee-dat", "taken", "taken: a folder, not a file that can be replaced"),
+    ("rvt", "taken.txt", "taken.txt: --out needs a folder, and taken.txt is a file"),
+])
+def test_an_out_of_the_wrong_kind_is_refused_even_with_overwrite_and_leaves_nothing(tmp_path, monkeypatch, capsys,
+                                                                                     to, out, says):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "keep").write_text("mine")
+    (tmp_path / "taken.txt").write_text("mine")
+    assert cli.main([str(SAMPLE), "--to", to, "--out", out, "--overwrite", "-q"]) == 4
+    assert capsys.readouterr().err == f"davis-export: error: {says}\n"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep", "taken", "taken.txt"]  # no staging file left

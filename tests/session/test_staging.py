@@ -1,0 +1,36 @@
+"""``staged_outputs``: destinations refused before anything is written; no temporary file left on any failure."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from davis_rig.errors import FormatError
+from davis_rig.session import staging
+from davis_rig.session.staging import staged_outputs
+
+
+def test_a_folder_as_destination_is_refused_before_writing(tmp_path):
+    (tmp_path / "out.npz").mkdir()
+    with pytest.raises(FormatError, match=r"out\.npz: a folder, not a file that can be replaced"):
+        with staged_outputs(tmp_path / "out.npz", overwrite=True):
+            pytest.fail("the block ran")
+    assert [p.name for p in tmp_path.iterdir()] == ["out.npz"]
+
+
+def test_a_move_that_fails_leaves_no_temporary_file(tmp_path, monkeypatch):
+    moves = []
+
+    def replace(src, dst):
+        if moves:
+            raise OSError(28, "No space left on device", str(dst))
+        moves.append(dst)
+        os.rename(src, dst)
+
+    monkeypatch.setattr(staging.os, "replace", replace)
+    with pytest.raises(OSError):
+        with staged_outputs(tmp_path / "a.dat", tmp_path / "a_bbox.npy") as (dat, bbox):
+            dat.write_bytes(b"events")
+            bbox.write_bytes(b"boxes")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.dat"]
