@@ -7,8 +7,6 @@ failed export leaves nothing half-written.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from enum import StrEnum
 from pathlib import Path
 
@@ -69,7 +67,8 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     Raises:
         ValueError: unknown suffix, empty range, or ``fps <= 0``.
         MissingDependencyError: a GIF without Pillow (the ``report`` extra).
-        FormatError: OpenCV cannot write the MP4 (no mp4v encoder in this OpenCV build).
+        FormatError: OpenCV cannot write the MP4 (no mp4v encoder in this OpenCV build), ``path``'s folder does
+            not exist or ``path`` is a folder.
     """
     path = Path(path)
     video_format = VideoFormat.of(path)
@@ -81,18 +80,14 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     fps = 1e6 / view.window_us if fps is None else fps
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
+    from davis_rig.session.staging import staged_outputs
+
     frames = _frames(view, int(start), stop, layers, threshold, scoring_timeout_s)
-    fd, tmp = tempfile.mkstemp(suffix=video_format.suffix, prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
+    with staged_outputs(path, overwrite=True) as (tmp,):  # created by the writer: the user's umask applies
         if video_format == VideoFormat.MP4:
-            _write_mp4(frames, Path(tmp), fps)
+            _write_mp4(frames, tmp, fps)
         else:
-            _write_gif(frames, Path(tmp), fps)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+            _write_gif(frames, tmp, fps)
     return path
 
 

@@ -89,6 +89,21 @@ def test_export_mp4_and_gif(scene, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["view.gif", "view.mp4"]  # no temporary file left
 
 
+def test_an_export_is_created_with_the_usual_permissions_and_a_missing_folder_is_named(scene, tmp_path, capsys):
+    mp4 = tmp_path / "view.mp4"
+    umask = os.umask(0o022)
+    try:
+        assert cli.main([str(scene), "--no-detector", "--export", str(mp4), "--end", "0.1", "-q"]) == 0
+    finally:
+        os.umask(umask)
+    assert mp4.stat().st_mode & 0o777 == 0o644  # as any file the user creates, not a private temporary file's 0600
+    missing = tmp_path / "nowhere" / "view.mp4"
+    assert cli.main([str(scene), "--no-detector", "--export", str(missing), "-q"]) == 4
+    assert capsys.readouterr().err == (f"davis-view: error: {missing}: the folder {missing.parent} does not "
+                                       "exist\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["view.mp4"]
+
+
 def test_export_with_the_boxes_of_a_davis_eval_run(scene, tmp_path):
     settings = EvalSettings(thresholds=(0.25,))
     results, scores = evaluate_sessions([scene], person_rvt(tmp_path), settings)
