@@ -348,7 +348,8 @@ def run_command(name: str, action: Callable[[], int | None], options: Mapping[st
         os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's final flush does not fail again
         return EXIT_BROKEN_PIPE
     except (DavisRigError, OSError) as exc:  # OSError: e.g. the output folder cannot be created
-        print(f"{name}: error: {error_message(exc, options)}", file=sys.stderr)
+        message = " ".join(error_message(exc, options).split())  # one line, whatever a library's text holds
+        print(f"{name}: error: {message}", file=sys.stderr)
         return exit_code_for(exc)
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)

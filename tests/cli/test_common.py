@@ -10,7 +10,7 @@ import pytest
 from davis_rig import __version__
 from davis_rig.cli import common
 from davis_rig.errors import (CheckpointError, ConfigError, DeviceNotFoundError, FormatError,
-                              MissingDependencyError)
+                              MissingDependencyError, SessionError)
 
 
 def _parser(**kwargs) -> argparse.ArgumentParser:
@@ -116,6 +116,9 @@ def test_require_names_the_option(capsys):
     (MissingDependencyError("pip install torch"), common.EXIT_MISSING_DEPENDENCY),
     (ConfigError("seq_len", "expected >= 1, got 0"), common.EXIT_USAGE),
     (KeyboardInterrupt(), common.EXIT_INTERRUPTED),
+    # HDF5's own messages hold a line break (``file write failed: time = <ctime>\n, filename = ...``)
+    (SessionError("/dev/full: cannot create the session file: [Errno 28] (file write failed: time = Fri Nov 27 "
+                  "06:20:07 2026\n, filename = '/dev/full', errno = 28)"), common.EXIT_DATA),
 ])
 def test_errors_become_one_line_and_their_exit_code(capsys, exc, code):
     def action():
