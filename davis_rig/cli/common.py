@@ -337,8 +337,21 @@ def run_command(name: str, action: Callable[[], int | None], options: Mapping[st
 
     Returns:
         The exit code. Errors that are not ``DavisRigError``, ``OSError`` or ``KeyboardInterrupt`` (bugs)
-        propagate with their traceback (exit 1).
+        propagate with their traceback (exit 1). Warnings the library issues meanwhile read as one
+        ``<name>: warning: ...`` line (no source file, line or code).
     """
+    import warnings
+
+    previous_format = warnings.formatwarning
+    warnings.formatwarning = lambda message, *args, **kwargs: f"{name}: warning: {' '.join(str(message).split())}\n"
+    try:
+        return _run_action(name, action, options)
+    finally:
+        warnings.formatwarning = previous_format
+
+
+def _run_action(name: str, action: Callable[[], int | None], options: Mapping[str, str] | None) -> int:
+    """:func:`run_command` without the warning format."""
     from davis_rig.errors import DavisRigError
 
     try:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import pickle
+import subprocess
+import sys
+import textwrap
 
 import pytest
 
@@ -180,3 +183,18 @@ def test_file_system_errors_read_as_path_and_reason():
     from davis_rig.errors import FormatError
 
     assert common.error_message(FormatError("s.h5: not a session")) == "s.h5: not a session"
+
+
+def test_a_library_warning_reads_as_one_command_line_without_source_code():
+    code = textwrap.dedent("""
+        import warnings
+        from davis_rig.cli import common
+
+        def action():
+            warnings.warn("x.davisreplay: last replay record is incomplete and was skipped", RuntimeWarning)
+
+        raise SystemExit(common.run_command("davis-demo", action))
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0
+    assert run.stderr == "davis-demo: warning: x.davisreplay: last replay record is incomplete and was skipped\n"
