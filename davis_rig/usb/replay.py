@@ -245,6 +245,25 @@ class ReplayReader:
         return self
 
     def __iter__(self) -> Iterator[ReplayRecord]:
+        for t_ns, _, _, data in self._walk(read_payload=True):
+            yield ReplayRecord(t_ns, data)
+
+    def index(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where the complete records are, without reading their payloads (memory: 24 bytes per record).
+
+        Returns:
+            (uint64 [R] host times, ns; int64 [R] payload offsets in the file, bytes; int64 [R] payload lengths,
+            bytes), in file order. An incomplete last record is left out as in iteration (warning, ``truncated``).
+
+        Raises:
+            FormatError: a record length over :data:`MAX_RECORD_BYTES` (a corrupt file).
+        """
+        heads = [(t_ns, offset, length) for t_ns, offset, length, _ in self._walk(read_payload=False)]
+        table = np.array(heads, dtype=np.uint64).reshape(-1, 3)
+        return table[:, 0], table[:, 1].astype(np.int64), table[:, 2].astype(np.int64)
+
+    def _walk(self, read_payload: bool) -> Iterator[tuple[int, int, int, bytes | None]]:
+        """``(host_time_ns, payload offset, length, payload or None)`` of each complete record, in file order."""
         if self._file is None:
             self.open()
         assert self._file is not None
@@ -260,18 +279,23 @@ class ReplayReader:
             t_ns, length = _RECORD.unpack(head)
             if length > MAX_RECORD_BYTES:
                 raise FormatError(f"{self.path}: record length {length} exceeds {MAX_RECORD_BYTES} bytes (corrupt file)")
-            if reader.tell() + length > self._size:  # cut short: nothing to allocate a buffer for
+            offset = reader.tell()
+            if offset + length > self._size:  # cut short: nothing to allocate a buffer for
                 self._mark_truncated()
                 return
-            data = reader.read(length)
-            if len(data) < length:
-                self._mark_truncated()
-                return
-            yield ReplayRecord(int(t_ns), data)
+            data = None
+            if read_payload:
+                data = reader.read(length)
+                if len(data) < length:
+                    self._mark_truncated()
+                    return
+            else:
+                reader.seek(length, os.SEEK_CUR)
+            yield int(t_ns), offset, length, data
 
     def _mark_truncated(self) -> None:
         self.truncated = True
-        warnings.warn(f"{self.path}: last replay record is incomplete and was skipped", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"{self.path}: last replay record is incomplete and was skipped", RuntimeWarning, stacklevel=4)
 
     def records(self) -> list[ReplayRecord]:
         """All complete records, in file order."""

@@ -12,8 +12,10 @@ passed on the device clock, which gives optional real-time pacing.
 
 from __future__ import annotations
 
+import os
 import threading
 import warnings
+import weakref
 from collections import deque
 from dataclasses import dataclass
 from os import PathLike
@@ -21,7 +23,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from davis_rig.errors import ConfigError, ProtocolError, ShapeError
+from davis_rig.errors import ConfigError, FormatError, ProtocolError, ShapeError
 from davis_rig.types import EVENT_DTYPE
 
 #: Default size of one device transfer, bytes (libcaer's buffer size).
@@ -121,7 +123,10 @@ class TransferListSource(DataSource):
 
 
 class ReplaySource(DataSource):
-    """Serve the transfers of a replay file.
+    """Serve the transfers of a replay file, each read from the file when it is served.
+
+    Memory holds an index of the records (24 bytes each), not their payloads: a replay longer than the memory
+    can be served.
 
     Args:
         path: replay file written by :class:`~davis_rig.usb.replay.ReplayWriter`.
@@ -141,11 +146,12 @@ class ReplaySource(DataSource):
 
         with ReplayReader(path) as reader:
             self.header = reader.header
-            records = list(reader)
+            host_times, self._offsets, self._lengths = reader.index()
             self.truncated = reader.truncated
-        releases, self.bad_host_times = pacing_us([r.host_time_ns for r in records]) if paced else (None, 0)
-        for k, record in enumerate(records):
-            self._push(float(releases[k]) if paced else 0.0, record.data)
+        self._releases, self.bad_host_times = pacing_us(host_times) if paced else (np.zeros(len(host_times)), 0)
+        self._path, self._next = path, 0
+        self._fd = os.open(path, os.O_RDONLY)
+        weakref.finalize(self, os.close, self._fd)
         if self.bad_host_times:
             warnings.warn(
                 f"{path}: {self.bad_host_times} replay records have a host time that goes back or jumps more than "
@@ -153,6 +159,33 @@ class ReplaySource(DataSource):
                 RuntimeWarning,
                 stacklevel=2,
             )
+
+    def peek_release_us(self) -> float | None:
+        """Release time of the next transfer, µs after streaming start, or ``None`` when exhausted."""
+        with self._lock:
+            return float(self._releases[self._next]) if self._next < len(self._releases) else None
+
+    def pop(self) -> bytes:
+        """Read and return the next transfer.
+
+        Raises:
+            IndexError: the source is exhausted.
+            FormatError: the file got shorter since it was opened.
+        """
+        with self._lock:
+            k = self._next
+            if k >= len(self._offsets):
+                raise IndexError("pop from an exhausted replay source")
+            data = os.pread(self._fd, int(self._lengths[k]), int(self._offsets[k]))
+            if len(data) != self._lengths[k]:
+                raise FormatError(f"{self._path}: record {k}: {len(data)} of {self._lengths[k]} bytes left (the file "
+                                  "was cut while being replayed)")
+            self._next = k + 1
+            return data
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._offsets) - self._next
 
 
 def _slice_edges(t_first: int, t_last: int, slice_us: int, frame_spans: np.ndarray) -> np.ndarray:

@@ -90,3 +90,46 @@ def test_paced_replay_source_uses_host_times(tmp_path):
         releases.append(r)
         src.pop()
     assert releases == [0.0, 1000.0, 2000.0, 3000.0]
+
+
+def test_a_replay_source_reads_transfers_when_served_so_its_memory_does_not_grow_with_the_file(tmp_path):
+    import tracemalloc
+
+    path = tmp_path / "long.davisreplay"
+    payload = bytes(range(256)) * 64  # 16 KiB per transfer, 2000 transfers: 32 MiB of payload
+    with ReplayWriter(path, HEADER) as w:
+        for i in range(2000):
+            w.write(payload[i % 256:] + payload[:i % 256], host_time_ns=1_000_000 * i)
+    tracemalloc.start()
+    try:
+        source = ReplaySource(path, paced=True)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 * 2**20  # the index of 2000 records, not their 32 MiB
+    assert len(source) == 2000 and source.peek_release_us() == 0.0
+    with ReplayReader(path) as r:
+        for k, record in enumerate(r):
+            assert source.peek_release_us() == 1000.0 * k
+            assert source.pop() == record.data
+    assert len(source) == 0 and source.peek_release_us() is None
+    with pytest.raises(IndexError):
+        source.pop()
+
+
+def test_a_truncated_replay_source_serves_the_complete_records_with_a_warning(tmp_path):
+    path = _write(tmp_path / "a.davisreplay")
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.warns(RuntimeWarning, match="incomplete"):
+        source = ReplaySource(path)
+    assert source.truncated and [source.pop() for _ in range(len(source))] == TRANSFERS[:3]
+
+
+def test_a_replay_cut_while_being_served_is_a_format_error_naming_the_file(tmp_path):
+    path = _write(tmp_path / "a.davisreplay")
+    source = ReplaySource(path)
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size - len(TRANSFERS[-1]) // 2)
+    assert [source.pop() for _ in range(3)] == TRANSFERS[:3]
+    with pytest.raises(FormatError, match=r"a\.davisreplay: record 3: 5120 of 10240 bytes left"):
+        source.pop()
