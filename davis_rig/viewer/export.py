@@ -113,5 +113,5 @@ def _write_gif(frames, path: Path, fps: float) -> None:
         from PIL import Image
     except ImportError as exc:
         raise MissingDependencyError('a GIF export needs Pillow: pip install "davis_rig[report]"') from exc
-    images = [Image.fromarray(rgb) for rgb in frames]
-    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
+    images = (Image.fromarray(rgb) for rgb in frames)  # one at a time: Pillow keeps only its palette frames
+    next(images).save(path, format="GIF", save_all=True, append_images=images, duration=round(1000 / fps), loop=0)
