@@ -95,7 +95,7 @@ def _export(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-export``; returns the exit code."""
     return run_main(build_parser(), argv, _export, check=_check,
-                    options={"crop_origin_xy": "--crop-origin", "to": "--to", "split": "--split"})
+                    options={"crop_origin_xy": "--crop-origin", "to": "--to", "split": "--split", "out": "--out"})
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Callable
+from pathlib import Path
 
 from davis_rig.errors import ConfigError
 from davis_rig.interop.formats import ExportFormat
@@ -42,7 +43,8 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
 
     Raises:
         ConfigError: an unknown format (field ``to``), a crop origin that does not fit or differs from the labels'
-            (``crop_origin_xy``), a bad ``split``.
+            (``crop_origin_xy``), a bad ``split``, an ``out`` that is the session itself or, for ``aedat4``, does
+            not end in ``.aedat4`` (field ``out``).
         SessionError: the session cannot be read.
         FormatError: an output exists (without ``overwrite``), or the format cannot hold this session (DAT: over
             71.6 min; RVT: no labels).
@@ -50,6 +52,11 @@ def export_session(path: str | os.PathLike, to: str, out: str | os.PathLike, *, 
     """
     if to not in tuple(ExportFormat):
         raise ConfigError("to", f"expected one of {', '.join(ExportFormat)}, got {to!r}")
+    if to == ExportFormat.AEDAT4 and Path(out).suffix != ".aedat4":
+        raise ConfigError("out", f"--to aedat4 writes a .aedat4 file (dv-processing aborts on any other name), "
+                                 f"got {str(out)!r}")
+    if Path(out).exists() and Path(path).exists() and os.path.samefile(out, path):
+        raise ConfigError("out", f"{out} is the session being exported")
     crop = crop or to == ExportFormat.RVT or crop_origin_xy is not None
     with ExportSource(path, crop=crop, crop_origin_xy=crop_origin_xy) as source:
         if to == ExportFormat.AEDAT4:

@@ -68,6 +68,9 @@ def test_real_exports_of_the_bundled_sample(tmp_path, capsys):
      "argument --crop-origin: expected an integer >= 0"),
     (["--to", "tiff", "--out", "o"], 2, "argument --to: invalid choice"),
     (["--to", "npz", "--out", "missing/o.npz"], 4, "the folder missing does not exist"),
+    # dv-processing aborts the whole process (SIGABRT, no exception) on a file name without .aedat4
+    (["--to", "aedat4", "--out", "o.h5"], 2,
+     "argument --out: --to aedat4 writes a .aedat4 file (dv-processing aborts on any other name), got 'o.h5'"),
 ])
 def test_usage_and_file_errors(tmp_path, monkeypatch, capsys, args, code, says):
     monkeypatch.chdir(tmp_path)
@@ -108,3 +111,14 @@ def test_an_out_of_the_wrong_kind_is_refused_even_with_overwrite_and_leaves_noth
     assert cli.main([str(SAMPLE), "--to", to, "--out", out, "--overwrite", "-q"]) == 4
     assert capsys.readouterr().err == f"davis-export: error: {says}\n"
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["keep", "taken", "taken.txt"]  # no staging file left
+
+
+@pytest.mark.parametrize("to", ["npz", "prophesee-dat", "aedat4"])
+def test_the_session_itself_as_out_is_refused_even_with_overwrite(tmp_path, monkeypatch, capsys, to):
+    monkeypatch.chdir(tmp_path)
+    session = tmp_path / "walk.aedat4" if to == "aedat4" else tmp_path / "walk.h5"  # the name --to aedat4 needs
+    session.write_bytes(SAMPLE.read_bytes())
+    assert cli.main([str(session), "--to", to, "--out", f"./{session.name}", "--overwrite", "-q"]) == 2
+    assert capsys.readouterr().err == (f"davis-export: error: argument --out: ./{session.name} is the session being "
+                                       "exported\n")
+    assert session.read_bytes() == SAMPLE.read_bytes() and [p.name for p in tmp_path.iterdir()] == [session.name]
