@@ -186,10 +186,21 @@ def _open_recording(dv, src: Path):
         magic = file.read(len(AEDAT4_MAGIC))
     if magic != AEDAT4_MAGIC:
         raise FormatError(f"{src}: not an AEDAT4 file (starts with {magic!r}, expected {AEDAT4_MAGIC!r})")
+    if src.suffix != ".aedat4":
+        raise FormatError(f"{src}: dv-processing reads AEDAT4 only from a file named *.aedat4; rename it")
     try:
         return dv.io.MonoCameraRecording(str(src))
     except RuntimeError as exc:
-        raise FormatError(f"{src}: not a readable AEDAT4 file ({exc})") from exc
+        raise FormatError(f"{src}: not a readable AEDAT4 file ({dv_reason(exc)})") from exc
+
+
+def dv_reason(exc: RuntimeError) -> str:
+    """The reason line of a dv-processing error, without its source location and C++ stack trace.
+
+    dv-processing's text is ``<file>(<line>): <function>\n<Kind>: <reason>\nStacktrace:\n<frames>``.
+    """
+    lines = str(exc).split("Stacktrace:")[0].strip().splitlines()
+    return lines[-1].strip() if lines else type(exc).__name__
 
 
 def _device_info(recording, src: Path) -> tuple[dict, tuple[int, int]]:
@@ -295,8 +306,9 @@ def import_aedat4(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: 
         try:
             _write_streams(recording, writer, origin)
             boxes, skipped = _read_boxes(recording) if has_boxes else (None, 0)
-        except RuntimeError as exc:  # dv-processing reports damaged packets as RuntimeError
-            raise FormatError(f"{src}: damaged AEDAT4 data after {writer.counts['events']} events ({exc}); "
+        except (RuntimeError, FormatError) as exc:  # dv-processing: damaged packets; the writer: garbage times
+            reason = dv_reason(exc) if isinstance(exc, RuntimeError) else str(exc).removeprefix(f"{dst}: ")
+            raise FormatError(f"{src}: damaged AEDAT4 data after {writer.counts['events']} events ({reason}); "
                               f"{dst} keeps what was read and is marked incomplete") from exc
         counts = writer.counts
     if boxes is not None:

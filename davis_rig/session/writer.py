@@ -284,7 +284,8 @@ class SessionWriter:
 
         Raises:
             SessionError: the writer is not open or an earlier write failed (disk full, ...).
-            FormatError / ShapeError: a field has the wrong dtype or shape.
+            FormatError / ShapeError: a field has the wrong dtype or shape; FormatError also when times are
+                so far apart (garbage of a damaged file) that the continued recording time leaves int64 µs.
         """
         self._check_usable()
         events, specials = getattr(chunk, "events", None), getattr(chunk, "specials", None)
@@ -309,7 +310,11 @@ class SessionWriter:
         specials = self._check_table("specials", specials)
         imu = self._check_table("imu", imu)
         tables = [table for table in (specials, imu) if table is not None]
-        events, offsets = self._clock.place(events, frames, tables, bridge_gaps=bridge_gaps)
+        try:
+            events, offsets = self._clock.place(events, frames, tables, bridge_gaps=bridge_gaps)
+        except OverflowError as exc:  # only garbage times (a damaged import) get offsets beyond int64
+            raise FormatError(f"{self.path}: event times out of range: continuing them monotonically leaves the "
+                              "int64 µs range (damaged input)") from exc
         if events is not None:
             self._buffer_events(events)
         if offsets is None:
@@ -335,7 +340,7 @@ class SessionWriter:
         once.
 
         Raises:
-            FormatError: ``events`` is not an EVENT_DTYPE array.
+            FormatError: ``events`` is not an EVENT_DTYPE array, or its times leave int64 µs (see :meth:`append`).
             ShapeError: ``events`` is not 1-D.
         """
         self._check_usable()

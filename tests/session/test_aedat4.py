@@ -89,6 +89,26 @@ def test_not_an_aedat4_file(tmp_path):
         import_aedat4(tmp_path / "missing.aedat4", tmp_path / "s.h5")
 
 
+def test_an_aedat4_file_under_another_name_is_a_short_error_naming_the_rule(tmp_path, aedat4_file):
+    path, _, _ = aedat4_file
+    renamed = tmp_path / "walk.bin"
+    renamed.write_bytes(path.read_bytes())
+    with pytest.raises(FormatError) as info:
+        import_aedat4(renamed, tmp_path / "s.h5")
+    assert str(info.value) == f"{renamed}: dv-processing reads AEDAT4 only from a file named *.aedat4; rename it"
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_dv_processing_errors_are_one_line_without_its_stack_trace(tmp_path, aedat4_file):
+    path, _, _ = aedat4_file
+    data = path.read_bytes()
+    damaged = tmp_path / "damaged.aedat4"
+    damaged.write_bytes(data[:20] + bytes(len(data) - 20))  # the magic, then nothing DV can parse
+    with pytest.raises(FormatError, match="damaged.aedat4") as info:
+        import_aedat4(damaged, tmp_path / "s.h5")
+    assert "Stacktrace" not in str(info.value) and "\n" not in str(info.value)
+
+
 def test_missing_dv_processing_is_a_clear_error(monkeypatch, tmp_path):
     from davis_rig.errors import MissingDependencyError
 

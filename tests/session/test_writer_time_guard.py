@@ -112,3 +112,15 @@ def test_an_unbridged_jump_is_shortened_and_the_device_time_stays_recoverable(tm
     assert stored["t"][100] == before["t"][-1] + 1
     np.testing.assert_array_equal(stored["t"][100:] - entry["offset_us"], after["t"])
     assert stored_special["t"][0] - entry["offset_us"] == special["t"][0]  # specials follow the events' offset
+
+
+def test_times_whose_repair_leaves_int64_are_a_format_error_naming_the_file(tmp_path):
+    from davis_rig.errors import FormatError
+
+    far = -9_200_000_000_000_000_000  # garbage of a damaged import: time going back by ~2**63 µs, twice
+    t = [1000, 2000, 3000, far, far + 1, 5000, 5001, far, far + 1, 9000]
+    events = make_events(t, [1] * len(t), [1] * len(t), [1] * len(t))
+    path = tmp_path / "s.h5"
+    with SessionWriter(path) as writer:
+        with pytest.raises(FormatError, match=r"s\.h5: event times out of range"):
+            writer.append_events(events)
