@@ -8,6 +8,7 @@ Thin front end: the arguments map onto :func:`davis_rig.session.record.record_se
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -198,6 +199,9 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.error("the following arguments are required: --out (or --recover SESSION_H5)")
     if args.fake_fast and args.fake is None:
         parser.error("argument --fake-fast: needs --fake REPLAY")
+    if args.fake is not None and os.path.exists(args.out) and os.path.exists(args.fake) \
+            and os.path.samefile(args.out, args.fake):
+        parser.error(f"argument --out: {args.out} is the --fake replay")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -205,3 +205,14 @@ def test_no_imu_starts_the_camera_without_the_imu_and_the_default_starts_it(monk
                 for device in devices]
     assert 1 in imu_runs[0]  # started with the accelerometer on, as libcaer and DV do
     assert 1 not in imu_runs[1]
+
+
+def test_the_replay_itself_as_out_is_refused_even_with_overwrite(tmp_path, monkeypatch, capsys):
+    replay = Path(__file__).resolve().parents[2] / "recordings" / "sample.davisreplay"
+    copy = tmp_path / "walk.davisreplay"
+    copy.write_bytes(replay.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["--fake", str(copy), "--out", "./walk.davisreplay", "--overwrite", "-q"]) == EXIT_USAGE
+    assert capsys.readouterr().err.splitlines()[-1] == ("davis-record: error: argument --out: ./walk.davisreplay is "
+                                                        "the --fake replay")
+    assert copy.read_bytes() == replay.read_bytes() and [p.name for p in tmp_path.iterdir()] == [copy.name]
