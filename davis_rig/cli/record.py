@@ -26,8 +26,8 @@ examples:
   davis-record --out session.h5 --overwrite --fake recordings/sample.davisreplay   # virtual camera replaying a file
   davis-record --recover session.h5       # rebuild session.h5 from session.h5.journal after a crash
 
-Ctrl-C stops cleanly (the file is closed and complete, exit 0). An existing --out file is kept (exit 4) unless
---overwrite replaces it.
+Ctrl-C (or SIGTERM: kill, timeout) stops cleanly (the file is closed and complete, exit 0). An existing --out
+file is kept (exit 4) unless --overwrite replaces it.
 """
 
 
@@ -132,7 +132,8 @@ def _record(args: argparse.Namespace) -> int:
     if args.fake is not None:
         backend, exhausted = fake_backend(args.fake, args.fake_fast)
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    stop_signals = (signal.SIGINT, signal.SIGTERM)  # Ctrl-C, and kill / timeout / a service manager
+    previous = {signum: signal.signal(signum, lambda signum, frame: stop.set()) for signum in stop_signals}
     try:
         with open_camera(args.serial, backend, args.usb_transfers) as camera, \
                 live_view(args, camera) as source:
@@ -150,7 +151,8 @@ def _record(args: argparse.Namespace) -> int:
                 progress=None if args.quiet else _progress_line,
             )
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if not args.quiet:
             print(file=sys.stderr)
     rate = summary.events / summary.duration_s / 1e6 if summary.duration_s > 0 else 0.0

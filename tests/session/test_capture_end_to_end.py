@@ -275,8 +275,10 @@ def test_kill_9_of_davis_record_then_recover(tmp_path, rng):
     assert not journal_path(out).exists()
 
 
-def test_ctrl_c_of_davis_record_closes_a_complete_file(tmp_path, rng):
-    """SIGINT (Ctrl-C) to a `davis-record --fake` subprocess mid-recording: exit 0, a complete file, no journal."""
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_of_davis_record_closes_a_complete_file(tmp_path, rng, signal_name):
+    """SIGINT (Ctrl-C) or SIGTERM (``kill``, ``timeout``, a service manager) to a `davis-record --fake` subprocess
+    mid-recording: exit 0, a complete file, no journal."""
     import re
     import signal
     import time
@@ -291,7 +293,7 @@ def test_ctrl_c_of_davis_record_closes_a_complete_file(tmp_path, rng):
             break
         stderr += piece
     assert b"Mev/s" in stderr, f"davis-record printed no progress: {stderr.decode(errors='replace')}"
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signal_name))
     stdout, rest = proc.communicate(timeout=60)
     stderr += rest
     assert proc.returncode == 0, stderr.decode(errors="replace")
