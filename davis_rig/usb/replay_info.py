@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import FormatError, ProtocolError
-from davis_rig.usb.replay import ReplayReader
+from davis_rig.usb.replay import MAX_PACING_STEP_NS, ReplayReader
 
 __all__ = ["ReplayInfo", "describe_replay"]
 
@@ -31,7 +31,9 @@ class ReplayInfo:
         sensor_hw: (height, width) of the DVS pixel array, px.
         transfers, transfer_bytes: complete records and their payload bytes.
         truncated: the last record was cut short (recording killed, disk full) and is ignored.
-        host_duration_us: host clock from the first to the last transfer, µs.
+        host_duration_us: host clock from the first to the last transfer, µs: the sum of the steps between
+            transfers, a damaged step (going back, or over ``MAX_PACING_STEP_NS``) counted as 0 — the time a paced
+            replay takes (:func:`~davis_rig.usb.replay.pacing_us`).
         events, frames, specials, imu_samples: what the transfers decode to.
         t_first_event_us, t_last_event_us: first / last event time (``None`` without events); duration_us:
             their difference; event_rate_mean_hz: events per second over it.
@@ -86,7 +88,8 @@ def describe_replay(path: str | os.PathLike) -> ReplayInfo:
     if not path.is_file():
         raise FormatError(f"{path}: no such replay file")
     counts = {"transfers": 0, "bytes": 0, "events": 0, "frames": 0, "specials": 0, "imu": 0}
-    t_first = t_last = host_first = host_last = None
+    t_first = t_last = host_last = None
+    host_ns = 0
     with ReplayReader(path) as reader, warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the truncation warning: reported as a field instead
         header = reader.header
@@ -103,7 +106,8 @@ def describe_replay(path: str | os.PathLike) -> ReplayInfo:
             counts["frames"] += len(chunk.frames)
             counts["specials"] += len(chunk.specials)
             counts["imu"] += len(chunk.imu)
-            host_first = record.host_time_ns if host_first is None else host_first
+            if host_last is not None and 0 <= record.host_time_ns - host_last <= MAX_PACING_STEP_NS:
+                host_ns += record.host_time_ns - host_last  # a damaged step counts 0, as in pacing_us
             host_last = record.host_time_ns
             if len(chunk.events):
                 t = chunk.events["t"]
@@ -116,7 +120,7 @@ def describe_replay(path: str | os.PathLike) -> ReplayInfo:
         firmware_version=header.firmware_version, logic_version=header.logic_version,
         sensor_hw=(layout.dvs_height, layout.dvs_width), transfers=counts["transfers"],
         transfer_bytes=counts["bytes"], truncated=truncated,
-        host_duration_us=((host_last - host_first) // 1000) if host_first is not None else 0,
+        host_duration_us=host_ns // 1000,
         events=counts["events"], frames=counts["frames"], specials=counts["specials"], imu_samples=counts["imu"],
         t_first_event_us=t_first, t_last_event_us=t_last, duration_us=duration_us,
         event_rate_mean_hz=counts["events"] * 1e6 / duration_us if duration_us > 0 else 0.0,

@@ -43,3 +43,19 @@ def test_damaged_replays_raise_format_error(tmp_path, content):
 def test_missing_replay(tmp_path):
     with pytest.raises(FormatError, match="no such replay file"):
         describe_replay(tmp_path / "none.davisreplay")
+
+
+@pytest.mark.parametrize("flipped", [0, 10, 19])
+def test_a_damaged_host_time_does_not_make_the_host_duration_negative_or_huge(tmp_path, flipped):
+    from davis_rig.usb.replay import ReplayReader, ReplayWriter
+
+    with ReplayReader(RECORDINGS / "sample.davisreplay") as reader:
+        header, head = reader.header, [record for _, record in zip(range(20), reader)]
+    path = tmp_path / "flip.davisreplay"
+    with ReplayWriter(path, header) as writer:
+        for k, record in enumerate(head):
+            t_ns = 5_000_000_000 + 1_000_000 * k  # 1 ms apart
+            writer.write(record.data, t_ns ^ (1 << 63) if k == flipped else t_ns)  # one flipped top bit
+    # the damaged record's steps count 0, as when pacing the replay (davis_rig.usb.replay.pacing_us)
+    expected_ms = 19 - (1 if flipped in (0, 19) else 2)
+    assert describe_replay(path).host_duration_us == expected_ms * 1000
