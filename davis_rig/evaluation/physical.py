@@ -259,7 +259,7 @@ def scoring_crop_origin(path, requested: tuple[int, int] | None, labels_attrs: d
     from davis_rig.events.crop import center_crop_origin, crop_origin_error
     from davis_rig.session.labels import labels_crop_origin
 
-    stored = labels_crop_origin(labels_attrs)
+    stored = labels_crop_origin(labels_attrs, path)
     if requested is not None and stored is not None and tuple(requested) != stored:
         raise SessionError(f"{path}: the labels were made for crop origin {stored}, not "
                            f"{tuple(requested)}; re-label with davis-label --crop-origin or drop "

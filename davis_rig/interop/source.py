@@ -79,7 +79,7 @@ class ExportSource:
         self.sensor_hw = dvs_hw_from_device_info(reader.device_info if isinstance(reader.device_info, dict) else {})
         self._labels = reader.labels()
         self.labels_attrs = reader.labels_attrs()
-        stored = labels_crop_origin(self.labels_attrs) if self._labels is not None else None
+        stored = labels_crop_origin(self.labels_attrs, self.path) if self._labels is not None else None
         try:
             centred = center_crop_origin(self.sensor_hw, RVT_HW)
         except ShapeError:

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from davis_rig.errors import SessionError
 from davis_rig.session import schema
 from davis_rig.session.h5file import frame_hw_from_device_info
 from davis_rig.session.journal import journal_path
@@ -220,9 +221,7 @@ def describe_session(path: str | os.PathLike) -> SessionInfo:
     path = Path(path)
     with SessionReader(path) as reader:
         stats = reader.stats if isinstance(reader.stats, dict) else {}
-        camera = stats.get("camera") if isinstance(stats.get("camera"), dict) else {}
-        decoder = camera.get("decoder") or stats.get("decoder") or {}
-        writer = stats.get("writer") if isinstance(stats.get("writer"), dict) else {}
+        losses = _losses(path, stats)
         stopped_by = stats.get("stopped_by")
         integrity, detail = _integrity(path, reader.complete, stopped_by)
 
@@ -250,17 +249,34 @@ def describe_session(path: str | os.PathLike) -> SessionInfo:
             imu_samples=int(len(imu_t)),
             imu_rate_hz=_rate_hz(len(imu_t) - 1, int(imu_t[-1] - imu_t[0])) if len(imu_t) > 1 else 0.0,
             specials=int(len(specials)), specials_by_type=_special_names(specials["type"]),
-            dropped_transfers=_optional_int(camera.get("dropped_transfers")),
-            dropped_bytes=_optional_int(camera.get("dropped_bytes")),
-            decoder_losses={key: int(decoder[key]) for key in DECODER_LOSS_KEYS if decoder.get(key)},
-            events_dropped_non_monotonic=int(writer.get("events_dropped_non_monotonic", 0) or 0),
-            timestamp_resets=int(writer.get("timestamp_resets", 0) or 0),
+            **losses,
             serial=str(device_info.get("serial", "")),
             sensor_hw=dvs_hw_from_device_info(device_info),
             device_info=device_info, config=reader.config if isinstance(reader.config, dict) else {},
             biases=reader.biases if isinstance(reader.biases, dict) else {},
-            crop_origin_xy=labels_crop_origin(reader.labels_attrs()) if labels is not None else None,
+            crop_origin_xy=labels_crop_origin(reader.labels_attrs(), path) if labels is not None else None,
             labels=labels)
+
+
+def _losses(path: Path, stats: dict) -> dict:
+    """The loss counters of the ``stats`` attribute, as :class:`SessionInfo` fields.
+
+    Raises:
+        SessionError: a counter is not a number (a damaged or hand-edited attribute).
+    """
+    camera = stats.get("camera") if isinstance(stats.get("camera"), dict) else {}
+    decoder = camera.get("decoder") or stats.get("decoder") or {}
+    writer = stats.get("writer") if isinstance(stats.get("writer"), dict) else {}
+    try:
+        return {
+            "dropped_transfers": _optional_int(camera.get("dropped_transfers")),
+            "dropped_bytes": _optional_int(camera.get("dropped_bytes")),
+            "decoder_losses": {key: int(decoder[key]) for key in DECODER_LOSS_KEYS if decoder.get(key)},
+            "events_dropped_non_monotonic": int(writer.get("events_dropped_non_monotonic", 0) or 0),
+            "timestamp_resets": int(writer.get("timestamp_resets", 0) or 0),
+        }
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise SessionError(f"{path}: unreadable stats attribute ({type(exc).__name__}: {exc})") from exc
 
 
 def _optional_int(value) -> int | None:

@@ -54,11 +54,12 @@ def write_labels(path: str | os.PathLike, labels: np.ndarray, attrs: dict, *, ov
         raise SessionError(f"{path}: cannot write /labels: {exc}") from exc
 
 
-def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
+def labels_crop_origin(attrs: dict, path: str | os.PathLike | None = None) -> tuple[int, int] | None:
     """The crop origin ``(x0, y0)`` on the sensor (px) stored with the labels, or ``None`` when none is stored.
 
     Args:
         attrs: the ``/labels`` attributes (:meth:`~davis_rig.session.SessionReader.labels_attrs`).
+        path: the session they come from (named in the error).
 
     Raises:
         SessionError: an origin attribute is present but is not two integers.
@@ -71,7 +72,8 @@ def labels_crop_origin(attrs: dict) -> tuple[int, int] | None:
             x0, y0 = json.loads(value) if isinstance(value, str) else value
             return int(x0), int(y0)
     except (TypeError, ValueError) as exc:
-        raise SessionError(f"/labels: unreadable crop origin attribute ({exc})") from exc
+        where = "" if path is None else f"{path}: "
+        raise SessionError(f"{where}/labels: unreadable crop origin attribute ({exc})") from exc
     return None
 
 

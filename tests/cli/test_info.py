@@ -89,3 +89,28 @@ def test_usage_and_version(capsys):
     assert capsys.readouterr().out.strip() == "davis-info (davis_rig 0.1.0)"
     assert cli.main(["--help"]) == 0
     assert "exit codes: 0 ok" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("stats", ['{"camera": {"decoder": [1]}}', '{"writer": {"timestamp_resets": "many"}}',
+                                   '{"camera": {"dropped_transfers": [2]}}'])
+def test_stats_of_the_wrong_types_are_a_one_line_error(tmp_path, capsys, stats):
+    import h5py
+
+    path = tmp_path / "s.h5"
+    path.write_bytes((RECORDINGS / "sample.h5").read_bytes())
+    with h5py.File(path, "a") as f:
+        f.attrs["stats"] = stats
+    assert cli.main([str(path)]) == 4
+    err = capsys.readouterr().err
+    assert err.startswith(f"davis-info: error: {path}: unreadable stats attribute (") and err.count("\n") == 1
+
+
+def test_an_unreadable_crop_origin_names_the_file(tmp_path, capsys):
+    import h5py
+
+    path = tmp_path / "s.h5"
+    path.write_bytes((RECORDINGS / "sample.h5").read_bytes())
+    with h5py.File(path, "a") as f:
+        f["labels"].attrs["crop_origin_xy"] = "zz"
+    assert cli.main([str(path)]) == 4
+    assert capsys.readouterr().err.startswith(f"davis-info: error: {path}: /labels: unreadable crop origin attribute")
