@@ -92,3 +92,15 @@ def test_the_summary_says_what_was_left_out(tmp_path, rich_session):
     assert summary.not_exported == {"frames": n_frames, "specials": n_specials, "imu": n_imu}
     assert summary.notes[0] == "the full 346x260 sensor; boxes moved from their crop at (17, 12) onto it"
     assert np.load(tmp_path / "x.npz")["events"].shape == (summary.events,)
+
+
+@pytest.mark.parametrize("fmt", ["npz", "prophesee-dat", "rvt"])
+def test_a_device_info_that_is_no_json_object_does_not_stop_an_export(tmp_path, rich_session, fmt):
+    import h5py
+
+    session = tmp_path / "odd.h5"
+    session.write_bytes(rich_session[0].read_bytes())
+    with h5py.File(session, "a") as f:
+        f.attrs["device_info"] = "[1]"  # damaged or hand-edited: a JSON list
+    summary = export_session(session, fmt, tmp_path / ("out" if fmt == "rvt" else "out_td.dat"))
+    assert summary.events > 0
