@@ -94,13 +94,17 @@ def test_the_summary_says_what_was_left_out(tmp_path, rich_session):
     assert np.load(tmp_path / "x.npz")["events"].shape == (summary.events,)
 
 
-@pytest.mark.parametrize("fmt", ["npz", "prophesee-dat", "rvt"])
+@pytest.mark.parametrize("fmt", ["npz", "prophesee-dat", "rvt", "aedat4"])
 def test_a_device_info_that_is_no_json_object_does_not_stop_an_export(tmp_path, rich_session, fmt):
     import h5py
+
+    if fmt == "aedat4":
+        pytest.importorskip("dv_processing", reason="the AEDAT4 export needs the optional dv-processing package")
 
     session = tmp_path / "odd.h5"
     session.write_bytes(rich_session[0].read_bytes())
     with h5py.File(session, "a") as f:
         f.attrs["device_info"] = "[1]"  # damaged or hand-edited: a JSON list
-    summary = export_session(session, fmt, tmp_path / ("out" if fmt == "rvt" else "out_td.dat"))
+    out = {"rvt": "out", "aedat4": "out.aedat4"}.get(fmt, "out_td.dat")
+    summary = export_session(session, fmt, tmp_path / out)
     assert summary.events > 0
