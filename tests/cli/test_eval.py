@@ -352,3 +352,15 @@ def test_an_out_that_cannot_be_a_folder_fails_before_scoring_and_before_yolo_wri
     assert captured.out == "" and captured.err == (f"davis-eval: error: {tmp_path / out}: --out needs a folder, "
                                                    f"and {tmp_path / 'taken.txt'} is a file\n")
     assert sha256(fresh) == before and (tmp_path / "taken.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("name", ["rvt-b.ckpt", "model.safetensors", "weights.pt"])
+def test_pytorch_weights_as_detector_say_how_to_make_the_onnx(sessions, tmp_path, capsys, name):
+    _, a, _ = sessions
+    weights = tmp_path / name
+    weights.write_bytes(b"PK\x03\x04 not an ONNX graph")
+    assert cli.main([str(a), "--detector", str(weights), "--threshold", "0.25", "--quiet"]) == 4
+    err = capsys.readouterr().err
+    assert err.startswith(f"davis-eval: error: {weights}: onnxruntime cannot load the model")
+    assert err.rstrip().endswith("(PyTorch weights? scoring needs an RVT step ONNX: export one with "
+                                 "tools/convert_checkpoint.py --onnx)")

@@ -31,6 +31,8 @@ __all__ = ["RVTOnnxRunner", "GraphSignature", "SplitStep"]
 _STATE_NAMES = state_input_names()
 _STATE_OUT_NAMES = state_output_names()
 _INPUT_CHANNELS = 2 * NUM_BINS
+#: Files of PyTorch weights (what :mod:`davis_rig.models.rvt.checkpoint` loads), named when onnxruntime refuses one.
+_PYTORCH_WEIGHT_SUFFIXES = (".ckpt", ".pt", ".pth", ".safetensors")
 
 #: One recurrent state: 4 × (h, c), float32 numpy arrays [B, C_s, H_s, W_s].
 States = list[tuple[np.ndarray, np.ndarray]]
@@ -258,7 +260,9 @@ class RVTOnnxRunner:
         try:
             self._session = ort.InferenceSession(str(self.path), sess_options=options, providers=self.providers)
         except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/NoSuchFile types
-            raise ModelFormatError(f"{self.path}: onnxruntime cannot load the model: {exc}") from exc
+            hint = (" (PyTorch weights? scoring needs an RVT step ONNX: export one with tools/convert_checkpoint.py "
+                    "--onnx)" if self.path.suffix.lower() in _PYTORCH_WEIGHT_SUFFIXES else "")
+            raise ModelFormatError(f"{self.path}: onnxruntime cannot load the model: {exc}{hint}") from exc
         self.signature = _read_signature(self._session, self.path)
 
     @property
