@@ -409,10 +409,11 @@ def run_main(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
 
 
 def check_out_folder(path: str | Path) -> None:
-    """Refuse, before any work, an ``--out`` folder that cannot be created: it, or a folder above it, is a file.
+    """Refuse, before any work, an ``--out`` folder that cannot be created or written: it, or a folder above it,
+    is a file, or the nearest existing folder is not writable.
 
     Raises:
-        FormatError: the message names ``path`` and the file in the way.
+        FormatError: the message names ``path`` and the file or folder in the way.
     """
     from davis_rig.errors import FormatError
 
@@ -421,6 +422,8 @@ def check_out_folder(path: str | Path) -> None:
         if existing.exists():
             if not existing.is_dir():
                 raise FormatError(f"{path}: --out needs a folder, and {existing} is a file")
+            if not os.access(existing, os.W_OK | os.X_OK):
+                raise FormatError(f"{path}: --out cannot be created: {existing} is not writable")
             return
 
 

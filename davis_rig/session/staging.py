@@ -35,7 +35,8 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
         the block did not create is skipped when moving.
 
     Raises:
-        FormatError: a destination exists and ``overwrite`` is false, is a folder, or its folder does not exist.
+        FormatError: a destination exists and ``overwrite`` is false, is a folder, or its folder does not exist
+            or is not writable.
     """
     targets = [Path(p) for p in paths]
     for target in targets:
@@ -45,6 +46,8 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
             raise FormatError(f"{target}: file exists (pass overwrite=True / --overwrite to replace it)")
         if not target.parent.is_dir():
             raise FormatError(f"{target}: the folder {target.parent} does not exist")
+        if not os.access(target.parent, os.W_OK | os.X_OK):
+            raise FormatError(f"{target}: the folder {target.parent} is not writable")
     staged = [target.with_name(f"{target.stem}{STAGING_SUFFIX}{target.suffix}") for target in targets]
     try:
         yield staged

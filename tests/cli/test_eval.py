@@ -364,3 +364,19 @@ def test_pytorch_weights_as_detector_say_how_to_make_the_onnx(sessions, tmp_path
     assert err.startswith(f"davis-eval: error: {weights}: onnxruntime cannot load the model")
     assert err.rstrip().endswith("(PyTorch weights? scoring needs an RVT step ONNX: export one with "
                                  "tools/convert_checkpoint.py --onnx)")
+
+
+def test_an_out_folder_that_cannot_be_written_fails_before_scoring(sessions, tmp_path, capsys, monkeypatch):
+    import os
+
+    import davis_rig.evaluation.physical as physical
+
+    _, a, _ = sessions
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode: False if path == tmp_path else real_access(path, mode))
+    monkeypatch.setattr(physical, "evaluate_sessions", lambda *a, **k: pytest.fail("scored before --out was checked"))
+    argv = [str(a), "--detector", str(person_rvt(tmp_path)), "--threshold", "0.25", "--out",
+            str(tmp_path / "report"), "--quiet"]
+    assert cli.main(argv) == 4
+    assert capsys.readouterr().err == (f"davis-eval: error: {tmp_path / 'report'}: --out cannot be created: "
+                                       f"{tmp_path} is not writable\n")

@@ -34,3 +34,11 @@ def test_a_move_that_fails_leaves_no_temporary_file(tmp_path, monkeypatch):
             dat.write_bytes(b"events")
             bbox.write_bytes(b"boxes")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.dat"]
+
+
+def test_a_folder_that_cannot_be_written_is_refused_before_writing(tmp_path, monkeypatch):
+    real_access = os.access
+    monkeypatch.setattr(staging.os, "access", lambda path, mode: False if path == tmp_path else real_access(path, mode))
+    with pytest.raises(FormatError, match=r"out\.npz: the folder .* is not writable"):
+        with staged_outputs(tmp_path / "out.npz"):
+            pytest.fail("the block ran")
