@@ -23,8 +23,9 @@ examples:
   davis-info recordings/sample.h5 --json           # the same as one JSON object (a list for several files)
   davis-info recordings/sample.davisreplay         # a raw USB replay: the camera, transfers, decoded counts
 
-Integrity: "complete" (closed cleanly), "needs recovery" (a journal is next to it: davis-record --recover
-rebuilds the recording), "incomplete" (not closed cleanly, no journal). Times are device µs."""
+Integrity: "complete" (closed cleanly), "recording" (a davis-record is writing it now), "needs recovery" (a
+journal is next to it: davis-record --recover rebuilds the recording), "incomplete" (not closed cleanly, no
+journal). Times are device µs."""
 
 #: First bytes of the file kinds davis-info recognises.
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"

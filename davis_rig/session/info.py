@@ -7,6 +7,8 @@ session as on the bundled sample. ``davis-info`` prints it as text or JSON.
 Integrity (:attr:`SessionInfo.integrity`):
 
 - ``"complete"``: the writer closed the file cleanly and no journal is left;
+- ``"recording"``: a running recording holds ``<session>.journal`` (:func:`~davis_rig.session.journal.journal_in_use`):
+  the file holds what was flushed so far;
 - ``"needs recovery"``: ``<session>.journal`` exists (a crash, or a recording stopped for a full disk):
   ``davis-record --recover`` rebuilds the whole recording from it;
 - ``"incomplete"``: not closed cleanly and no journal: what was flushed before the stop is readable, the rest
@@ -28,7 +30,7 @@ import numpy as np
 from davis_rig.errors import SessionError
 from davis_rig.session import schema
 from davis_rig.session.h5file import frame_hw_from_device_info
-from davis_rig.session.journal import journal_path
+from davis_rig.session.journal import journal_in_use, journal_path
 from davis_rig.session.labels import labels_crop_origin
 from davis_rig.session.reader import SessionReader
 from davis_rig.types import GEN1_CLASSES
@@ -71,7 +73,7 @@ class SessionInfo:
 
     Attributes:
         path, file_size_bytes, format_version, toolkit_version: the file.
-        integrity: ``"complete"``, ``"needs recovery"`` or ``"incomplete"`` (module docstring);
+        integrity: ``"complete"``, ``"recording"``, ``"needs recovery"`` or ``"incomplete"`` (module docstring);
             integrity_detail: one sentence on what that means for this file and what to run.
         stopped_by: why the recording ended (``stats["stopped_by"]``), ``None`` when not recorded.
         recording_start_utc: wall-clock start (ISO 8601).
@@ -195,6 +197,9 @@ def _labels_info(reader: SessionReader) -> LabelsInfo | None:
 
 def _integrity(path: Path, complete: bool, stopped_by: str | None) -> tuple[str, str]:
     journal = journal_path(path)
+    if journal_in_use(journal):
+        return "recording", (f"being recorded right now ({journal.name} is held by the recording): the file holds "
+                             "what was flushed so far")
     if journal.exists():
         state = "the file is readable as it is" if complete else "the file holds what was flushed before the stop"
         return ("needs recovery", f"{journal.name} exists next to it ({state}): run `davis-record --recover "

@@ -16,10 +16,15 @@ Record kinds: ``HEADER`` (JSON: device info, config, start time, toolkit version
 (one raw USB bulk transfer, bytes as received), ``NOTE`` (JSON: counters the byte stream does not carry, e.g.
 transfers the device dropped). A reader stops at the first truncated or corrupt record: everything before it
 is intact by construction (records are only ever appended).
+
+The recording holds an exclusive ``flock`` on its journal until it closes it; the kernel drops the lock when the
+process dies (kill -9, crash). :func:`journal_in_use` tells a journal of a recording still running from one
+left by a crash, so recovery never rebuilds (and replaces) a file that is still being written.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import struct
@@ -48,6 +53,21 @@ FSYNC_INTERVAL_S = 1.0
 def journal_path(session_path: str | os.PathLike) -> Path:
     """Return the journal path that belongs to a session file (``<session>.journal``)."""
     return Path(str(session_path) + ".journal")
+
+
+def journal_in_use(path: str | os.PathLike) -> bool:
+    """Whether a running recording holds the journal ``path`` (its lock; ``False`` when there is no such file)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)  # also releases a lock taken above
+    return False
 
 
 class SessionJournal:
@@ -84,6 +104,10 @@ class SessionJournal:
             self._file = open(self.path, "wb", buffering=1 << 20)
         except OSError as exc:
             raise SessionError(f"{self.path}: cannot create the recording journal: {exc}") from exc
+        try:
+            fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # held until close (see journal_in_use)
+        except OSError:
+            pass  # a file system without flock: the recording goes on, journal_in_use cannot see it
         try:
             self._file.write(MAGIC)
             self._write_record(KIND_HEADER, json.dumps(self.header, default=str).encode())

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from davis_rig.errors import ProtocolError, SessionError
 from davis_rig.session.h5file import to_jsonable
-from davis_rig.session.journal import KIND_HEADER, KIND_NOTE, KIND_TRANSFER, iter_journal, journal_path
+from davis_rig.session.journal import (KIND_HEADER, KIND_NOTE, KIND_TRANSFER, iter_journal, journal_in_use,
+                                      journal_path)
 from davis_rig.session.reader import SessionReader
 from davis_rig.session.writer import SessionWriter
 
@@ -78,6 +79,9 @@ def recover_session(path: str | os.PathLike) -> RecoveryReport:
             raise SessionError(f"{path}: unreadable and there is no journal {jpath} to rebuild it from ({exc})") \
                 from exc
 
+    if journal_in_use(jpath):
+        raise SessionError(f"{path}: being recorded right now ({jpath.name} is held by the recording); --recover "
+                           "rebuilds a recording that crashed: let this one end (Ctrl-C stops it cleanly)")
     records = iter_journal(jpath)
     first = next(records, None)
     if first is None or first[0] != KIND_HEADER:

@@ -123,6 +123,20 @@ def test_integrity_needs_recovery_and_incomplete(tmp_path, rng):
     assert info.integrity == "incomplete" and "no journal" in info.integrity_detail
 
 
+def test_a_recording_in_progress_is_not_sent_to_recovery(tmp_path, rng):
+    from davis_rig.session.journal import SessionJournal
+
+    path = tmp_path / "live.h5"
+    _write_session(path, rng, journal=True, close=False)
+    recorder = SessionJournal(journal_path(path), {"format": "davis_rig.journal"}).open()  # as a recording holds it
+    try:
+        info = describe_session(path)
+    finally:
+        recorder.close()
+    assert info.integrity == "recording" and "--recover" not in info.integrity_detail
+    assert describe_session(path).integrity == "needs recovery"  # the journal of a recording that ended uncleanly
+
+
 @pytest.mark.parametrize("damage", ["missing", "empty", "truncated", "not_hdf5", "foreign_hdf5"])
 def test_damaged_files_raise_session_error(tmp_path, damage):
     path = tmp_path / "bad.h5"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 import signal
 import subprocess
@@ -79,6 +80,7 @@ def test_recover_rebuilds_an_unreadable_file(tmp_path, rng):
         writer.append_raw(data)
         writer.append(camera.decoder.feed(data))
     writer.journal._file.flush()  # what the OS has after a kill -9
+    fcntl.flock(writer.journal._file.fileno(), fcntl.LOCK_UN)  # and the kernel drops the dead recorder's lock
     path.write_bytes(path.read_bytes()[:1000])  # the HDF5 file is damaged
     with pytest.raises(SessionError, match="truncated or corrupt"):
         SessionReader(path).open()
@@ -100,6 +102,23 @@ def test_recover_without_journal_and_unreadable_file_fails(tmp_path):
     with pytest.raises(SessionError, match="no journal") as info:
         recover_session(path)
     assert "--recover" not in str(info.value)  # no advice to run what failed
+
+
+def test_recover_refuses_a_recording_in_progress_and_changes_nothing(tmp_path, rng):
+    data = synth_stream(random_events(rng, 2000))
+    path = tmp_path / "live.h5"
+    writer = SessionWriter(path, journal=True).open()
+    try:
+        writer.append_raw(data)
+        writer.journal.sync(force=True)
+        before = path.read_bytes(), journal_path(path).read_bytes()
+        with pytest.raises(SessionError, match=r"live\.h5: being recorded right now"):
+            recover_session(path)
+        assert (path.read_bytes(), journal_path(path).read_bytes()) == before
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["live.h5", "live.h5.journal"]
+    finally:
+        writer.close()
+    assert not journal_path(path).exists()
 
 
 RECORDER = textwrap.dedent(
