@@ -15,6 +15,7 @@ import numpy as np
 
 from davis_rig.errors import FormatError, SessionError
 from davis_rig.session import schema
+from davis_rig.session.journal import journal_in_use, journal_path
 from davis_rig.types import BBOX_DTYPE
 
 __all__ = ["labels_crop_origin", "shift_boxes", "write_labels"]
@@ -30,16 +31,22 @@ def write_labels(path: str | os.PathLike, labels: np.ndarray, attrs: dict, *, ov
         overwrite: replace an existing ``/labels`` group.
 
     Raises:
-        SessionError: ``/labels`` exists and ``overwrite`` is false, or the file cannot be written.
+        SessionError: ``/labels`` exists and ``overwrite`` is false, the session is being recorded (its journal
+            is held, or another process has the file open for writing: HDF5's lock), or the file cannot be written.
         FormatError: ``labels`` is not BBOX_DTYPE.
     """
     import h5py
 
     if not isinstance(labels, np.ndarray) or labels.dtype != BBOX_DTYPE:
         raise FormatError(f"labels: expected BBOX_DTYPE, got {getattr(labels, 'dtype', type(labels))}")
+    if journal_in_use(journal_path(path)):
+        raise SessionError(f"{path}: being recorded right now; label it once the recording has ended (two writers "
+                           "would corrupt the file)")
     schema.import_hdf5plugin()
     try:
-        with h5py.File(path, "r+", locking=False) as f:
+        # HDF5's own lock refuses a file another process writes (a recording without a journal); file systems
+        # without locks are written as before.
+        with h5py.File(path, "r+", locking="best-effort") as f:
             if schema.LABELS_GROUP in f:
                 if not overwrite:
                     raise SessionError(f"{path}: already has /labels ({f[schema.LABELS_GROUP].attrs.get('labeler')}); "

@@ -177,3 +177,45 @@ def test_write_labels_refuses_to_replace_without_overwrite(tmp_path):
     write_labels(tmp_path / "s.h5", np.zeros(1, BBOX_DTYPE), {"labeler": "x", "settings": {"a": 1}}, overwrite=True)
     with SessionReader(tmp_path / "s.h5") as reader:
         assert len(reader.labels()) == 1 and json.loads(reader.labels_attrs()["settings"]) == {"a": 1}
+
+
+def test_write_labels_refuses_a_session_being_recorded(tmp_path, rng):
+    from davis_rig.session.journal import SessionJournal
+
+    path = tmp_path / "live.h5"
+    _write_session(path, rng, journal=True, close=False)
+    before = path.read_bytes()
+    recorder = SessionJournal(journal_path(path), {"format": "davis_rig.journal"}).open()  # as a recording holds it
+    try:
+        with pytest.raises(SessionError, match=r"live\.h5: being recorded right now"):
+            write_labels(path, np.zeros(1, BBOX_DTYPE), {"labeler": "x"})
+    finally:
+        recorder.close()
+    assert path.read_bytes() == before
+
+
+_RECORDER = """
+import sys
+from davis_rig.session import SessionWriter
+writer = SessionWriter(sys.argv[1], journal=False).open()
+print("open", flush=True)
+sys.stdin.read()
+writer.close()
+"""
+
+
+def test_write_labels_refuses_a_session_another_process_writes_without_a_journal(tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "live.h5"
+    recorder = subprocess.Popen([sys.executable, "-c", _RECORDER, str(path)], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True)
+    try:
+        assert recorder.stdout.readline().strip() == "open"
+        with pytest.raises(SessionError, match=r"live\.h5: cannot write /labels: .*lock"):
+            write_labels(path, np.zeros(1, BBOX_DTYPE), {"labeler": "x"})
+    finally:
+        recorder.communicate("", timeout=60)
+    with SessionReader(path) as reader:
+        assert reader.complete and reader.labels() is None
