@@ -11,12 +11,15 @@ import numpy as np
 from davis_rig.errors import SessionError
 from davis_rig.protocol.frames import ApsFrame
 from davis_rig.session import schema
-from davis_rig.session.journal import journal_path
+from davis_rig.session.journal import journal_in_use, journal_path
 from davis_rig.types import EVENT_DTYPE
 
 
 def _recover_hint(path: Path) -> str:
-    """``"; <name>.journal exists next to it: run davis-record --recover ..."`` when it does, else ``""``."""
+    """``"; <name>.journal exists next to it: run davis-record --recover ..."`` when it does, else ``""`` (and
+    that it is being recorded when a running recording holds the journal)."""
+    if journal_in_use(journal_path(path)):
+        return "; it is being recorded right now: read it once the recording has ended"
     if journal_path(path).exists():
         return f"; {journal_path(path).name} exists next to it: run `davis-record --recover {path}`"
     return ""

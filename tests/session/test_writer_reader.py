@@ -251,6 +251,21 @@ def test_empty_file_raises_session_error_and_names_the_journal_when_there_is_one
     assert empty.stat().st_size == 0  # reading never modifies the file
 
 
+def test_a_file_being_recorded_is_not_sent_to_recovery(tmp_path):
+    from davis_rig.session.journal import SessionJournal
+
+    empty = tmp_path / "live.h5"
+    empty.write_bytes(b"")  # nothing flushed yet
+    recorder = SessionJournal(journal_path(empty), {"format": "davis_rig.journal"}).open()  # a recording holds it
+    try:
+        with pytest.raises(SessionError) as info:
+            SessionReader(empty).open()
+    finally:
+        recorder.close()
+    assert str(info.value) == (f"{empty}: the file is empty (0 bytes), not a recorded session; it is being recorded "
+                               "right now: read it once the recording has ended")
+
+
 def test_missing_group_and_foreign_files(tmp_path):
     missing = tmp_path / "missing.h5"
     with pytest.raises(SessionError, match="no such session file"):
