@@ -18,7 +18,7 @@ from davis_rig import __version__
 from davis_rig.errors import FormatError, SessionError, ShapeError
 from davis_rig.session import h5file, schema
 from davis_rig.session.clock import RecordingClock
-from davis_rig.session.journal import SessionJournal, journal_path
+from davis_rig.session.journal import SessionJournal, journal_in_use, journal_path
 from davis_rig.types import EVENT_DTYPE
 
 #: Buffered events that trigger a write to HDF5 before the flush interval is up.
@@ -93,13 +93,16 @@ class SessionWriter:
         """Create the file, its groups and root attributes (and the journal); returns ``self``.
 
         Raises:
-            SessionError: the file exists and ``overwrite`` is false, or it (or its journal) cannot be created;
+            SessionError: the file exists and ``overwrite`` is false, another recording is writing it, or it (or
+                its journal) cannot be created;
                 then a file created by this call is removed again (it holds no data).
         """
         import h5py
 
         if self._file is not None:
             return self
+        if journal_in_use(journal_path(self.path)):  # even with overwrite: "w" would truncate the live file
+            raise SessionError(f"{self.path}: being recorded right now by another recording; choose another file")
         if self.path.exists() and not self.overwrite:
             raise SessionError(f"{self.path}: file exists (pass overwrite=True / --overwrite to replace it)")
         if journal_path(self.path).exists() and not self.overwrite:

@@ -214,6 +214,18 @@ def test_a_leftover_journal_is_not_overwritten_by_a_new_recording(tmp_path):
     assert journal_path(path).read_bytes() == b"journal of a crashed recording"
 
 
+def test_overwrite_refuses_a_session_that_is_being_recorded(tmp_path):
+    path = tmp_path / "s.h5"
+    path.write_bytes(b"what a running recording flushed so far")
+    recorder = SessionJournal(journal_path(path), {"format": "davis_rig.journal"}).open()  # it holds its journal
+    try:
+        with pytest.raises(SessionError, match=r"s\.h5: being recorded right now"):
+            SessionWriter(path, journal=True, overwrite=True).open()
+        assert path.read_bytes() == b"what a running recording flushed so far"
+    finally:
+        recorder.close()
+
+
 def test_a_journal_that_cannot_be_written_leaves_no_files_and_no_open_handle(tmp_path, monkeypatch):
     import davis_rig.session.journal as journal_module
 
