@@ -24,7 +24,6 @@ left by a crash, so recovery never rebuilds (and replaces) a file that is still 
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import struct
@@ -36,6 +35,11 @@ from pathlib import Path
 from typing import Iterator
 
 from davis_rig.errors import SessionError
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX (Windows): no lock, journal_in_use always answers False
+    fcntl = None
 
 MAGIC = b"DRJRNL01"
 _RECORD = struct.Struct("<BII")
@@ -56,7 +60,10 @@ def journal_path(session_path: str | os.PathLike) -> Path:
 
 
 def journal_in_use(path: str | os.PathLike) -> bool:
-    """Whether a running recording holds the journal ``path`` (its lock; ``False`` when there is no such file)."""
+    """Whether a running recording holds the journal ``path`` (its lock; ``False`` when there is no such file, or
+    on a system without ``flock``)."""
+    if fcntl is None:  # pragma: no cover - not POSIX
+        return False
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -105,7 +112,8 @@ class SessionJournal:
         except OSError as exc:
             raise SessionError(f"{self.path}: cannot create the recording journal: {exc}") from exc
         try:
-            fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # held until close (see journal_in_use)
+            if fcntl is not None:
+                fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # held until close (journal_in_use)
         except OSError:
             pass  # a file system without flock: the recording goes on, journal_in_use cannot see it
         try:
