@@ -100,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --export: video frames per second (default: real time, one frame per window)")
     parser.add_argument("--layers", type=_layers, default=None, metavar="L,...",
                         help="with --export: layers to draw (default all: events,aps,labels,detections,crop)")
+    parser.add_argument("--overwrite", action="store_true", help="with --export: replace an existing VIDEO")
     add_quiet(parser, help="print nothing but errors")
     return parser
 
@@ -125,7 +126,8 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
                      "there (every request then needs the printed token)")
     if args.export is None:
         for option, given in (("--session", args.session != 0), ("--start", args.start != 0.0),
-                              ("--end", args.end is not None), ("--layers", args.layers is not None)):
+                              ("--end", args.end is not None), ("--layers", args.layers is not None),
+                              ("--overwrite", args.overwrite)):
             if given:
                 parser.error(f"argument {option}: only with --export")
     else:
@@ -186,7 +188,8 @@ def _export(args: argparse.Namespace, view) -> int:
     stop = view.num_windows if args.end is None else min(-(-int(args.end * 1e6) // view.window_us), view.num_windows)
     threshold = view.detections.thresholds[-1] if view.detections is not None else None
     path = export_video(view, args.export, start=start, stop=max(stop, start + 1), fps=args.fps,
-                        layers=args.layers if args.layers is not None else LAYERS, threshold=threshold)
+                        layers=args.layers if args.layers is not None else LAYERS, threshold=threshold,
+                        overwrite=args.overwrite)
     if not args.quiet:
         fps = args.fps if args.fps is not None else 1e6 / view.window_us
         print(f"{path}: windows {start}..{max(stop, start + 1) - 1} of {view.path.name} at {fps:g} fps")

@@ -21,7 +21,7 @@ import numpy as np
 from davis_rig.interop.source import ExportSource
 from davis_rig.interop.summary import ExportSummary
 from davis_rig.session.npz import NPZ_FORMAT, NPZ_VERSION, TONIC_EVENT_DTYPE
-from davis_rig.session.staging import STAGING_SUFFIX, staged_outputs
+from davis_rig.session.staging import staged_outputs
 
 __all__ = ["export_npz"]
 
@@ -60,7 +60,7 @@ def export_npz(source: ExportSource, out: str | os.PathLike, *, overwrite: bool 
             "recording_start_utc": reader.recording_start_utc}
     events = read = 0
     with staged_outputs(out, overwrite=overwrite) as (tmp,):
-        scratch = tmp.with_name(out.name + ".events" + STAGING_SUFFIX)
+        scratch = tmp.with_name(tmp.name + ".events")  # beside the staged file, as unique as its name
         try:
             with open(scratch, "wb") as file:
                 for chunk, n_read in source.event_chunks():

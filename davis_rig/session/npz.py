@@ -91,7 +91,7 @@ def import_npz(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: boo
 
     Args:
         src: the ``.npz`` file.
-        dst: the session.h5 to create (written as ``<stem>.partial.h5`` beside it, moved into place when complete).
+        dst: the session.h5 to create (written as ``<stem>.partial-<random>.h5`` beside it, moved into place when complete).
         overwrite: replace an existing ``dst``.
 
     Returns:

@@ -256,7 +256,7 @@ def import_prophesee_dat(src: str | os.PathLike, dst: str | os.PathLike, *, labe
 
     Args:
         src: the ``.dat`` file.
-        dst: the session.h5 to create (written as ``<stem>.partial.h5`` beside it and moved into place when complete).
+        dst: the session.h5 to create (written as ``<stem>.partial-<random>.h5`` beside it and moved into place when complete).
         labels: the box file; default :func:`bbox_path` of ``src`` when it exists.
         overwrite: replace an existing ``dst``.
 

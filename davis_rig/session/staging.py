@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,8 +18,9 @@ from davis_rig.errors import FormatError
 
 __all__ = ["STAGING_SUFFIX", "staged_outputs"]
 
-#: Marks the temporary files: ``out.dat`` is written as ``out.partial.dat`` (the extension stays last: some
-#: writers, dv-processing's among them, refuse a file name without theirs).
+#: Marks the temporary files: ``out.dat`` is written as ``out.partial-<8 hex digits>.dat`` (the extension stays
+#: last: some writers, dv-processing's among them, refuse a file name without theirs; the random digits keep a
+#: user's own ``out.partial.dat`` and a concurrent export to the same name apart).
 STAGING_SUFFIX = ".partial"
 
 
@@ -31,8 +33,8 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
         overwrite: replace destinations that exist (else refuse before anything is written).
 
     Yields:
-        ``[Path]``: one temporary path per destination (``<stem>.partial<suffix>`` beside it); a temporary file
-        the block did not create is skipped when moving.
+        ``[Path]``: one temporary path per destination (``<stem>.partial-<random><suffix>`` beside it, a name
+        that does not exist yet); a temporary file the block did not create is skipped when moving.
 
     Raises:
         FormatError: a destination exists and ``overwrite`` is false, is a folder, or its folder does not exist
@@ -48,7 +50,7 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
             raise FormatError(f"{target}: the folder {target.parent} does not exist")
         if not os.access(target.parent, os.W_OK | os.X_OK):
             raise FormatError(f"{target}: the folder {target.parent} is not writable")
-    staged = [target.with_name(f"{target.stem}{STAGING_SUFFIX}{target.suffix}") for target in targets]
+    staged = [_unused_name(target) for target in targets]
     try:
         yield staged
     except BaseException:
@@ -64,3 +66,10 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
         for tmp in staged:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
+
+
+def _unused_name(target: Path) -> Path:
+    """``<stem>.partial-<8 random hex digits><suffix>`` beside ``target``, a name no file has yet."""
+    while (staged := target.with_name(f"{target.stem}{STAGING_SUFFIX}-{secrets.token_hex(4)}{target.suffix}")).exists():
+        continue
+    return staged

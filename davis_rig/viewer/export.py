@@ -49,17 +49,18 @@ def _frames(view, start: int, stop: int, layers, threshold, scoring_timeout_s: f
 
 
 def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: float | None = None, layers=LAYERS,
-                 threshold: float | None = None, scoring_timeout_s: float | None = None) -> Path:
+                 threshold: float | None = None, scoring_timeout_s: float | None = None, overwrite: bool = False) -> Path:
     """Write windows ``start .. stop - 1`` of a recording as an MP4 or a GIF (by ``path``'s suffix).
 
     Args:
         view: a :class:`~davis_rig.viewer.recording.RecordingView`.
-        path: ``.mp4`` or ``.gif`` to create (replaced if it exists).
+        path: ``.mp4`` or ``.gif`` to create.
         start, stop: window range (``stop=None``: to the end).
         fps: frames per second of the video (``None``: real time, one frame per window: ``1e6 / view.window_us``).
         layers: overlays to draw.
         threshold: which threshold's boxes to draw (``None``: none); with on-the-fly scoring the export waits
             for each window to be scored (up to ``scoring_timeout_s`` per window, ``None`` = no limit).
+        overwrite: replace ``path`` if it exists (else refuse before rendering anything).
 
     Returns:
         ``path``.
@@ -67,8 +68,8 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     Raises:
         ValueError: unknown suffix, empty range, or ``fps <= 0``.
         MissingDependencyError: a GIF without Pillow (the ``report`` extra).
-        FormatError: OpenCV cannot write the MP4 (no mp4v encoder in this OpenCV build), ``path``'s folder does
-            not exist or ``path`` is a folder.
+        FormatError: ``path`` exists (without ``overwrite``) or is a folder, its folder does not exist, or
+            OpenCV cannot write the MP4 (no mp4v encoder in this OpenCV build).
     """
     path = Path(path)
     video_format = VideoFormat.of(path)
@@ -83,7 +84,7 @@ def export_video(view, path, *, start: int = 0, stop: int | None = None, fps: fl
     from davis_rig.session.staging import staged_outputs
 
     frames = _frames(view, int(start), stop, layers, threshold, scoring_timeout_s)
-    with staged_outputs(path, overwrite=True) as (tmp,):  # created by the writer: the user's umask applies
+    with staged_outputs(path, overwrite=overwrite) as (tmp,):  # created by the writer: the user's umask applies
         if video_format == VideoFormat.MP4:
             _write_mp4(frames, tmp, fps)
         else:

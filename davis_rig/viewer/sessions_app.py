@@ -118,7 +118,7 @@ class SessionsApp:
 
         with tempfile.TemporaryDirectory(prefix="davis-view-") as folder:
             path = export_video(view, Path(folder) / f"export.{fmt}", start=start, stop=stop, fps=fps,
-                                layers=layers, threshold=threshold)
+                                layers=layers, threshold=threshold, overwrite=True)
             body = path.read_bytes()
         stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", view.path.stem) or "recording"
         name = f"{stem}_{start}-{stop}.{fmt}"

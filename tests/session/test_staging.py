@@ -42,3 +42,15 @@ def test_a_folder_that_cannot_be_written_is_refused_before_writing(tmp_path, mon
     with pytest.raises(FormatError, match=r"out\.npz: the folder .* is not writable"):
         with staged_outputs(tmp_path / "out.npz"):
             pytest.fail("the block ran")
+
+
+def test_a_users_own_partial_named_file_is_not_touched(tmp_path):
+    own = tmp_path / "out.partial.dat"
+    own.write_bytes(b"the user's file")
+    with staged_outputs(tmp_path / "out.dat") as (tmp,):
+        assert tmp.parent == tmp_path and tmp.suffix == ".dat" and tmp.name.startswith("out.partial-")
+        assert not tmp.exists()
+        tmp.write_bytes(b"export")
+    assert own.read_bytes() == b"the user's file"
+    assert (tmp_path / "out.dat").read_bytes() == b"export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.dat", "out.partial.dat"]

@@ -35,6 +35,7 @@ def test_version_and_help(capsys):
     (["--host", "0.0.0.0"], "argument --host: 0.0.0.0 is not this machine's loopback; add --allow-remote"),
     (["--session", "1"], "argument --session: only with --export"),
     (["--start", "2"], "argument --start: only with --export"),
+    (["--overwrite"], "argument --overwrite: only with --export"),
     (["--export", "x.avi"], "argument --export: expected a .mp4 or .gif file"),
     (["--export", "x.gif", "--session", "3"], "argument --session: 3 is not an index of the 1 SESSION_H5 given"),
     (["--export", "x.gif", "--start", "2", "--end", "1"], "argument --end: 1 s is not after --start 2 s"),
@@ -87,6 +88,16 @@ def test_export_mp4_and_gif(scene, tmp_path, capsys):
     with Image.open(gif) as image:
         assert image.n_frames == 25 and image.size == (696, 260) and image.info["duration"] == 100
     assert sorted(p.name for p in tmp_path.iterdir()) == ["view.gif", "view.mp4"]  # no temporary file left
+
+
+def test_an_existing_video_is_kept_unless_overwrite(scene, tmp_path, capsys):
+    mp4 = tmp_path / "view.mp4"
+    mp4.write_bytes(b"the user's video")
+    assert cli.main([str(scene), "--no-detector", "--export", str(mp4), "--end", "0.1", "-q"]) == 4
+    assert "view.mp4: file exists (pass overwrite=True / --overwrite to replace it)" in capsys.readouterr().err
+    assert mp4.read_bytes() == b"the user's video"
+    assert cli.main([str(scene), "--no-detector", "--export", str(mp4), "--end", "0.1", "-q", "--overwrite"]) == 0
+    assert cv2.VideoCapture(str(mp4)).isOpened()
 
 
 def test_an_export_is_created_with_the_usual_permissions_and_a_missing_folder_is_named(scene, tmp_path, capsys):
