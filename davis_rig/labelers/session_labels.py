@@ -212,14 +212,17 @@ def label_session(
     Raises:
         ConfigError: a threshold outside [0, 1] (or NaN), ``intra_op_threads`` < 1, or a crop origin that puts
             the 304x240 crop outside the sensor (``.field`` names the argument).
-        SessionError: missing/corrupt session, no frames, frames of the wrong resolution, labels present.
+        SessionError: missing/corrupt session, no frames, frames of the wrong resolution, labels present, a
+            session that is being recorded.
         ModelFormatError: a model that is not a supported YOLO ONNX, or lacks one of ``classes``.
     """
     from davis_rig.labelers.yolo import YoloOnnxDetector
     from davis_rig.session import SessionReader
+    from davis_rig.session.labels import refuse_session_being_recorded
 
     origin = _check_settings(conf_threshold, iou_threshold, intra_op_threads, crop_origin_xy)
     path = Path(path)
+    refuse_session_being_recorded(path)  # before the frames are labelled, not only when the labels are written
     with SessionReader(path) as reader:  # validates the file before the model is even loaded
         n_frames = _check_frames(reader, path, overwrite)
         model_path, default_classes = resolve_yolo_model(yolo)

@@ -18,7 +18,15 @@ from davis_rig.session import schema
 from davis_rig.session.journal import journal_in_use, journal_path
 from davis_rig.types import BBOX_DTYPE
 
-__all__ = ["labels_crop_origin", "shift_boxes", "write_labels"]
+__all__ = ["labels_crop_origin", "refuse_session_being_recorded", "shift_boxes", "write_labels"]
+
+
+def refuse_session_being_recorded(path: str | os.PathLike) -> None:
+    """Raise :class:`SessionError` when a running recording holds ``path``'s journal: labels written beside a
+    recording would corrupt the file (two writers)."""
+    if journal_in_use(journal_path(path)):
+        raise SessionError(f"{path}: being recorded right now; label it once the recording has ended (two writers "
+                           "would corrupt the file)")
 
 
 def write_labels(path: str | os.PathLike, labels: np.ndarray, attrs: dict, *, overwrite: bool = False) -> None:
@@ -39,9 +47,7 @@ def write_labels(path: str | os.PathLike, labels: np.ndarray, attrs: dict, *, ov
 
     if not isinstance(labels, np.ndarray) or labels.dtype != BBOX_DTYPE:
         raise FormatError(f"labels: expected BBOX_DTYPE, got {getattr(labels, 'dtype', type(labels))}")
-    if journal_in_use(journal_path(path)):
-        raise SessionError(f"{path}: being recorded right now; label it once the recording has ended (two writers "
-                           "would corrupt the file)")
+    refuse_session_being_recorded(path)
     schema.import_hdf5plugin()
     try:
         # HDF5's own lock refuses a file another process writes (a recording without a journal); file systems

@@ -63,6 +63,23 @@ def test_wrong_onnx_and_unknown_class_leave_the_session_untouched(session, tmp_p
     assert sha256(session) == before
 
 
+def test_a_session_being_recorded_is_refused_before_any_frame_is_labelled(session, tmp_path, monkeypatch):
+    import davis_rig.labelers.session_labels as session_labels
+    from davis_rig.session.journal import SessionJournal, journal_path
+
+    labelled = []
+    monkeypatch.setattr(session_labels, "label_frames", lambda *args, **kwargs: labelled.append(1))
+    before = sha256(session)
+    recorder = SessionJournal(journal_path(session), {"format": "davis_rig.journal"}).open()  # holds its journal
+    try:
+        with pytest.raises(SessionError, match="being recorded right now"):
+            label_session(session, person_yolo(tmp_path))
+    finally:
+        recorder.close()
+        journal_path(session).unlink()
+    assert labelled == [] and sha256(session) == before
+
+
 def test_session_without_frames_or_with_another_sensor_is_refused(tmp_path):
     from davis_rig.types import make_events
 
