@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -374,13 +375,16 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
                      else _pipelined_decoded(windows, split, runner.initial_states(1), busy))
             with closing(steps):
                 detections = _postprocessed(steps, thresholds, settings.nms_threshold, settings.chunk_windows,
-                                            timings, bar)
+                                            timings, bar, totals)
         timings["inference"] = sum(busy.values())
         if bar is not None:
             bar.close()
     finally:
         reader.close()
     timings["wall"] = time.perf_counter() - wall
+    if totals["nonfinite_windows"]:
+        warnings.warn(f"{path.name}: the detector's output holds NaN or inf in {totals['nonfinite_windows']} of "
+                      f"{len(ends)} windows (no box can come from those anchors): check the model", stacklevel=2)
     return SessionScores(path=path, t0_us=t0, window_end_us=ends, detections=detections, labels=labels,
                          crop_origin_xy=tuple(int(v) for v in origin), num_events=totals["events"],
                          timings_s=timings, event_images=np.asarray(gif, np.int16).reshape(-1, *RVT_HW),
@@ -399,13 +403,15 @@ def _whole_steps(windows, runner, busy_s: dict):
 
 
 def _postprocessed(steps, thresholds: list[float], nms_threshold: float, backlog: int, timings: dict,
-                   bar) -> dict:
+                   bar, totals: dict) -> dict:
     """Post-process every decoded step at all ``thresholds`` at once in a background thread, at most ``backlog``
     steps behind the model.
 
     Returns:
         ``{threshold: [one entry per window, in order: float32 [K, 7] or None]}``. Adds the busy seconds to
-        ``timings["postprocess"]`` and advances ``bar`` (or ``None``) by one per step.
+        ``timings["postprocess"]``, counts the steps whose output holds NaN or ±inf in
+        ``totals["nonfinite_windows"]`` (their anchors pass no threshold: a broken model would score AP 0 in
+        silence) and advances ``bar`` (or ``None``) by one per step.
     """
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
@@ -413,9 +419,12 @@ def _postprocessed(steps, thresholds: list[float], nms_threshold: float, backlog
     from davis_rig.models.rvt.postprocess import postprocess_thresholds
 
     detections = {th: [] for th in thresholds}
+    totals["nonfinite_windows"] = 0
 
     def post(decoded):
         tic = time.perf_counter()
+        if not np.isfinite(decoded).all():
+            totals["nonfinite_windows"] += 1
         out = postprocess_thresholds(decoded, thresholds, nms_threshold)
         timings["postprocess"] += time.perf_counter() - tic
         return out

@@ -397,3 +397,23 @@ def test_events_on_chunk_boundaries_are_in_both_windows_and_counted_once(tmp_pat
     assert [int(h.sum()) for h in runner.hists] == [3, 4, 2]
     with SessionReader(session) as reader:
         assert scores.num_events == reader.num_events == 6
+
+
+class _NaNRunner(_HistogramRecorder):
+    """A broken model: NaN scores in every other window."""
+
+    def step(self, hist, states):
+        decoded, states = super().step(hist, states)
+        return (np.full_like(decoded, np.nan) if len(self.hists) % 2 else decoded), states
+
+
+def test_a_model_that_outputs_nan_is_warned_about_not_scored_in_silence(tmp_path):
+    import warnings
+
+    session = _session_with_times(tmp_path / "s.h5", np.array([500, 60_000, 120_000]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the control: a model with finite outputs raises no warning
+        score_session(session, _HistogramRecorder(), EvalSettings(thresholds=(0.1,)))
+    with pytest.warns(UserWarning, match=r"s\.h5: the detector's output holds NaN or inf in 2 of 3 windows"):
+        scores = score_session(session, _NaNRunner(), EvalSettings(thresholds=(0.1,)))
+    assert [d is None or len(d) == 0 for d in scores.detections[0.1]] == [True, True, True]
