@@ -62,7 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="use a virtual DAVIS346 that replays this replay file (davis_rig.usb.replay format); "
                              "the recording ends with the replay (or earlier with --duration / Ctrl-C)")
     parser.add_argument("--fake-fast", action="store_true",
-                        help="with --fake: serve the replay as fast as possible instead of in real time")
+                        help="with --fake: serve the replay as fast as possible instead of in real time (a test of the "
+                             "host's limit: what the recording cannot keep up with is dropped, as a real camera's "
+                             "transfers would be, and counted in the summary)")
     parser.add_argument("--usb-transfers", type=non_negative_int, default=DEFAULT_TRANSFERS, metavar="N",
                         help=f"asynchronous USB transfers kept in flight (default {DEFAULT_TRANSFERS}, like libcaer); "
                              "0 = a thread of synchronous reads")
