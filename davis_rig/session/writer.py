@@ -31,6 +31,20 @@ MIN_FREE_BYTES = 64 << 20
 MAX_GAP_US = 1_000_000
 
 
+def _open_for_writing_elsewhere(path: Path) -> bool:
+    """Whether another writer (a recording without a journal, a label writer) holds HDF5's lock on ``path``:
+    opening it to read with HDF5's locking fails then. ``False`` for a missing file or one that is not HDF5."""
+    import h5py
+
+    if not path.is_file():
+        return False
+    try:
+        with h5py.File(path, "r", locking=True):
+            return False
+    except OSError as exc:
+        return "lock" in str(exc)
+
+
 class SessionWriter:
     """Write one recording into a session.h5, incrementally and crash-tolerantly.
 
@@ -101,7 +115,8 @@ class SessionWriter:
 
         if self._file is not None:
             return self
-        if journal_in_use(journal_path(self.path)):  # even with overwrite: "w" would truncate the live file
+        if journal_in_use(journal_path(self.path)) or (self.overwrite and _open_for_writing_elsewhere(self.path)):
+            # even with overwrite: "w" would truncate the live file before HDF5's own lock refused this writer
             raise SessionError(f"{self.path}: being recorded right now by another recording; choose another file")
         if self.path.exists() and not self.overwrite:
             raise SessionError(f"{self.path}: file exists (pass overwrite=True / --overwrite to replace it)")

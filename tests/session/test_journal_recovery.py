@@ -226,6 +226,27 @@ def test_overwrite_refuses_a_session_that_is_being_recorded(tmp_path):
         recorder.close()
 
 
+def test_overwrite_refuses_a_session_another_process_records_without_a_journal(tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "s.h5"
+    recorder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from davis_rig.session import SessionWriter; "
+         "w = SessionWriter(sys.argv[1], journal=False).open(); print('open', flush=True); time.sleep(60)", str(path)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert recorder.stdout.readline().strip() == "open"
+        before = path.read_bytes()
+        with pytest.raises(SessionError, match=r"s\.h5: being recorded right now"):
+            SessionWriter(path, journal=False, overwrite=True).open()
+        assert path.read_bytes() == before
+    finally:
+        recorder.kill()
+        recorder.wait()
+    SessionWriter(path, journal=False, overwrite=True).open().close()  # the control: once it has ended, it may
+
+
 def test_a_journal_that_cannot_be_written_leaves_no_files_and_no_open_handle(tmp_path, monkeypatch):
     import davis_rig.session.journal as journal_module
 
