@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import time
@@ -33,7 +34,8 @@ MAX_GAP_US = 1_000_000
 
 def _open_for_writing_elsewhere(path: Path) -> bool:
     """Whether another writer (a recording without a journal, a label writer) holds HDF5's lock on ``path``:
-    opening it to read with HDF5's locking fails then. ``False`` for a missing file or one that is not HDF5."""
+    opening it to read with HDF5's locking fails then. ``False`` for a missing file, one that is not HDF5, or a
+    file system without locks."""
     import h5py
 
     if not path.is_file():
@@ -41,8 +43,9 @@ def _open_for_writing_elsewhere(path: Path) -> bool:
     try:
         with h5py.File(path, "r", locking=True):
             return False
-    except OSError as exc:
-        return "lock" in str(exc)
+    except OSError as exc:  # held: EWOULDBLOCK from another process's lock, mismatched lock flags in this one
+        # (a file system without locks, errno ENOSYS, and a damaged file are not held: they may be replaced)
+        return f"unable to lock file, errno = {errno.EWOULDBLOCK}," in str(exc) or "flag values don't match" in str(exc)
 
 
 class SessionWriter:
