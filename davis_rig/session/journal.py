@@ -60,18 +60,20 @@ def journal_path(session_path: str | os.PathLike) -> Path:
 
 
 def journal_in_use(path: str | os.PathLike) -> bool:
-    """Whether a running recording holds the journal ``path`` (its lock; ``False`` when there is no such file, or
-    on a system without ``flock``)."""
+    """Whether a running recording holds the journal ``path`` (its lock; ``False`` when there is no such file, it
+    cannot be opened, or the system or file system has no ``flock``: then no recording can be seen)."""
     if fcntl is None:  # pragma: no cover - not POSIX
         return False
     try:
         fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
+    except OSError:  # missing, unreadable, a folder: the callers' own checks report it
         return False
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
         return True
+    except OSError:  # ENOLCK / ENOSYS: a file system without locks
+        return False
     finally:
         os.close(fd)  # also releases a lock taken above
     return False

@@ -270,3 +270,26 @@ def test_a_journal_that_cannot_be_written_leaves_no_files_and_no_open_handle(tmp
     with SessionWriter(path, journal=True) as writer:  # the same recording again is not refused
         writer.append_raw(b"\x00\x01")
     assert path.exists() and not journal_path(path).exists()
+
+
+def test_journal_in_use_on_a_file_system_without_locks_or_an_unreadable_journal_is_false(tmp_path, monkeypatch):
+    import errno
+
+    import davis_rig.session.journal as journal_module
+    from davis_rig.session.journal import journal_in_use
+
+    journal = journal_path(tmp_path / "s.h5")
+    recorder = SessionJournal(journal, {"format": "davis_rig.journal"}).open()
+    try:
+        assert journal_in_use(journal)  # the control: a running recording is seen
+
+        def no_locks(fd, operation):
+            raise OSError(errno.ENOLCK, "No locks available")
+
+        monkeypatch.setattr(journal_module.fcntl, "flock", no_locks)
+        assert not journal_in_use(journal)
+    finally:
+        monkeypatch.undo()
+        recorder.close()
+    assert not journal_in_use(tmp_path)  # a folder, not a journal
+    assert not journal_in_use(tmp_path / "missing.journal")
