@@ -191,7 +191,7 @@ def _open_checked(path: Path):
         if reader.num_events == 0:
             raise SessionError(f"{path}: the session has no events to score")
         hw = tuple(reader.frames.data.shape[1:]) if len(reader.frames) else DAVIS346_HW
-        layout = reader.device_info.get("layout", {}) if isinstance(reader.device_info, dict) else {}
+        layout = reader.device_info.get("layout", {})
         cols, rows = layout.get("dvs_size_columns", DAVIS346_HW[1]), layout.get("dvs_size_rows", DAVIS346_HW[0])
         if hw != DAVIS346_HW or (cols, rows) != (DAVIS346_HW[1], DAVIS346_HW[0]):
             raise SessionError(f"{path}: sensor {cols}x{rows}, frames {hw[1]}x{hw[0]} (w x h); expected a DAVIS346 "

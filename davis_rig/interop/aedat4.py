@@ -94,8 +94,7 @@ def export_aedat4(source: ExportSource, out: str | os.PathLike, *, overwrite: bo
     specials = reader.specials()
     triggers = specials[np.isin(specials["type"], list(SPECIAL_TO_TRIGGER))]
     imu = reader.imu()
-    config = dv.io.MonoCameraWriter.Config(_camera_name(reader.device_info if isinstance(reader.device_info, dict)
-                                                        else {}))
+    config = dv.io.MonoCameraWriter.Config(_camera_name(reader.device_info))
     config.addEventStream((width, height))
     config.addStreamMetadata("events", (META_ORIGIN_XY, "%d %d" % source.origin_xy))
     config.addStreamMetadata("events", (META_SENSOR_WH, f"{source.sensor_hw[1]} {source.sensor_hw[0]}"))

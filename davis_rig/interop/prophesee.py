@@ -63,8 +63,7 @@ def export_prophesee_dat(source: ExportSource, out: str | os.PathLike, *, overwr
     if labels is None and boxes_out.exists() and not overwrite:
         raise FormatError(f"{boxes_out}: exists, and {source.path} has no labels to replace it with (pass "
                           "--overwrite to remove it)")
-    device_info = reader.device_info if isinstance(reader.device_info, dict) else {}
-    fields = {DAT_KEYS["source"]: source.path.name, DAT_KEYS["serial"]: device_info.get("serial", ""),
+    fields = {DAT_KEYS["source"]: source.path.name, DAT_KEYS["serial"]: reader.device_info.get("serial", ""),
               DAT_KEYS["t_offset_us"]: str(t_offset), DAT_KEYS["origin_xy"]: "%d %d" % source.origin_xy,
               DAT_KEYS["sensor_wh"]: f"{source.sensor_hw[1]} {source.sensor_hw[0]}"}
     kept = None

@@ -76,7 +76,7 @@ class ExportSource:
 
     def _resolve_geometry(self) -> None:
         reader = self.reader
-        self.sensor_hw = dvs_hw_from_device_info(reader.device_info if isinstance(reader.device_info, dict) else {})
+        self.sensor_hw = dvs_hw_from_device_info(reader.device_info)
         self._labels = reader.labels()
         self.labels_attrs = reader.labels_attrs()
         stored = labels_crop_origin(self.labels_attrs, self.path) if self._labels is not None else None

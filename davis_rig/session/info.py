@@ -225,7 +225,7 @@ def describe_session(path: str | os.PathLike) -> SessionInfo:
     """
     path = Path(path)
     with SessionReader(path) as reader:
-        stats = reader.stats if isinstance(reader.stats, dict) else {}
+        stats = reader.stats
         losses = _losses(path, stats)
         stopped_by = stats.get("stopped_by")
         integrity, detail = _integrity(path, reader.complete, stopped_by)
@@ -238,7 +238,7 @@ def describe_session(path: str | os.PathLike) -> SessionInfo:
         imu = reader.imu()
         imu_t = imu["t"].astype(np.int64) if imu is not None else np.zeros(0, np.int64)
         specials = reader.specials()
-        device_info = reader.device_info if isinstance(reader.device_info, dict) else {}
+        device_info = reader.device_info
         labels = _labels_info(reader)
         return SessionInfo(
             path=str(path), file_size_bytes=path.stat().st_size, format_version=reader.format_version,
@@ -257,8 +257,8 @@ def describe_session(path: str | os.PathLike) -> SessionInfo:
             **losses,
             serial=str(device_info.get("serial", "")),
             sensor_hw=dvs_hw_from_device_info(device_info),
-            device_info=device_info, config=reader.config if isinstance(reader.config, dict) else {},
-            biases=reader.biases if isinstance(reader.biases, dict) else {},
+            device_info=device_info, config=reader.config,
+            biases=reader.biases,
             crop_origin_xy=labels_crop_origin(reader.labels_attrs(), path) if labels is not None else None,
             labels=labels)
 

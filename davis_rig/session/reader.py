@@ -15,6 +15,17 @@ from davis_rig.session.journal import journal_in_use, journal_path
 from davis_rig.types import EVENT_DTYPE
 
 
+def _json_object(attrs, name: str) -> dict:
+    """The JSON attribute ``name`` as a dict: ``{}`` when it is missing or holds another JSON value (a damaged or
+    hand-edited file; the readers of these attributes look keys up).
+
+    Raises:
+        ValueError: the attribute is not JSON.
+    """
+    value = json.loads(attrs.get(name, "{}"))
+    return value if isinstance(value, dict) else {}
+
+
 def _recover_hint(path: Path) -> str:
     """``"; <name>.journal exists next to it: run davis-record --recover ..."`` when it does, else ``""`` (and
     that it is being recorded when a running recording holds the journal)."""
@@ -220,10 +231,10 @@ class SessionReader:
                                          np.any(np.diff(self._ms_to_idx) < 0)):
                 raise SessionError(f"{self.path}: /events/ms_to_idx is inconsistent with {self.num_events} events")
             self.frames = FrameStore(f[schema.FRAMES_GROUP], self.path)
-            self.device_info = json.loads(f.attrs.get(schema.ATTR_DEVICE_INFO, "{}"))
-            self.config = json.loads(f.attrs.get(schema.ATTR_CONFIG, "{}"))
-            self.biases = json.loads(f.attrs.get(schema.ATTR_BIASES, "{}"))
-            self.stats = json.loads(f.attrs.get(schema.ATTR_STATS, "{}"))
+            self.device_info = _json_object(f.attrs, schema.ATTR_DEVICE_INFO)
+            self.config = _json_object(f.attrs, schema.ATTR_CONFIG)
+            self.biases = _json_object(f.attrs, schema.ATTR_BIASES)
+            self.stats = _json_object(f.attrs, schema.ATTR_STATS)
             self.complete = bool(f.attrs.get(schema.ATTR_COMPLETE, False))
             self.recording_start_utc = str(f.attrs.get(schema.ATTR_START_UTC, ""))
             self.recording_start_unix_us = int(f.attrs.get(schema.ATTR_START_UNIX_US, 0))
