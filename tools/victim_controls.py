@@ -3,8 +3,9 @@
 Fingerprint: AP and SeqASR of white, black, the paper's random 60x60, a random and a checkerboard n x n grid on
 the digital evaluation protocol (``davis-attack evaluate``'s scenes); the paper's victim detects white best.
 Free-appearance bound: on ``--scenes-per-scale`` test scenes of each scale, the person's albedo optimised freely
-per scene (every covered sample of every frame; and a grey n x n grid on the parts, a new one every frame), scored
-like the evaluation: the best SeqASR any appearance change reaches on those scenes (davis_rig.controls.bounds).
+per scene (every covered sample of every frame; a grey n x n grid on the parts, a new one every frame; and, as a
+print must be, the same in every frame: a grey n x n grid and a grey albedo per texel), scored like the evaluation:
+the best SeqASR an appearance change, and a static one, reaches on those scenes (davis_rig.controls.bounds).
 
 Run: ``python tools/victim_controls.py --name bundled --out out/controls_bundled [--detector CKPT] [--threads 1]``;
 writes ``controls_<name>.json`` / ``.md`` into ``--out`` (and its parts, so a rerun continues).
@@ -22,6 +23,7 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import PART_CHOICES, camera_scale
+    from davis_rig.controls.bounds import BOUND_KINDS
     from davis_rig.cli.common import (add_detector, add_out, add_quiet, add_threads, new_parser, non_negative_float,
                                        positive_float, positive_int, probability, run_main)
 
@@ -45,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="test scenes per scale of the bound (default 4)")
     parser.add_argument("--steps", type=positive_int, default=100, help="Adam steps per scene (default 100)")
     parser.add_argument("--lr", type=positive_float, default=0.1, help="Adam learning rate on the logits")
+    parser.add_argument("--kinds", nargs="+", choices=BOUND_KINDS, default=list(BOUND_KINDS), metavar="KIND",
+                        help="free appearances of the bound: " + ", ".join(map(repr, BOUND_KINDS)) + " (default all)")
     parser.add_argument("--skip-fingerprint", action="store_true", help="only the bound")
     parser.add_argument("--skip-bound", action="store_true", help="only the fingerprint")
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
@@ -62,7 +66,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from davis_rig.attack.evaluate import PAPER_THRESHOLDS, EvalConfig
     from davis_rig.attack.optimize import load_attack_detector
-    from davis_rig.controls.bounds import BoundConfig
+    from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig
     from davis_rig.controls.report import victim_controls
 
     if args.threads:
@@ -71,7 +75,9 @@ def _run(args: argparse.Namespace) -> int:
     parts = None if args.parts == ["all"] else tuple(args.parts)
     eval_config = EvalConfig(scales=tuple(args.scales), headings_rad=headings, phases=tuple(args.phases),
                              thresholds=tuple(sorted(set(PAPER_THRESHOLDS) | {args.threshold})))
-    bound = BoundConfig(steps=args.steps, lr=args.lr, threshold=args.threshold, grid_n=args.cells, parts=parts)
+    kinds = tuple(k for k in BOUND_KINDS if k in args.kinds)
+    bound = BoundConfig(steps=args.steps, lr=args.lr, threshold=args.threshold, grid_n=args.cells, parts=parts,
+                        kinds=kinds)
     detector = load_attack_detector(args.detector)
     report = victim_controls(
         detector, args.out, name=args.name, eval_config=eval_config, bound_config=bound,

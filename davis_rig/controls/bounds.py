@@ -6,11 +6,18 @@ digital evaluation protocol. The paper's victim detects white best (AP 50.5 agai
 at 0.25); a victim with the opposite ordering keys on something else than the paper's does.
 
 **Free-appearance bound** (:func:`free_appearance_bound`): on each test scene the person's appearance is optimised
-freely for that scene alone, with nothing a wearable texture has to respect, in two forms:
+freely for that scene alone, in four forms, from the least constrained to a print:
 
 - ``"per-pixel"``: a free albedo in [0, 1] for every covered sample of every frame (the rendered intensity is
   still ``albedo * shade`` composited over the background: any appearance change, frame by frame);
-- ``"per-frame texture"``: a free grey n x n grid on the painted parts, a different one in every frame.
+- ``"per-frame texture"``: a free grey n x n grid on the painted parts, a different one in every frame;
+- ``"static texture"``: a free grey n x n grid on the painted parts, the same in every frame (a wearable print
+  with grey levels, fitted to this one scene: at least as strong as the attack's black/white grid there);
+- ``"static per-texel"``: a free grey albedo for every texel of the 1024 x 1024 texture on the painted parts,
+  the same in every frame (the finest static print there is).
+
+The two static forms separate what a wearable texture could do from what only a changing appearance can: a
+victim blinded by the per-frame forms but not the static ones cannot be blinded by any print on that scene.
 
 Each is scored like the evaluation (exact simulator, the detector over the windows with its states): the share of
 scenes whose optimised appearance leaves no detection at the threshold in any window is the best SeqASR any
@@ -46,8 +53,8 @@ __all__ = [
     "relaxed_event_histograms",
 ]
 
-#: The two free appearances of :func:`free_appearance_bound`.
-BOUND_KINDS = ("per-pixel", "per-frame texture")
+#: The free appearances of :func:`free_appearance_bound`, least constrained first.
+BOUND_KINDS = ("per-pixel", "per-frame texture", "static texture", "static per-texel")
 
 
 @dataclass(frozen=True)
@@ -62,6 +69,7 @@ class BoundConfig:
         parts: painted parts of the per-frame texture (``None`` = whole body); the per-pixel kind paints the
             whole visible body.
         theta: contrast threshold of the relaxed counts' gradient (log units; the evaluation's ideal sensor: 0.2).
+        kinds: the free appearances to optimise (a subset of :data:`BOUND_KINDS`, in that order).
     """
 
     steps: int = 100
@@ -70,12 +78,16 @@ class BoundConfig:
     grid_n: int = 10
     parts: tuple[str, ...] | None = ("torso", "arms", "legs")
     theta: float = 0.2
+    kinds: tuple[str, ...] = BOUND_KINDS
 
     def __post_init__(self) -> None:
         if int(self.steps) < 0 or not self.lr > 0 or not 0 < self.threshold < 1 or int(self.grid_n) < 1:
             raise ValueError(f"need steps >= 0, lr > 0, 0 < threshold < 1, grid_n >= 1; got {self}")
         if not self.theta > 0:
             raise ValueError(f"theta must be > 0, got {self.theta}")
+        unknown = [k for k in self.kinds if k not in BOUND_KINDS]
+        if unknown or len(set(self.kinds)) != len(self.kinds):
+            raise ValueError(f"kinds must be distinct names from {BOUND_KINDS}, got {self.kinds}")
 
 
 def fingerprint_textures(grid_n: int = 10, parts: tuple[str, ...] | None = ("torso", "arms", "legs"),
@@ -156,13 +168,17 @@ def _appearance(scene, kind: str, config: BoundConfig, mask):
     if kind == "per-pixel":
         logits = torch.zeros(raster.shade.shape[0], dtype=raster.shade.dtype, requires_grad=True)
         return logits, lambda z: raster.compose(torch.sigmoid(z), background)
-    if kind != "per-frame texture":
+    if kind not in BOUND_KINDS:
         raise ValueError(f"kind must be one of {BOUND_KINDS}, got {kind!r}")
+    grid_n = None if kind == "static per-texel" else int(config.grid_n)
+    lookup = raster.lookup(size=1024, mode="nearest", grid_n=grid_n, mask=mask)
+    rows, cols = lookup.texture_hw
+    if kind != "per-frame texture":
+        logits = torch.zeros(rows, cols, dtype=raster.shade.dtype, requires_grad=True)
+        return logits, lambda z: raster.compose(lookup.sample(torch.sigmoid(z), fill=1.0), background)
     h, w = raster.hw
-    lookup = raster.lookup(size=1024, mode="nearest", grid_n=int(config.grid_n), mask=mask)
     frame = (raster.sample_pixel // (h * w)).view(1, -1)
-    logits = torch.zeros(raster.num_frames, config.grid_n, config.grid_n, dtype=raster.shade.dtype,
-                         requires_grad=True)
+    logits = torch.zeros(raster.num_frames, rows, cols, dtype=raster.shade.dtype, requires_grad=True)
 
     def render(z):
         values = lookup.sample(torch.sigmoid(z), fill=1.0).gather(0, frame).view(-1)  # each sample its frame's grid
@@ -179,7 +195,7 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
         detector: frozen RVT detector (eval mode, no parameter gradients).
         kind: one of :data:`BOUND_KINDS`.
         config: the settings.
-        mask: bool [1024, 1024] paintable texels of the per-frame texture (``None``: whole body).
+        mask: bool [1024, 1024] paintable texels of the textures (``None``: whole body).
 
     Returns:
         The video of the appearance with the lowest loss seen (no grad).
@@ -219,7 +235,7 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
             NMS, sequence length).
         config: the optimisation settings (default :class:`BoundConfig`).
         baselines: name -> :class:`~davis_rig.attack.evaluate.TextureSpec` scored on the same scenes for
-            comparison (default white and black).
+            comparison (default white and black; ``{}`` for none).
         progress: optional callable ``(message: str) -> None`` called after each scene.
 
     Returns:
@@ -234,13 +250,13 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
     config = config or BoundConfig()
     if int(eval_config.warmup_windows) != 0:
         raise ValueError("the free-appearance bound scores scenes without warm-up windows (warmup_windows = 0)")
-    baselines = baselines or {"white": TextureSpec(white_texture(1), config.parts),
+    baselines = baselines if baselines is not None else {"white": TextureSpec(white_texture(1), config.parts),
                               "black": TextureSpec(black_texture(1), config.parts)}
     detector = detector.eval()
     for p in detector.parameters():
         p.requires_grad_(False)
     mask = part_mask(config.parts) if config.parts is not None else None
-    names = list(baselines) + list(BOUND_KINDS)
+    names = list(baselines) + list(config.kinds)
     decoded = {name: [] for name in names}
     per_scene = []
     t0 = time.perf_counter()

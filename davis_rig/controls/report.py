@@ -129,7 +129,7 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
 
     keep = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
     folder.mkdir(exist_ok=True)
-    names = ["white", "black", *BOUND_KINDS]
+    names = ["white", "black", *bound_config.kinds]
     decoded = {n: [] for n in names}
     per_scene, scored = [], []
     t0 = time.perf_counter()
@@ -147,25 +147,53 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
     rows = bound_rows(decoded, scored, per_scene, bound_config.threshold, eval_config)
     return {"threshold": bound_config.threshold, "scenes": len(scored), "rows": rows,
             "per_scene": per_scene, "config": {"steps": bound_config.steps, "lr": bound_config.lr,
-                                               "grid_n": bound_config.grid_n, "parts": bound_config.parts},
+                                               "grid_n": bound_config.grid_n, "parts": bound_config.parts,
+                                               "kinds": list(bound_config.kinds)},
             "seconds_this_call": time.perf_counter() - t0}
 
 
 def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: BoundConfig,
                     names: list[str]) -> tuple[dict, dict]:
-    """One scene's bound: computed and saved to ``part`` (atomically) unless already there; returns the scene's
-    record and, per appearance name, its decoded detections per window."""
+    """One scene's bound: the appearances of ``names`` not yet in ``part`` are computed and saved to it (atomically,
+    beside those already there); returns the scene's record and, per appearance name, its decoded detections per
+    window."""
+    from dataclasses import replace
+
+    from davis_rig.attack.evaluate import TextureSpec
+    from davis_rig.attack.texture import black_texture, white_texture
     from davis_rig.controls.bounds import free_appearance_bound
 
-    if not part.is_file():
-        res = free_appearance_bound([scene], detector, eval_config, bound_config)
-        np.savez(part.with_suffix(".tmp.npz"), record=json.dumps(res["per_scene"][0]),
-                 **{f"{n}__{w}": d for n in names for w, d in enumerate(res["decoded"][n][0])})
+    windows = range(len(scene.window_end_us))
+    settings = _bound_settings(bound_config)
+    record, decoded = {}, {}
+    if part.is_file():
+        with np.load(part) as data:
+            record = json.loads(str(data["record"]))
+            decoded = {n: [data[f"{n}__{w}"] for w in windows] for n in record if f"{n}__0" in data}
+        if record.get("settings") != settings:
+            raise ValueError(f"{part} was made with other bound settings ({record.get('settings')}, now {settings}): "
+                             f"give another output folder, or delete {part.parent} to start over")
+    missing = [n for n in names if n not in decoded]
+    if missing:
+        plain = {"white": white_texture(1), "black": black_texture(1)}
+        baselines = {n: TextureSpec(plain[n], bound_config.parts) for n in missing if n in plain}
+        kinds = tuple(n for n in BOUND_KINDS if n in missing)
+        res = free_appearance_bound([scene], detector, eval_config, replace(bound_config, kinds=kinds),
+                                    baselines=baselines)
+        record.update(res["per_scene"][0], settings=settings)
+        decoded.update({n: res["decoded"][n][0] for n in missing})
+        np.savez(part.with_suffix(".tmp.npz"), record=json.dumps(record),
+                 **{f"{n}__{w}": d[w] for n, d in decoded.items() for w in windows})
         part.with_suffix(".tmp.npz").replace(part)
-    with np.load(part) as data:
-        record = json.loads(str(data["record"]))
-        decoded = {n: [data[f"{n}__{w}"] for w in range(len(scene.window_end_us))] for n in names}
-    return record, decoded
+    kept = {k: v for k, v in record.items() if k in ("scene", "scale", "shape", "heading_rad") or k in names}
+    return kept, {n: decoded[n] for n in names}
+
+
+def _bound_settings(config: BoundConfig) -> dict:
+    """What a kept bound part depends on besides its scene: every :class:`BoundConfig` field but ``kinds``."""
+    return {"steps": int(config.steps), "lr": float(config.lr), "threshold": float(config.threshold),
+            "grid_n": int(config.grid_n), "parts": None if config.parts is None else list(config.parts),
+            "theta": float(config.theta)}
 
 
 def _markdown(report: dict) -> str:
@@ -185,7 +213,10 @@ def _markdown(report: dict) -> str:
                   "| appearance | AP % | SeqASR % | mean top score |", "|---|---|---|---|"]
         for r in b["rows"]:
             lines.append(f"| {r['appearance']} | {_pct(r['AP'])} | {_pct(r['SeqASR'])} | {r['mean_top_score']:.3f} |")
+        n = b["config"]["grid_n"]
         lines += ["", "per-pixel: a free albedo for every covered sample of every frame; per-frame texture: a free "
-                  f"grey {b['config']['grid_n']}x{b['config']['grid_n']} grid on the painted parts, a new one every "
-                  "frame; both optimised per scene, scored with the exact simulator.", ""]
+                  f"grey {n}x{n} grid on the painted parts, a new one every frame; static texture: a free grey {n}x{n} "
+                  "grid, the same in every frame; static per-texel: a free grey albedo for every texel of the "
+                  "1024x1024 texture, the same in every frame; each optimised per scene, scored with the exact "
+                  "simulator.", ""]
     return "\n".join(lines)

@@ -58,8 +58,40 @@ def test_free_appearance_bound_on_a_tiny_detector():
     scenes = prepare_scenes(evaluation_scenes(TINY, model.num_shapes), model, TINY)
     res = free_appearance_bound(scenes, detector, TINY, BoundConfig(steps=2, grid_n=4))
     names = [r["appearance"] for r in res["rows"]]
-    assert names == ["white", "black", "per-pixel", "per-frame texture"] and res["scenes"] == 1
+    assert names == ["white", "black", "per-pixel", "per-frame texture", "static texture", "static per-texel"]
+    assert res["scenes"] == 1
     for row in res["rows"]:
         assert 0.0 <= row["SeqASR"] <= 1.0 and row["num_sequences"] == 1
     # the optimised appearances keep the lowest loss seen, which includes their start
     assert set(res["per_scene"][0]) >= set(names)
+
+
+def test_static_appearances_are_one_texture_in_every_frame():
+    from davis_rig.controls.bounds import _appearance
+
+    model = BodyModel()
+    scene = prepare_scenes(evaluation_scenes(TINY, model.num_shapes), model, TINY)[0]
+    config = BoundConfig(grid_n=4)
+    grid = torch.randn(4, 4, generator=torch.Generator().manual_seed(0), dtype=scene.raster.shade.dtype)
+    static, render_static = _appearance(scene, "static texture", config, None)
+    texel, render_texel = _appearance(scene, "static per-texel", config, None)
+    frames, render_frames = _appearance(scene, "per-frame texture", config, None)
+    num_frames = scene.raster.num_frames
+    assert tuple(static.shape) == (4, 4) and tuple(texel.shape) == (1024, 1024)
+    assert tuple(frames.shape) == (num_frames, 4, 4)
+    with torch.no_grad():
+        video = render_static(grid)
+        # the per-frame texture holding the same grid in every frame, and the per-texel one holding its texels
+        assert torch.equal(video, render_frames(grid.expand(num_frames, 4, 4)))
+        assert torch.equal(video, render_texel(grid.repeat_interleave(256, 0).repeat_interleave(256, 1)))
+        # and a per-frame texture that changes is another video
+        changing = grid.expand(num_frames, 4, 4).clone()
+        changing[-1] = -changing[-1]
+        assert not torch.equal(video, render_frames(changing))
+
+
+def test_bound_config_kinds_are_checked():
+    with pytest.raises(ValueError, match="kinds"):
+        BoundConfig(kinds=("static texture", "static texture"))
+    with pytest.raises(ValueError, match="kinds"):
+        BoundConfig(kinds=("per-frame",))

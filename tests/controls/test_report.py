@@ -44,3 +44,30 @@ def test_victim_controls_writes_the_report_and_resumes(tmp_path):
     again = victim_controls(detector, tmp_path, **kwargs)  # from the kept parts
     assert json.dumps(again["bound"]["rows"]) == json.dumps(report["bound"]["rows"])
     assert json.dumps(again["fingerprint"]["rows"]) == json.dumps(report["fingerprint"]["rows"])  # NaN-safe
+
+
+def test_a_bound_part_gains_the_kinds_it_lacks_and_keeps_the_rest(tmp_path, monkeypatch):
+    import davis_rig.controls.bounds as bounds
+
+    config = EvalConfig(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,),
+                        supersample=1, thresholds=(0.25,))
+    detector = load_detector(FIXTURE)
+    kwargs = dict(name="tiny", eval_config=config, scenes_per_scale=1, fingerprint=False)
+    first = victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=4, kinds=("per-pixel",)),
+                            **kwargs)
+    assert [r["appearance"] for r in first["bound"]["rows"]] == ["white", "black", "per-pixel"]
+    optimised = []
+    original = bounds.optimise_appearance
+    monkeypatch.setattr(bounds, "optimise_appearance",
+                        lambda scene, det, kind, *a, **k: optimised.append(kind) or original(scene, det, kind, *a, **k))
+    both = victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=4,
+                                                                        kinds=("per-pixel", "static texture")),
+                           **kwargs)
+    assert optimised == ["static texture"]  # the kept per-pixel appearance is not optimised again
+    rows = {r["appearance"]: r for r in both["bound"]["rows"]}
+    assert list(rows) == ["white", "black", "per-pixel", "static texture"]
+    assert json.dumps(rows["per-pixel"]) == json.dumps(first["bound"]["rows"][2])
+    # parts made with other settings are not mixed in
+    with pytest.raises(ValueError, match="other bound settings"):
+        victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=5, kinds=("static texture",)),
+                        **kwargs)
