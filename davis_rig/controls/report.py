@@ -214,9 +214,13 @@ def _markdown(report: dict) -> str:
         for r in b["rows"]:
             lines.append(f"| {r['appearance']} | {_pct(r['AP'])} | {_pct(r['SeqASR'])} | {r['mean_top_score']:.3f} |")
         n = b["config"]["grid_n"]
-        lines += ["", "per-pixel: a free albedo for every covered sample of every frame; per-frame texture: a free "
-                  f"grey {n}x{n} grid on the painted parts, a new one every frame; static texture: a free grey {n}x{n} "
-                  "grid, the same in every frame; static per-texel: a free grey albedo for every texel of the "
-                  "1024x1024 texture, the same in every frame; each optimised per scene, scored with the exact "
-                  "simulator.", ""]
+        meaning = {"per-pixel": "a free albedo for every covered sample of every frame",
+                   "per-frame texture": f"a free grey {n}x{n} grid on the painted parts, a new one every frame",
+                   "static texture": f"a free grey {n}x{n} grid on the painted parts, the same in every frame",
+                   "static per-texel": "a free grey albedo for every texel of the 1024x1024 texture on the painted "
+                                       "parts, the same in every frame"}
+        shown = [r["appearance"] for r in b["rows"] if r["appearance"] in meaning]
+        if shown:
+            lines += ["", "; ".join(f"{k}: {meaning[k]}" for k in shown)
+                      + "; each optimised per scene, scored with the exact simulator.", ""]
     return "\n".join(lines)
