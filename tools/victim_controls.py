@@ -7,8 +7,13 @@ per scene (every covered sample of every frame; a grey n x n grid on the parts, 
 print must be, the same in every frame: a grey n x n grid and a grey albedo per texel), scored like the evaluation:
 the best SeqASR an appearance change, and a static one, reaches on those scenes (davis_rig.controls.bounds).
 
+With ``--shared``: one grey n x n texture fitted to the bound's scenes together, scored grey and binarized there
+and on the protocol's other scenes (davis_rig.controls.report.shared_texture_control) — between the per-scene
+bound and the attack.
+
 Run: ``python tools/victim_controls.py --name bundled --out out/controls_bundled [--detector CKPT] [--threads 1]``;
-writes ``controls_<name>.json`` / ``.md`` into ``--out`` (and its parts, so a rerun continues).
+writes ``controls_<name>.json`` / ``.md`` (``shared_<name>...`` with ``--shared``) into ``--out`` (and its parts,
+so a rerun continues).
 """
 
 from __future__ import annotations
@@ -49,12 +54,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lr", type=positive_float, default=0.1, help="Adam learning rate on the logits")
     parser.add_argument("--kinds", nargs="+", choices=BOUND_KINDS, default=list(BOUND_KINDS), metavar="KIND",
                         help="free appearances of the bound: " + ", ".join(map(repr, BOUND_KINDS)) + " (default all)")
+    parser.add_argument("--shared", action="store_true",
+                        help="instead of fingerprint and bound: one grey --cells texture fitted to the bound's scenes "
+                             "together, scored grey and binarized there and on the other scenes (shared_<name>.md)")
     parser.add_argument("--skip-fingerprint", action="store_true", help="only the bound")
     parser.add_argument("--skip-bound", action="store_true", help="only the fingerprint")
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
 
     def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        if args.shared and (args.skip_fingerprint or args.skip_bound):
+            parser.error("argument --shared: not allowed with --skip-fingerprint / --skip-bound")
         if args.skip_fingerprint and args.skip_bound:
             parser.error("argument --skip-bound: not allowed with --skip-fingerprint (nothing would be measured)")
 
@@ -67,7 +77,7 @@ def _run(args: argparse.Namespace) -> int:
     from davis_rig.attack.evaluate import PAPER_THRESHOLDS, EvalConfig
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig
-    from davis_rig.controls.report import victim_controls
+    from davis_rig.controls.report import shared_texture_control, victim_controls
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -79,12 +89,16 @@ def _run(args: argparse.Namespace) -> int:
     bound = BoundConfig(steps=args.steps, lr=args.lr, threshold=args.threshold, grid_n=args.cells, parts=parts,
                         kinds=kinds)
     detector = load_attack_detector(args.detector)
-    report = victim_controls(
-        detector, args.out, name=args.name, eval_config=eval_config, bound_config=bound,
-        scenes_per_scale=args.scenes_per_scale, command=shlex.join(["python", "tools/victim_controls.py", *sys.argv[1:]]),
-        detector_name=str(args.detector) if args.detector else "bundled default",
-        fingerprint=not args.skip_fingerprint, bound=not args.skip_bound,
-        progress=None if args.quiet else (lambda message: print(message, flush=True)))
+    common = dict(name=args.name, eval_config=eval_config, bound_config=bound, scenes_per_scale=args.scenes_per_scale,
+                  command=shlex.join(["python", "tools/victim_controls.py", *sys.argv[1:]]),
+                  detector_name=str(args.detector) if args.detector else "bundled default",
+                  progress=None if args.quiet else (lambda message: print(message, flush=True)))
+    if args.shared:
+        report = shared_texture_control(detector, args.out, **common)
+        print((Path(args.out) / f"shared_{report['name']}.md").read_text())
+        return 0
+    report = victim_controls(detector, args.out, fingerprint=not args.skip_fingerprint, bound=not args.skip_bound,
+                             **common)
     print((Path(args.out) / f"controls_{report['name']}.md").read_text())
     return 0
 

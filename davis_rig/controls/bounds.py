@@ -50,6 +50,7 @@ __all__ = [
     "free_appearance_bound",
     "hinge_loss",
     "optimise_appearance",
+    "optimise_shared_texture",
     "relaxed_event_histograms",
 ]
 
@@ -222,6 +223,52 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
         loss.backward()
         optimizer.step()
     return best
+
+
+def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mask=None) -> np.ndarray:
+    """One free grey ``config.grid_n`` x ``config.grid_n`` texture for all ``scenes`` at once (a print must fit
+    every scene it is worn in): Adam on its logits, the sum over scenes of :func:`hinge_loss`, the bound's
+    exact-value / relaxed-gradient counts.
+
+    Between the per-scene ``"static texture"`` bound and the attack: what remains of the bound when one texture
+    must serve several scenes (still fitted on the scenes it is scored on, and grey; binarize it with
+    :func:`davis_rig.attack.texture.hard_binarize` to see what the black/white constraint costs).
+
+    Args:
+        scenes: :class:`~davis_rig.attack.evaluate.EvalScene` list.
+        detector: frozen RVT detector (eval mode, no parameter gradients).
+        config: the settings (``steps``, ``lr``, ``threshold``, ``grid_n``, ``theta``).
+        mask: bool [1024, 1024] paintable texels (``None``: whole body).
+
+    Returns:
+        float32 [n, n] in (0, 1) (1 = white): the texture of the lowest total loss seen.
+    """
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    if not scenes:
+        raise ValueError("need at least one scene")
+    renders = [_appearance(scene, "static texture", config, mask)[1] for scene in scenes]
+    logits = torch.zeros(config.grid_n, config.grid_n, dtype=scenes[0].raster.shade.dtype, requires_grad=True)
+    optimizer = torch.optim.Adam([logits], lr=config.lr)
+    best, best_loss = None, float("inf")
+    for _ in range(int(config.steps) + 1):
+        optimizer.zero_grad(set_to_none=True)
+        total = 0.0
+        for scene, render in zip(scenes, renders):  # one scene's graph at a time: memory of one scene
+            hist = relaxed_event_histograms(render(logits), scene.t_us, scene.window_end_us, config.theta)
+            decoded, states = [], None
+            for k in range(hist.shape[0]):
+                out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
+                decoded.append(out)
+            loss = hinge_loss(decoded, config.threshold)
+            total += float(loss.detach())
+            loss.backward()
+        if total < best_loss:
+            best_loss, best = total, torch.sigmoid(logits.detach()).clone()
+        if best_loss == 0.0:
+            break
+        optimizer.step()
+    return best.float().cpu().numpy()
 
 
 def free_appearance_bound(scenes: Sequence, detector, eval_config, config: BoundConfig | None = None, *,

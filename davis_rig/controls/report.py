@@ -4,6 +4,9 @@
 detector: the fingerprint on every test scene, the bound on ``scenes_per_scale`` scenes of each scale (the
 optimisation costs ``2 * steps`` detector passes per scene). Each finished part is kept in the output folder
 (``fingerprint.json``, ``bound/scene_XXX.npz``), so an interrupted run continues where it stopped.
+
+:func:`shared_texture_control` steps from the per-scene bound towards the attack: one grey texture fitted to the
+bound's scenes together, scored grey and binarized on those scenes and on the others (held out).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 
 from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig, bound_rows, fingerprint_textures
 
-__all__ = ["bound_scene_indices", "paper_fingerprint", "victim_controls"]
+__all__ = ["bound_scene_indices", "paper_fingerprint", "shared_texture_control", "victim_controls"]
 
 
 def bound_scene_indices(scales: Sequence[str], per_scale: int) -> list[int]:
@@ -187,6 +190,99 @@ def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: Boun
         part.with_suffix(".tmp.npz").replace(part)
     kept = {k: v for k, v in record.items() if k in ("scene", "scale", "shape", "heading_rad") or k in names}
     return kept, {n: decoded[n] for n in names}
+
+
+def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_config: BoundConfig | None = None,
+                           scenes_per_scale: int = 1, command: str = "", detector_name: str = "", model=None,
+                           progress: Callable[[str], None] | None = None) -> dict:
+    """One grey texture fitted to the bound's scenes at once, scored where it was fitted and on held-out scenes.
+
+    Steps: :func:`~davis_rig.controls.bounds.optimise_shared_texture` on the ``scenes_per_scale`` scenes per scale
+    of the bound (:func:`bound_scene_indices`; kept as ``shared_texture.npy`` so a rerun scores it again); then
+    white, black, the grey texture and its binarization (``> 0.5``) scored with
+    :func:`~davis_rig.attack.evaluate.evaluate_textures` on those scenes ("fitted") and on every other scene of the
+    protocol ("held out"). Where the per-scene ``"static texture"`` bound blinds a victim and this texture does not,
+    no single print of that grid does on those scenes; where the grey texture does and its binarization not, the
+    black/white constraint is what costs.
+
+    Args:
+        detector: frozen RVT detector.
+        out_dir: folder of ``shared_texture.npy``, ``shared_<name>.json`` / ``.md``.
+        name: file stem and title.
+        eval_config: :class:`~davis_rig.attack.evaluate.EvalConfig` (the protocol and its thresholds).
+        bound_config: the optimisation (``grid_n``, ``parts``, ``steps``, ``lr``, ``threshold``, ``theta``).
+        scenes_per_scale: fitted scenes per scale.
+        command, detector_name: recorded in the report.
+        model: :class:`~davis_rig.scene.body.BodyModel` (default the bundled asset).
+        progress: optional callable ``(message) -> None``.
+
+    Returns:
+        The report dict written to ``shared_<name>.json``.
+    """
+    import platform
+    import time
+
+    from davis_rig.attack.evaluate import TextureSpec, evaluate_textures, evaluation_scenes, prepare_scenes
+    from davis_rig.attack.report import results_markdown
+    from davis_rig.attack.texture import black_texture, hard_binarize, white_texture
+    from davis_rig.controls.bounds import optimise_shared_texture
+    from davis_rig.scene.body import BodyModel
+    from davis_rig.scene.masks import part_mask
+
+    config = bound_config or BoundConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model = model or BodyModel()
+    say = progress or (lambda message: None)
+    specs = evaluation_scenes(eval_config, model.num_shapes)
+    fitted = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
+    held_out = [i for i in range(len(specs)) if i not in fitted]
+    t0 = time.perf_counter()
+    kept = out / "shared_texture.npy"
+    if kept.is_file():
+        grey = np.load(kept)
+        if grey.shape != (config.grid_n, config.grid_n):
+            raise ValueError(f"{kept} is {grey.shape[0]}x{grey.shape[1]}, not {config.grid_n}x{config.grid_n}: give "
+                             "another output folder")
+    else:
+        scenes = prepare_scenes([specs[i] for i in fitted], model, eval_config)
+        say(f"fitting one {config.grid_n}x{config.grid_n} grey texture to {len(scenes)} scenes, {config.steps} steps")
+        mask = part_mask(config.parts) if config.parts is not None else None
+        grey = optimise_shared_texture(scenes, detector, config, mask)
+        np.save(out / "shared_texture.tmp.npy", grey)
+        (out / "shared_texture.tmp.npy").replace(kept)
+    fit_s = time.perf_counter() - t0
+    n = config.grid_n
+    textures = {"white": TextureSpec(white_texture(1), config.parts), "black": TextureSpec(black_texture(1), config.parts),
+                f"shared grey {n}x{n}": TextureSpec(grey.astype(np.float32), config.parts),
+                f"shared binary {n}x{n}": TextureSpec(hard_binarize(grey), config.parts)}
+    report = {"name": name, "detector": detector_name, "command": command, "measured": time.strftime("%Y-%m-%d"),
+              "machine": f"{platform.machine()}, {platform.node()}",
+              "config": {"grid_n": n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
+                         "threshold": config.threshold, "theta": config.theta},
+              "fitted_scenes": fitted, "held_out_scenes": held_out, "fit_seconds_this_call": fit_s,
+              "white_cells": float(hard_binarize(grey).mean())}
+    for key, indices in (("fitted", fitted), ("held_out", held_out)):
+        if not indices:
+            continue
+        say(f"scoring on the {len(indices)} {key.replace('_', '-')} scenes")
+        rows = evaluate_textures(textures, detector, prepare_scenes([specs[i] for i in indices], model, eval_config),
+                                 eval_config)
+        report[key] = {"rows": rows, "markdown": results_markdown(rows, eval_config.thresholds)}
+    (out / f"shared_{name}.json").write_text(json.dumps(report, indent=1))
+    lines = [f"# One shared grey texture: `{name}`", "", f"Detector: {detector_name}. Measured {report['measured']} "
+             f"on {report['machine']}.", ""]
+    if command:
+        lines += ["```bash", command, "```", ""]
+    lines += [f"One free grey {n}x{n} texture on {config.parts or 'the whole body'} fitted to {len(fitted)} scenes "
+              f"together ({config.steps} Adam steps, lr {config.lr:g}, hinge at {config.threshold:g}); its binarization"
+              f" (> 0.5) has {report['white_cells']:.0%} white cells.", ""]
+    for key, title in (("fitted", "On the scenes it was fitted to"), ("held_out", "On the held-out scenes")):
+        if key in report:
+            lines += [f"## {title} ({len(report[key + '_scenes'])} scenes, AP % / SeqASR %)", "",
+                      report[key]["markdown"], ""]
+    (out / f"shared_{name}.md").write_text("\n".join(lines))
+    return report
 
 
 def _bound_settings(config: BoundConfig) -> dict:

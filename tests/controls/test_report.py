@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from davis_rig.attack.evaluate import EvalConfig
@@ -71,3 +72,24 @@ def test_a_bound_part_gains_the_kinds_it_lacks_and_keeps_the_rest(tmp_path, monk
     with pytest.raises(ValueError, match="other bound settings"):
         victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=5, kinds=("static texture",)),
                         **kwargs)
+
+
+def test_shared_texture_control_fits_one_texture_and_scores_it_fitted_and_held_out(tmp_path):
+    from davis_rig.controls.report import shared_texture_control
+
+    config = EvalConfig(scales=("small",), shapes=(1, 5), headings_rad=(math.pi / 2,), phases=(0.0,),
+                        supersample=1, thresholds=(0.25,))
+    detector = load_detector(FIXTURE)
+    kwargs = dict(name="tiny", eval_config=config, bound_config=BoundConfig(steps=2, grid_n=4), scenes_per_scale=1)
+    report = shared_texture_control(detector, tmp_path, **kwargs)
+    grey = np.load(tmp_path / "shared_texture.npy")
+    assert grey.shape == (4, 4) and grey.dtype == np.float32 and ((grey > 0) & (grey < 1)).all()
+    assert report["fitted_scenes"] == [0] and report["held_out_scenes"] == [1]
+    for key in ("fitted", "held_out"):
+        assert {r["texture"] for r in report[key]["rows"]} == {"white", "black", "shared grey 4x4",
+                                                                "shared binary 4x4"}
+    assert (tmp_path / "shared_tiny.md").read_text().count("## On the") == 2
+    again = shared_texture_control(detector, tmp_path, **kwargs)  # the kept texture, scored again
+    assert json.dumps(again["held_out"]["rows"]) == json.dumps(report["held_out"]["rows"])
+    with pytest.raises(ValueError, match="not 5x5"):
+        shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=2, grid_n=5)})
