@@ -57,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shared", action="store_true",
                         help="instead of fingerprint and bound: one grey --cells texture fitted to the bound's scenes "
                              "together, scored grey and binarized there and on the other scenes (shared_<name>.md)")
+    parser.add_argument("--binary", action="store_true",
+                        help="with --shared: fit the black/white texture itself (straight-through), as the paper's")
     parser.add_argument("--skip-fingerprint", action="store_true", help="only the bound")
     parser.add_argument("--skip-bound", action="store_true", help="only the fingerprint")
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
@@ -65,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         if args.shared and (args.skip_fingerprint or args.skip_bound):
             parser.error("argument --shared: not allowed with --skip-fingerprint / --skip-bound")
+        if args.binary and not args.shared:
+            parser.error("argument --binary: only with --shared")
         if args.skip_fingerprint and args.skip_bound:
             parser.error("argument --skip-bound: not allowed with --skip-fingerprint (nothing would be measured)")
 
@@ -94,7 +98,7 @@ def _run(args: argparse.Namespace) -> int:
                   detector_name=str(args.detector) if args.detector else "bundled default",
                   progress=None if args.quiet else (lambda message: print(message, flush=True)))
     if args.shared:
-        report = shared_texture_control(detector, args.out, **common)
+        report = shared_texture_control(detector, args.out, binary=args.binary, **common)
         print((Path(args.out) / f"shared_{report['name']}.md").read_text())
         return 0
     report = victim_controls(detector, args.out, fingerprint=not args.skip_fingerprint, bound=not args.skip_bound,

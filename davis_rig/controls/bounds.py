@@ -225,7 +225,8 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
     return best
 
 
-def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mask=None) -> np.ndarray:
+def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mask=None, *,
+                            binary: bool = False) -> np.ndarray:
     """One free grey ``config.grid_n`` x ``config.grid_n`` texture for all ``scenes`` at once (a print must fit
     every scene it is worn in): Adam on its logits, the sum over scenes of :func:`hinge_loss`, the bound's
     exact-value / relaxed-gradient counts.
@@ -239,23 +240,33 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
         detector: frozen RVT detector (eval mode, no parameter gradients).
         config: the settings (``steps``, ``lr``, ``threshold``, ``grid_n``, ``theta``).
         mask: bool [1024, 1024] paintable texels (``None``: whole body).
+        binary: optimise the black/white texture itself (``[sigmoid(z) > 0.5]`` forward, the straight-through
+            gradient of :func:`~davis_rig.attack.texture.binarize_ste` backward), as the paper's texture must be.
 
     Returns:
-        float32 [n, n] in (0, 1) (1 = white): the texture of the lowest total loss seen.
+        float32 [n, n] (1 = white): in (0, 1), or of 0/1 with ``binary``; the texture of the lowest total loss seen.
     """
+    from davis_rig.attack.texture import binarize_ste
     from davis_rig.models.rvt.detector import pad_to_input
 
     if not scenes:
         raise ValueError("need at least one scene")
-    renders = [_appearance(scene, "static texture", config, mask)[1] for scene in scenes]
+    lookups = [scene.raster.lookup(size=1024, mode="nearest", grid_n=int(config.grid_n), mask=mask)
+               for scene in scenes]
     logits = torch.zeros(config.grid_n, config.grid_n, dtype=scenes[0].raster.shade.dtype, requires_grad=True)
+    if binary:  # start from a fair coin per cell (all-zero logits would all round to black)
+        with torch.no_grad():
+            logits.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(0))
+    texture_of = (lambda z: binarize_ste(torch.sigmoid(z), 1.0)) if binary else torch.sigmoid
     optimizer = torch.optim.Adam([logits], lr=config.lr)
     best, best_loss = None, float("inf")
     for _ in range(int(config.steps) + 1):
         optimizer.zero_grad(set_to_none=True)
         total = 0.0
-        for scene, render in zip(scenes, renders):  # one scene's graph at a time: memory of one scene
-            hist = relaxed_event_histograms(render(logits), scene.t_us, scene.window_end_us, config.theta)
+        for scene, lookup in zip(scenes, lookups):  # one scene's graph at a time: memory of one scene
+            background = scene.background.to(scene.raster.shade.dtype)
+            video = scene.raster.compose(lookup.sample(texture_of(logits), fill=1.0), background)
+            hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
             decoded, states = [], None
             for k in range(hist.shape[0]):
                 out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
@@ -264,7 +275,7 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
             total += float(loss.detach())
             loss.backward()
         if total < best_loss:
-            best_loss, best = total, torch.sigmoid(logits.detach()).clone()
+            best_loss, best = total, texture_of(logits.detach()).clone()
         if best_loss == 0.0:
             break
         optimizer.step()

@@ -194,11 +194,11 @@ def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: Boun
 
 def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_config: BoundConfig | None = None,
                            scenes_per_scale: int = 1, command: str = "", detector_name: str = "", model=None,
-                           progress: Callable[[str], None] | None = None) -> dict:
+                           binary: bool = False, progress: Callable[[str], None] | None = None) -> dict:
     """One grey texture fitted to the bound's scenes at once, scored where it was fitted and on held-out scenes.
 
     Steps: :func:`~davis_rig.controls.bounds.optimise_shared_texture` on the ``scenes_per_scale`` scenes per scale
-    of the bound (:func:`bound_scene_indices`; kept as ``shared_texture.npy`` so a rerun scores it again); then
+    of the bound (:func:`bound_scene_indices`; kept as ``shared_texture[_binary].npy`` so a rerun scores it again); then
     white, black, the grey texture and its binarization (``> 0.5``) scored with
     :func:`~davis_rig.attack.evaluate.evaluate_textures` on those scenes ("fitted") and on every other scene of the
     protocol ("held out"). Where the per-scene ``"static texture"`` bound blinds a victim and this texture does not,
@@ -214,6 +214,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         scenes_per_scale: fitted scenes per scale.
         command, detector_name: recorded in the report.
         model: :class:`~davis_rig.scene.body.BodyModel` (default the bundled asset).
+        binary: fit the black/white texture itself (straight-through gradient) instead of a grey one; the report
+            then scores it alone (``shared binary-fitted``).
         progress: optional callable ``(message) -> None``.
 
     Returns:
@@ -238,7 +240,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     fitted = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
-    kept = out / "shared_texture.npy"
+    kept = out / ("shared_texture_binary.npy" if binary else "shared_texture.npy")
     if kept.is_file():
         grey = np.load(kept)
         if grey.shape != (config.grid_n, config.grid_n):
@@ -246,20 +248,23 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
                              "another output folder")
     else:
         scenes = prepare_scenes([specs[i] for i in fitted], model, eval_config)
-        say(f"fitting one {config.grid_n}x{config.grid_n} grey texture to {len(scenes)} scenes, {config.steps} steps")
+        say(f"fitting one {config.grid_n}x{config.grid_n} {'black/white' if binary else 'grey'} texture to {len(scenes)} scenes, {config.steps} steps")
         mask = part_mask(config.parts) if config.parts is not None else None
-        grey = optimise_shared_texture(scenes, detector, config, mask)
-        np.save(out / "shared_texture.tmp.npy", grey)
-        (out / "shared_texture.tmp.npy").replace(kept)
+        grey = optimise_shared_texture(scenes, detector, config, mask, binary=binary)
+        np.save(kept.with_suffix(".tmp.npy"), grey)
+        kept.with_suffix(".tmp.npy").replace(kept)
     fit_s = time.perf_counter() - t0
     n = config.grid_n
-    textures = {"white": TextureSpec(white_texture(1), config.parts), "black": TextureSpec(black_texture(1), config.parts),
-                f"shared grey {n}x{n}": TextureSpec(grey.astype(np.float32), config.parts),
-                f"shared binary {n}x{n}": TextureSpec(hard_binarize(grey), config.parts)}
+    textures = {"white": TextureSpec(white_texture(1), config.parts), "black": TextureSpec(black_texture(1), config.parts)}
+    if binary:
+        textures[f"shared binary-fitted {n}x{n}"] = TextureSpec(hard_binarize(grey), config.parts)
+    else:
+        textures[f"shared grey {n}x{n}"] = TextureSpec(grey.astype(np.float32), config.parts)
+        textures[f"shared binary {n}x{n}"] = TextureSpec(hard_binarize(grey), config.parts)
     report = {"name": name, "detector": detector_name, "command": command, "measured": time.strftime("%Y-%m-%d"),
               "machine": f"{platform.machine()}, {platform.node()}",
               "config": {"grid_n": n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
-                         "threshold": config.threshold, "theta": config.theta},
+                         "threshold": config.threshold, "theta": config.theta, "binary": bool(binary)},
               "fitted_scenes": fitted, "held_out_scenes": held_out, "fit_seconds_this_call": fit_s,
               "white_cells": float(hard_binarize(grey).mean())}
     for key, indices in (("fitted", fitted), ("held_out", held_out)):
@@ -274,9 +279,11 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
              f"on {report['machine']}.", ""]
     if command:
         lines += ["```bash", command, "```", ""]
-    lines += [f"One free grey {n}x{n} texture on {config.parts or 'the whole body'} fitted to {len(fitted)} scenes "
-              f"together ({config.steps} Adam steps, lr {config.lr:g}, hinge at {config.threshold:g}); its binarization"
-              f" (> 0.5) has {report['white_cells']:.0%} white cells.", ""]
+    what = ("black/white (straight-through gradient)" if binary else "grey")
+    lines += [f"One free {what} {n}x{n} texture on {config.parts or 'the whole body'} fitted to {len(fitted)} scenes "
+              f"together ({config.steps} Adam steps, lr {config.lr:g}, hinge at {config.threshold:g}); "
+              f"{report['white_cells']:.0%} of its cells are white (> 0.5; cells no fitted scene shows stay at "
+              f"{'their start' if binary else '0.5, i.e. black'}).", ""]
     for key, title in (("fitted", "On the scenes it was fitted to"), ("held_out", "On the held-out scenes")):
         if key in report:
             lines += [f"## {title} ({len(report[key + '_scenes'])} scenes, AP % / SeqASR %)", "",

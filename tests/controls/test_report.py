@@ -93,3 +93,17 @@ def test_shared_texture_control_fits_one_texture_and_scores_it_fitted_and_held_o
     assert json.dumps(again["held_out"]["rows"]) == json.dumps(report["held_out"]["rows"])
     with pytest.raises(ValueError, match="not 5x5"):
         shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=2, grid_n=5)})
+
+
+def test_shared_texture_control_can_fit_the_black_and_white_texture_itself(tmp_path):
+    from davis_rig.controls.report import shared_texture_control
+
+    config = EvalConfig(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,),
+                        supersample=1, thresholds=(0.25,))
+    report = shared_texture_control(load_detector(FIXTURE), tmp_path, name="tiny", eval_config=config,
+                                    bound_config=BoundConfig(steps=2, grid_n=4), binary=True)
+    grid = np.load(tmp_path / "shared_texture_binary.npy")
+    assert set(np.unique(grid)) <= {0.0, 1.0} and 0.0 < grid.mean() < 1.0  # a fair coin per cell to start
+    assert [r["texture"] for r in report["fitted"]["rows"] if r["scale"] == "all"] == [
+        "white", "black", "shared binary-fitted 4x4"]
+    assert "held_out" not in report and not (tmp_path / "shared_texture.npy").exists()
