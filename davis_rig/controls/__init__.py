@@ -4,5 +4,7 @@
   (the trigger's neighbourhood hidden, everything else detected) and the cell agreement that says whether an
   optimized texture found the trigger.
 - :mod:`davis_rig.controls.bounds` — the victim's baseline fingerprint (white / black / random / checker) and the
-  free-appearance bound (per-pixel intensities and per-frame textures on the person, optimised freely per clip).
+  free-appearance bound (per-pixel intensities, per-frame and static textures on the person, optimised freely per
+  scene), and one texture shared by several scenes (grey or black/white).
+- :mod:`davis_rig.controls.report` — a victim's controls as json + markdown (``tools/victim_controls.py``).
 """
