@@ -15,7 +15,7 @@ from davis_rig.attack.eot import EoTConfig
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_ANCHORS, LOSS_REDUCTIONS
 from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN
 from davis_rig.attack.scoring import EVENT_MODELS
-from davis_rig.attack.texture import ALPHA_SCHEDULES, MAX_CELLS
+from davis_rig.attack.texture import ALPHA_SCHEDULES, MAX_CELLS, TEXTURE_STARTS
 from davis_rig.errors import ConfigError
 
 #: How the detector part of an attack step runs (:class:`~davis_rig.attack.fixed_step.FixedShapeAttackLoss`).
@@ -51,6 +51,9 @@ class AttackConfig:
         clips_per_step: EoT clips per step over all ranks (divisible by the world size).
         alpha_schedule: soft-to-hard schedule name (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
         hidden, dropout: generator (default ``2 n^2``, 0.5).
+        start: the generator's starting texture (:data:`~davis_rig.attack.texture.TEXTURE_STARTS`): ``"random"``
+            (default, the official code's initialisation) or plain ``"white"`` / ``"black"``
+            (:meth:`~davis_rig.attack.texture.TextureGenerator.start_from`).
         pool_size: pre-rasterized clips in the pool; refresh_every / refresh_fraction: pool refresh.
         validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
         validation_threshold: confidence threshold of the validation SeqASR.
@@ -100,6 +103,7 @@ class AttackConfig:
     alpha_schedule: str = "linear"
     hidden: int | None = None
     dropout: float = 0.5
+    start: str = "random"
     pool_size: int = 32
     refresh_every: int = 50
     refresh_fraction: float = 0.25
@@ -151,7 +155,8 @@ class AttackConfig:
             refuse("lr_min", f"expected a number in [0, lr = {self.lr:g}]")
         if self.lr_period is not None and int(self.lr_period) < 1:
             refuse("lr_period", "expected an integer >= 1 or None")
-        for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("v2e_gradient", V2E_GRADIENTS),
+        for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("start", TEXTURE_STARTS),
+                              ("v2e_gradient", V2E_GRADIENTS),
                               ("lr_schedule", LR_SCHEDULES),
                               ("loss_reduction", LOSS_REDUCTIONS), ("loss_anchors", LOSS_ANCHORS),
                               ("precision", ("fp32", "bf16")), ("detector_step", DETECTOR_STEPS),

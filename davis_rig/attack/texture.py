@@ -34,6 +34,7 @@ with optional_dependency("the texture generator"):
 
 __all__ = [
     "ALPHA_SCHEDULES",
+    "TEXTURE_STARTS",
     "MAX_CELLS",
     "TextureGenerator",
     "alpha_at",
@@ -53,6 +54,11 @@ __all__ = [
 
 #: Largest grid accepted (the paper uses 10 ... 60 cells per side).
 MAX_CELLS = 256
+#: Starting textures of :meth:`TextureGenerator.start_from`: ``"random"`` (torch's default initialisation, as the
+#: official code: a random-looking grid) or a plain texture.
+TEXTURE_STARTS = ("random", "white", "black")
+#: |logit| of a plain start: u = sigmoid(±3) = 0.953 / 0.047.
+PLAIN_START_LOGIT = 3.0
 
 
 def _check_cells(n_cells: int) -> int:
@@ -110,6 +116,30 @@ class TextureGenerator(nn.Module):
         x = nn.functional.leaky_relu(self.norm(x), self.negative_slope)
         x = torch.sigmoid(self.fc2(self.dropout(x)))
         return x.view(self.n_cells, self.n_cells)
+
+    def start_from(self, start: str) -> "TextureGenerator":
+        """Set the starting texture: ``"random"`` leaves the initialisation as it is; ``"white"`` / ``"black"``
+        shrink fc2's weights 1000-fold and set its bias to ``±PLAIN_START_LOGIT``, so every cell starts at
+        u = 0.953 / 0.047 (rounded: plain white / black). An Adam step then moves each cell's logit by
+        ``lr * sum |h|`` (fc2's row; ``sum |h|`` is about 0.4 per hidden unit), the random start's by about as
+        much again through fc1 and fc2's larger weights: the two starts take steps of the same order.
+
+        Args:
+            start: one of :data:`TEXTURE_STARTS`.
+
+        Returns:
+            self.
+
+        Raises:
+            ValueError: unknown start.
+        """
+        if start not in TEXTURE_STARTS:
+            raise ValueError(f"start must be one of {TEXTURE_STARTS}, got {start!r}")
+        if start != "random":
+            with torch.no_grad():
+                self.fc2.weight.mul_(1e-3)
+                self.fc2.bias.fill_(PLAIN_START_LOGIT if start == "white" else -PLAIN_START_LOGIT)
+        return self
 
     def texture(self, alpha: float = 1.0) -> "torch.Tensor":
         """The binarized grid ``binarize_ste(self(), alpha)``, float tensor [n, n]."""

@@ -245,6 +245,8 @@ def test_config_validation():
     with pytest.raises(ValueError):
         AttackConfig(precision="fp16")
     assert replace(AttackConfig(), grid_n=20).to_dict()["grid_n"] == 20
+    with pytest.raises(ValueError, match="start"):
+        AttackConfig(start="grey")
 
 
 def test_clip_histograms_forward_exact_backward_by_rule(body):
@@ -809,3 +811,11 @@ def test_detector_step_runs_the_fixed_shape_loss_and_resumes_under_another(detec
     assert (fixed.steps, rest.steps) == (2, 2)
     assert _log(tmp_path / "eager" / "log.jsonl")[0] == _log(tmp_path / "fixed" / "log.jsonl")[0]
     assert np.array_equal(eager.texture, rest.texture)
+
+
+@pytest.mark.parametrize("start, value", [("white", 1.0), ("black", 0.0)])
+def test_a_plain_start_optimises_from_the_plain_texture(detector, body, tmp_path, start, value):
+    cfg = _tiny(iterations=1, pool_size=1, refresh_every=1000, lr=1e-9, lr_min=0.0, start=start,
+                checkpoint_every=1000, snapshot_every=1000)
+    optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    assert np.array_equal(np.load(tmp_path / "texture.npy"), np.full((cfg.grid_n, cfg.grid_n), value, np.float32))

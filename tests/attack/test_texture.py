@@ -73,6 +73,37 @@ def test_generator_gradients_reach_both_layers():
     assert gen.fc2.weight.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("start, value", [("white", 1.0), ("black", 0.0)])
+def test_generator_plain_start_rounds_to_the_plain_texture_and_moves_like_the_random_one(start, value):
+    torch.manual_seed(0)
+    gen = TextureGenerator(6).start_from(start).eval()
+    u = gen()
+    assert torch.all((u - value).abs() < 0.05)  # sigmoid(+-3)
+    assert np.array_equal(hard_binarize(u), np.full((6, 6), value, np.float32))
+    torch.manual_seed(0)
+    plain = TextureGenerator(6).start_from(start)
+    torch.manual_seed(0)
+    random = TextureGenerator(6).start_from("random")
+    assert torch.equal(plain.fc1.weight, random.fc1.weight)  # only fc2 differs
+    steps = {}
+    for name, g in (("plain", plain), ("random", random)):  # one Adam step of the loss sum(u)
+        g.eval()
+        before = torch.logit(g().detach())
+        opt = torch.optim.Adam(g.parameters(), lr=1e-3)
+        g().sum().backward()
+        opt.step()
+        steps[name] = (torch.logit(g().detach()) - before).abs()
+    with torch.no_grad():
+        sum_h = torch.nn.functional.leaky_relu(plain.norm(plain.fc1(plain.z)), 0.01).abs().sum()
+    # the plain start moves every cell's logit by lr * sum |h| (fc2's row alone); the random start by the same
+    # order (its fc1 path adds through fc2's larger weights)
+    torch.testing.assert_close(steps["plain"], torch.full_like(steps["plain"], 1e-3 * float(sum_h)), rtol=0.05,
+                               atol=0.0)
+    assert 0.5 < float(steps["random"].mean() / steps["plain"].mean()) < 3.0
+    with pytest.raises(ValueError, match="start"):
+        TextureGenerator(6).start_from("grey")
+
+
 @pytest.mark.parametrize("bad", [0, -1, 257, 2.5, True])
 def test_generator_rejects_bad_sizes(bad):
     with pytest.raises(ValueError):
