@@ -33,7 +33,8 @@ COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval"
 #: The scripts of tools/ that take arguments (each gets rows below; ``tools/x.py`` runs ``x.main``).
 TOOLS = ("aedat4_to_session", "aps_attack", "capture_replay", "contact_sheet", "convert_checkpoint",
          "export_body_asset", "make_sample_replay", "make_sample_session", "make_trigger_victim", "measure_labeler",
-         "probe_texture_sensitivity", "ship_detector", "usb_stop_stress", "victim_controls")
+         "probe_texture_sensitivity", "score_validation_clips", "ship_detector", "usb_stop_stress",
+         "victim_controls")
 
 
 @dataclass
@@ -344,6 +345,13 @@ ROWS = [
         "argument --cycles: expected an integer >= 1, got '0'"),
     Row("tools/usb_stop_stress.py", "nan", ["--interval-us", "nan"], 2,
         "argument --interval-us: expected a finite number, got 'nan'"),
+    Row("tools/score_validation_clips.py", "nonexistent file", ["--texture", "x={missing}"], 4,
+        "missing.davisreplay"),
+    Row("tools/score_validation_clips.py", "wrong file type", ["--texture", "x={text}"], 4, "text.h5"),
+    Row("tools/score_validation_clips.py", "out of range", ["--cells", "0"], 2,
+        "argument --cells: expected an integer >= 1, got '0'"),
+    Row("tools/score_validation_clips.py", "malformed value", ["--texture", "nopath"], 2,
+        "argument --texture: expected NAME=PATH, got 'nopath'"),
     Row("tools/victim_controls.py", "nonexistent file", ["--name", "x", "--out", "{out}", "--detector", "{missing}"],
         4, "missing.davisreplay: checkpoint file not found"),
     Row("tools/victim_controls.py", "wrong file type", ["--name", "x", "--out", "{out}", "--detector", "{text}"], 4,
