@@ -81,7 +81,7 @@ def refine_texture(
     passes: int,
     seed: int,
 ) -> dict:
-    """Greedy cell flips of ``grid`` and of plain white; the better start is refined.
+    """Greedy cell flips from the best of ``grid``, plain white and plain black (the paper's two plain baselines).
 
     Args:
         grid: float32 [n, n] hard texture (the gradient phase's best).
@@ -91,11 +91,11 @@ def refine_texture(
         seed: seed of the cell orders.
 
     Returns:
-        ``{"texture": float32 [n, n], "score", "start": "gradient" | "white", "start_score", "evaluations",
+        ``{"texture": float32 [n, n], "score", "start": "gradient" | "white" | "black", "start_score", "evaluations",
         "cells_tried"}``.
     """
     grid = np.asarray(grid, dtype=np.float32)
-    starts = {"gradient": grid, "white": np.ones_like(grid)}
+    starts = {"gradient": grid, "white": np.ones_like(grid), "black": np.zeros_like(grid)}
     start_scores = {name: float(score(start)) for name, start in starts.items()}
     start = min(start_scores, key=start_scores.get)
     cells = visible_cells(clips, grid.shape[0])

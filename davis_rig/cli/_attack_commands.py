@@ -194,8 +194,8 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "replayed, CUDA only: RVT-B step 103 -> 22 ms on an H200) or compile (torch.compile); "
                         "the loss is the same within the GPU's summation-order noise")
     p.add_argument("--refine-passes", type=non_negative_int, default=0,
-                   help="after the last step, sweeps of greedy cell flips starting from the better of the best "
-                        "texture and plain white, each flip scored as validation selects (the clips' own sensors) "
+                   help="after the last step, sweeps of greedy cell flips starting from the best of the best "
+                        "texture, plain white and plain black, each flip scored as validation selects (the clips' own sensors) "
                         "(default 0: none, the paper)")
     p.add_argument("--refine-clips", type=positive_int, default=8,
                    help="EoT clips that score the refinement's flips (default 8)")

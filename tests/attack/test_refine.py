@@ -57,7 +57,7 @@ def test_visible_cells_are_the_painted_taps_with_weight():
     assert cells.tolist() == [[True, False, True], [False, False, True], [False, False, False]]
 
 
-def test_refine_starts_from_the_better_of_gradient_and_white():
+def test_refine_starts_from_the_best_of_gradient_white_and_black():
     clip = SimpleNamespace(lookup=SimpleNamespace(index=torch.arange(9)[:, None], painted=torch.ones(9, 1),
                                                   weight=torch.ones(9, 1)))
     far = 1.0 - TARGET
@@ -67,6 +67,10 @@ def test_refine_starts_from_the_better_of_gradient_and_white():
     close = TARGET.copy()
     close[0, 0] = 0.0
     assert refine_texture(close, [clip], distance_to_target, 1, seed=0)["start"] == "gradient"
+    dark = np.zeros((3, 3), np.float32)
+    dark[1, 1] = 1.0
+    found = refine_texture(far, [clip], lambda g: float(np.abs(g - dark).sum()), 1, seed=0)
+    assert found["start"] == "black" and found["start_score"] == 1.0 and np.array_equal(found["texture"], dark)
 
 
 @pytest.mark.usefixtures("one_torch_thread")
