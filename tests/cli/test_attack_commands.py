@@ -396,7 +396,7 @@ def test_help_documents_resume_schedule_refine_start_and_relaxed_gradient():
     # refinement may start from plain white, official_relaxed replaces --v2e-gradient
     text = " ".join(_parser()._subparsers._group_actions[0].choices["optimize"].format_help().split())
     assert "alpha schedule then runs over the new total" in text
-    assert "better of the best texture and plain white" in text
+    assert "best of the best texture, plain white and plain black" in text
     assert "replacing --v2e-gradient" in text
 
 
