@@ -188,6 +188,19 @@ def _appearance(scene, kind: str, config: BoundConfig, mask):
     return logits, render
 
 
+def _scene_hinge(video: torch.Tensor, scene, detector, config: BoundConfig) -> torch.Tensor:
+    """:func:`hinge_loss` of a scene's video [T, H, W]: its windows' counts (exact value, relaxed gradient) through
+    the detector with its recurrent states, as the evaluation runs them."""
+    from davis_rig.models.rvt.detector import pad_to_input
+
+    hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
+    decoded, states = [], None
+    for k in range(hist.shape[0]):
+        out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
+        decoded.append(out)
+    return hinge_loss(decoded, config.threshold)
+
+
 def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None) -> torch.Tensor:
     """The free appearance of one scene after ``config.steps`` Adam steps: its video, float tensor [T, H, W].
 
@@ -201,19 +214,12 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
     Returns:
         The video of the appearance with the lowest loss seen (no grad).
     """
-    from davis_rig.models.rvt.detector import pad_to_input
-
     logits, render = _appearance(scene, kind, config, mask)
     optimizer = torch.optim.Adam([logits], lr=config.lr)
     best, best_loss = None, float("inf")
     for _ in range(int(config.steps) + 1):
         video = render(logits)
-        hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
-        decoded, states = [], None
-        for k in range(hist.shape[0]):
-            out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
-            decoded.append(out)
-        loss = hinge_loss(decoded, config.threshold)
+        loss = _scene_hinge(video, scene, detector, config)
         value = float(loss.detach())
         if value < best_loss:
             best_loss, best = value, video.detach()
@@ -247,7 +253,6 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
         float32 [n, n] (1 = white): in (0, 1), or of 0/1 with ``binary``; the texture of the lowest total loss seen.
     """
     from davis_rig.attack.texture import binarize_ste
-    from davis_rig.models.rvt.detector import pad_to_input
 
     if not scenes:
         raise ValueError("need at least one scene")
@@ -266,12 +271,7 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
         for scene, lookup in zip(scenes, lookups):  # one scene's graph at a time: memory of one scene
             background = scene.background.to(scene.raster.shade.dtype)
             video = scene.raster.compose(lookup.sample(texture_of(logits), fill=1.0), background)
-            hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
-            decoded, states = [], None
-            for k in range(hist.shape[0]):
-                out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
-                decoded.append(out)
-            loss = hinge_loss(decoded, config.threshold)
+            loss = _scene_hinge(video, scene, detector, config)
             total += float(loss.detach())
             loss.backward()
         if total < best_loss:

@@ -76,20 +76,9 @@ def victim_controls(detector, out_dir, *, name: str, eval_config, bound_config: 
     Returns:
         The report dict written to ``controls_<name>.json``.
     """
-    import platform
-    import time
-
-    from davis_rig.attack.evaluate import evaluation_scenes
-    from davis_rig.scene.body import BodyModel
-
     bound_config = bound_config or BoundConfig()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    model = model or BodyModel()
-    say = progress or (lambda message: None)
-    specs = evaluation_scenes(eval_config, model.num_shapes)
-    report = {"name": name, "detector": detector_name, "command": command,
-              "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}",
+    out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
+    report = {**_provenance(name, detector_name, command),
               "eval_config": {"scales": list(map(str, eval_config.scales)), "headings_rad": list(eval_config.headings_rad),
                               "phases": list(eval_config.phases), "thresholds": list(eval_config.thresholds)}}
     if fingerprint:
@@ -221,22 +210,16 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     Returns:
         The report dict written to ``shared_<name>.json``.
     """
-    import platform
     import time
 
-    from davis_rig.attack.evaluate import TextureSpec, evaluate_textures, evaluation_scenes, prepare_scenes
+    from davis_rig.attack.evaluate import TextureSpec, evaluate_textures, prepare_scenes
     from davis_rig.attack.report import results_markdown
     from davis_rig.attack.texture import black_texture, hard_binarize, white_texture
     from davis_rig.controls.bounds import optimise_shared_texture
-    from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
 
     config = bound_config or BoundConfig()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    model = model or BodyModel()
-    say = progress or (lambda message: None)
-    specs = evaluation_scenes(eval_config, model.num_shapes)
+    out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
     fitted = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
@@ -261,8 +244,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     else:
         textures[f"shared grey {n}x{n}"] = TextureSpec(grey.astype(np.float32), config.parts)
         textures[f"shared binary {n}x{n}"] = TextureSpec(hard_binarize(grey), config.parts)
-    report = {"name": name, "detector": detector_name, "command": command, "measured": time.strftime("%Y-%m-%d"),
-              "machine": f"{platform.machine()}, {platform.node()}",
+    report = {**_provenance(name, detector_name, command),
               "config": {"grid_n": n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
                          "threshold": config.threshold, "theta": config.theta, "binary": bool(binary)},
               "fitted_scenes": fitted, "held_out_scenes": held_out, "fit_seconds_this_call": fit_s,
@@ -290,6 +272,27 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
                       report[key]["markdown"], ""]
     (out / f"shared_{name}.md").write_text("\n".join(lines))
     return report
+
+
+def _prepare_run(out_dir, model, progress, eval_config) -> tuple[Path, object, Callable[[str], None], list]:
+    """``(out folder (created), body model (default the bundled asset), progress callable, the protocol's scene
+    specs)`` of a controls run."""
+    from davis_rig.attack.evaluate import evaluation_scenes
+    from davis_rig.scene.body import BodyModel
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model = model or BodyModel()
+    return out, model, progress or (lambda message: None), evaluation_scenes(eval_config, model.num_shapes)
+
+
+def _provenance(name: str, detector_name: str, command: str) -> dict:
+    """The fields every controls report starts with: what was measured, with which command, when and where."""
+    import platform
+    import time
+
+    return {"name": name, "detector": detector_name, "command": command, "measured": time.strftime("%Y-%m-%d"),
+            "machine": f"{platform.machine()}, {platform.node()}"}
 
 
 def _bound_settings(config: BoundConfig) -> dict:
