@@ -53,7 +53,8 @@ class AttackConfig:
         hidden, dropout: generator (default ``2 n^2``, 0.5).
         start: the generator's starting texture (:data:`~davis_rig.attack.texture.TEXTURE_STARTS`): ``"random"``
             (default, the official code's initialisation) or plain ``"white"`` / ``"black"``
-            (:meth:`~davis_rig.attack.texture.TextureGenerator.start_from`).
+            (:meth:`~davis_rig.attack.texture.TextureGenerator.start_from`); a plain start is validated at step 0,
+            so the chosen texture is never worse on validation than it.
         pool_size: pre-rasterized clips in the pool; refresh_every / refresh_fraction: pool refresh.
         validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
         validation_threshold: confidence threshold of the validation SeqASR.

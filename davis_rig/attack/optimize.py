@@ -348,6 +348,8 @@ def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, d
                                   f"{config.pool_size}")
         run.best = json.loads(state["best"]) if state["best"] else None
         run.pending = bool(state["pending_validation"])
+    else:  # a plain start is a candidate itself: validated at step 0, the run never returns worse on validation
+        run.pending = config.start != "random"
     run.end = config.iterations if max_steps is None else min(config.iterations, run.start + int(max_steps))
     return run
 
@@ -412,12 +414,13 @@ def _train(run: _Run, stop: StopOnSignal, progress: bool, created: bool) -> None
         bar = tqdm(total=config.iterations, initial=run.start, disable=not progress or run.rank != 0,
                    desc=f"attack {config.grid_n}x{config.grid_n}", unit="step", file=sys.stderr)
         run.generator.train()
-        if run.pending and run.rank == 0:  # the validation of step `start` was interrupted: it runs first
+        if run.pending and run.rank == 0:  # an interrupted validation of step `start`, or a plain start: first
             bar.set_postfix_str(f"validating {len(run.val_clips)} clips")
             try:
                 run.run_validation(run.start, stop)
             except StopRequested:
-                raise AttackInterrupted(run.start, config.iterations, run.ckpt_path, stop.signal_name) from None
+                raise AttackInterrupted(run.start, config.iterations, run.ckpt_path if run.wrote_checkpoint else None,
+                                        stop.signal_name) from None
             run.log.flush()
             run.checkpoint(run.start)
         for step in range(run.start, run.end):
@@ -428,7 +431,7 @@ def _train(run: _Run, stop: StopOnSignal, progress: bool, created: bool) -> None
             if _any_rank(stop.requested or stopped, run.world, run.device):
                 raise AttackInterrupted(done, config.iterations, run.ckpt_path, stop.signal_name)
     except BaseException as exc:
-        if run.rank == 0 and not run.wrote_checkpoint and not isinstance(exc, AttackInterrupted):
+        if run.rank == 0 and not run.wrote_checkpoint:  # stopped or failed before a checkpoint: nothing to resume
             if run.log is not None:
                 run.log.close()
                 run.log = None

@@ -163,7 +163,8 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
     p.add_argument("--start", choices=("random", "white", "black"), default="random",
                    help="starting texture: random (default, the official initialisation) or plain white / black "
-                        "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start)")
+                        "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start); "
+                        "a plain start is validated at step 0, so the run never returns worse on validation")
     p.add_argument("--validate-every", type=positive_int, default=1000,
                    help="validation period in steps (default: 1000)")
     p.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="STEPS",

@@ -818,4 +818,24 @@ def test_a_plain_start_optimises_from_the_plain_texture(detector, body, tmp_path
     cfg = _tiny(iterations=1, pool_size=1, refresh_every=1000, lr=1e-9, lr_min=0.0, start=start,
                 checkpoint_every=1000, snapshot_every=1000)
     optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
-    assert np.array_equal(np.load(tmp_path / "texture.npy"), np.full((cfg.grid_n, cfg.grid_n), value, np.float32))
+    plain = np.full((cfg.grid_n, cfg.grid_n), value, np.float32)
+    assert np.array_equal(np.load(tmp_path / "texture.npy"), plain)
+    # the plain start is itself a candidate: validated at step 0 (and after the last step)
+    _, vals = _log(tmp_path / "log.jsonl")
+    assert [v["step"] for v in vals] == [0, 1]
+    assert np.array_equal(np.load(tmp_path / "best_texture.npy"), plain)
+
+
+def test_a_stop_during_the_plain_starts_validation_leaves_nothing(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as opt
+    from davis_rig.stop import StopRequested
+
+    def stopped(*args, **kwargs):
+        raise StopRequested()
+
+    monkeypatch.setattr(opt, "validate", stopped)
+    cfg = _tiny(iterations=1, pool_size=1, refresh_every=1000, start="black", checkpoint_every=1000,
+                snapshot_every=1000)
+    with pytest.raises(opt.AttackInterrupted) as info:
+        optimize_texture(cfg, detector, tmp_path / "run", body_model=body, progress=False)
+    assert info.value.checkpoint is None and not (tmp_path / "run").exists()
