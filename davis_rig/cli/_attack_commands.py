@@ -79,6 +79,8 @@ counts instead, to compare with the paper's numbers).
 
 #: Binarization schedules of ``--alpha-schedule`` (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
 ALPHA_SCHEDULE_CHOICES = ("linear", "cosine", "step", "hard", "soft")
+#: Starting textures of ``--start`` (:data:`davis_rig.attack.texture.TEXTURE_STARTS`).
+START_CHOICES = ("random", "white", "black")
 #: Learning-rate schedules of ``--lr-schedule`` (:data:`davis_rig.attack.lr_schedule.LR_SCHEDULES`).
 LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
 #: Library field -> the option that sets it: a :class:`~davis_rig.errors.ConfigError` names the option.
@@ -161,7 +163,7 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "11,500-step run)")
     p.add_argument("--alpha-schedule", choices=ALPHA_SCHEDULE_CHOICES, default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
-    p.add_argument("--start", choices=("random", "white", "black"), default="random",
+    p.add_argument("--start", choices=START_CHOICES, default="random",
                    help="starting texture: random (default, the official initialisation) or plain white / black "
                         "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start); "
                         "a plain start is validated at step 0, so the run never returns worse on validation")

@@ -202,11 +202,12 @@ def test_threshold_takes_one_value_per_use_comma_lists_and_the_old_spelling(monk
 
 
 def test_cli_choices_match_the_library():
-    from davis_rig.attack.texture import ALPHA_SCHEDULES
+    from davis_rig.attack.texture import ALPHA_SCHEDULES, TEXTURE_STARTS
     from davis_rig.scene.body import PART_NAMES
     from davis_rig.scene.camera import TEST_SCALES_PX
 
     assert cmd.ALPHA_SCHEDULE_CHOICES == tuple(ALPHA_SCHEDULES)
+    assert cmd.START_CHOICES == TEXTURE_STARTS
     assert cmd.PART_CHOICES == (*PART_NAMES, "all") and cmd.SCALE_NAMES == tuple(TEST_SCALES_PX)
 
 
