@@ -12,7 +12,6 @@ passed on the device clock, which gives optional real-time pacing.
 
 from __future__ import annotations
 
-import os
 import threading
 import warnings
 import weakref
@@ -150,8 +149,8 @@ class ReplaySource(DataSource):
             self.truncated = reader.truncated
         self._releases, self.bad_host_times = pacing_us(host_times) if paced else (np.zeros(len(host_times)), 0)
         self._path, self._next = path, 0
-        self._fd = os.open(path, os.O_RDONLY)
-        weakref.finalize(self, os.close, self._fd)
+        self._file = open(path, "rb", buffering=0)  # seek + read under the lock: portable (os.pread is POSIX-only)
+        weakref.finalize(self, self._file.close)
         if self.bad_host_times:
             warnings.warn(
                 f"{path}: {self.bad_host_times} replay records have a host time that goes back or jumps more than "
@@ -176,7 +175,8 @@ class ReplaySource(DataSource):
             k = self._next
             if k >= len(self._offsets):
                 raise IndexError("pop from an exhausted replay source")
-            data = os.pread(self._fd, int(self._lengths[k]), int(self._offsets[k]))
+            self._file.seek(int(self._offsets[k]))
+            data = self._file.read(int(self._lengths[k]))
             if len(data) != self._lengths[k]:
                 raise FormatError(f"{self._path}: record {k}: {len(data)} of {self._lengths[k]} bytes left (the file "
                                   "was cut while being replayed)")
