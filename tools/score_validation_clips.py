@@ -26,8 +26,8 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    from davis_rig.cli.common import (PART_CHOICES, add_detector, add_out, add_quiet, add_threads, new_parser,
-                                       positive_int, probability, run_main)
+    from davis_rig.cli.common import (PART_CHOICES, add_detector, add_out, add_quiet, add_threads, name_and_path,
+                                       new_parser, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/score_validation_clips.py --cells 10 --texture ours=run/texture.npy "
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side of the run (default 10)")
     parser.add_argument("--parts", nargs="+", choices=PART_CHOICES, default=["torso", "arms", "legs"], metavar="PART",
                         help="painted parts of the run: torso, arms, legs, head, hands, feet, or all")
-    parser.add_argument("--texture", type=_texture_item, action="append", default=[], metavar="NAME=PATH",
+    parser.add_argument("--texture", type=name_and_path, action="append", default=[], metavar="NAME=PATH",
                         help="a texture to score (.npy keeps grey levels; .png etc. read as black/white); repeatable")
     parser.add_argument("--clips", type=positive_int, default=64, help="validation clips (default 64, the run's)")
     parser.add_argument("--seed", type=int, default=0, help="the run's --seed (default 0)")
@@ -46,13 +46,6 @@ def main(argv: list[str] | None = None) -> int:
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
     return run_main(parser, argv, _run)
-
-
-def _texture_item(text: str) -> tuple[str, str]:
-    name, sep, path = text.partition("=")
-    if not sep or not name or not path:
-        raise argparse.ArgumentTypeError(f"expected NAME=PATH, got {text!r}")
-    return name, path
 
 
 def load_texture(path: str | Path) -> np.ndarray:

@@ -430,7 +430,7 @@ def _train(run: _Run, stop: StopOnSignal, progress: bool, created: bool) -> None
             stopped = _record_step(run, done, values, alpha, bar, stop) if run.rank == 0 else False
             if _any_rank(stop.requested or stopped, run.world, run.device):
                 raise AttackInterrupted(done, config.iterations, run.ckpt_path, stop.signal_name)
-    except BaseException as exc:
+    except BaseException:
         if run.rank == 0 and not run.wrote_checkpoint:  # stopped or failed before a checkpoint: nothing to resume
             if run.log is not None:
                 run.log.close()

@@ -25,6 +25,7 @@ from davis_rig.cli.common import (
     camera_scale,
     device_name,
     epilog,
+    name_and_path,
     non_negative_float,
     non_negative_int,
     positive_float,
@@ -106,14 +107,6 @@ def _cells(text: str) -> int:
     if value > MAX_CELLS:
         raise argparse.ArgumentTypeError(f"expected an integer in [1, {MAX_CELLS}], got {text!r}")
     return value
-
-
-def _texture_item(text: str) -> tuple[str, str]:
-    """``--texture KEY=PATH``."""
-    key, sep, path = text.partition("=")
-    if not sep or not key or not path:
-        raise argparse.ArgumentTypeError(f"expected KEY=PATH, got {text!r}")
-    return key, path
 
 
 def _combination(text: str) -> tuple[str, ...]:
@@ -290,7 +283,7 @@ def add_evaluate_parser(subparsers) -> argparse.ArgumentParser:
                    "Score textures with the paper's digital protocol (exact simulator).", EVALUATE_EPILOG)
     add_out(p, required=True, metavar="DIR", help="output folder")
     p.add_argument("--table", type=int, choices=[1, 2], default=None, help="reproduce Table 1 or Table 2")
-    p.add_argument("--texture", type=_texture_item, action="append", default=[], metavar="KEY=PATH",
+    p.add_argument("--texture", type=name_and_path, action="append", default=[], metavar="NAME=PATH",
                    help="texture file (.npy/.png, n x n or upsampled map); repeatable")
     p.add_argument("--cells", type=positive_int, default=None, metavar="N",
                    help="grid cells per side of every --texture that is an upsampled map (default: detected)")

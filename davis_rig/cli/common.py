@@ -253,6 +253,14 @@ PART_CHOICES = ("torso", "arms", "legs", "head", "hands", "feet", "all")
 SCALE_NAMES = ("large", "middle", "small")
 
 
+def name_and_path(text: str) -> tuple[str, str]:
+    """``NAME=PATH`` (e.g. ``--texture ours=grid.npy``): the name and the path, both non-empty."""
+    name, sep, path = text.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"expected NAME=PATH, got {text!r}")
+    return name, path
+
+
 def device_name(text: str) -> str:
     """``--device`` (``type=`` validator, also of tools/): ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (availability is
     checked when the command runs, by :func:`resolve_device`)."""
