@@ -158,31 +158,70 @@ def windows_detected(
         bool [T].
 
     Raises:
-        ValueError: unknown mode; ShapeError: ``labels_xyxy`` missing or of the wrong length in strict mode.
+        ValueError: unknown mode; ShapeError: ``labels_xyxy`` missing or of the wrong length in strict mode;
+        FormatError: an entry that is neither ``None`` nor [K, ≥ 7].
     """
     if mode not in tuple(SeqAsrMode):
         raise ValueError(f"mode: expected one of {tuple(m.value for m in SeqAsrMode)}, got {mode!r}")
     if mode == SeqAsrMode.STRICT and (labels_xyxy is None or len(labels_xyxy) != len(detections)):
         raise ShapeError(f"strict SeqASR needs one label array per window ({len(detections)} windows), got "
                          f"{None if labels_xyxy is None else len(labels_xyxy)}")
+    rows, window = _stacked(detections)
+    keep = rows[:, 6].astype(np.int64) == class_id
+    if min_score is not None:
+        keep &= rows[:, 4] * rows[:, 5] >= np.float32(min_score)
+    rows, window = rows[keep], window[keep]
     out = np.zeros(len(detections), dtype=bool)
+    if mode == SeqAsrMode.PAPER:
+        out[window] = True
+        return out
+    labels = [np.asarray(boxes, dtype=np.float64).reshape(-1, 4) for boxes in labels_xyxy]
+    label_counts = np.array([len(boxes) for boxes in labels], dtype=np.int64)
+    label_rows = np.concatenate(labels) if labels else np.zeros((0, 4))
+    label_start = np.concatenate([[0], np.cumsum(label_counts)[:-1]]).astype(np.int64)
+    # every (detection, label) pair of one window: detection d meets the label_counts[window[d]] labels of its window
+    pairs = label_counts[window]
+    det_index = np.repeat(np.arange(len(rows)), pairs)
+    offset = np.arange(int(pairs.sum())) - np.repeat(np.cumsum(pairs) - pairs, pairs)
+    label_index = label_start[window[det_index]] + offset
+    iou = _paired_iou(rows[det_index, :4].astype(np.float64), label_rows[label_index])
+    out[window[det_index[iou >= iou_threshold]]] = True
+    return out
+
+
+def _stacked(detections) -> tuple[np.ndarray, np.ndarray]:
+    """All windows' detection rows in one [N, 7] array (their dtype) and the window of each row, int64 [N].
+
+    Raises:
+        FormatError: an entry that is not ``None`` nor [K, ≥ 7].
+    """
+    parts, windows = [], []
     for i, det in enumerate(detections):
         if det is None or len(det) == 0:
             continue
         det = np.asarray(det)
         if det.ndim != 2 or det.shape[1] < 7:
             raise FormatError(f"detections[{i}]: expected [K, 7], got {det.shape}")
-        keep = det[:, 6].astype(np.int64) == class_id
-        if min_score is not None:
-            keep &= det[:, 4] * det[:, 5] >= np.float32(min_score)
-        if not keep.any():
-            continue
-        if mode == SeqAsrMode.PAPER:
-            out[i] = True
-        else:
-            labels = np.asarray(labels_xyxy[i], dtype=np.float64).reshape(-1, 4)
-            out[i] = bool(len(labels)) and bool((box_iou(det[keep, :4], labels) >= iou_threshold).any())
-    return out
+        parts.append(det[:, :7])
+        windows.append(np.full(len(det), i, dtype=np.int64))
+    if not parts:
+        return np.zeros((0, 7), np.float32), np.zeros(0, np.int64)
+    return np.concatenate(parts), np.concatenate(windows)
+
+
+def _paired_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of box ``a[i]`` with box ``b[i]`` (float64 [N, 4] ``(x1, y1, x2, y2)`` each, no +1): float64 [N].
+
+    Element for element what :func:`box_iou` computes for one pair.
+    """
+    lt = np.maximum(a[:, :2], b[:, :2])
+    rb = np.minimum(a[:, 2:], b[:, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=1)
+    area_a = np.prod(np.clip(a[:, 2:] - a[:, :2], 0, None), axis=1)
+    area_b = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
+    union = area_a + area_b - inter
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(union > 0, inter / union, 0.0)
 
 
 def seq_asr(detected, sequences, mode: str = "paper") -> SeqAsrResult:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from davis_rig.errors import ShapeError
+from davis_rig.errors import FormatError, ShapeError
 from davis_rig.metrics.seqasr import (
     box_iou,
     label_sequences,
@@ -65,6 +65,60 @@ def test_paper_mode_counts_any_pedestrian_box_strict_needs_iou():
         windows_detected(detections, mode="strict")
     with pytest.raises(ValueError):
         windows_detected(detections, mode="loose")
+
+
+def _windows_detected_one_by_one(detections, mode, labels_xyxy, min_score, iou_threshold, class_id=1):
+    """The definition window by window: a kept pedestrian box, and in strict mode IoU >= threshold with a label."""
+    out = []
+    for i, rows in enumerate(detections):
+        found = False
+        for row in [] if rows is None else rows:
+            if int(row[6]) != class_id or (min_score is not None and row[4] * row[5] < np.float32(min_score)):
+                continue
+            if mode == "paper":
+                found = True
+            else:
+                labels = np.asarray(labels_xyxy[i], np.float64).reshape(-1, 4)
+                found |= bool(len(labels)) and bool((box_iou(row[None, :4], labels) >= iou_threshold).any())
+        out.append(found)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_windows_detected_equals_the_window_by_window_definition(seed):
+    """Random windows (none, empty, several boxes of both classes; 0-3 labels each, some overlapping a box) give
+    what the window-by-window definition gives, in both modes, with and without ``min_score``."""
+    rng = np.random.default_rng(seed)
+    detections, labels = [], []
+    for _ in range(80):
+        k = int(rng.integers(0, 5))
+        corner = rng.uniform(0, 200, (k, 2))
+        rows = np.concatenate([corner, corner + rng.uniform(5, 80, (k, 2)), rng.uniform(0, 1, (k, 2)),
+                               rng.integers(0, 2, (k, 1))], axis=1).astype(np.float32)
+        detections.append(None if k == 0 and rng.random() < 0.5 else rows)
+        n_labels = int(rng.integers(0, 4))
+        boxes = rng.uniform(0, 200, (n_labels, 4))
+        boxes[:, 2:] = boxes[:, :2] + rng.uniform(5, 80, (n_labels, 2))
+        if k and n_labels:  # one label near one box: IoU around the threshold
+            boxes[rng.integers(n_labels)] = rows[rng.integers(k), :4] + rng.normal(0, 4, 4)
+        labels.append(boxes.astype(np.float32))
+    for mode in ("paper", "strict"):
+        for min_score in (None, 0.3):
+            got = windows_detected(detections, mode=mode, labels_xyxy=labels, min_score=min_score)
+            want = _windows_detected_one_by_one(detections, mode, labels, min_score, 0.5)
+            assert got.tolist() == want
+    assert any(_windows_detected_one_by_one(detections, "strict", labels, None, 0.5))  # the strict case is exercised
+
+
+def test_strict_mode_matches_any_label_of_the_window_not_the_first():
+    detections = [det(100, 50, 180, 210), det(100, 50, 180, 210)]
+    labels = [np.array([[0, 0, 20, 20], [100, 50, 180, 210]], np.float32), np.zeros((0, 4), np.float32)]
+    assert windows_detected(detections, mode="strict", labels_xyxy=labels).tolist() == [True, False]
+
+
+def test_windows_detected_refuses_a_malformed_entry():
+    with pytest.raises(FormatError):
+        windows_detected([det(0, 0, 10, 10), np.zeros((2, 5), np.float32)])
 
 
 def test_seqasr_never_decreases_with_the_threshold():
