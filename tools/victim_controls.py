@@ -9,7 +9,8 @@ the best SeqASR an appearance change, and a static one, reaches on those scenes 
 
 With ``--shared``: one grey n x n texture fitted to the bound's scenes together, scored grey and binarized there
 and on the protocol's other scenes (davis_rig.controls.report.shared_texture_control) — between the per-scene
-bound and the attack.
+bound and the attack. ``--fit-shapes K`` fits every scene of the first K test bodies instead, so that the held-out
+scenes show people the texture was never fitted to.
 
 Run: ``python tools/victim_controls.py --name bundled --out out/controls_bundled [--detector CKPT] [--threads 1]``;
 writes ``controls_<name>.json`` / ``.md`` (``shared_<name>...`` with ``--shared``) into ``--out`` (and its parts,
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shared", action="store_true",
                         help="instead of fingerprint and bound: one grey --cells texture fitted to the bound's scenes "
                              "together, scored grey and binarized there and on the other scenes (shared_<name>.md)")
+    parser.add_argument("--fit-shapes", type=positive_int, default=None, metavar="K",
+                        help="with --shared: fit every scene of the first K test bodies instead of --scenes-per-scale, "
+                             "so that the held-out scenes show other people")
     parser.add_argument("--binary", action="store_true",
                         help="with --shared: fit the black/white texture itself (straight-through), as the paper's")
     parser.add_argument("--skip-fingerprint", action="store_true", help="only the bound")
@@ -69,10 +73,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("argument --shared: not allowed with --skip-fingerprint / --skip-bound")
         if args.binary and not args.shared:
             parser.error("argument --binary: only with --shared")
+        if args.fit_shapes is not None and not args.shared:
+            parser.error("argument --fit-shapes: only with --shared")
         if args.skip_fingerprint and args.skip_bound:
             parser.error("argument --skip-bound: not allowed with --skip-fingerprint (nothing would be measured)")
 
-    return run_main(parser, argv, _run, check=check)
+    return run_main(parser, argv, _run, check=check, options={"fit_shapes": "--fit-shapes"})
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -98,7 +104,7 @@ def _run(args: argparse.Namespace) -> int:
                   detector_name=str(args.detector) if args.detector else "bundled default",
                   progress=None if args.quiet else (lambda message: print(message, flush=True)))
     if args.shared:
-        report = shared_texture_control(detector, args.out, binary=args.binary, **common)
+        report = shared_texture_control(detector, args.out, binary=args.binary, fit_shapes=args.fit_shapes, **common)
         print((Path(args.out) / f"shared_{report['name']}.md").read_text())
         return 0
     report = victim_controls(detector, args.out, fingerprint=not args.skip_fingerprint, bound=not args.skip_bound,

@@ -19,8 +19,10 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from davis_rig.controls.bounds import BOUND_KINDS, BoundConfig, bound_rows, fingerprint_textures
+from davis_rig.errors import ConfigError
 
-__all__ = ["bound_scene_indices", "paper_fingerprint", "shared_texture_control", "victim_controls"]
+__all__ = ["bound_scene_indices", "paper_fingerprint", "shape_split_indices", "shared_texture_control",
+           "victim_controls"]
 
 
 def bound_scene_indices(scales: Sequence[str], per_scale: int) -> list[int]:
@@ -41,6 +43,30 @@ def bound_scene_indices(scales: Sequence[str], per_scale: int) -> list[int]:
         picks = np.unique(np.linspace(0, len(idx) - 1, min(int(per_scale), len(idx))).round().astype(int))
         out += [idx[k] for k in picks]
     return sorted(out)
+
+
+def shape_split_indices(shapes: Sequence[int], fit_shapes: int) -> list[int]:
+    """Indices of every scene of the first ``fit_shapes`` distinct body shapes (in order of first appearance).
+
+    The other scenes then show only bodies the fitted scenes never showed: a held-out set of new people, not
+    the same people at other headings, phases or scales.
+
+    Args:
+        shapes: the body shape index of every scene, in the evaluation's order.
+        fit_shapes: how many distinct shapes to take (1 ... number of distinct shapes − 1, so that some are left).
+
+    Returns:
+        Sorted indices into ``shapes``.
+
+    Raises:
+        ConfigError: ``fit_shapes`` leaves no shape out, or is below 1.
+    """
+    distinct = list(dict.fromkeys(int(s) for s in shapes))
+    if not 1 <= int(fit_shapes) < len(distinct):
+        raise ConfigError("fit_shapes", f"expected an integer in [1, {len(distinct) - 1}] (the scenes show "
+                                        f"{len(distinct)} bodies, and one must be left out), got {fit_shapes}")
+    chosen = set(distinct[: int(fit_shapes)])
+    return [i for i, s in enumerate(shapes) if int(s) in chosen]
 
 
 def paper_fingerprint(ap_by_texture: dict) -> bool:
@@ -182,8 +208,9 @@ def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: Boun
 
 
 def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_config: BoundConfig | None = None,
-                           scenes_per_scale: int = 1, command: str = "", detector_name: str = "", model=None,
-                           binary: bool = False, progress: Callable[[str], None] | None = None) -> dict:
+                           scenes_per_scale: int = 1, fit_shapes: int | None = None, command: str = "",
+                           detector_name: str = "", model=None, binary: bool = False,
+                           progress: Callable[[str], None] | None = None) -> dict:
     """One grey texture fitted to the bound's scenes at once, scored where it was fitted and on held-out scenes.
 
     Steps: :func:`~davis_rig.controls.bounds.optimise_shared_texture` on the ``scenes_per_scale`` scenes per scale
@@ -201,6 +228,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         eval_config: :class:`~davis_rig.attack.evaluate.EvalConfig` (the protocol and its thresholds).
         bound_config: the optimisation (``grid_n``, ``parts``, ``steps``, ``lr``, ``threshold``, ``theta``).
         scenes_per_scale: fitted scenes per scale.
+        fit_shapes: instead of ``scenes_per_scale``: fit every scene of the first ``fit_shapes`` test bodies
+            (:func:`shape_split_indices`), so that the held-out scenes show other people.
         command, detector_name: recorded in the report.
         model: :class:`~davis_rig.scene.body.BodyModel` (default the bundled asset).
         binary: fit the black/white texture itself (straight-through gradient) instead of a grey one; the report
@@ -220,7 +249,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
 
     config = bound_config or BoundConfig()
     out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
-    fitted = bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale)
+    fitted = (bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale) if fit_shapes is None
+              else shape_split_indices([spec.shape_index for _, spec in specs], fit_shapes))
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
     kept = out / ("shared_texture_binary.npy" if binary else "shared_texture.npy")
@@ -246,7 +276,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         textures[f"shared binary {n}x{n}"] = TextureSpec(hard_binarize(grey), config.parts)
     report = {**_provenance(name, detector_name, command),
               "config": {"grid_n": n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
-                         "threshold": config.threshold, "theta": config.theta, "binary": bool(binary)},
+                         "threshold": config.threshold, "theta": config.theta, "binary": bool(binary),
+                         "fit_shapes": fit_shapes},
               "fitted_scenes": fitted, "held_out_scenes": held_out, "fit_seconds_this_call": fit_s,
               "white_cells": float(hard_binarize(grey).mean())}
     for key, indices in (("fitted", fitted), ("held_out", held_out)):
@@ -265,7 +296,13 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     lines += [f"One free {what} {n}x{n} texture on {config.parts or 'the whole body'} fitted to {len(fitted)} scenes "
               f"together ({config.steps} Adam steps, lr {config.lr:g}, hinge at {config.threshold:g}); "
               f"{report['white_cells']:.0%} of its cells are white (> 0.5; cells no fitted scene shows stay at "
-              f"{'their start' if binary else '0.5, i.e. black'}).", ""]
+              f"{'their start' if binary else '0.5, i.e. black'})."]
+    if fit_shapes is not None:
+        fit_bodies = sorted({specs[i][1].shape_index for i in fitted})
+        other_bodies = sorted({specs[i][1].shape_index for i in held_out})
+        lines[-1] += (f" The fitted scenes are every scene of test bodies {fit_bodies}; the held-out ones show only "
+                      f"bodies {other_bodies}, never fitted.")
+    lines.append("")
     for key, title in (("fitted", "On the scenes it was fitted to"), ("held_out", "On the held-out scenes")):
         if key in report:
             lines += [f"## {title} ({len(report[key + '_scenes'])} scenes, AP % / SeqASR %)", "",

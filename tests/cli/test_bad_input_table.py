@@ -363,6 +363,8 @@ ROWS = [
     Row("tools/victim_controls.py", "conflicting options", ["--name", "x", "--out", "{out}", "--skip-fingerprint",
                                                             "--skip-bound"], 2,
         "argument --skip-bound: not allowed with --skip-fingerprint"),
+    Row("tools/victim_controls.py", "conflicting options", ["--name", "x", "--out", "{out}", "--fit-shapes", "3"], 2,
+        "argument --fit-shapes: only with --shared"),
     Row("tools/victim_controls.py", "unknown name", ["--name", "x", "--out", "{out}", "--scales", "huge"], 2,
         "argument --scales: expected large, middle, small or a height in px > 0, got 'huge'"),
 ]

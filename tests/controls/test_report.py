@@ -11,7 +11,8 @@ import pytest
 
 from davis_rig.attack.evaluate import EvalConfig
 from davis_rig.controls.bounds import BoundConfig
-from davis_rig.controls.report import bound_scene_indices, paper_fingerprint, victim_controls
+from davis_rig.controls.report import bound_scene_indices, paper_fingerprint, shape_split_indices, victim_controls
+from davis_rig.errors import ConfigError
 from davis_rig.models.rvt.checkpoint import load_detector
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
@@ -93,6 +94,27 @@ def test_shared_texture_control_fits_one_texture_and_scores_it_fitted_and_held_o
     assert json.dumps(again["held_out"]["rows"]) == json.dumps(report["held_out"]["rows"])
     with pytest.raises(ValueError, match="not 5x5"):
         shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=2, grid_n=5)})
+
+
+def test_shape_split_takes_every_scene_of_the_first_bodies():
+    shapes = [3, 3, 5, 5, 7, 3, 7]
+    assert shape_split_indices(shapes, 1) == [0, 1, 5]
+    assert shape_split_indices(shapes, 2) == [0, 1, 2, 3, 5]
+    for bad in (0, 3):  # none fitted, or none left out
+        with pytest.raises(ConfigError, match="fit_shapes"):
+            shape_split_indices(shapes, bad)
+
+
+def test_shared_texture_control_can_hold_out_whole_bodies(tmp_path):
+    from davis_rig.controls.report import shared_texture_control
+
+    config = EvalConfig(scales=("small", "large"), shapes=(1, 5), headings_rad=(math.pi / 2,), phases=(0.0,),
+                        supersample=1, thresholds=(0.25,))
+    report = shared_texture_control(load_detector(FIXTURE), tmp_path, name="bodies", eval_config=config,
+                                    bound_config=BoundConfig(steps=1, grid_n=4), fit_shapes=1)
+    assert report["fitted_scenes"] == [0, 2] and report["held_out_scenes"] == [1, 3]  # body 1 at both scales
+    assert report["config"]["fit_shapes"] == 1
+    assert "held-out ones show only bodies [5], never fitted" in (tmp_path / "shared_bodies.md").read_text()
 
 
 def test_shared_texture_control_can_fit_the_black_and_white_texture_itself(tmp_path):
