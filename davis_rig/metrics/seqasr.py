@@ -122,14 +122,7 @@ def box_iou(a, b) -> np.ndarray:
     """IoU matrix of two ``(x1, y1, x2, y2)`` box sets (float64, no +1), shape [A, B]."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
     b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)
-    area_a = np.prod(np.clip(a[:, 2:] - a[:, :2], 0, None), axis=1)
-    area_b = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
-    union = area_a[:, None] + area_b[None, :] - inter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(union > 0, inter / union, 0.0)
+    return _paired_iou(np.repeat(a, len(b), axis=0), np.tile(b, (len(a), 1))).reshape(len(a), len(b))
 
 
 def windows_detected(
@@ -190,7 +183,8 @@ def windows_detected(
 
 
 def _stacked(detections) -> tuple[np.ndarray, np.ndarray]:
-    """All windows' detection rows in one [N, 7] array (their dtype) and the window of each row, int64 [N].
+    """All windows' detection rows in one [N, 7] array (their dtype, as postprocess gives: float32) and the window of
+    each row, int64 [N].
 
     Raises:
         FormatError: an entry that is not ``None`` nor [K, ≥ 7].
@@ -210,10 +204,7 @@ def _stacked(detections) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _paired_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of box ``a[i]`` with box ``b[i]`` (float64 [N, 4] ``(x1, y1, x2, y2)`` each, no +1): float64 [N].
-
-    Element for element what :func:`box_iou` computes for one pair.
-    """
+    """IoU of box ``a[i]`` with box ``b[i]`` (float64 [N, 4] ``(x1, y1, x2, y2)`` each, no +1): float64 [N]."""
     lt = np.maximum(a[:, :2], b[:, :2])
     rb = np.minimum(a[:, 2:], b[:, 2:])
     inter = np.prod(np.clip(rb - lt, 0, None), axis=1)
