@@ -33,6 +33,7 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    from davis_rig.attack.lr_schedule import LR_SCHEDULES
     from davis_rig.attack.texture import ALPHA_SCHEDULES
     from davis_rig.cli.common import (PART_CHOICES, add_out, add_quiet, add_threads, camera_scale, new_parser,
                                       non_negative_float, non_negative_int, positive_float, positive_int,
@@ -48,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="painted parts: torso, arms, legs, head, hands, feet, or all (default torso arms legs)")
     parser.add_argument("--iterations", type=positive_int, default=200, help="Adam steps (default 200)")
     parser.add_argument("--lr", type=positive_float, default=1e-2, help="Adam learning rate (default 1e-2)")
+    parser.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="constant",
+                        help="constant (default) or cosine_restarts: one cosine from --lr down to 1e-7 over "
+                             "--iterations (the attack's default schedule)")
     parser.add_argument("--frames-per-step", type=positive_int, default=2, help="EoT frames per step (default 2)")
     parser.add_argument("--loss", choices=["sum", "top", "lse"], default="sum",
                         help="sum: every anchor above threshold/2 (default); top: each frame's best anchor; "
@@ -130,7 +134,8 @@ def _run(args: argparse.Namespace) -> int:
 
         eot_shapes = tuple(s for s in split_shapes(body.num_shapes)[0] if s not in val_shapes)
     config = ApsAttackConfig(grid_n=args.cells, shapes=eot_shapes, parts=parts, iterations=args.iterations,
-                             lr=args.lr, frames_per_step=args.frames_per_step, scales=tuple(args.scales),
+                             lr=args.lr, lr_schedule=args.lr_schedule, frames_per_step=args.frames_per_step,
+                             scales=tuple(args.scales),
                              pool_size=args.pool_size, refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every,
@@ -168,6 +173,7 @@ def _run(args: argparse.Namespace) -> int:
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()] if (out / "log.jsonl").is_file() else []
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
+                         "lr_schedule": args.lr_schedule,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
                          "scales": list(args.scales),
                          "refresh_every": args.refresh_every, "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,

@@ -162,6 +162,10 @@ class ApsAttackConfig:
     Attributes:
         grid_n: texture cells per side; parts: painted parts (``None``: whole body).
         iterations: Adam steps; lr: Adam learning rate of the generator.
+        lr_schedule: :data:`~davis_rig.attack.lr_schedule.LR_SCHEDULES`: ``"constant"`` (default, every result
+            measured before the option) or ``"cosine_restarts"`` (the attack's default: one cosine from ``lr`` down
+            to ``lr_min`` over the run's ``iterations``, so the binary texture stops changing at the end).
+        lr_min: the floor of the cosine.
         frames_per_step: EoT frames (one per clip) per step.
         scales: camera scales of the pool (names or person heights in px).
         shapes: body shapes of the EoT clips (``None``: the training split of
@@ -187,6 +191,8 @@ class ApsAttackConfig:
     parts: tuple[str, ...] | None = ("torso", "arms", "legs")
     iterations: int = 200
     lr: float = 1e-2
+    lr_schedule: str = "constant"
+    lr_min: float = 1e-7
     frames_per_step: int = 2
     scales: tuple = ("large", "middle", "small")
     shapes: tuple[int, ...] | None = None
@@ -215,6 +221,11 @@ class ApsAttackConfig:
         if not 0 < self.conf < 1 or not self.lr > 0 or not self.temperature > 0 or self.probe_every < 0:
             raise ValueError(f"need 0 < conf < 1, lr > 0, temperature > 0 and probe_every >= 0, got {self.conf}, "
                              f"{self.lr}, {self.temperature}, {self.probe_every}")
+        from davis_rig.attack.lr_schedule import LR_SCHEDULES
+
+        if self.lr_schedule not in LR_SCHEDULES or not 0 <= self.lr_min < self.lr:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES} and 0 <= lr_min < lr, got "
+                             f"{self.lr_schedule!r}, {self.lr_min}")
         if self.loss not in APS_LOSSES or self.scale_draw not in ("random", "cycle"):
             raise ValueError(f"loss must be one of {APS_LOSSES} and scale_draw 'random' or 'cycle', got "
                              f"{self.loss!r}, {self.scale_draw!r}")
@@ -324,6 +335,7 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     """
     import cv2
 
+    from davis_rig.attack.lr_schedule import lr_at
     from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
     from davis_rig.scene.aps import ApsConfig
     from davis_rig.scene.body import BodyModel
@@ -356,6 +368,9 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
                 for pool in pools:
                     pool.refresh(step, 0.25)
             alpha = alpha_at(config.alpha_schedule, step, config.iterations)
+            lr = lr_at(config.lr_schedule, step, config.lr, config.iterations, config.lr_min)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
             grid = binarize_ste(generator(), alpha)
             order = pool_order(config.scale_draw, step, config.frames_per_step, len(pools), rng)
             scores = yolo(torch.stack([_eot_frame(pools[k], grid, rng, aps) for k in order]))
@@ -363,7 +378,7 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            record = {"step": step + 1, "loss": float(loss.detach()), "alpha": alpha,
+            record = {"step": step + 1, "loss": float(loss.detach()), "alpha": alpha, "lr": lr,
                       "top_score": float(scores.detach().amax(dim=1).mean())}
             if probe is not None and ((step + 1) % config.probe_every == 0 or step + 1 == config.iterations):
                 record |= _probed(probe, yolo, generator)

@@ -76,7 +76,7 @@ def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
     assert steps == [1, 2, 3]
     # a checkpoint written before the loss and probe settings existed resumes as their defaults
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    for key in ("loss", "temperature", "scale_draw", "probe_every", "probe_clips"):
+    for key in ("loss", "temperature", "scale_draw", "probe_every", "probe_clips", "lr_schedule", "lr_min"):
         del state["config"][key]
     torch.save(state, tmp_path / "checkpoint.pt")
     optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 4}), yolo, tmp_path, resume=True)
@@ -120,10 +120,25 @@ def test_attack_logs_the_hard_probe(tiny_yolo, tmp_path):
     optimize_aps_texture(config, yolo, tmp_path)
     records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert [r["alpha"] for r in records] == [1.0, 1.0]
+    assert [r["lr"] for r in records] == [config.lr, config.lr]
     for r in records:
         assert 0.0 < r["probe_top_score"] < 1.0 and set(r["probe_by_scale"]) == {"small"}
     with pytest.raises(ValueError, match="loss must be"):
         ApsAttackConfig(loss="max")
+
+
+def test_cosine_schedule_sets_each_steps_rate(tiny_yolo, tmp_path):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=3, frames_per_step=1, scales=("small",), pool_size=1, lr=1e-3,
+                             lr_schedule="cosine_restarts", lr_min=1e-5)
+    optimize_aps_texture(config, yolo, tmp_path)
+    rates = [json.loads(line)["lr"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    # one cosine over the 3 steps: base, halfway at step 1.5 of 3, ... (lr_min + (lr - lr_min) (1 + cos(pi k / 3)) / 2)
+    assert rates == pytest.approx([1e-3, 1e-5 + (1e-3 - 1e-5) * 0.75, 1e-5 + (1e-3 - 1e-5) * 0.25])
+    with pytest.raises(ValueError, match="lr_schedule"):
+        ApsAttackConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="lr_min"):
+        ApsAttackConfig(lr=1e-3, lr_min=1e-3)
 
 
 def test_detection_rates_rows(tiny_yolo):
