@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.skip_fingerprint and args.skip_bound:
             parser.error("argument --skip-bound: not allowed with --skip-fingerprint (nothing would be measured)")
 
-    return run_main(parser, argv, _run, check=check, options={"fit_shapes": "--fit-shapes"})
+    return run_main(parser, argv, _run, check=check, options={"fit_shapes": "--fit-shapes", "out_dir": "--out"})
 
 
 def _run(args: argparse.Namespace) -> int:

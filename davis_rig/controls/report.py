@@ -214,7 +214,9 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     """One grey texture fitted to the bound's scenes at once, scored where it was fitted and on held-out scenes.
 
     Steps: :func:`~davis_rig.controls.bounds.optimise_shared_texture` on the ``scenes_per_scale`` scenes per scale
-    of the bound (:func:`bound_scene_indices`; kept as ``shared_texture[_binary].npy`` so a rerun scores it again); then
+    of the bound (:func:`bound_scene_indices`; kept as ``shared_texture[_binary].npy``, with a ``.json`` of the
+    scenes, settings and detector it was fitted to, so a rerun of the same fit scores it again and another fit in
+    the same folder is refused); then
     white, black, the grey texture and its binarization (``> 0.5``) scored with
     :func:`~davis_rig.attack.evaluate.evaluate_textures` on those scenes ("fitted") and on every other scene of the
     protocol ("held out"). Where the per-scene ``"static texture"`` bound blinds a victim and this texture does not,
@@ -238,6 +240,9 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
 
     Returns:
         The report dict written to ``shared_<name>.json``.
+
+    Raises:
+        ConfigError: (field ``out_dir``) ``out_dir`` keeps a texture of another fit, or one without its record.
     """
     import time
 
@@ -254,16 +259,16 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
     kept = out / ("shared_texture_binary.npy" if binary else "shared_texture.npy")
+    fit = _shared_fit_record(config, binary, detector_name, [specs[i] for i in fitted])
     if kept.is_file():
-        grey = np.load(kept)
-        if grey.shape != (config.grid_n, config.grid_n):
-            raise ValueError(f"{kept} is {grey.shape[0]}x{grey.shape[1]}, not {config.grid_n}x{config.grid_n}: give "
-                             "another output folder")
+        grey = _kept_shared_texture(kept, fit)
     else:
         scenes = prepare_scenes([specs[i] for i in fitted], model, eval_config)
-        say(f"fitting one {config.grid_n}x{config.grid_n} {'black/white' if binary else 'grey'} texture to {len(scenes)} scenes, {config.steps} steps")
+        say(f"fitting one {config.grid_n}x{config.grid_n} {'black/white' if binary else 'grey'} texture to "
+            f"{len(scenes)} scenes, {config.steps} steps")
         mask = part_mask(config.parts) if config.parts is not None else None
         grey = optimise_shared_texture(scenes, detector, config, mask, binary=binary)
+        kept.with_suffix(".json").write_text(json.dumps(fit, indent=1) + "\n")
         np.save(kept.with_suffix(".tmp.npy"), grey)
         kept.with_suffix(".tmp.npy").replace(kept)
     fit_s = time.perf_counter() - t0
@@ -309,6 +314,35 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
                       report[key]["markdown"], ""]
     (out / f"shared_{name}.md").write_text("\n".join(lines))
     return report
+
+
+def _shared_fit_record(config: BoundConfig, binary: bool, detector_name: str, fitted_specs) -> dict:
+    """What a shared texture was fitted to, as JSON values: the optimisation's settings, the detector's name and
+    every fitted scene as ``[scale, body shape, heading (rad), walk phase (s)]``."""
+    return json.loads(json.dumps({
+        "grid_n": config.grid_n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
+        "threshold": config.threshold, "theta": config.theta, "binary": bool(binary), "detector": detector_name,
+        "scenes": [[str(scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]
+                   for scale, spec in fitted_specs]}))
+
+
+def _kept_shared_texture(kept: Path, fit: dict) -> np.ndarray:
+    """The texture kept by an earlier call, when its record (``kept`` with ``.json``) says it was fitted as ``fit``.
+
+    Raises:
+        ConfigError: (field ``out_dir``) no record beside it, or one of another fit (other scenes, settings or
+            detector): scoring it would report a texture as fitted to scenes it never saw.
+    """
+    record_path = kept.with_suffix(".json")
+    if not record_path.is_file():
+        raise ConfigError("out_dir", f"{kept} has no {record_path.name} saying what it was fitted to: give another "
+                                     "output folder, or remove it to fit again")
+    record = json.loads(record_path.read_text())
+    differ = sorted(k for k in fit.keys() | record.keys() if fit.get(k) != record.get(k))
+    if differ:
+        raise ConfigError("out_dir", f"{kept} was fitted with other {', '.join(differ)} than this call's: give "
+                                     "another output folder, or remove it to fit again")
+    return np.load(kept)
 
 
 def _prepare_run(out_dir, model, progress, eval_config) -> tuple[Path, object, Callable[[str], None], list]:

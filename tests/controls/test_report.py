@@ -92,8 +92,17 @@ def test_shared_texture_control_fits_one_texture_and_scores_it_fitted_and_held_o
     assert (tmp_path / "shared_tiny.md").read_text().count("## On the") == 2
     again = shared_texture_control(detector, tmp_path, **kwargs)  # the kept texture, scored again
     assert json.dumps(again["held_out"]["rows"]) == json.dumps(report["held_out"]["rows"])
-    with pytest.raises(ValueError, match="not 5x5"):
+    # a kept texture is scored again only for the fit that made it: other settings or other scenes are refused
+    with pytest.raises(ConfigError, match="other grid_n than"):
         shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=2, grid_n=5)})
+    with pytest.raises(ConfigError, match="other scenes than"):
+        shared_texture_control(detector, tmp_path, **{**kwargs, "scenes_per_scale": 2})
+    with pytest.raises(ConfigError, match="other detector, steps than"):
+        shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=3, grid_n=4),
+                                                      "detector_name": "another.ckpt"})
+    (tmp_path / "shared_texture.json").unlink()
+    with pytest.raises(ConfigError, match="no shared_texture.json saying what it was fitted to"):
+        shared_texture_control(detector, tmp_path, **kwargs)
 
 
 def test_shape_split_takes_every_scene_of_the_first_bodies():
