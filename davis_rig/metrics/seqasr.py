@@ -159,10 +159,10 @@ def windows_detected(
     if mode == SeqAsrMode.STRICT and (labels_xyxy is None or len(labels_xyxy) != len(detections)):
         raise ShapeError(f"strict SeqASR needs one label array per window ({len(detections)} windows), got "
                          f"{None if labels_xyxy is None else len(labels_xyxy)}")
-    rows, window = _stacked(detections)
+    rows, window, score = _stacked(detections)
     keep = rows[:, 6].astype(np.int64) == class_id
     if min_score is not None:
-        keep &= rows[:, 4] * rows[:, 5] >= np.float32(min_score)
+        keep &= score >= np.float32(min_score)
     rows, window = rows[keep], window[keep]
     out = np.zeros(len(detections), dtype=bool)
     if mode == SeqAsrMode.PAPER:
@@ -182,14 +182,15 @@ def windows_detected(
     return out
 
 
-def _stacked(detections) -> tuple[np.ndarray, np.ndarray]:
-    """All windows' detection rows in one [N, 7] array (their dtype, as postprocess gives: float32) and the window of
-    each row, int64 [N].
+def _stacked(detections) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All windows' detection rows in one [N, 7] array (their dtype, as postprocess gives: float32), the window of
+    each row, int64 [N], and each row's score ``obj * class_conf`` computed in its own window's dtype (as the window
+    alone would give it, even where windows of float32 and float64 rows are mixed), float64 [N].
 
     Raises:
         FormatError: an entry that is not ``None`` nor [K, ≥ 7].
     """
-    parts, windows = [], []
+    parts, windows, scores = [], [], []
     for i, det in enumerate(detections):
         if det is None or len(det) == 0:
             continue
@@ -198,9 +199,10 @@ def _stacked(detections) -> tuple[np.ndarray, np.ndarray]:
             raise FormatError(f"detections[{i}]: expected [K, 7], got {det.shape}")
         parts.append(det[:, :7])
         windows.append(np.full(len(det), i, dtype=np.int64))
+        scores.append((det[:, 4] * det[:, 5]).astype(np.float64))
     if not parts:
-        return np.zeros((0, 7), np.float32), np.zeros(0, np.int64)
-    return np.concatenate(parts), np.concatenate(windows)
+        return np.zeros((0, 7), np.float32), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(parts), np.concatenate(windows), np.concatenate(scores)
 
 
 def _paired_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -110,6 +110,18 @@ def test_windows_detected_equals_the_window_by_window_definition(seed):
     assert any(_windows_detected_one_by_one(detections, "strict", labels, None, 0.5))  # the strict case is exercised
 
 
+def test_min_score_is_judged_in_each_windows_own_dtype():
+    # obj * class_conf of this pair is >= 0.25 in float32 and < 0.25 in float64: a float64 window beside it must not
+    # promote the float32 window's product
+    obj, cls = np.float32(0.57982713), np.float32(0.43116298)
+    assert obj * cls >= np.float32(0.25) and np.float64(obj) * np.float64(cls) < 0.25
+    row32 = np.array([[0, 0, 10, 10, obj, cls, 1]], np.float32)
+    row64 = np.array([[0, 0, 10, 10, 0.9, 0.9, 1]], np.float64)
+    for detections in ([row32], [row32, row64], [row64, row32]):
+        got = windows_detected(detections, min_score=0.25).tolist()
+        assert got == _windows_detected_one_by_one(detections, "paper", None, 0.25, 0.5) and all(got)
+
+
 def test_strict_mode_matches_any_label_of_the_window_not_the_first():
     detections = [det(100, 50, 180, 210), det(100, 50, 180, 210)]
     labels = [np.array([[0, 0, 20, 20], [100, 50, 180, 210]], np.float32), np.zeros((0, 4), np.float32)]
