@@ -319,7 +319,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
                          validate: Callable[[np.ndarray], Mapping] | None = None) -> np.ndarray:
     """Optimise a texture against the APS YOLO (see the module docstring); returns the final hard grid [n, n].
 
-    Writes ``out_dir/checkpoint.pt`` (every ``checkpoint_every`` steps; ``resume=True`` continues from it),
+    Writes ``out_dir/checkpoint.pt`` (every ``checkpoint_every`` steps; ``resume=True`` continues from it exactly
+    as the uninterrupted run would: generator, Adam, pools, the frame draws' and the dropout's random states),
     ``log.jsonl`` (loss, alpha, mean top person score per step; the hard texture's probe scores every
     ``probe_every`` steps, its validation every ``validate_every``) and ``texture.npy`` / ``.png`` (the hard grid);
     with validation, ``best_texture.npy`` / ``.png`` and ``best.json`` (the step, recall and mean top score of
@@ -352,8 +353,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=(0.9, 0.99), weight_decay=1e-5)
     rng = np.random.default_rng(config.seed)
     ckpt = out / "checkpoint.pt"
-    start, generations, best = (_load_checkpoint(ckpt, config, generator, optimizer, rng)
-                                if resume and ckpt.is_file() else (0, None, None))
+    start, generations, best, dropout_rng = (_load_checkpoint(ckpt, config, generator, optimizer, rng)
+                                             if resume and ckpt.is_file() else (0, None, None, None))
     if best is not None:
         _write_best(out, best)
     clip_body, clip_config = blended_body(config, body)
@@ -361,6 +362,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     aps = ApsConfig()
     probe = _Probe(clip_config, clip_body, mask, aps) if config.probe_every else None
     generator.train()
+    if dropout_rng is not None:  # the generator's dropout draws from torch's global generator
+        torch.set_rng_state(dropout_rng)
     t0 = time.perf_counter()
     with _log_from(out / "log.jsonl", start).open("a") as log:
         for step in range(start, config.iterations):
@@ -461,7 +464,8 @@ def _eot_frame(pool, grid: torch.Tensor, rng: np.random.Generator, aps) -> torch
 
 def _load_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator):
     """Restore generator, optimizer and rng from ``ckpt``; returns ``(completed steps, pool generations, best
-    validated texture record or None)``.
+    validated texture record or None, torch's CPU generator state or None)`` (a checkpoint written before the
+    torch state was kept has none: its run resumes with other dropout masks than an uninterrupted run's).
 
     Raises:
         CheckpointError: the checkpoint belongs to another configuration (``iterations`` and ``validate_every``
@@ -474,7 +478,7 @@ def _load_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, 
     generator.load_state_dict(state["generator"])
     optimizer.load_state_dict(state["optimizer"])
     rng.bit_generator.state = state["rng"]
-    return int(state["step"]), state["generations"], state.get("best")
+    return int(state["step"]), state["generations"], state.get("best"), state.get("torch_rng")
 
 
 def _save_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, rng: np.random.Generator, pools,
@@ -482,7 +486,8 @@ def _save_checkpoint(ckpt: Path, config: ApsAttackConfig, generator, optimizer, 
     """Write the run state after ``step`` completed steps atomically (temporary file, then rename)."""
     tmp = ckpt.with_suffix(".tmp")
     torch.save({"generator": generator.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                "rng": rng.bit_generator.state, "generations": [p.generations.tolist() for p in pools],
+                "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                "generations": [p.generations.tolist() for p in pools],
                 "config": asdict(config), "best": best}, tmp)
     os.replace(tmp, ckpt)
 

@@ -84,6 +84,20 @@ def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
         optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "grid_n": 5}), yolo, tmp_path, resume=True)
 
 
+def test_an_interrupted_run_resumed_repeats_the_uninterrupted_runs_steps_exactly(tiny_yolo, tmp_path):
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=4, frames_per_step=1, scales=("small",), pool_size=1,
+                             checkpoint_every=2, alpha_schedule="hard", lr=0.05)
+    whole = optimize_aps_texture(config, yolo, tmp_path / "whole")
+    optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 2}), yolo, tmp_path / "parts")
+    torch.manual_seed(123)  # whatever ran in between (another run, a new process) must not matter
+    torch.rand(7)
+    parts = optimize_aps_texture(config, yolo, tmp_path / "parts", resume=True)
+    np.testing.assert_array_equal(parts, whole)
+    logs = [(tmp_path / run / "log.jsonl").read_text().splitlines() for run in ("whole", "parts")]
+    assert [json.loads(line)["loss"] for line in logs[1]] == [json.loads(line)["loss"] for line in logs[0]]
+
+
 def test_frame_loss_kinds_on_known_scores():
     scores = torch.tensor([[0.05, 0.3, 0.2], [0.1, 0.12, 0.0]])
     # sum: every anchor above 0.125: (0.3 - 0.125) + (0.2 - 0.125)
