@@ -24,7 +24,7 @@ examples:
   davis-quantize --detector rvt.onnx --calibration a.h5 b.h5 --out rvt_int8.onnx --windows 128
   davis-eval session.h5 --detector rvt_int8.onnx                           # then score with it
 
-Only Conv and MatMul run in int8 (weights per output channel, activations per tensor from the calibration
+Only Conv and MatMul run in int8 (7-bit weights per output channel, activations per tensor from the calibration
 windows' min/max); the outputs differ from the fp32 graph's: check the AP on your data (davis-eval, or
 davis-eval-dataset --detector rvt_int8.onnx) before relying on it."""
 
