@@ -138,6 +138,27 @@ def load_average() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
+#: CPU flags of 8-bit dot products (onnxruntime's int8 kernels take another, slower path without them).
+INT8_DOT_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8", "asimddp")
+
+
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU's model name and its 8-bit dot-product flags (``AMD EPYC, int8 dot: none``), from ``/proc/cpuinfo``
+    (or the given text); ``platform.processor()`` or the machine type where there is no such file."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return platform.processor() or platform.machine()
+    fields = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name") or platform.processor() or platform.machine()
+    flags = set((fields.get("flags") or fields.get("Features") or "").split())
+    return f"{name}, int8 dot: {' '.join(f for f in INT8_DOT_FLAGS if f in flags) or 'none'}"
+
+
 def metadata_line(packages: Sequence[str] = ("numpy", "torch"), **extra: object) -> str:
     """One ``# ...`` header line: commit, python, package versions, CPU, torch threads, load average, extras.
 
@@ -150,7 +171,7 @@ def metadata_line(packages: Sequence[str] = ("numpy", "torch"), **extra: object)
     """
     fields = [("commit", git_commit()), ("python", platform.python_version())]
     fields += [(name, package_version(name)) for name in packages]
-    fields.append(("cpu", f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"))
+    fields.append(("cpu", f"{cpu_description()}, {os.cpu_count()} cores"))
     torch = sys.modules.get("torch")
     if torch is not None:
         fields.append(("torch threads", str(torch.get_num_threads())))

@@ -64,6 +64,14 @@ def test_metadata_line_fields():
     assert line.endswith("| repeats 7 (+2 warm-up)")
 
 
+def test_cpu_description_names_the_model_and_its_int8_dot_product_flags():
+    zen3 = "processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse avx avx2 fma\n\nprocessor\t: 1\n"
+    assert common.cpu_description(zen3) == "AMD EPYC, int8 dot: none"
+    icelake = "model name\t: Intel Xeon\nflags\t: avx2 avx512f avx512_vnni\n"
+    assert common.cpu_description(icelake) == "Intel Xeon, int8 dot: avx512_vnni"
+    assert "int8 dot" in common.metadata_line(packages=())
+
+
 def test_limit_blas_threads_refuses_after_numpy_import():
     with pytest.raises(RuntimeError, match="before numpy"):
         common.limit_blas_threads(2)
