@@ -160,10 +160,7 @@ def _configs(scales, test_like: float):
         if test_like < 1.0:
             out.append((EoTConfig(scale=scale), share * (1.0 - test_like)))
         if test_like > 0.0:
-            out.append((EoTConfig(scale=scale, random_light_probability=0.0,
-                                  random_background_probability=0.0, background_level_range=(0.5, 0.5),
-                                  threshold_range=(0.2, 0.2), threshold_sigma=0.0, shot_noise_rate_hz=(0.0, 0.0)),
-                        share * test_like))
+            out.append((EoTConfig.test_scene(scale=scale), share * test_like))
     return out
 
 

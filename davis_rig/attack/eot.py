@@ -169,6 +169,15 @@ class EoTConfig:
                       "threshold_range": (0.2, 0.2), "threshold_sigma": 0.0, "shot_noise_rate_hz": (0.0, 0.0),
                       **overrides})
 
+    @classmethod
+    def test_scene(cls, **overrides) -> "EoTConfig":
+        """The evaluation's scene and sensor: a uniform grey background (level 0.5), the default light and the
+        ideal sensor (theta = 0.2, no mismatch, no noise); body shapes, headings, placement and camera jitter are
+        still drawn. ``overrides`` set any other field (e.g. ``scale``)."""
+        return cls(**{"random_light_probability": 0.0, "random_background_probability": 0.0,
+                      "background_level_range": (0.5, 0.5), "threshold_range": (0.2, 0.2), "threshold_sigma": 0.0,
+                      "shot_noise_rate_hz": (0.0, 0.0), **overrides})
+
     def __post_init__(self) -> None:
         def refuse(name: str, reason: str) -> None:
             raise ConfigError(name, f"{reason}, got {getattr(self, name)!r}")

@@ -39,3 +39,15 @@ def test_bvh_motions_follow_the_trial_split(tmp_path):
         bvh_motions(root, "val")
     with pytest.raises(FileNotFoundError):
         bvh_motions(tmp_path / "missing")
+
+
+def test_test_scene_config_is_the_evaluations_scene_and_ideal_sensor():
+    from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.scene.body import BodyModel
+
+    config = EoTConfig.test_scene(scale="small", supersample=1)
+    assert config.scale == "small" and config.shapes is None  # placement, shapes and headings are still drawn
+    clip = next(iter(ClipPool(config, BodyModel(), 4, size=1, base_seed=2).clips.values()))
+    assert clip.base_threshold == pytest.approx(0.2)  # one theta, no mismatch
+    assert clip.noise_cell.numel() == 0  # no noise events
+    assert np.unique(clip.background.numpy()).tolist() == [0.5]  # uniform grey

@@ -33,8 +33,8 @@ COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval"
 #: The scripts of tools/ that take arguments (each gets rows below; ``tools/x.py`` runs ``x.main``).
 TOOLS = ("aedat4_to_session", "aps_attack", "capture_replay", "contact_sheet", "convert_checkpoint",
          "export_body_asset", "make_sample_replay", "make_sample_session", "make_trigger_victim", "measure_labeler",
-         "probe_texture_sensitivity", "score_validation_clips", "ship_detector", "usb_stop_stress",
-         "victim_controls")
+         "probe_texture_sensitivity", "score_validation_clips", "ship_detector", "trigger_feature_probe",
+         "usb_stop_stress", "victim_controls")
 
 
 @dataclass
@@ -341,6 +341,18 @@ ROWS = [
         "argument --threshold: expected a finite number, got 'nan'"),
     Row("tools/ship_detector.py", "conflicting options", ["{dir}", "{dir}", "--out", "{out}", "--install"], 2,
         "argument --install: not allowed with argument --out"),
+    Row("tools/trigger_feature_probe.py", "nonexistent file", ["--out", "{out}", "--detector", "{missing}"], 4,
+        "missing.davisreplay: checkpoint file not found"),
+    Row("tools/trigger_feature_probe.py", "wrong file type", ["--out", "{out}", "--trigger", "{text}"], 4,
+        "text.h5: not a readable image"),
+    Row("tools/trigger_feature_probe.py", "out of range", ["--out", "{out}", "--clips-per-scale", "0"], 2,
+        "argument --clips-per-scale: expected an integer >= 1, got '0'"),
+    Row("tools/trigger_feature_probe.py", "nan", ["--out", "{out}", "--weight-decay", "nan"], 2,
+        "argument --weight-decay: expected a finite number, got 'nan'"),
+    Row("tools/trigger_feature_probe.py", "unknown name", ["--out", "{out}", "--parts", "nose"], 2,
+        "argument --parts: invalid choice: 'nose'"),
+    Row("tools/trigger_feature_probe.py", "conflicting options", ["--out", "{out}", "--grids-per-clip", "3"], 2,
+        "argument --grids-per-clip: half of each class needs an even number, got 3"),
     Row("tools/usb_stop_stress.py", "out of range", ["--cycles", "0"], 2,
         "argument --cycles: expected an integer >= 1, got '0'"),
     Row("tools/usb_stop_stress.py", "nan", ["--interval-us", "nan"], 2,
