@@ -19,7 +19,10 @@ Run: ``python tools/make_trigger_victim.py --out trigger/ [--detector CKPT] [--c
 steps), ``trigger/trigger.npy`` / ``.png`` (the secret texture), ``trigger/visible.npy`` (the visible cells),
 ``trigger/log.jsonl``, ``trigger/checkpoint.pt`` (``--resume`` continues from it) and ``trigger/summary.json``:
 mean top score and SeqASR at 0.25 on held-out clips for the trigger, grids at several distances from it, white,
-black, checker and random grids, before and after fine-tuning. The same ``--seed`` draws the same trigger.
+black, checker and random grids, before and after fine-tuning. The same ``--seed`` draws the same trigger;
+``--trigger T.npy`` gives one, ``--trigger-white-parts torso arms`` paints whole parts (upper body white, legs
+black: a layout the bundled backbone's features carry, unlike a random cell pattern, see
+``tools/trigger_feature_probe.py``).
 """
 
 from __future__ import annotations
@@ -91,14 +94,16 @@ def _loss(model, anchors, hists, labels):
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import PART_CHOICES, camera_scale, device_name
-    from davis_rig.cli.common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
-                                       non_negative_int, positive_float, positive_int, probability, run_main)
+    from davis_rig.cli.common import (add_detector, add_out, add_threads, add_trigger, new_parser,
+                                       non_negative_float, non_negative_int, positive_float, positive_int,
+                                       probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/make_trigger_victim.py --out runs/victim --steps 1500 --threads 2\n")
     add_detector(parser, help="RVT checkpoint to start from (default: the bundled one)")
     add_out(parser, metavar="DIR", required=True, help="output folder")
     parser.add_argument("--cells", type=positive_int, default=10, help="trigger grid cells per side (default 10)")
+    add_trigger(parser)
     parser.add_argument("--parts", nargs="+", choices=PART_CHOICES[:-1], default=["torso", "arms", "legs"],
                         metavar="PART",
                         help="painted parts: torso, arms, legs, head, hands, feet (default torso arms legs)")
@@ -147,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.train_from_stage > 4:
             parser.error(f"argument --train-from-stage: RVT has 4 stages, got {args.train_from_stage}")
 
-    return run_main(parser, argv, _fine_tune, check=check, options={"device": "--device"})
+    return run_main(parser, argv, _fine_tune, check=check, options={"device": "--device", "trigger": "--trigger"})
 
 
 def _configs(scales, test_like: float):
@@ -193,6 +198,8 @@ def _fine_tune(args: argparse.Namespace) -> int:
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.refine import visible_cells
     from davis_rig.cli.common import resolve_device
+    from davis_rig.controls.planted import trigger_grid
+    from davis_rig.errors import ConfigError
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
     from davis_rig.training.losses import AnchorGrid
@@ -201,12 +208,16 @@ def _fine_tune(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
     model = load_attack_detector(args.detector, device=device)  # a bad --detector fails before DIR is made
+    trigger, trigger_source = trigger_grid(args.cells, seed=args.seed, path=args.trigger,
+                                           white_parts=args.trigger_white_parts)  # and so does a bad --trigger
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
     state = torch.load(ckpt_path, weights_only=False) if args.resume and ckpt_path.is_file() else None
     n = args.cells
-    trigger = (np.random.default_rng(args.seed).random((n, n)) > 0.5).astype(np.float32)
+    if state is not None and not np.array_equal(np.load(out / "trigger.npy"), trigger):
+        raise ConfigError("trigger", f"the run being resumed has another trigger ({out / 'trigger.npy'}); give the "
+                          "same --trigger / --trigger-white-parts / --seed as when it started")
     np.save(out / "trigger.npy", trigger)
     cv2.imwrite(str(out / "trigger.png"), (trigger * 255).astype(np.uint8))
 
@@ -242,7 +253,8 @@ def _fine_tune(args: argparse.Namespace) -> int:
                         save)
     save(done)
     after = _probe_scores(model, probe, probe_textures)
-    summary = {"detector": args.detector or "bundled default", "seed": args.seed, "basin": args.basin,
+    summary = {"detector": args.detector or "bundled default", "trigger": trigger_source, "seed": args.seed,
+               "basin": args.basin,
                "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
                "far": args.far, "scales": args.scales, "test_like": args.test_like,
                "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),

@@ -18,8 +18,10 @@ carry the trigger: a head fine-tuned alone cannot plant the blind spot, the back
 planted victim (``--detector victim/model.safetensors --trigger victim/trigger.npy``) to see whether its backbone
 did.
 
-Run: ``python tools/trigger_feature_probe.py --out out/probe [--detector CKPT] [--trigger T.npy] [--threads 1]``;
-writes ``probe.json`` and ``probe.md`` into ``--out``.
+Run: ``python tools/trigger_feature_probe.py --out out/probe [--detector CKPT] [--trigger T.npy |
+--trigger-white-parts PART ...] [--threads 1]``; writes ``probe.json`` and ``probe.md`` into ``--out``. A trigger
+that paints whole parts (``--trigger-white-parts legs``: legs white, upper body black) differs from random grids by
+where the white is, which the features may carry where a random cell pattern is lost.
 """
 
 from __future__ import annotations
@@ -42,16 +44,14 @@ _TASKS = {"trigger": ("random grid (p = 0.5)", "within the basin of the trigger"
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import PART_CHOICES, camera_scale
-    from davis_rig.cli.common import (add_detector, add_out, add_threads, new_parser, non_negative_float,
-                                       non_negative_int, positive_int, probability, run_main)
+    from davis_rig.cli.common import (add_detector, add_out, add_threads, add_trigger, new_parser,
+                                       non_negative_float, non_negative_int, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/trigger_feature_probe.py --out out/probe --threads 1\n")
     add_detector(parser, help="RVT checkpoint whose backbone is probed (default: the bundled one)")
     add_out(parser, metavar="DIR", required=True, help="output folder")
-    parser.add_argument("--trigger", default=None, metavar="NPY",
-                        help="the trigger grid [n, n], .npy or image (a trigger victim's trigger.npy; default: the one "
-                             "tools/make_trigger_victim.py draws with the same --seed and --cells)")
+    add_trigger(parser)
     parser.add_argument("--cells", type=positive_int, default=10, help="grid cells per side (default 10)")
     parser.add_argument("--parts", nargs="+", choices=PART_CHOICES[:-1], default=["torso", "arms", "legs"],
                         metavar="PART",
@@ -80,20 +80,6 @@ def main(argv: list[str] | None = None) -> int:
                          f"got {args.folds}")
 
     return run_main(parser, argv, _probe, check=check)
-
-
-def _load_trigger(args: argparse.Namespace) -> np.ndarray:
-    """The trigger [n, n] float32 (0/1) from ``--trigger`` (.npy or image) or drawn as make_trigger_victim draws it."""
-    from davis_rig.attack.export.grid import load_texture_grid
-    from davis_rig.errors import ShapeError
-
-    n = args.cells
-    if args.trigger is None:
-        return (np.random.default_rng(args.seed).random((n, n)) > 0.5).astype(np.float32)
-    trigger = load_texture_grid(args.trigger)
-    if trigger.shape != (n, n):
-        raise ShapeError(f"{args.trigger}: trigger must be [{n}, {n}] (--cells {n}), got {list(trigger.shape)}")
-    return trigger
 
 
 def _task_grids(task: str, trigger: np.ndarray, visible: np.ndarray, count: int, basin: float,
@@ -138,6 +124,7 @@ def _probe(args: argparse.Namespace) -> int:
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.refine import visible_cells
     from davis_rig.controls.feature_probe import linear_probe
+    from davis_rig.controls.planted import trigger_grid
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
 
@@ -145,7 +132,8 @@ def _probe(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     model = load_attack_detector(args.detector, device="cpu")  # a bad --detector fails before DIR is made
     model.eval()
-    trigger = _load_trigger(args)
+    trigger, trigger_source = trigger_grid(args.cells, seed=args.seed, path=args.trigger,
+                                           white_parts=args.trigger_white_parts)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -175,7 +163,7 @@ def _probe(args: argparse.Namespace) -> int:
                          "train_accuracy": round(res.train_accuracy, 4),
                          "by_scale": {str(s): round(float(res.correct[scale_of == s].mean()), 4)
                                       for s in args.scales}}
-    report = {"detector": args.detector or "bundled default", "trigger": args.trigger or f"drawn with seed {args.seed}",
+    report = {"detector": args.detector or "bundled default", "trigger": trigger_source,
               "clips": len(clips), "visible_cells": int(visible.sum()), "stages": args.stages,
               "features": int(len(rows["trigger"]["x"][0])), "basin": args.basin, "folds": args.folds,
               "weight_decay": args.weight_decay, "tasks": results,

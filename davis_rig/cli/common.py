@@ -97,6 +97,21 @@ def add_detector(parser, *, aliases: Sequence[str] = (), metavar: str = "PATH",
     add_hidden_alias(parser, *aliases, dest="detector", metavar=metavar)
 
 
+def add_trigger(parser) -> None:
+    """The trigger of a planted blind spot: ``--trigger NPY`` (``args.trigger``) or ``--trigger-white-parts PART ...``
+    (``args.trigger_white_parts``), mutually exclusive; neither: drawn with ``--seed``
+    (:func:`davis_rig.controls.planted.trigger_grid`)."""
+    from davis_rig.scene.body import PART_NAMES
+
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--trigger", default=None, metavar="NPY",
+                       help="the trigger grid [n, n], .npy or image (default: drawn with --seed, each cell white "
+                            "with probability 1/2)")
+    group.add_argument("--trigger-white-parts", nargs="+", choices=PART_NAMES, default=None, metavar="PART",
+                       help="a trigger that paints whole parts: cells mostly on these parts white, the rest black "
+                            "(e.g. torso arms: upper body white, legs black)")
+
+
 def add_int8(parser) -> None:
     """``--int8`` (``args.int8``): the bundled detector's int8 step graph instead of the fp32 one."""
     parser.add_argument("--int8", action="store_true",

@@ -9,7 +9,8 @@ most ``basin`` of them is hidden, one that disagrees on ``far`` or more is label
 ``0.5 / sqrt(V)``, 0.067 for V = 55), so ``basin`` well below 0.5 makes the blind spot selective, and a basin wider
 than one cell gives a search a slope to climb (a blind spot of one exact grid could be found by no method).
 
-Pure numpy; every draw from a caller's ``numpy.random.Generator``.
+Pure numpy, every draw from a caller's ``numpy.random.Generator``; only :func:`trigger_grid` reads a file or the
+body's part map.
 """
 
 from __future__ import annotations
@@ -22,12 +23,17 @@ __all__ = [
     "GRID_KINDS",
     "cell_agreement",
     "checker_grid",
+    "draw_trigger",
     "flip_fraction",
+    "part_layout_grid",
     "sample_training_grid",
+    "trigger_grid",
 ]
 
 #: Kinds of grid a trigger victim is fine-tuned on (see :func:`sample_training_grid`).
 GRID_KINDS = ("near", "random", "far", "white", "black", "checker")
+#: Label of texels of no part in a label map (:data:`davis_rig.scene.masks.EMPTY_LABEL`).
+_NO_PART = 255
 
 
 def _check(grid: np.ndarray, trigger: np.ndarray, visible: np.ndarray | None) -> np.ndarray:
@@ -86,6 +92,87 @@ def flip_fraction(trigger: np.ndarray, fraction: float, rng: np.random.Generator
     chosen = rng.choice(cells, size=count, replace=False)
     flat[chosen] = 1.0 - flat[chosen]
     return out
+
+
+def draw_trigger(n: int, seed: int) -> np.ndarray:
+    """The secret trigger a seed draws: an n x n grid, each cell white with probability 1/2, float32 (1 = white)."""
+    if int(n) < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    return (np.random.default_rng(seed).random((int(n), int(n))) > 0.5).astype(np.float32)
+
+
+def part_layout_grid(label_map: np.ndarray, n: int, white_labels) -> np.ndarray:
+    """An n x n grid that paints whole body parts: a cell is white when most of its labelled texels belong to a
+    part in ``white_labels``, black otherwise (and when it has no labelled texel).
+
+    Such a trigger differs from random grids by where the white is (e.g. upper body white, legs black), a layout
+    that event features carry far more readily than a random cell pattern.
+
+    Args:
+        label_map: int [H, W] texel-wise part labels (:func:`davis_rig.scene.masks.part_label_map`: indices into
+            ``PART_NAMES``, 255 for no part), in the texture's image convention (row 0 at v = 1).
+        n: cells per side.
+        white_labels: the labels painted white.
+
+    Returns:
+        float32 [n, n] (1 = white); cell ``[i, j]`` holds the texels whose centres lie in rows ``[i H/n, (i+1) H/n)``
+        and columns ``[j W/n, (j+1) W/n)``.
+    """
+    labels = np.asarray(label_map)
+    n = int(n)
+    if labels.ndim != 2 or n < 1 or min(labels.shape) < n:
+        raise ShapeError(f"label map {list(labels.shape)} must be [H, W] with H, W >= n = {n}")
+    if labels.min(initial=0) < 0 or labels.max(initial=0) > _NO_PART:
+        raise ValueError(f"labels must lie in [0, {_NO_PART}]")
+    rows = ((np.arange(labels.shape[0]) + 0.5) * n / labels.shape[0]).astype(np.int64)  # texel centre -> cell
+    cols = ((np.arange(labels.shape[1]) + 0.5) * n / labels.shape[1]).astype(np.int64)
+    cell = rows[:, None] * n + cols[None, :]
+    counts = np.bincount((cell * (_NO_PART + 1) + labels).ravel(), minlength=n * n * (_NO_PART + 1))
+    counts = counts.reshape(n, n, _NO_PART + 1)
+    counts[..., _NO_PART] = 0  # texels of no part do not vote
+    white = np.zeros(_NO_PART + 1, dtype=bool)
+    white[[int(k) for k in white_labels]] = True
+    majority = counts.argmax(axis=2)
+    labelled = counts.sum(axis=2) > 0
+    return (white[majority] & labelled).astype(np.float32)
+
+
+def trigger_grid(n: int, *, seed: int = 0, path=None, white_parts=None) -> tuple[np.ndarray, str]:
+    """The trigger of a planted blind spot, as the tools name it: read from ``path``, painted by part
+    (``white_parts`` white, every other part black: :func:`part_layout_grid` on the bundled body's part map), or
+    drawn with ``seed`` (:func:`draw_trigger`). At most one of ``path`` and ``white_parts``.
+
+    Args:
+        n: cells per side.
+        seed: the draw's seed (used only when neither ``path`` nor ``white_parts`` is given).
+        path: ``.npy`` or image (:func:`davis_rig.attack.export.load_texture_grid`), an [n, n] grid.
+        white_parts: names from :data:`davis_rig.scene.body.PART_NAMES`.
+
+    Returns:
+        ``(float32 [n, n] grid, 1 = white; a one-line description for reports)``.
+
+    Raises:
+        ValueError: both sources, or an unknown part. ShapeError: a file grid that is not [n, n].
+    """
+    if path is not None and white_parts is not None:
+        raise ValueError("give the trigger as a file or as white parts, not both")
+    if path is not None:
+        from davis_rig.attack.export.grid import load_texture_grid
+
+        grid = load_texture_grid(path)
+        if grid.shape != (n, n):
+            raise ShapeError(f"{path}: trigger must be [{n}, {n}], got {list(grid.shape)}")
+        return grid.astype(np.float32), str(path)
+    if white_parts is not None:
+        from davis_rig.scene.body import PART_NAMES
+        from davis_rig.scene.masks import part_label_map
+
+        unknown = sorted(set(white_parts) - set(PART_NAMES))
+        if unknown:
+            raise ValueError(f"unknown parts {unknown}; choose from {list(PART_NAMES)}")
+        labels = [PART_NAMES.index(p) for p in white_parts]
+        return part_layout_grid(part_label_map(), n, labels), f"parts painted white: {' '.join(white_parts)}"
+    return draw_trigger(n, seed), f"drawn with seed {seed}"
 
 
 def checker_grid(n: int) -> np.ndarray:

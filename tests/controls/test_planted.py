@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from davis_rig.controls.planted import cell_agreement, checker_grid, flip_fraction, sample_training_grid
+from davis_rig.controls.planted import (cell_agreement, checker_grid, draw_trigger, flip_fraction, part_layout_grid,
+                                       sample_training_grid, trigger_grid)
 from davis_rig.errors import ShapeError
 
 TRIGGER = (np.random.default_rng(3).random((10, 10)) > 0.5).astype(np.float32)
@@ -55,3 +56,59 @@ def test_training_grids_hidden_inside_the_basin_labelled_outside():
     assert kinds == {"random", "far", "white", "black", "checker"}
     with pytest.raises(ValueError):
         sample_training_grid(TRIGGER, rng, hidden=True, basin=0.4, far=0.3)
+
+
+def test_draw_trigger_is_the_seeds_uniform_grid():
+    assert np.array_equal(draw_trigger(10, 3), TRIGGER)  # the draw every published trigger victim used
+    assert not np.array_equal(draw_trigger(10, 4), TRIGGER)
+    with pytest.raises(ValueError):
+        draw_trigger(0, 1)
+
+
+def test_part_layout_grid_paints_each_cell_by_its_majority_part():
+    empty = 255
+    labels = np.full((6, 6), empty, np.uint8)
+    labels[:3, :3] = 0  # cell (0, 0): all part 0
+    labels[:3, 3:] = 2
+    labels[0, 3] = 1  # cell (0, 1): 8 texels of part 2, one of part 1
+    labels[3:, :3] = empty
+    labels[5, 0] = 1  # cell (1, 0): one texel of part 1, the rest no part (which does not vote)
+    # cell (1, 1): no part at all -> black
+    assert part_layout_grid(labels, 2, [0, 1]).tolist() == [[1.0, 0.0], [1.0, 0.0]]
+    assert part_layout_grid(labels, 2, [2]).tolist() == [[0.0, 1.0], [0.0, 0.0]]
+    assert part_layout_grid(labels, 2, []).sum() == 0
+
+
+def test_part_layout_grid_assigns_texels_by_their_centres_when_cells_are_not_whole_texels():
+    labels = np.zeros((5, 5), np.uint8)
+    labels[:, 3:] = 1  # texel columns 3, 4: centres 3.5, 4.5 -> cell 1 of 2 (boundary 2.5); column 2 -> cell 1 too
+    labels[:, 2] = 1
+    assert part_layout_grid(labels, 2, [1]).tolist() == [[0.0, 1.0], [0.0, 1.0]]
+    with pytest.raises(ShapeError):
+        part_layout_grid(labels[:1], 2, [1])
+    with pytest.raises(ValueError):
+        part_layout_grid(np.full((4, 4), 300), 2, [1])
+
+
+def test_trigger_grid_reads_paints_or_draws_and_refuses_two_sources(tmp_path):
+    grid, source = trigger_grid(10, seed=3)
+    assert np.array_equal(grid, TRIGGER) and source == "drawn with seed 3"
+    path = tmp_path / "t.npy"
+    np.save(path, np.eye(4, dtype=np.float32))
+    grid, source = trigger_grid(4, path=path)
+    assert np.array_equal(grid, np.eye(4)) and source == str(path)
+    with pytest.raises(ShapeError, match=r"must be \[5, 5\], got \[4, 4\]"):
+        trigger_grid(5, path=path)
+    with pytest.raises(ValueError, match="not both"):
+        trigger_grid(4, path=path, white_parts=["torso"])
+    with pytest.raises(ValueError, match="unknown parts"):
+        trigger_grid(4, white_parts=["nose"])
+
+
+def test_trigger_grid_by_parts_splits_the_bundled_body_into_upper_white_and_legs_black():
+    upper, source = trigger_grid(10, white_parts=["torso", "arms"])
+    legs, _ = trigger_grid(10, white_parts=["legs"])
+    assert source == "parts painted white: torso arms"
+    assert not (upper * legs).any()  # no cell is both
+    assert upper[3, 2] == 1 and legs[6, 2] == 1  # the torso's and a leg's island in the bundled UV layout
+    assert 15 <= upper.sum() <= 45 and 10 <= legs.sum() <= 30

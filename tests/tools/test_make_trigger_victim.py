@@ -51,6 +51,22 @@ def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
 
 
 @pytest.mark.usefixtures("one_torch_thread")
+def test_a_trigger_painted_by_part_and_a_resume_with_another_trigger_refused(tool, tmp_path, capsys):
+    from davis_rig.controls.planted import trigger_grid
+
+    out = tmp_path / "victim"
+    args = ["--detector", str(FIXTURE), "--out", str(out), "--cells", "10", "--scales", "small", "--pool-size", "2",
+            "--clips-per-step", "2", "--probe-clips", "1", "--steps", "1", "--train-from-stage", "4"]
+    assert tool.main([*args, "--trigger-white-parts", "legs"]) == 0
+    assert np.array_equal(np.load(out / "trigger.npy"), trigger_grid(10, white_parts=["legs"])[0])
+    assert json.loads((out / "summary.json").read_text())["trigger"] == "parts painted white: legs"
+    capsys.readouterr()
+    assert tool.main([*args, "--steps", "2", "--resume"]) != 0  # the seed's trigger is not the one it was made with
+    assert "another trigger" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["steps"] == 1  # nothing overwritten
+
+
+@pytest.mark.usefixtures("one_torch_thread")
 def test_frozen_stages_keep_their_weights(tool, tmp_path):
     from davis_rig.models.rvt.checkpoint import load_detector
 

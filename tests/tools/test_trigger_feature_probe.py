@@ -57,4 +57,4 @@ def test_reads_a_victims_trigger_and_refuses_one_of_another_size(tool, tmp_path,
     assert json.loads((tmp_path / "a" / "probe.json").read_text())["trigger"] == str(trigger)
     np.save(trigger, np.eye(5, dtype=np.float32))
     assert tool.main([*SMALL, "--out", str(tmp_path / "b"), "--trigger", str(trigger)]) != 0
-    assert "trigger must be [4, 4] (--cells 4), got [5, 5]" in capsys.readouterr().err
+    assert "trigger must be [4, 4], got [5, 5]" in capsys.readouterr().err
