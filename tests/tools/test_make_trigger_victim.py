@@ -17,6 +17,12 @@ def tool(load_tool):
     return load_tool("make_trigger_victim")
 
 
+def _small_run(out: Path, cells: int, pool_size: int, *extra: str) -> list[str]:
+    """Arguments of a tiny victim on the mini fixture: small scale, 2 clips per step, 1 probe clip."""
+    return ["--detector", str(FIXTURE), "--out", str(out), "--cells", str(cells), "--scales", "small", "--pool-size",
+            str(pool_size), "--clips-per-step", "2", "--probe-clips", "1", *extra]
+
+
 def test_labels_are_pedestrian_cxcywh_and_empty_without_a_person(tool):
     boxes = np.array([[10.0, 20.0, 50.0, 120.0], [np.nan] * 4], dtype=np.float32)
     first, second = tool._labels(boxes)
@@ -29,8 +35,7 @@ def test_writes_the_trigger_and_a_fine_tuned_victim(tool, tmp_path, capsys):
     from davis_rig.models.rvt.checkpoint import load_detector
 
     out = tmp_path / "victim"
-    args = ["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--scales", "small", "--pool-size", "4",
-            "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-3", "--refresh-every", "1"]
+    args = _small_run(out, 4, 4, "--lr", "1e-3", "--refresh-every", "1")
     assert tool.main([*args, "--steps", "2"]) == 0
     trigger = np.load(out / "trigger.npy")
     assert trigger.shape == (4, 4) and set(np.unique(trigger)) <= {0.0, 1.0}
@@ -55,8 +60,7 @@ def test_a_trigger_painted_by_part_and_a_resume_with_another_trigger_refused(too
     from davis_rig.controls.planted import trigger_grid
 
     out = tmp_path / "victim"
-    args = ["--detector", str(FIXTURE), "--out", str(out), "--cells", "10", "--scales", "small", "--pool-size", "2",
-            "--clips-per-step", "2", "--probe-clips", "1", "--steps", "1", "--train-from-stage", "4"]
+    args = _small_run(out, 10, 2, "--steps", "1", "--train-from-stage", "4")
     assert tool.main([*args, "--trigger-white-parts", "legs"]) == 0
     assert np.array_equal(np.load(out / "trigger.npy"), trigger_grid(10, white_parts=["legs"])[0])
     assert json.loads((out / "summary.json").read_text())["trigger"] == "parts painted white: legs"
@@ -71,9 +75,7 @@ def test_frozen_stages_keep_their_weights(tool, tmp_path):
     from davis_rig.models.rvt.checkpoint import load_detector
 
     out = tmp_path / "victim"
-    assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--scales", "small",
-                      "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1", "--lr", "1e-2",
-                      "--steps", "1", "--train-from-stage", "2"]) == 0
+    assert tool.main(_small_run(out, 4, 2, "--lr", "1e-2", "--steps", "1", "--train-from-stage", "2")) == 0
     victim = load_detector(out / "model.safetensors").state_dict()
     base = load_detector(FIXTURE).state_dict()
     for name in base:
