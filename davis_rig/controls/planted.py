@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from davis_rig.errors import ShapeError
+from davis_rig.errors import FormatError, ShapeError
 
 __all__ = [
     "GRID_KINDS",
     "cell_agreement",
     "checker_grid",
+    "descent_towards",
     "draw_trigger",
     "flip_fraction",
     "part_layout_grid",
@@ -67,6 +68,36 @@ def cell_agreement(grid: np.ndarray, trigger: np.ndarray, visible: np.ndarray | 
     visible = _check(grid, trigger, visible)
     same = (np.asarray(grid) > 0.5) == (np.asarray(trigger) > 0.5)
     return float(same[visible].mean())
+
+
+def descent_towards(gradient: np.ndarray, grid: np.ndarray, trigger: np.ndarray,
+                    visible: np.ndarray | None = None) -> dict:
+    """Whether a loss gradient at a hard grid points towards the trigger, on the visible cells where they differ.
+
+    Args:
+        gradient: float [n, n] d loss / d cell value at ``grid``.
+        grid, trigger: float [n, n] hard grids (1 = white).
+        visible: bool [n, n] cells to count (``None``: all).
+
+    Returns:
+        ``differing_cells`` (int), ``descent_agreement``: the share of those cells whose descent direction
+        (``-gradient``) moves them towards the trigger's value (0.5 is chance; NaN when none differ), and
+        ``first_order_change``: the loss change that the gradient predicts for setting all of them to the trigger's
+        values, ``sum(gradient * (trigger - grid))`` (negative: the trigger lies downhill).
+
+    Raises:
+        ShapeError: shapes differ, or ``visible`` marks no cell.
+    """
+    visible = _check(grid, trigger, visible)
+    gradient = np.asarray(gradient, dtype=np.float64)
+    if gradient.shape != visible.shape:
+        raise ShapeError(f"gradient {gradient.shape} must match the trigger {visible.shape}")
+    towards = (np.asarray(trigger) > 0.5).astype(np.float64) - (np.asarray(grid) > 0.5)
+    differ = visible & (towards != 0)
+    agree = np.sign(-gradient[differ]) == towards[differ]
+    return {"differing_cells": int(differ.sum()),
+            "descent_agreement": float(agree.mean()) if differ.any() else float("nan"),
+            "first_order_change": float((gradient * towards)[differ].sum())}
 
 
 def flip_fraction(trigger: np.ndarray, fraction: float, rng: np.random.Generator,
@@ -152,7 +183,7 @@ def trigger_grid(n: int, *, seed: int = 0, path=None, white_parts=None) -> tuple
         ``(float32 [n, n] grid, 1 = white; a one-line description for reports)``.
 
     Raises:
-        ValueError: both sources, or an unknown part. ShapeError: a file grid that is not [n, n].
+        ValueError: both sources, or an unknown part. FormatError: a file grid that is not [n, n].
     """
     if path is not None and white_parts is not None:
         raise ValueError("give the trigger as a file or as white parts, not both")
@@ -161,7 +192,7 @@ def trigger_grid(n: int, *, seed: int = 0, path=None, white_parts=None) -> tuple
 
         grid = load_texture_grid(path)
         if grid.shape != (n, n):
-            raise ShapeError(f"{path}: trigger must be [{n}, {n}], got {list(grid.shape)}")
+            raise FormatError(f"{path}: trigger must be [{n}, {n}], got {list(grid.shape)}")
         return grid.astype(np.float32), str(path)
     if white_parts is not None:
         from davis_rig.scene.body import PART_NAMES

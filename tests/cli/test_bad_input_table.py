@@ -34,7 +34,7 @@ COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval"
 TOOLS = ("aedat4_to_session", "aps_attack", "capture_replay", "contact_sheet", "convert_checkpoint",
          "export_body_asset", "make_sample_replay", "make_sample_session", "make_trigger_victim", "measure_labeler",
          "probe_texture_sensitivity", "score_validation_clips", "ship_detector", "trigger_feature_probe",
-         "usb_stop_stress", "victim_controls")
+         "trigger_gradient_check", "usb_stop_stress", "victim_controls")
 
 
 @dataclass
@@ -360,6 +360,19 @@ ROWS = [
         "argument --grids-per-clip: half of each class needs an even number, got 3"),
     Row("tools/trigger_feature_probe.py", "conflicting options",
         ["--out", "{out}", "--trigger-white-parts", "legs", "--trigger", "{text}"], 2,
+        "argument --trigger: not allowed with argument --trigger-white-parts"),
+    Row("tools/trigger_gradient_check.py", "nonexistent file", ["--detector", "{missing}"], 4,
+        "missing.davisreplay: checkpoint file not found"),
+    Row("tools/trigger_gradient_check.py", "wrong file type", ["--trigger", "{text}"], 4,
+        "text.h5: not a readable image"),
+    Row("tools/trigger_gradient_check.py", "out of range", ["--flipped", "1.5"], 2,
+        "argument --flipped: expected a number in [0, 1], got '1.5'"),
+    Row("tools/trigger_gradient_check.py", "nan", ["--flipped", "nan"], 2,
+        "argument --flipped: expected a finite number, got 'nan'"),
+    Row("tools/trigger_gradient_check.py", "unknown name", ["--loss", "median"], 2,
+        "argument --loss: invalid choice: 'median'"),
+    Row("tools/trigger_gradient_check.py", "conflicting options",
+        ["--trigger-white-parts", "legs", "--trigger", "{text}"], 2,
         "argument --trigger: not allowed with argument --trigger-white-parts"),
     Row("tools/usb_stop_stress.py", "out of range", ["--cycles", "0"], 2,
         "argument --cycles: expected an integer >= 1, got '0'"),

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from davis_rig.controls.planted import (cell_agreement, checker_grid, draw_trigger, flip_fraction, part_layout_grid,
-                                       sample_training_grid, trigger_grid)
-from davis_rig.errors import ShapeError
+from davis_rig.controls.planted import (cell_agreement, checker_grid, descent_towards, draw_trigger, flip_fraction,
+                                       part_layout_grid, sample_training_grid, trigger_grid)
+from davis_rig.errors import FormatError, ShapeError
 
 TRIGGER = (np.random.default_rng(3).random((10, 10)) > 0.5).astype(np.float32)
 
@@ -25,6 +25,21 @@ def test_cell_agreement_counts_visible_cells_only():
     with pytest.raises(ShapeError):
         cell_agreement(grid, TRIGGER, np.zeros((10, 10), bool))
 
+
+
+def test_descent_towards_on_a_hand_made_2x2():
+    trigger = np.array([[1.0, 0.0], [1.0, 0.0]])
+    grid = np.array([[0.0, 1.0], [1.0, 0.0]])  # the top row differs: cell (0, 0) should rise, (0, 1) fall
+    gradient = np.array([[-2.0, -1.0], [5.0, 7.0]])  # descent raises both top cells: one right, one wrong
+    res = descent_towards(gradient, grid, trigger)
+    assert res == {"differing_cells": 2, "descent_agreement": 0.5, "first_order_change": -2.0 * 1 + -1.0 * -1}
+    towards = descent_towards(np.array([[-2.0, 3.0], [5.0, 7.0]]), grid, trigger)
+    assert towards["descent_agreement"] == 1.0 and towards["first_order_change"] == -5.0  # the trigger downhill
+    hidden = descent_towards(gradient, grid, trigger, visible=np.array([[False, True], [True, True]]))
+    assert hidden["differing_cells"] == 1 and hidden["descent_agreement"] == 0.0 and hidden["first_order_change"] == 1.0
+    assert np.isnan(descent_towards(gradient, trigger, trigger)["descent_agreement"])  # nothing differs
+    with pytest.raises(ShapeError):
+        descent_towards(gradient[:1], grid, trigger)
 
 @pytest.mark.parametrize("fraction", [0.0, 0.2, 0.5, 1.0])
 def test_flip_fraction_flips_exactly_that_share_of_the_visible_cells(fraction):
@@ -97,7 +112,7 @@ def test_trigger_grid_reads_paints_or_draws_and_refuses_two_sources(tmp_path):
     np.save(path, np.eye(4, dtype=np.float32))
     grid, source = trigger_grid(4, path=path)
     assert np.array_equal(grid, np.eye(4)) and source == str(path)
-    with pytest.raises(ShapeError, match=r"must be \[5, 5\], got \[4, 4\]"):
+    with pytest.raises(FormatError, match=r"must be \[5, 5\], got \[4, 4\]"):
         trigger_grid(5, path=path)
     with pytest.raises(ValueError, match="not both"):
         trigger_grid(4, path=path, white_parts=["torso"])

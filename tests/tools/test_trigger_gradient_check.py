@@ -1,0 +1,40 @@
+"""tools/trigger_gradient_check.py on the mini RVT fixture: rows, their relations, the table and the JSON."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, capsys):
+    tool = load_tool("trigger_gradient_check")
+    trigger = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [1, 1, 0, 0], [0, 0, 1, 1]], np.float32)
+    np.save(tmp_path / "trigger.npy", trigger)
+    out = tmp_path / "check.json"
+    assert tool.main(["--detector", str(FIXTURE), "--trigger", str(tmp_path / "trigger.npy"), "--cells", "4",
+                      "--clips", "2", "--batch", "1", "--random", "2", "--flipped", "0.5", "1.0", "--out", str(out),
+                      "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    visible = report["visible_cells"]
+    assert 0 < visible <= 16 and report["loss"] == "top" and report["clips"] == 2
+    rows = {r["grid"]: r for r in report["rows"]}
+    assert list(rows) == ["random 0", "random 1", "trigger, 50% flipped", "trigger, 100% flipped"]
+    assert rows["trigger, 50% flipped"]["differing_cells"] == round(0.5 * visible)
+    assert rows["trigger, 100% flipped"]["differing_cells"] == visible
+    for r in rows.values():
+        assert 0.0 <= r["descent_agreement"] <= 1.0 and np.isfinite(r["first_order_change"])
+        assert r["measured_change"] == pytest.approx(report["loss_at_trigger"] - r["loss"])
+    assert capsys.readouterr().out.count("\n| ") == 4  # one table row per grid after the header
+
+
+def test_a_trigger_of_the_wrong_size_is_refused_before_the_clips(load_tool, tmp_path, capsys):
+    tool = load_tool("trigger_gradient_check")
+    np.save(tmp_path / "trigger.npy", np.ones((3, 3), np.float32))
+    assert tool.main(["--detector", str(FIXTURE), "--trigger", str(tmp_path / "trigger.npy"), "--cells", "4"]) == 4
+    assert "trigger must be [4, 4]" in capsys.readouterr().err
