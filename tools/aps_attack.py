@@ -125,6 +125,7 @@ def _run(args: argparse.Namespace) -> int:
     from davis_rig.attack.texture import black_texture, random_texture, white_texture
     from davis_rig.attack_aps.attack import (ApsAttackConfig, TorchYolo, aps_detection_rates, aps_scenes,
                                              optimize_aps_texture, validation_shapes)
+    from davis_rig.cli.common import tool_provenance
     from davis_rig.scene.body import BodyModel
     from davis_rig.labelers.session_labels import resolve_yolo_model
     from davis_rig.labelers.yolo import YoloOnnxDetector
@@ -200,9 +201,8 @@ def _run(args: argparse.Namespace) -> int:
                          "blend_shapes": args.blend_shapes},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
                            "scales": ["large", "middle", "small"]},
-              "command": shlex.join(["python", "tools/aps_attack.py", *sys.argv[1:]]),
-              "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}",
-              "seconds_this_call": time.perf_counter() - t0, "optimise_seconds_this_call": optimise_s}
+              **tool_provenance(Path(__file__).name), "seconds_this_call": time.perf_counter() - t0,
+              "optimise_seconds_this_call": optimise_s}
     (out / "aps_control.json").write_text(json.dumps(report, indent=1))
     lines = ["# Real-data control: the texture pipeline against the APS labeler's YOLO", "",
              f"Labeler: `{args.yolo}` ({Path(path).name}), threshold {args.threshold:g}, a person found when a box "

@@ -28,22 +28,8 @@ RECOVER_POOL=${RECOVER_POOL:-32}
 START=$(date +%s)
 OUT=${OUT:-out/lent_gpu_planted}
 W=${WORK:-/tmp/planted}
-mkdir -p "$OUT" "$W"
-exec > >(tee -a "$OUT/log.txt") 2>&1
-elapsed() { echo $(( $(date +%s) - START )); }
-left() { echo $(( TOTAL - $(date +%s) + START )); }
-say() { echo "== t=$(elapsed)s $*"; }
-
-if compgen -G ".whl/*.whl" > /dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-    export PYTHONPATH=/tmp/site:$PWD
-else
-    export PYTHONPATH=$PWD
-fi
-export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "no nvidia-smi"
-python3 -c "import torch, numpy; print('torch', torch.__version__, 'numpy', numpy.__version__, 'cuda', torch.cuda.is_available())"
-git log --oneline -1 2>/dev/null || true
+mkdir -p "$W"
+source tools/lent_gpu_env.sh
 
 # ---- 1: two victims side by side, and the cuda_graph check
 PLANT="python3 tools/make_trigger_victim.py --trigger-white-parts legs --steps $PLANT_STEPS --clips-per-step 8 \

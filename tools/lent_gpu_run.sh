@@ -20,22 +20,7 @@ SPLITS=${SPLITS:-train=600,val=12,test=18}
 SEQUENCES=$(python3 -c "print(sum(int(p.split('=')[1]) for p in '$SPLITS'.split(',')))")
 START=$(date +%s)
 OUT=${OUT:-out/lent_gpu}
-mkdir -p "$OUT"
-exec > >(tee -a "$OUT/log.txt") 2>&1
-elapsed() { echo $(( $(date +%s) - START )); }
-left() { echo $(( TOTAL - $(date +%s) + START )); }
-say() { echo "== t=$(elapsed)s $*"; }
-
-if compgen -G ".whl/*.whl" > /dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-    export PYTHONPATH=/tmp/site:$PWD
-else
-    export PYTHONPATH=$PWD
-fi
-export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-python3 -c "import torch, numpy; print('torch', torch.__version__, 'numpy', numpy.__version__, 'cuda', torch.cuda.is_available())"
-git log --oneline -1 2>/dev/null || true
+source tools/lent_gpu_env.sh
 NCPU=$(nproc)
 PIN_BENCH=""; PIN_GEN=""
 if command -v taskset > /dev/null && [ "$NCPU" -ge 8 ]; then

@@ -15,10 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import shlex
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +73,7 @@ def _run(args: argparse.Namespace) -> int:
     import torch
 
     from davis_rig.attack.optimize import AttackConfig, load_attack_detector
+    from davis_rig.cli.common import tool_provenance
     from davis_rig.attack.texture import random_texture
     from davis_rig.attack.validation import validate, validation_clips
     from davis_rig.errors import FormatError
@@ -110,8 +108,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"| {r['texture']} | {100 * r['SeqASR']:.1f} | {r['mean_top_score']:.3f} | "
               f"{100 * r['train_SeqASR']:.1f} / {r['train_top_score']:.3f} |")
     if args.out:
-        report = {"command": shlex.join(["python", "tools/score_validation_clips.py", *sys.argv[1:]]),
-                  "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}",
+        report = {**tool_provenance(Path(__file__).name),
                   "detector": str(args.detector) if args.detector else "bundled default", "cells": n,
                   "parts": parts, "clips": args.clips, "seed": args.seed, "threshold": args.threshold, "rows": rows}
         Path(args.out).write_text(json.dumps(report, indent=1))

@@ -28,9 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -125,6 +122,7 @@ def _probe(args: argparse.Namespace) -> int:
     from davis_rig.attack.refine import visible_cells
     from davis_rig.controls.feature_probe import linear_probe
     from davis_rig.controls.planted import trigger_grid
+    from davis_rig.cli.common import tool_provenance
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
 
@@ -167,9 +165,7 @@ def _probe(args: argparse.Namespace) -> int:
               "clips": len(clips), "visible_cells": int(visible.sum()), "stages": args.stages,
               "features": int(len(rows["trigger"]["x"][0])), "basin": args.basin, "folds": args.folds,
               "weight_decay": args.weight_decay, "tasks": results,
-              "command": shlex.join(["python", "tools/trigger_feature_probe.py", *sys.argv[1:]]),
-              "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}",
-              "seconds": round(time.perf_counter() - t0, 1)}
+              **tool_provenance(Path(__file__).name), "seconds": round(time.perf_counter() - t0, 1)}
     (out / "probe.json").write_text(json.dumps(report, indent=1))
     (out / "probe.md").write_text(_markdown(report))
     print(json.dumps({task: r["held_out_accuracy"] for task, r in results.items()}))

@@ -18,10 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import shlex
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +55,7 @@ def _run(args: argparse.Namespace) -> int:
     import torch
 
     from davis_rig.attack.optimize import AttackConfig, attack_loss, load_attack_detector
+    from davis_rig.cli.common import tool_provenance
     from davis_rig.attack.refine import visible_cells
     from davis_rig.attack.validation import validation_clips
     from davis_rig.controls.planted import descent_towards, flip_fraction, trigger_grid
@@ -104,8 +102,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"| {r['grid']} | {r['differing_cells']} | {r['descent_agreement']:.3f} | {r['loss']:.4g} | "
               f"{r['first_order_change']:.4g} / {r['measured_change']:.4g} |")
     if args.out:
-        report = {"command": shlex.join(["python", "tools/trigger_gradient_check.py", *sys.argv[1:]]),
-                  "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}",
+        report = {**tool_provenance(Path(__file__).name),
                   "detector": str(args.detector) if args.detector else "bundled default", "trigger": trigger_source,
                   "cells": n, "parts": parts, "loss": args.loss, "clips": args.clips, "seed": args.seed,
                   "visible_cells": int(visible.sum()), "loss_at_trigger": loss_at_trigger, "rows": rows}

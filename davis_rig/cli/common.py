@@ -55,6 +55,17 @@ def version_text(prog: str) -> str:
     return f"{prog} (davis_rig {__version__})"
 
 
+def tool_provenance(script: str) -> dict:
+    """Where a report of ``tools/<script>`` came from: ``command`` (as typed, from ``sys.argv``), ``measured``
+    (today, YYYY-MM-DD) and ``machine`` (architecture and host name)."""
+    import platform
+    import shlex
+    import time
+
+    return {"command": shlex.join(["python", f"tools/{script}", *sys.argv[1:]]),
+            "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}"}
+
+
 def new_parser(prog: str, description: str, examples: str = "") -> argparse.ArgumentParser:
     """An argument parser with the house layout: raw-text epilog ending in the exit codes, and ``--version``.
 
