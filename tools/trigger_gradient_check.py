@@ -93,13 +93,13 @@ def _run(args: argparse.Namespace) -> int:
         row = {"grid": name, "loss": loss, **descent_towards(gradient, grid, trigger, visible),
                "measured_change": loss_at_trigger - loss}
         rows.append(row)
-        say(f"{name}: agreement {row['descent_agreement']:.3f} on {row['differing_cells']} cells, change predicted "
+        say(f"{name}: agreement {_share(row['descent_agreement'])} on {row['differing_cells']} cells, change predicted "
             f"{row['first_order_change']:.4g}, measured {row['measured_change']:.4g}")
     print("| grid | differing visible cells | descent towards the trigger (chance 0.5) | loss | change to the "
           "trigger: first-order / measured |")
     print("|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['grid']} | {r['differing_cells']} | {r['descent_agreement']:.3f} | {r['loss']:.4g} | "
+        print(f"| {r['grid']} | {r['differing_cells']} | {_share(r['descent_agreement'])} | {r['loss']:.4g} | "
               f"{r['first_order_change']:.4g} / {r['measured_change']:.4g} |")
     if args.out:
         report = {**tool_provenance(Path(__file__).name),
@@ -108,6 +108,11 @@ def _run(args: argparse.Namespace) -> int:
                   "visible_cells": int(visible.sum()), "loss_at_trigger": loss_at_trigger, "rows": rows}
         Path(args.out).write_text(json.dumps(report, indent=1))
     return 0
+
+
+def _share(value: float | None) -> str:
+    """A share for the table; "—" where no visible cell differs from the trigger (e.g. ``--flipped 0``)."""
+    return "—" if value is None else f"{value:.3f}"
 
 
 if __name__ == "__main__":

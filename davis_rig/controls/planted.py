@@ -81,7 +81,8 @@ def descent_towards(gradient: np.ndarray, grid: np.ndarray, trigger: np.ndarray,
 
     Returns:
         ``differing_cells`` (int), ``descent_agreement``: the share of those cells whose descent direction
-        (``-gradient``) moves them towards the trigger's value (0.5 is chance; NaN when none differ), and
+        (``-gradient``) moves them towards the trigger's value (0.5 is chance; ``None`` when none differ, so that a
+        report stays valid JSON), and
         ``first_order_change``: the loss change that the gradient predicts for setting all of them to the trigger's
         values, ``sum(gradient * (trigger - grid))`` (negative: the trigger lies downhill).
 
@@ -96,7 +97,7 @@ def descent_towards(gradient: np.ndarray, grid: np.ndarray, trigger: np.ndarray,
     differ = visible & (towards != 0)
     agree = np.sign(-gradient[differ]) == towards[differ]
     return {"differing_cells": int(differ.sum()),
-            "descent_agreement": float(agree.mean()) if differ.any() else float("nan"),
+            "descent_agreement": float(agree.mean()) if differ.any() else None,
             "first_order_change": float((gradient * towards)[differ].sum())}
 
 

@@ -37,7 +37,7 @@ def test_descent_towards_on_a_hand_made_2x2():
     assert towards["descent_agreement"] == 1.0 and towards["first_order_change"] == -5.0  # the trigger downhill
     hidden = descent_towards(gradient, grid, trigger, visible=np.array([[False, True], [True, True]]))
     assert hidden["differing_cells"] == 1 and hidden["descent_agreement"] == 0.0 and hidden["first_order_change"] == 1.0
-    assert np.isnan(descent_towards(gradient, trigger, trigger)["descent_agreement"])  # nothing differs
+    assert descent_towards(gradient, trigger, trigger)["descent_agreement"] is None  # nothing differs: JSON null
     with pytest.raises(ShapeError):
         descent_towards(gradient[:1], grid, trigger)
 

@@ -18,19 +18,24 @@ def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, ca
     np.save(tmp_path / "trigger.npy", trigger)
     out = tmp_path / "check.json"
     assert tool.main(["--detector", str(FIXTURE), "--trigger", str(tmp_path / "trigger.npy"), "--cells", "4",
-                      "--clips", "2", "--batch", "1", "--random", "2", "--flipped", "0.5", "1.0", "--out", str(out),
+                      "--clips", "2", "--batch", "1", "--random", "2", "--flipped", "0", "0.5", "1.0", "--out", str(out),
                       "--quiet"]) == 0
+    assert "NaN" not in out.read_text()  # strict JSON: a grid equal to the trigger has no agreement to report
     report = json.loads(out.read_text())
     visible = report["visible_cells"]
     assert 0 < visible <= 16 and report["loss"] == "top" and report["clips"] == 2
     rows = {r["grid"]: r for r in report["rows"]}
-    assert list(rows) == ["random 0", "random 1", "trigger, 50% flipped", "trigger, 100% flipped"]
+    assert list(rows) == ["random 0", "random 1", "trigger, 0% flipped", "trigger, 50% flipped",
+                          "trigger, 100% flipped"]
+    unflipped = rows.pop("trigger, 0% flipped")
+    assert unflipped["differing_cells"] == 0 and unflipped["descent_agreement"] is None
+    assert unflipped["first_order_change"] == 0.0 and unflipped["measured_change"] == pytest.approx(0.0)
     assert rows["trigger, 50% flipped"]["differing_cells"] == round(0.5 * visible)
     assert rows["trigger, 100% flipped"]["differing_cells"] == visible
     for r in rows.values():
         assert 0.0 <= r["descent_agreement"] <= 1.0 and np.isfinite(r["first_order_change"])
         assert r["measured_change"] == pytest.approx(report["loss_at_trigger"] - r["loss"])
-    assert capsys.readouterr().out.count("\n| ") == 4  # one table row per grid after the header
+    assert capsys.readouterr().out.count("\n| ") == 5  # one table row per grid after the header
 
 
 def test_a_trigger_of_the_wrong_size_is_refused_before_the_clips(load_tool, tmp_path, capsys):
