@@ -24,6 +24,7 @@ __all__ = [
     "cell_agreement",
     "checker_grid",
     "descent_towards",
+    "sign_consistency",
     "draw_trigger",
     "flip_fraction",
     "part_layout_grid",
@@ -99,6 +100,33 @@ def descent_towards(gradient: np.ndarray, grid: np.ndarray, trigger: np.ndarray,
     return {"differing_cells": int(differ.sum()),
             "descent_agreement": float(agree.mean()) if differ.any() else None,
             "first_order_change": float((gradient * towards)[differ].sum())}
+
+
+def sign_consistency(gradient_a: np.ndarray, gradient_b: np.ndarray, grid: np.ndarray, trigger: np.ndarray,
+                     visible: np.ndarray | None = None) -> float | None:
+    """How settled a gradient's direction is: the share of the visible cells where ``grid`` differs from ``trigger``
+    on which two gradient estimates (e.g. over two disjoint halves of the clips) have the same sign.
+
+    Args:
+        gradient_a, gradient_b: float [n, n] the two estimates at ``grid``.
+        grid, trigger: float [n, n] hard grids (1 = white).
+        visible: bool [n, n] cells to count (``None``: all).
+
+    Returns:
+        The share in [0, 1] (0.5 for independent noise; a zero on either side counts as a disagreement), ``None``
+        when no visible cell differs.
+
+    Raises:
+        ShapeError: shapes differ, or ``visible`` marks no cell.
+    """
+    visible = _check(grid, trigger, visible)
+    a, b = np.asarray(gradient_a, dtype=np.float64), np.asarray(gradient_b, dtype=np.float64)
+    if a.shape != visible.shape or b.shape != visible.shape:
+        raise ShapeError(f"gradients {a.shape} and {b.shape} must match the trigger {visible.shape}")
+    differ = visible & ((np.asarray(trigger) > 0.5) != (np.asarray(grid) > 0.5))
+    if not differ.any():
+        return None
+    return float((np.sign(a[differ]) * np.sign(b[differ]) > 0).mean())
 
 
 def flip_fraction(trigger: np.ndarray, fraction: float, rng: np.random.Generator,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from davis_rig.controls.planted import (cell_agreement, checker_grid, descent_towards, draw_trigger, flip_fraction,
-                                       part_layout_grid, sample_training_grid, trigger_grid)
+                                       part_layout_grid, sample_training_grid, sign_consistency, trigger_grid)
 from davis_rig.errors import FormatError, ShapeError
 
 TRIGGER = (np.random.default_rng(3).random((10, 10)) > 0.5).astype(np.float32)
@@ -40,6 +40,19 @@ def test_descent_towards_on_a_hand_made_2x2():
     assert descent_towards(gradient, trigger, trigger)["descent_agreement"] is None  # nothing differs: JSON null
     with pytest.raises(ShapeError):
         descent_towards(gradient[:1], grid, trigger)
+
+def test_sign_consistency_on_a_hand_made_2x2():
+    trigger = np.array([[1.0, 0.0], [1.0, 0.0]])
+    grid = np.array([[0.0, 1.0], [0.0, 0.0]])  # three cells differ: (0, 0), (0, 1), (1, 0)
+    first = np.array([[1.0, -2.0], [3.0, 9.0]])
+    second = np.array([[4.0, 2.0], [0.0, -9.0]])  # same sign on (0, 0); opposite on (0, 1); a zero on (1, 0)
+    assert sign_consistency(first, second, grid, trigger) == pytest.approx(1 / 3)  # (1, 1) does not differ
+    assert sign_consistency(first, first, grid, trigger) == 1.0
+    assert sign_consistency(first, -first, grid, trigger, visible=np.array([[True, True], [False, False]])) == 0.0
+    assert sign_consistency(first, second, trigger, trigger) is None
+    with pytest.raises(ShapeError):
+        sign_consistency(first[:1], second, grid, trigger)
+
 
 @pytest.mark.parametrize("fraction", [0.0, 0.2, 0.5, 1.0])
 def test_flip_fraction_flips_exactly_that_share_of_the_visible_cells(fraction):

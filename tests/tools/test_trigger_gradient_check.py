@@ -18,7 +18,7 @@ def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, ca
     np.save(tmp_path / "trigger.npy", trigger)
     out = tmp_path / "check.json"
     assert tool.main(["--detector", str(FIXTURE), "--trigger", str(tmp_path / "trigger.npy"), "--cells", "4",
-                      "--clips", "2", "--batch", "1", "--random", "2", "--flipped", "0", "0.5", "1.0", "--out", str(out),
+                      "--clips", "2", "--batch", "1", "--clip-counts", "1", "2", "--random", "2", "--flipped", "0", "0.5", "1.0", "--out", str(out),
                       "--quiet"]) == 0
     assert "NaN" not in out.read_text()  # strict JSON: a grid equal to the trigger has no agreement to report
     report = json.loads(out.read_text())
@@ -35,7 +35,15 @@ def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, ca
     for r in rows.values():
         assert 0.0 <= r["descent_agreement"] <= 1.0 and np.isfinite(r["first_order_change"])
         assert r["measured_change"] == pytest.approx(report["loss_at_trigger"] - r["loss"])
+        assert r["agreement_by_clips"]["2"] == r["descent_agreement"]  # all the clips: the row's own gradient
+        assert 0.0 <= r["agreement_by_clips"]["1"] <= 1.0 and 0.0 <= r["half_consistency"] <= 1.0
     assert capsys.readouterr().out.count("\n| ") == 5  # one table row per grid after the header
+
+
+def test_clip_counts_that_do_not_split_into_batches_are_a_usage_error(load_tool, capsys):
+    tool = load_tool("trigger_gradient_check")
+    assert tool.main(["--detector", str(FIXTURE), "--clips", "8", "--batch", "4", "--clip-counts", "6"]) == 2
+    assert "argument --clip-counts: 6 is not a multiple of --batch 4 within --clips 8" in capsys.readouterr().err
 
 
 def test_a_trigger_of_the_wrong_size_is_refused_before_the_clips(load_tool, tmp_path, capsys):
