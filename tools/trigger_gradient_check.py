@@ -15,7 +15,10 @@ of the gradient summed over the first 4, 16 and 64 clips (noise averages out as 
 every row the share of those cells where the gradients of the first and the second half of the clips agree in sign
 (``half_consistency``: near 1 the direction is settled, whatever it is; near 0.5 it is noise),
 and ``--loss``, ``--loss-anchors`` and ``--v2e-gradient`` set the attack's loss and the backward rule of its event
-counts as ``davis-attack optimize`` does, to compare the gradients an attack could follow.
+counts as ``davis-attack optimize`` does, to compare the gradients an attack could follow. ``--contrast c`` takes
+every gradient at the grid greyed towards 0.5 (cell values 0.5 ± c/2, as the generator's soft textures are early in
+a run), where the edges between equal cells that a flip would create already carry a little contrast; the loss
+change measured is then from that greyed grid.
 
 Run: ``python tools/trigger_gradient_check.py --detector victim/model.safetensors --trigger victim/trigger.npy
 [--random 6] [--flipped 0.2 0.3 0.4] [--clips 16] [--clip-counts 4 16] [--out result.json] [--threads 1]``.
@@ -34,7 +37,8 @@ import numpy as np
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import (PART_CHOICES, add_detector, add_out, add_quiet, add_threads, add_trigger,
-                                       new_parser, non_negative_int, positive_int, probability, run_main)
+                                       float_in, new_parser, non_negative_int, positive_int, probability,
+                                       run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/trigger_gradient_check.py --detector victim/model.safetensors "
@@ -55,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="also report the agreement of the gradient over the first K clips (multiples of "
                              "--batch, at most --clips)")
     parser.add_argument("--batch", type=positive_int, default=4, help="clips per backward pass (default 4)")
+    parser.add_argument("--contrast", type=float_in(0.0, 1.0, low_open=True), default=1.0,
+                        help="take the gradients at 0.5 + contrast * (grid - 0.5) (default 1: the hard grids)")
     parser.add_argument("--random", type=non_negative_int, default=6, help="random grids (default 6)")
     parser.add_argument("--flipped", type=probability, nargs="*", default=[0.2, 0.3, 0.4], metavar="SHARE",
                         help="the trigger with these shares of its visible cells flipped (default 0.2 0.3 0.4)")
@@ -116,7 +122,7 @@ def _run(args: argparse.Namespace) -> int:
     loss_at_trigger = loss_and_gradient(trigger)[0]
     rows = []
     for name, grid in grids:
-        loss, gradient, prefixes = loss_and_gradient(grid)
+        loss, gradient, prefixes = loss_and_gradient(0.5 + args.contrast * (grid - 0.5))
         row = {"grid": name, "loss": loss, **descent_towards(gradient, grid, trigger, visible),
                "measured_change": loss_at_trigger - loss}
         if args.clip_counts:
@@ -139,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
         report = {**tool_provenance(Path(__file__).name),
                   "detector": str(args.detector) if args.detector else "bundled default", "trigger": trigger_source,
                   "cells": n, "parts": parts, "loss": args.loss, "loss_anchors": args.loss_anchors,
-                  "v2e_gradient": args.v2e_gradient, "clips": args.clips, "seed": args.seed,
+                  "v2e_gradient": args.v2e_gradient, "contrast": args.contrast, "clips": args.clips, "seed": args.seed,
                   "visible_cells": int(visible.sum()), "loss_at_trigger": loss_at_trigger, "rows": rows}
         Path(args.out).write_text(json.dumps(report, indent=1))
     return 0

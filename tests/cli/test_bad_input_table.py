@@ -374,6 +374,8 @@ ROWS = [
     Row("tools/trigger_gradient_check.py", "conflicting options",
         ["--trigger-white-parts", "legs", "--trigger", "{text}"], 2,
         "argument --trigger: not allowed with argument --trigger-white-parts"),
+    Row("tools/trigger_gradient_check.py", "out of range", ["--contrast", "0"], 2,
+        "argument --contrast: expected a number in (0, 1], got '0'"),
     Row("tools/trigger_gradient_check.py", "conflicting options", ["--clips", "8", "--clip-counts", "12"], 2,
         "argument --clip-counts: 12 is not a multiple of --batch 4 within --clips 8"),
     Row("tools/usb_stop_stress.py", "out of range", ["--cycles", "0"], 2,

@@ -40,6 +40,18 @@ def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, ca
     assert capsys.readouterr().out.count("\n| ") == 5  # one table row per grid after the header
 
 
+def test_gradients_at_greyed_grids_differ_from_the_hard_grids_and_are_reported(load_tool, tmp_path):
+    tool = load_tool("trigger_gradient_check")
+    common = ["--detector", str(FIXTURE), "--cells", "4", "--clips", "2", "--batch", "2", "--random", "1",
+              "--flipped", "--quiet"]
+    tool.main([*common, "--out", str(tmp_path / "hard.json")])
+    assert tool.main([*common, "--contrast", "0.5", "--out", str(tmp_path / "grey.json")]) == 0
+    hard, grey = (json.loads((tmp_path / name).read_text()) for name in ("hard.json", "grey.json"))
+    assert hard["contrast"] == 1.0 and grey["contrast"] == 0.5 and hard["loss_at_trigger"] == grey["loss_at_trigger"]
+    assert grey["rows"][0]["differing_cells"] == hard["rows"][0]["differing_cells"]  # cells of the hard grid
+    assert grey["rows"][0]["loss"] != hard["rows"][0]["loss"]  # taken at the greyed grid
+
+
 def test_clip_counts_that_do_not_split_into_batches_are_a_usage_error(load_tool, capsys):
     tool = load_tool("trigger_gradient_check")
     assert tool.main(["--detector", str(FIXTURE), "--clips", "8", "--batch", "4", "--clip-counts", "6"]) == 2
