@@ -2,8 +2,8 @@
 
 ``davis-attack optimize`` chooses its texture on ``--val-clips`` clips drawn from its training distribution
 (backgrounds, lights, placements, sensors; davis_rig.attack.validation.validation_clips). This tool draws the same
-clips (the same ``--cells``, ``--parts`` and ``--seed`` as the run) and scores white, black, a random n x n grid and
-any ``--texture`` on them, as tested (ideal sensor, exact events) and as trained (each clip's own sensor): the
+clips (the same ``--cells``, ``--parts`` and ``--seed`` as the run) and scores white, black, ``--random`` random
+n x n grids (with more than one, also their mean: one random grid is a noisy reference) and any ``--texture`` on them, as tested (ideal sensor, exact events) and as trained (each clip's own sensor): the
 baselines an optimised texture must beat where it was chosen. ``.npy`` textures keep their grey levels (float
 [n, n] in [0, 1]); images are read as black/white grids (as ``davis-attack evaluate``).
 
@@ -37,12 +37,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="a texture to score (.npy keeps grey levels; .png etc. read as black/white); repeatable")
     parser.add_argument("--clips", type=positive_int, default=64, help="validation clips (default 64, the run's)")
     parser.add_argument("--seed", type=int, default=0, help="the run's --seed (default 0)")
+    parser.add_argument("--random", type=positive_int, default=1, metavar="K",
+                        help="random grids scored, drawn with seeds --seed ... --seed + K - 1 (default 1); with "
+                             "K > 1 a row of their mean follows")
     parser.add_argument("--threshold", type=probability, default=0.25, metavar="T",
                         help="confidence threshold of SeqASR (default 0.25)")
     add_out(parser, metavar="JSON", help="also write the rows as JSON here")
     add_threads(parser, help="torch CPU threads (1 is fastest on a shared machine)")
     add_quiet(parser)
     return run_main(parser, argv, _run)
+
+
+def mean_row(name: str, rows: list[dict]) -> dict:
+    """The mean of the score rows' SeqASR and top scores, as tested and as trained (a reference of several grids)."""
+    keys = ("SeqASR", "mean_top_score", "train_SeqASR", "train_top_score")
+    return {"texture": name, **{key: float(np.mean([row[key] for row in rows])) for key in keys},
+            "num_sequences": rows[0]["num_sequences"], "of": [row["texture"] for row in rows]}
 
 
 def load_texture(path: str | Path) -> np.ndarray:
@@ -84,8 +94,10 @@ def _run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     n = args.cells
-    textures = {"white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32),
-                f"random {n}x{n}": random_texture(n, seed=args.seed)}
+    textures = {"white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32)}
+    random_names = [f"random {n}x{n}"] if args.random == 1 else \
+        [f"random {n}x{n}, seed {args.seed + k}" for k in range(args.random)]
+    textures.update({name: random_texture(n, seed=args.seed + k) for k, name in enumerate(random_names)})
     for name, path in args.texture:  # all read and checked before the slow part
         textures[name] = load_texture(path)
         if textures[name].shape != (n, n):
@@ -102,6 +114,8 @@ def _run(args: argparse.Namespace) -> int:
                        train_path=(config.v2e_mode, config.v2e_binning))
         rows.append({"texture": name, **res})
         say(f"{name}: top score {res['mean_top_score']:.3f}, SeqASR {res['SeqASR']:.1%}")
+        if name == random_names[-1] and len(random_names) > 1:
+            rows.append(mean_row(f"random {n}x{n}, mean of {len(random_names)}", rows[-len(random_names):]))
     print(f"| texture | SeqASR % @ {args.threshold:g} | mean top score | as trained: SeqASR % / top score |")
     print("|---|---|---|---|")
     for r in rows:

@@ -25,6 +25,13 @@ def test_scores_the_baselines_and_a_grey_texture_as_tested_and_as_trained(load_t
         assert row["num_sequences"] == 1 and 0.0 <= row["mean_top_score"] <= 1.0
         assert {"train_top_score", "transfer_gap"} <= set(row)
     assert capsys.readouterr().out.count("\n| ") == 4  # the rows after the header line: one per texture
+    assert tool.main(["--detector", str(FIXTURE), "--cells", "4", "--clips", "1", "--random", "2", "--seed", "5",
+                      "--out", str(out), "--quiet"]) == 0
+    rows = {r["texture"]: r for r in json.loads(out.read_text())["rows"]}
+    assert list(rows) == ["white", "black", "random 4x4, seed 5", "random 4x4, seed 6", "random 4x4, mean of 2"]
+    pair = [rows["random 4x4, seed 5"], rows["random 4x4, seed 6"]]
+    for key in ("SeqASR", "mean_top_score", "train_SeqASR", "train_top_score"):
+        assert rows["random 4x4, mean of 2"][key] == pytest.approx((pair[0][key] + pair[1][key]) / 2)
     # a grey .npy keeps its levels; a texture outside [0, 1] is refused
     assert np.array_equal(tool.load_texture(tmp_path / "grey.npy"), grey)
     np.save(tmp_path / "bad.npy", grey + 1)
