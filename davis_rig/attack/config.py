@@ -11,6 +11,8 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
+
 from davis_rig.attack.eot import EoTConfig
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_ANCHORS, LOSS_REDUCTIONS
 from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN
@@ -53,8 +55,10 @@ class AttackConfig:
         hidden, dropout: generator (default ``2 n^2``, 0.5).
         start: the generator's starting texture (:data:`~davis_rig.attack.texture.TEXTURE_STARTS`): ``"random"``
             (default, the official code's initialisation) or plain ``"white"`` / ``"black"``
-            (:meth:`~davis_rig.attack.texture.TextureGenerator.start_from`); a plain start is validated at step 0,
-            so the chosen texture is never worse on validation than it.
+            (:meth:`~davis_rig.attack.texture.TextureGenerator.start_from`), or ``"grid"``: the black/white
+            ``start_grid`` (e.g. a control started near a planted trigger); a start other than random is validated
+            at step 0, so the chosen texture is never worse on validation than it.
+        start_grid: [n][n] of 0/1 (1 = white) for ``start="grid"``, else ``None``.
         pool_size: pre-rasterized clips in the pool; refresh_every / refresh_fraction: pool refresh.
         validate_every: validation period (steps; also after the last step); num_validation_clips: clips.
         validation_threshold: confidence threshold of the validation SeqASR.
@@ -105,6 +109,7 @@ class AttackConfig:
     hidden: int | None = None
     dropout: float = 0.5
     start: str = "random"
+    start_grid: tuple[tuple[float, ...], ...] | None = None
     pool_size: int = 32
     refresh_every: int = 50
     refresh_fraction: float = 0.25
@@ -164,6 +169,13 @@ class AttackConfig:
                               ("select_by", SELECTION_RULES), ("events", EVENT_MODELS)):
             if getattr(self, name) not in allowed:
                 refuse(name, f"expected one of {allowed}")
+        if (self.start == "grid") != (self.start_grid is not None):
+            refuse("start_grid", "expected an n x n grid exactly when start is 'grid'")
+        if self.start_grid is not None:
+            grid = np.asarray(self.start_grid, dtype=np.float64)
+            if grid.shape != (self.grid_n, self.grid_n) or not np.isin(grid, (0.0, 1.0)).all():
+                refuse("start_grid", f"expected a {self.grid_n} x {self.grid_n} grid of 0 and 1, got shape "
+                                     f"{list(grid.shape)}")
         if self.clips_per_step > self.pool_size:
             refuse("clips_per_step", f"expected at most pool_size ({self.pool_size}) clips per step")
         if self.v2e_mode != "dvs" and self.eot.threshold_sigma > 0:

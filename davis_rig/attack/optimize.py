@@ -324,7 +324,7 @@ def _new_run(config: AttackConfig, detector, out: Path, rank: int, world: int, d
     """The generator (seeded by ``config.seed``) and its optimizer, restored from ``state`` when resuming."""
     torch.manual_seed(config.seed)
     generator = TextureGenerator(config.grid_n, hidden=config.hidden, dropout=config.dropout)
-    generator = generator.start_from(config.start).to(device)
+    generator = generator.start_from(config.start, config.start_grid).to(device)
     optimizer = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=tuple(config.betas),
                                  weight_decay=config.weight_decay)
     if config.detector_step == "eager":

@@ -55,8 +55,8 @@ __all__ = [
 #: Largest grid accepted (the paper uses 10 ... 60 cells per side).
 MAX_CELLS = 256
 #: Starting textures of :meth:`TextureGenerator.start_from`: ``"random"`` (torch's default initialisation, as the
-#: official code: a random-looking grid) or a plain texture.
-TEXTURE_STARTS = ("random", "white", "black")
+#: official code: a random-looking grid), a plain texture, or a given black/white ``"grid"``.
+TEXTURE_STARTS = ("random", "white", "black", "grid")
 #: |logit| of a plain start: u = sigmoid(±3) = 0.953 / 0.047.
 PLAIN_START_LOGIT = 3.0
 
@@ -117,28 +117,38 @@ class TextureGenerator(nn.Module):
         x = torch.sigmoid(self.fc2(self.dropout(x)))
         return x.view(self.n_cells, self.n_cells)
 
-    def start_from(self, start: str) -> "TextureGenerator":
+    def start_from(self, start: str, grid=None) -> "TextureGenerator":
         """Set the starting texture: ``"random"`` leaves the initialisation as it is; ``"white"`` / ``"black"``
         shrink fc2's weights 1000-fold and set its bias to ``±PLAIN_START_LOGIT``, so every cell starts at
-        u = 0.953 / 0.047 (rounded: plain white / black). An Adam step then moves each cell's logit by
-        ``lr * sum |h|`` (fc2's row; ``sum |h|`` is about 0.4 per hidden unit), the random start's by about as
-        much again through fc1 and fc2's larger weights: the two starts take steps of the same order.
+        u = 0.953 / 0.047 (rounded: plain white / black); ``"grid"`` does the same cell by cell, white where
+        ``grid`` > 0.5. An Adam step then moves each cell's logit by ``lr * sum |h|`` (fc2's row; ``sum |h|`` is
+        about 0.4 per hidden unit), the random start's by about as much again through fc1 and fc2's larger
+        weights: the starts take steps of the same order.
 
         Args:
             start: one of :data:`TEXTURE_STARTS`.
+            grid: float [n, n] (1 = white), for ``"grid"`` only.
 
         Returns:
             self.
 
         Raises:
-            ValueError: unknown start.
+            ValueError: unknown start, a grid without ``"grid"`` or the reverse, or a grid not [n, n].
         """
         if start not in TEXTURE_STARTS:
             raise ValueError(f"start must be one of {TEXTURE_STARTS}, got {start!r}")
+        if (start == "grid") != (grid is not None):
+            raise ValueError("a 'grid' start needs grid=[n, n], and only it takes one")
+        if start == "grid":
+            grid = np.asarray(grid, dtype=np.float32)
+            if grid.shape != (self.n_cells, self.n_cells):
+                raise ValueError(f"start grid must be [{self.n_cells}, {self.n_cells}], got {list(grid.shape)}")
         if start != "random":
             with torch.no_grad():
                 self.fc2.weight.mul_(1e-3)
-                self.fc2.bias.fill_(PLAIN_START_LOGIT if start == "white" else -PLAIN_START_LOGIT)
+                white = np.ones(self.n_cells ** 2, bool) if start == "white" else \
+                    np.zeros(self.n_cells ** 2, bool) if start == "black" else grid.reshape(-1) > 0.5
+                self.fc2.bias.copy_(torch.from_numpy(np.where(white, PLAIN_START_LOGIT, -PLAIN_START_LOGIT)))
         return self
 
     def texture(self, alpha: float = 1.0) -> "torch.Tensor":

@@ -80,7 +80,8 @@ counts instead, to compare with the paper's numbers).
 
 #: Binarization schedules of ``--alpha-schedule`` (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
 ALPHA_SCHEDULE_CHOICES = ("linear", "cosine", "step", "hard", "soft")
-#: Starting textures of ``--start`` (:data:`davis_rig.attack.texture.TEXTURE_STARTS`).
+#: Named starting textures of ``--start`` (:data:`davis_rig.attack.texture.TEXTURE_STARTS` but ``"grid"``,
+#: which ``--start PATH`` gives).
 START_CHOICES = ("random", "white", "black")
 #: Learning-rate schedules of ``--lr-schedule`` (:data:`davis_rig.attack.lr_schedule.LR_SCHEDULES`).
 LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
@@ -88,7 +89,7 @@ LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
 CONFIG_OPTIONS = {
     "grid_n": "--cells", "iterations": "--iterations", "clips_per_step": "--clips-per-step",
     "pool_size": "--pool-size", "refresh_every": "--refresh-every", "lr": "--lr", "lr_min": "--lr-min",
-    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule", "start": "--start",
+    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule", "start": "--start", "start_grid": "--start",
     "validate_every": "--validate-every", "num_validation_clips": "--val-clips", "checkpoint_every": "--checkpoint-every",
     "box_margin_px": "--box-margin", "refine_passes": "--refine-passes", "refine_clips": "--refine-clips",
     "playback_speed": "--playback-speed", "thresholds": "--threshold", "device": "--device", "parts": "--parts",
@@ -156,10 +157,12 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "11,500-step run)")
     p.add_argument("--alpha-schedule", choices=ALPHA_SCHEDULE_CHOICES, default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
-    p.add_argument("--start", choices=START_CHOICES, default="random",
-                   help="starting texture: random (default, the official initialisation) or plain white / black "
-                        "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start); "
-                        "a plain start is validated at step 0, so the run never returns worse on validation")
+    p.add_argument("--start", default="random", metavar="{random,white,black,PATH}",
+                   help="starting texture: random (default, the official initialisation), plain white / black "
+                        "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start) "
+                        "or a black/white n x n grid file (.npy / image, e.g. a planted trigger with cells flipped); "
+                        "a start other than random is validated at step 0, so the run never returns worse on "
+                        "validation")
     p.add_argument("--validate-every", type=positive_int, default=1000,
                    help="validation period in steps (default: 1000)")
     p.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="STEPS",
@@ -372,7 +375,7 @@ def _attack_config(args, grid_n: int, parts):
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,
                         lr_min=args.lr_min, lr_period=args.lr_period, alpha_schedule=args.alpha_schedule,
-                        start=args.start, validate_every=args.validate_every, num_validation_clips=args.val_clips,
+                        **_start(args.start, grid_n), validate_every=args.validate_every, num_validation_clips=args.val_clips,
                         checkpoint_every=args.checkpoint_every,
                         box_margin_px=args.box_margin, loss_anchors=args.loss_anchors, loss_reduction=args.loss,
                         v2e_mode="official_relaxed" if relaxed else "dvs",
@@ -381,6 +384,20 @@ def _attack_config(args, grid_n: int, parts):
                         refine_passes=args.refine_passes,
                         refine_clips=args.refine_clips, select_by=args.select_by,
                         seed=args.seed)
+
+
+def _start(start: str, grid_n: int) -> dict:
+    """``AttackConfig``'s ``start`` (and ``start_grid``) from ``--start``: a name of :data:`START_CHOICES`, or else
+    the path of a black/white grid file of ``grid_n`` cells per side (FileNotFoundError / FormatError otherwise)."""
+    if start in START_CHOICES:
+        return {"start": start}
+    from davis_rig.attack.export import load_texture_grid
+    from davis_rig.errors import FormatError
+
+    grid = load_texture_grid(start)  # a grid, or an upsampled map whose grid is detected
+    if grid.shape != (grid_n, grid_n):
+        raise FormatError(f"{start}: a {grid.shape[0]}x{grid.shape[1]} grid, the run's --cells is {grid_n}")
+    return {"start": "grid", "start_grid": tuple(tuple(row) for row in grid.tolist())}
 
 
 def _starting(command: str, args) -> None:

@@ -826,6 +826,25 @@ def test_a_plain_start_optimises_from_the_plain_texture(detector, body, tmp_path
     assert np.array_equal(np.load(tmp_path / "best_texture.npy"), plain)
 
 
+def test_a_grid_start_optimises_from_that_grid_and_is_checked_against_the_cells(detector, body, tmp_path):
+    from davis_rig.errors import ConfigError
+
+    cfg = _tiny(iterations=1, pool_size=1, refresh_every=1000, lr=1e-9, lr_min=0.0, checkpoint_every=1000,
+                snapshot_every=1000)
+    grid = (np.arange(cfg.grid_n ** 2).reshape(cfg.grid_n, cfg.grid_n) % 3 == 0).astype(np.float32)
+    cfg = replace(cfg, start="grid", start_grid=tuple(map(tuple, grid.tolist())))
+    optimize_texture(cfg, detector, tmp_path, body_model=body, progress=False)
+    assert np.array_equal(np.load(tmp_path / "texture.npy"), grid)
+    _, vals = _log(tmp_path / "log.jsonl")
+    assert [v["step"] for v in vals] == [0, 1]  # validated at step 0, as a plain start
+    with pytest.raises(ConfigError, match="start_grid"):
+        replace(cfg, start_grid=None)
+    with pytest.raises(ConfigError, match="start_grid"):
+        replace(cfg, start_grid=((0.0, 1.0), (1.0, 0.0)))  # not grid_n x grid_n
+    with pytest.raises(ConfigError, match="start_grid"):
+        replace(cfg, start="white")  # a grid given for a plain start
+
+
 def test_a_stop_during_the_plain_starts_validation_leaves_nothing(detector, body, tmp_path, monkeypatch):
     import davis_rig.attack.optimize as opt
     from davis_rig.stop import StopRequested

@@ -104,6 +104,24 @@ def test_generator_plain_start_rounds_to_the_plain_texture_and_moves_like_the_ra
         TextureGenerator(6).start_from("grey")
 
 
+def test_generator_grid_start_rounds_to_the_grid_and_moves_like_a_plain_start():
+    grid = (np.random.default_rng(1).random((6, 6)) > 0.5).astype(np.float32)
+    torch.manual_seed(0)
+    gen = TextureGenerator(6).start_from("grid", grid).eval()
+    u = gen()
+    assert torch.all((u - torch.from_numpy(grid)).abs() < 0.05)  # sigmoid(+-3) cell by cell
+    assert np.array_equal(hard_binarize(u), grid)
+    torch.manual_seed(0)
+    white = TextureGenerator(6).start_from("white")
+    assert torch.equal(gen.fc2.weight, white.fc2.weight) and torch.equal(gen.fc1.weight, white.fc1.weight)
+    with pytest.raises(ValueError, match="grid"):
+        TextureGenerator(6).start_from("grid")  # no grid
+    with pytest.raises(ValueError, match="grid"):
+        TextureGenerator(6).start_from("white", grid)  # a grid for a plain start
+    with pytest.raises(ValueError, match=r"\[6, 6\]"):
+        TextureGenerator(6).start_from("grid", grid[:3])
+
+
 @pytest.mark.parametrize("bad", [0, -1, 257, 2.5, True])
 def test_generator_rejects_bad_sizes(bad):
     with pytest.raises(ValueError):

@@ -46,6 +46,32 @@ def test_optimize_maps_arguments_onto_one_call(monkeypatch, tmp_path):
                   "motions": ()}
 
 
+def test_start_takes_a_plain_name_or_a_grid_file_of_the_runs_cells(monkeypatch, tmp_path, capsys):
+    import davis_rig.attack.optimize as opt
+    from davis_rig.cli.attack import main
+
+    calls = {}
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: "detector")
+
+    def fake(config, detector, out, **kw):
+        calls["config"] = config
+        return SimpleNamespace(out_dir=Path(out), steps=1, seconds_per_step=0.5, best_step=1, best_seq_asr=math.nan,
+                               final_validation=None)
+
+    monkeypatch.setattr(opt, "optimize_texture", fake)
+    grid = (np.arange(16).reshape(4, 4) % 3 == 0).astype(np.float32)
+    np.save(tmp_path / "near.npy", grid)
+    base = ["optimize", "--out", str(tmp_path / "run"), "--cells", "4", "--device", "cpu", "--quiet"]
+    assert main([*base, "--start", str(tmp_path / "near.npy")]) == 0
+    assert calls["config"].start == "grid" and np.array_equal(np.array(calls["config"].start_grid), grid)
+    assert main([*base, "--start", "black"]) == 0
+    assert (calls["config"].start, calls["config"].start_grid) == ("black", None)
+    np.save(tmp_path / "small.npy", grid[:2, :2])
+    capsys.readouterr()
+    assert main([*base, "--start", str(tmp_path / "small.npy")]) == 4  # a 2x2 grid for a 4x4 run: a file error
+    assert "small.npy: a 2x2 grid, the run's --cells is 4" in capsys.readouterr().err
+
+
 def test_mocap_folders_map_onto_the_split_loaders(monkeypatch, tmp_path, capsys):
     """--bvh / --amass DIR: train-split motions for optimize (test split for evaluate); the flags exclude each other."""
     import davis_rig.attack.eot as eot
@@ -156,7 +182,8 @@ def test_a_bad_value_exits_2_with_one_line_naming_the_option_and_leaves_nothing(
 
 
 @pytest.mark.parametrize("argv", [["optimize", "--detector", "MISSING"], ["evaluate", "--texture", "a=MISSING"],
-                                  ["export", "MISSING"], ["optimize", "--resume", "--detector", "FIXTURE"]])
+                                  ["export", "MISSING"], ["optimize", "--resume", "--detector", "FIXTURE"],
+                                  ["optimize", "--start", "MISSING"]])
 def test_a_missing_or_corrupt_file_exits_4_with_one_line_and_leaves_nothing(argv, tmp_path, capsys):
     from davis_rig.cli.attack import main
 
@@ -207,7 +234,7 @@ def test_cli_choices_match_the_library():
     from davis_rig.scene.camera import TEST_SCALES_PX
 
     assert cmd.ALPHA_SCHEDULE_CHOICES == tuple(ALPHA_SCHEDULES)
-    assert cmd.START_CHOICES == TEXTURE_STARTS
+    assert (*cmd.START_CHOICES, "grid") == TEXTURE_STARTS  # "grid": --start PATH
     assert cmd.PART_CHOICES == (*PART_NAMES, "all") and cmd.SCALE_NAMES == tuple(TEST_SCALES_PX)
 
 

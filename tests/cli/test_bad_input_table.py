@@ -208,6 +208,8 @@ ROWS = [
         "missing.davisreplay: checkpoint file not found"),
     Row("davis-attack", "wrong file type", ["optimize", "--out", "{out}", "--detector", "{text}", "--device", "cpu",
                                             "-q"], 4, "text.h5: unknown checkpoint type '.h5'"),
+    Row("davis-attack", "wrong file type", ["optimize", "--out", "{out}", "--start", "{text}", "--cells", "2",
+                                            "--device", "cpu", "-q"], 4, "text.h5"),
     Row("davis-attack", "out of range", ["optimize", "--out", "{out}", "--cells", "0"], 2,
         "argument --cells: expected an integer >= 1, got '0'"),
     Row("davis-attack", "nan", ["optimize", "--out", "{out}", "--lr", "nan"], 2,
