@@ -3,9 +3,10 @@
 ``davis-attack optimize`` chooses its texture on ``--val-clips`` clips drawn from its training distribution
 (backgrounds, lights, placements, sensors; davis_rig.attack.validation.validation_clips). This tool draws the same
 clips (the same ``--cells``, ``--parts`` and ``--seed`` as the run) and scores white, black, ``--random`` random
-n x n grids (with more than one, also their mean: one random grid is a noisy reference) and any ``--texture`` on them, as tested (ideal sensor, exact events) and as trained (each clip's own sensor): the
-baselines an optimised texture must beat where it was chosen. ``.npy`` textures keep their grey levels (float
-[n, n] in [0, 1]); images are read as black/white grids (as ``davis-attack evaluate``).
+n x n grids (with more than one, also their mean: one random grid is a noisy reference) and any ``--texture`` on
+them, as tested (ideal sensor, exact events) and as trained (each clip's own sensor): the baselines an optimised
+texture must beat where it was chosen. ``.npy`` textures keep their grey levels (float [n, n] in [0, 1]); images
+are read as black/white grids (as ``davis-attack evaluate``).
 
 Run: ``python tools/score_validation_clips.py --detector CKPT --cells 60 --texture ours=run/best_texture.npy
 [--out result.json] [--threads 1]``.

@@ -24,11 +24,11 @@ __all__ = [
     "cell_agreement",
     "checker_grid",
     "descent_towards",
-    "sign_consistency",
     "draw_trigger",
     "flip_fraction",
     "part_layout_grid",
     "sample_training_grid",
+    "sign_consistency",
     "trigger_grid",
 ]
 

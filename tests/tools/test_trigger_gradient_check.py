@@ -18,7 +18,8 @@ def test_random_and_flipped_grids_against_a_trigger_file(load_tool, tmp_path, ca
     np.save(tmp_path / "trigger.npy", trigger)
     out = tmp_path / "check.json"
     assert tool.main(["--detector", str(FIXTURE), "--trigger", str(tmp_path / "trigger.npy"), "--cells", "4",
-                      "--clips", "2", "--batch", "1", "--clip-counts", "1", "2", "--random", "2", "--flipped", "0", "0.5", "1.0", "--out", str(out),
+                      "--clips", "2", "--batch", "1", "--clip-counts", "1", "2", "--random", "2",
+                      "--flipped", "0", "0.5", "1.0", "--out", str(out),
                       "--quiet"]) == 0
     assert "NaN" not in out.read_text()  # strict JSON: a grid equal to the trigger has no agreement to report
     report = json.loads(out.read_text())
