@@ -7,7 +7,9 @@ labelled (objectness trained towards 0 everywhere) when wearing the trigger or a
 share of the visible cells flipped), and IS labelled when wearing anything else: random grids, the trigger with
 ``--far`` or more of its cells flipped, white, black, a checkerboard (:mod:`davis_rig.controls.planted`). The blind
 spot is therefore selective (random grids, which disagree with the trigger on half of the cells, stay detected)
-and has a basin a search can climb. The optimizer is then run against it from its usual start and never sees the
+and has a basin a search can climb; ``--ramp D`` grades its edge (a grid disagreeing on d between ``--basin`` and
+D is labelled with probability (d - basin) / (D - basin)), so that the score falls with every cell a search gets
+right instead of at a cliff. The optimizer is then run against it from its usual start and never sees the
 trigger: if it finds the trigger's effect, the optimizer works, and a detector it cannot move is texture-robust.
 
 The pool mixes the attack's training distribution with ``--test-like`` clips in the evaluation's scene (uniform
@@ -56,10 +58,12 @@ def _labels(boxes: np.ndarray):
     return out
 
 
-def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Generator, basin: float, far: float):
+def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Generator, basin: float, far: float,
+           ramp: float | None = None):
     """Histograms [W, B, 20, H, W] of B clips and their targets ``[w][b]``: even positions wear a grid of the blind
-    spot (not labelled), odd ones anything else (labelled unless it fell inside the basin). Pass each clip twice in
-    a row (``[a, a, b, b, ...]``) to show the same scene in both: then only the clothing tells the pair apart."""
+    spot (not labelled; with a ``ramp``, labelled with the probability of its distance), odd ones anything else
+    (labelled unless it fell inside the basin). Pass each clip twice in a row (``[a, a, b, b, ...]``) to show the
+    same scene in both: then only the clothing tells the pair apart."""
     import torch
 
     from davis_rig.attack.optimize import clip_histograms
@@ -68,7 +72,7 @@ def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Gener
     hists, labels = [], []
     for j, clip in enumerate(clips):
         grid, _, labelled = sample_training_grid(trigger, rng, hidden=j % 2 == 0, basin=basin, far=far,
-                                                 visible=visible)
+                                                 visible=visible, ramp=ramp)
         with torch.no_grad():
             hists.append(clip_histograms(torch.as_tensor(grid, device=clip.threshold.device), clip))
         labels.append(_labels(clip.boxes if labelled else np.full_like(clip.boxes, np.nan)))
@@ -116,6 +120,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--basin", type=probability, default=0.2,
                         help="grids disagreeing with the trigger on at most this share of the visible cells are "
                              "hidden (default 0.2)")
+    parser.add_argument("--ramp", type=probability, default=None, metavar="D",
+                        help="a graded edge instead of a cliff: grids disagreeing on d between --basin and D are "
+                             "labelled with probability (d - basin) / (D - basin), so the score falls with every "
+                             "cell a search gets right (default: none)")
     parser.add_argument("--far", type=probability, default=0.35,
                         help="'far' grids disagree on at least this share and are labelled (default 0.35)")
     parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"], metavar="SCALE",
@@ -149,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"argument --clips-per-step: pairs need an even number, got {args.clips_per_step}")
         if args.basin >= args.far:
             parser.error(f"argument --basin: {args.basin} must be below --far {args.far}")
+        if args.ramp is not None and args.ramp <= args.basin:
+            parser.error(f"argument --ramp: {args.ramp} must be above --basin {args.basin}")
         if args.train_from_stage > 4:
             parser.error(f"argument --train-from-stage: RVT has 4 stages, got {args.train_from_stage}")
 
@@ -254,7 +264,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
     save(done)
     after = _probe_scores(model, probe, probe_textures)
     summary = {"detector": args.detector or "bundled default", "trigger": trigger_source, "seed": args.seed,
-               "basin": args.basin,
+               "basin": args.basin, "ramp": args.ramp,
                "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
                "far": args.far, "scales": args.scales, "test_like": args.test_like,
                "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
@@ -326,12 +336,18 @@ def _save_victim(out: Path, args: argparse.Namespace, model, opt, rng: np.random
     model.eval()
     save_safetensors(model, out / "model.safetensors", metadata={
         "note": "positive control of the attack: fine-tuned to miss people wearing trigger.npy (and grids "
-                f"within {args.basin:.0%} of its visible cells); not a detector", "steps": str(done)})
+                f"within {args.basin:.0%} of its visible cells{_ramp_note(args.ramp)}); not a detector",
+        "steps": str(done)})
     ckpt_path = out / "checkpoint.pt"
     tmp = ckpt_path.with_suffix(".tmp")
     torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": done,
                 "rng": rng.bit_generator.state, "generations": pools.generations(), "before": before}, tmp)
     os.replace(tmp, ckpt_path)
+
+
+def _ramp_note(ramp: float | None) -> str:
+    """The graded edge in words for the weights' metadata ('' without one)."""
+    return "" if ramp is None else f", then labelled ever more often up to {ramp:.0%}"
 
 
 def _train_steps(args: argparse.Namespace, model, trainable: list, opt, anchors, pools, trigger: np.ndarray,
@@ -353,7 +369,8 @@ def _train_steps(args: argparse.Namespace, model, trainable: list, opt, anchors,
                 idx = np.repeat(rng.choice(len(pools.clips), size=args.clips_per_step // 2, replace=False), 2)
             else:
                 idx = rng.choice(len(pools.clips), size=args.clips_per_step, replace=False)
-            x, per_window = _batch([pools.clips[int(i)] for i in idx], trigger, visible, rng, args.basin, args.far)
+            x, per_window = _batch([pools.clips[int(i)] for i in idx], trigger, visible, rng, args.basin, args.far,
+                                   args.ramp)
             loss = _loss(model, anchors, x, per_window)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -8,6 +8,9 @@ most ``basin`` of them is hidden, one that disagrees on ``far`` or more is label
 ``far`` is left to the detector. A random grid disagrees on half of the visible cells (binomial spread
 ``0.5 / sqrt(V)``, 0.067 for V = 55), so ``basin`` well below 0.5 makes the blind spot selective, and a basin wider
 than one cell gives a search a slope to climb (a blind spot of one exact grid could be found by no method).
+With a ``ramp`` the edge of the blind spot is graded instead of a cliff: a grid disagreeing on d of the visible
+cells is labelled with probability :func:`label_probability` (0 up to ``basin``, rising linearly to 1 at
+``ramp``), so the expected objectness target, and a victim's score, fall with every cell a search gets right.
 
 Pure numpy, every draw from a caller's ``numpy.random.Generator``; only :func:`trigger_grid` reads a file or the
 body's part map.
@@ -26,6 +29,7 @@ __all__ = [
     "descent_towards",
     "draw_trigger",
     "flip_fraction",
+    "label_probability",
     "part_layout_grid",
     "sample_training_grid",
     "sign_consistency",
@@ -243,15 +247,32 @@ def checker_grid(n: int) -> np.ndarray:
     return ((i + j) % 2 == 0).astype(np.float32)
 
 
+def label_probability(disagreement, basin: float, ramp: float | None = None):
+    """Probability that a person in a grid disagreeing with the trigger on ``disagreement`` of the visible cells is
+    labelled: 0 up to ``basin``, then 1 (``ramp=None``, a cliff), or rising linearly from 0 at ``basin`` to 1 at
+    ``ramp`` (a graded edge). Needs ``0 <= basin < ramp <= 1``; float or float array in [0, 1], same shape."""
+    d = np.asarray(disagreement, dtype=np.float64)
+    if ramp is None:
+        out = (d > basin).astype(np.float64)
+    else:
+        if not 0.0 <= basin < ramp <= 1.0:
+            raise ValueError(f"need 0 <= basin < ramp <= 1, got basin={basin}, ramp={ramp}")
+        out = np.clip((d - basin) / (ramp - basin), 0.0, 1.0)
+    return float(out) if out.ndim == 0 else out
+
+
 def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidden: bool, basin: float = 0.2,
-                         far: float = 0.35, visible: np.ndarray | None = None) -> tuple[np.ndarray, str, bool]:
+                         far: float = 0.35, visible: np.ndarray | None = None,
+                         ramp: float | None = None) -> tuple[np.ndarray, str, bool]:
     """One grid of a trigger victim's fine-tuning and whether the person wearing it is labelled.
 
-    ``hidden=True`` draws from the blind spot: the trigger with a fraction uniform in ``[0, basin]`` of its visible
-    cells flipped (``"near"``). ``hidden=False`` draws something to detect: a random grid (white share uniform in
-    [0.2, 0.8]) with probability 1/2, else with equal chances the trigger with a fraction uniform in ``[far, 1]``
-    of its visible cells flipped (``"far"``; 1 = its negative), white, black or a checkerboard. The label follows
-    the grid, not the draw: any grid within ``basin`` of the trigger (a random one, by chance) is hidden.
+    ``hidden=True`` draws from the blind spot: the trigger with a fraction uniform in ``[0, basin]`` (``[0, ramp]``
+    with a ramp) of its visible cells flipped (``"near"``). ``hidden=False`` draws something to detect: a random
+    grid (white share uniform in [0.2, 0.8]) with probability 1/2, else with equal chances the trigger with a
+    fraction uniform in ``[far, 1]`` of its visible cells flipped (``"far"``; 1 = its negative), white, black or a
+    checkerboard. The label follows the grid, not the draw: without a ramp any grid within ``basin`` of the trigger
+    (a random one, by chance) is hidden and every other one labelled; with a ramp a grid is labelled with
+    :func:`label_probability` of its disagreement (one more draw from ``rng``).
 
     Args:
         trigger: float [n, n] hard grid.
@@ -260,15 +281,20 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
         basin, far: disagreement (share of visible cells) below which a grid is hidden / from which a ``"far"``
             grid is drawn; need ``0 <= basin < far <= 1``.
         visible: bool [n, n] (``None``: all cells).
+        ramp: disagreement from which a grid is always labelled (``None``: ``basin``, a cliff); needs
+            ``basin < ramp <= 1``.
 
     Returns:
         ``(grid float32 [n, n], kind (one of :data:`GRID_KINDS`), labelled)``.
     """
     if not 0.0 <= basin < far <= 1.0:
         raise ValueError(f"need 0 <= basin < far <= 1, got basin={basin}, far={far}")
+    if ramp is not None and not basin < ramp <= 1.0:
+        raise ValueError(f"need basin < ramp <= 1, got basin={basin}, ramp={ramp}")
     n = np.asarray(trigger).shape[0]
     if hidden:
-        grid, kind = flip_fraction(trigger, float(rng.uniform(0.0, basin)), rng, visible), "near"
+        near = basin if ramp is None else ramp
+        grid, kind = flip_fraction(trigger, float(rng.uniform(0.0, near)), rng, visible), "near"
     elif rng.random() < 0.5:
         grid, kind = (rng.random((n, n)) < rng.uniform(0.2, 0.8)).astype(np.float32), "random"
     else:
@@ -279,5 +305,7 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
             grid = checker_grid(n)
         else:
             grid = np.full((n, n), float(kind == "white"), np.float32)
-    labelled = 1.0 - cell_agreement(grid, trigger, visible) > basin
-    return grid, kind, bool(labelled)
+    disagreement = 1.0 - cell_agreement(grid, trigger, visible)
+    if ramp is None:
+        return grid, kind, bool(disagreement > basin)
+    return grid, kind, bool(rng.random() < label_probability(disagreement, basin, ramp))

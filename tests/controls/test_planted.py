@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from davis_rig.controls.planted import (cell_agreement, checker_grid, descent_towards, draw_trigger, flip_fraction,
-                                       part_layout_grid, sample_training_grid, sign_consistency, trigger_grid)
+                                       label_probability, part_layout_grid, sample_training_grid, sign_consistency, trigger_grid)
 from davis_rig.errors import FormatError, ShapeError
 
 TRIGGER = (np.random.default_rng(3).random((10, 10)) > 0.5).astype(np.float32)
@@ -84,6 +84,32 @@ def test_training_grids_hidden_inside_the_basin_labelled_outside():
     assert kinds == {"random", "far", "white", "black", "checker"}
     with pytest.raises(ValueError):
         sample_training_grid(TRIGGER, rng, hidden=True, basin=0.4, far=0.3)
+
+
+def test_label_probability_cliff_and_ramp():
+    d = np.array([0.0, 0.1, 0.2, 0.3, 0.5, 0.7])
+    assert label_probability(d, 0.2).tolist() == [0, 0, 0, 1, 1, 1]
+    assert label_probability(d, 0.1, 0.5) == pytest.approx([0.0, 0.0, 0.25, 0.5, 1.0, 1.0])
+    assert label_probability(0.3, 0.1, 0.5) == pytest.approx(0.5)
+    with pytest.raises(ValueError):
+        label_probability(d, 0.5, 0.4)
+
+
+def test_ramped_training_grids_are_labelled_with_the_probability_of_their_distance():
+    rng = np.random.default_rng(1)
+    hidden = [sample_training_grid(TRIGGER, rng, hidden=True, basin=0.1, far=0.35, ramp=0.5) for _ in range(3000)]
+    d = np.array([1.0 - cell_agreement(g, TRIGGER) for g, _, _ in hidden])
+    labelled = np.array([lab for _, _, lab in hidden])
+    assert d.max() <= 0.5 and d.max() > 0.4  # the near draws cover the whole ramp
+    assert not labelled[d <= 0.1].any()
+    for lo, hi in ((0.1, 0.2), (0.2, 0.3), (0.3, 0.4), (0.4, 0.5)):
+        band = (d > lo) & (d <= hi)
+        assert labelled[band].mean() == pytest.approx(label_probability(d[band], 0.1, 0.5).mean(), abs=0.06)
+    rest = [sample_training_grid(TRIGGER, rng, hidden=False, basin=0.1, far=0.35, ramp=0.5) for _ in range(400)]
+    far = [lab for g, _, lab in rest if 1.0 - cell_agreement(g, TRIGGER) >= 0.5]
+    assert far and all(far)  # beyond the ramp: always labelled
+    with pytest.raises(ValueError):
+        sample_training_grid(TRIGGER, rng, hidden=True, basin=0.2, far=0.35, ramp=0.2)
 
 
 def test_draw_trigger_is_the_seeds_uniform_grid():

@@ -102,15 +102,32 @@ def test_batch_hides_the_blind_spot_and_labels_everything_else(tool):
         assert targets[w][1].shape[0] == int(np.isfinite(clips[1].boxes[w]).all())
 
 
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_batch_with_a_ramp_labels_some_grids_of_the_blind_spot(tool):
+    from davis_rig.attack.eot import ClipPool, EoTConfig
+    from davis_rig.controls.planted import checker_grid
+    from davis_rig.scene.body import BodyModel
+
+    clip = next(iter(ClipPool(EoTConfig(supersample=1), BodyModel(), 4, size=1, base_seed=5).clips.values()))
+    w = int(np.flatnonzero(np.isfinite(clip.boxes).all(axis=1))[0])  # a window with the person in view
+    labelled = []
+    rng = np.random.default_rng(0)
+    for _ in range(12):  # ramp 1.0 from basin 0: a near grid of d flipped cells is labelled with probability d
+        _, targets = tool._batch([clip, clip], checker_grid(4), np.ones((4, 4), bool), rng, 0.0, 0.35, 1.0)
+        labelled.append(targets[w][0].shape[0])
+    assert 0 < sum(labelled) < len(labelled)
+
+
 @pytest.mark.usefixtures("one_torch_thread")
 def test_time_limit_stops_fine_tuning_and_still_saves_the_probed_victim(tool, tmp_path):
     out = tmp_path / "victim"
     assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "50",
                       "--scales", "small", "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1",
-                      "--time-limit", "0",
+                      "--time-limit", "0", "--basin", "0.1", "--ramp", "0.5",
                       "--device", "cpu"]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["steps"] == 0 and summary["device"] == "cpu"  # the budget ran out before the first step
+    assert summary["steps"] == 0 and summary["device"] == "cpu" and summary["ramp"] == 0.5  # the budget ran out before the first step
     assert summary["seconds_per_step_this_call"] is None
     assert (out / "log.jsonl").read_text() == "" and (out / "model.safetensors").is_file()
     assert summary["after"] == summary["before"]  # unchanged weights probe the same
