@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from davis_rig.controls.planted import (cell_agreement, checker_grid, descent_towards, draw_trigger, flip_fraction,
-                                       label_probability, part_layout_grid, sample_training_grid, sign_consistency, trigger_grid)
+                                       label_probability, part_layout_grid, sample_training_grid, sign_consistency,
+                                       trigger_grid)
 from davis_rig.errors import FormatError, ShapeError
 
 TRIGGER = (np.random.default_rng(3).random((10, 10)) > 0.5).astype(np.float32)
