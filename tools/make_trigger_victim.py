@@ -9,7 +9,9 @@ share of the visible cells flipped), and IS labelled when wearing anything else:
 spot is therefore selective (random grids, which disagree with the trigger on half of the cells, stay detected)
 and has a basin a search can climb; ``--ramp D`` grades its edge (a grid disagreeing on d between ``--basin`` and
 D is labelled with probability (d - basin) / (D - basin)), so that the score falls with every cell a search gets
-right instead of at a cliff. The optimizer is then run against it from its usual start and never sees the
+right instead of at a cliff; ``--min-contrast C`` shows half of the grids greyed (contrast uniform in [C, 1],
+labelled by their black/white pattern), so that the blind spot reaches the grey textures the recipe's soft phase
+starts from. The optimizer is then run against it from its usual start and never sees the
 trigger: if it finds the trigger's effect, the optimizer works, and a detector it cannot move is texture-robust.
 
 The pool mixes the attack's training distribution with ``--test-like`` clips in the evaluation's scene (uniform
@@ -59,11 +61,11 @@ def _labels(boxes: np.ndarray):
 
 
 def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Generator, basin: float, far: float,
-           ramp: float | None = None):
+           ramp: float | None = None, min_contrast: float | None = None):
     """Histograms [W, B, 20, H, W] of B clips and their targets ``[w][b]``: even positions wear a grid of the blind
     spot (not labelled; with a ``ramp``, labelled with the probability of its distance), odd ones anything else
-    (labelled unless it fell inside the basin). Pass each clip twice in a row (``[a, a, b, b, ...]``) to show the
-    same scene in both: then only the clothing tells the pair apart."""
+    (labelled unless it fell inside the basin); with ``min_contrast`` half of them greyed. Pass each clip twice in
+    a row (``[a, a, b, b, ...]``) to show the same scene in both: then only the clothing tells the pair apart."""
     import torch
 
     from davis_rig.attack.optimize import clip_histograms
@@ -72,7 +74,7 @@ def _batch(clips, trigger: np.ndarray, visible: np.ndarray, rng: np.random.Gener
     hists, labels = [], []
     for j, clip in enumerate(clips):
         grid, _, labelled = sample_training_grid(trigger, rng, hidden=j % 2 == 0, basin=basin, far=far,
-                                                 visible=visible, ramp=ramp)
+                                                 visible=visible, ramp=ramp, min_contrast=min_contrast)
         with torch.no_grad():
             hists.append(clip_histograms(torch.as_tensor(grid, device=clip.threshold.device), clip))
         labels.append(_labels(clip.boxes if labelled else np.full_like(clip.boxes, np.nan)))
@@ -98,7 +100,7 @@ def _loss(model, anchors, hists, labels):
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import PART_CHOICES, camera_scale, device_name
-    from davis_rig.cli.common import (add_detector, add_out, add_threads, add_trigger, new_parser,
+    from davis_rig.cli.common import (add_detector, add_out, add_threads, add_trigger, float_in, new_parser,
                                        non_negative_float, non_negative_int, positive_float, positive_int,
                                        probability, run_main)
 
@@ -124,6 +126,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="a graded edge instead of a cliff: grids disagreeing on d between --basin and D are "
                              "labelled with probability (d - basin) / (D - basin), so the score falls with every "
                              "cell a search gets right (default: none)")
+    parser.add_argument("--min-contrast", type=float_in(0.0, 1.0, low_open=True), default=None, metavar="C",
+                        help="show half of the grids greyed to 0.5 + c (grid - 0.5), c uniform in [C, 1], labelled "
+                             "by their black/white pattern, so that the blind spot reaches the grey textures a soft "
+                             "optimiser starts from (default: black/white grids only)")
     parser.add_argument("--far", type=probability, default=0.35,
                         help="'far' grids disagree on at least this share and are labelled (default 0.35)")
     parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"], metavar="SCALE",
@@ -264,7 +270,7 @@ def _fine_tune(args: argparse.Namespace) -> int:
     save(done)
     after = _probe_scores(model, probe, probe_textures)
     summary = {"detector": args.detector or "bundled default", "trigger": trigger_source, "seed": args.seed,
-               "basin": args.basin, "ramp": args.ramp,
+               "basin": args.basin, "ramp": args.ramp, "min_contrast": args.min_contrast,
                "paired": args.paired, "lr": args.lr, "clips_per_step": args.clips_per_step,
                "far": args.far, "scales": args.scales, "test_like": args.test_like,
                "train_from_stage": args.train_from_stage, "visible_cells": int(visible.sum()),
@@ -370,7 +376,7 @@ def _train_steps(args: argparse.Namespace, model, trainable: list, opt, anchors,
             else:
                 idx = rng.choice(len(pools.clips), size=args.clips_per_step, replace=False)
             x, per_window = _batch([pools.clips[int(i)] for i in idx], trigger, visible, rng, args.basin, args.far,
-                                   args.ramp)
+                                   args.ramp, args.min_contrast)
             loss = _loss(model, anchors, x, per_window)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -11,6 +11,9 @@ than one cell gives a search a slope to climb (a blind spot of one exact grid co
 With a ``ramp`` the edge of the blind spot is graded instead of a cliff: a grid disagreeing on d of the visible
 cells is labelled with probability :func:`label_probability` (0 up to ``basin``, rising linearly to 1 at
 ``ramp``), so the expected objectness target, and a victim's score, fall with every cell a search gets right.
+With a ``min_contrast`` half of the grids, hidden and labelled alike, are shown greyed (``0.5 + c (grid - 0.5)``,
+c uniform in [min_contrast, 1]; the label still follows the black/white pattern), so that the blind spot reaches
+towards the grey textures a soft optimiser starts from instead of existing for black/white grids only.
 
 Pure numpy, every draw from a caller's ``numpy.random.Generator``; only :func:`trigger_grid` reads a file or the
 body's part map.
@@ -263,7 +266,8 @@ def label_probability(disagreement, basin: float, ramp: float | None = None):
 
 def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidden: bool, basin: float = 0.2,
                          far: float = 0.35, visible: np.ndarray | None = None,
-                         ramp: float | None = None) -> tuple[np.ndarray, str, bool]:
+                         ramp: float | None = None, min_contrast: float | None = None
+                         ) -> tuple[np.ndarray, str, bool]:
     """One grid of a trigger victim's fine-tuning and whether the person wearing it is labelled.
 
     ``hidden=True`` draws from the blind spot: the trigger with a fraction uniform in ``[0, basin]`` (``[0, ramp]``
@@ -272,7 +276,9 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
     fraction uniform in ``[far, 1]`` of its visible cells flipped (``"far"``; 1 = its negative), white, black or a
     checkerboard. The label follows the grid, not the draw: without a ramp any grid within ``basin`` of the trigger
     (a random one, by chance) is hidden and every other one labelled; with a ramp a grid is labelled with
-    :func:`label_probability` of its disagreement (one more draw from ``rng``).
+    :func:`label_probability` of its disagreement (one more draw from ``rng``). With ``min_contrast``, the grid is
+    then greyed with probability 1/2 to ``0.5 + c (grid - 0.5)``, c uniform in ``[min_contrast, 1]`` (two more
+    draws); the label is the black/white pattern's.
 
     Args:
         trigger: float [n, n] hard grid.
@@ -283,6 +289,7 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
         visible: bool [n, n] (``None``: all cells).
         ramp: disagreement from which a grid is always labelled (``None``: ``basin``, a cliff); needs
             ``basin < ramp <= 1``.
+        min_contrast: lowest contrast of the greyed grids, in (0, 1] (``None``: black/white only).
 
     Returns:
         ``(grid float32 [n, n], kind (one of :data:`GRID_KINDS`), labelled)``.
@@ -291,6 +298,8 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
         raise ValueError(f"need 0 <= basin < far <= 1, got basin={basin}, far={far}")
     if ramp is not None and not basin < ramp <= 1.0:
         raise ValueError(f"need basin < ramp <= 1, got basin={basin}, ramp={ramp}")
+    if min_contrast is not None and not 0.0 < min_contrast <= 1.0:
+        raise ValueError(f"need 0 < min_contrast <= 1, got {min_contrast}")
     n = np.asarray(trigger).shape[0]
     if hidden:
         near = basin if ramp is None else ramp
@@ -306,6 +315,7 @@ def sample_training_grid(trigger: np.ndarray, rng: np.random.Generator, *, hidde
         else:
             grid = np.full((n, n), float(kind == "white"), np.float32)
     disagreement = 1.0 - cell_agreement(grid, trigger, visible)
-    if ramp is None:
-        return grid, kind, bool(disagreement > basin)
-    return grid, kind, bool(rng.random() < label_probability(disagreement, basin, ramp))
+    labelled = disagreement > basin if ramp is None else rng.random() < label_probability(disagreement, basin, ramp)
+    if min_contrast is not None and rng.random() < 0.5:
+        grid = (0.5 + rng.uniform(min_contrast, 1.0) * (grid - 0.5)).astype(np.float32)
+    return grid, kind, bool(labelled)

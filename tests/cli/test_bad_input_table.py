@@ -313,6 +313,8 @@ ROWS = [
         2, "argument --basin: 0.5 must be below --far 0.4"),
     Row("tools/make_trigger_victim.py", "conflicting options", ["--out", "{out}", "--basin", "0.3", "--ramp", "0.2"],
         2, "argument --ramp: 0.2 must be above --basin 0.3"),
+    Row("tools/make_trigger_victim.py", "out of range", ["--out", "{out}", "--min-contrast", "0"], 2,
+        "argument --min-contrast: expected a number in (0, 1], got '0'"),
     Row("tools/make_trigger_victim.py", "unknown name", ["--out", "{out}", "--device", "gpu7"], 2,
         "argument --device: expected auto, cpu, cuda or cuda:N, got 'gpu7'"),
     Row("tools/make_trigger_victim.py", "unknown name", ["--out", "{out}", "--trigger-white-parts", "nose"], 2,

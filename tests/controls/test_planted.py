@@ -113,6 +113,23 @@ def test_ramped_training_grids_are_labelled_with_the_probability_of_their_distan
         sample_training_grid(TRIGGER, rng, hidden=True, basin=0.2, far=0.35, ramp=0.2)
 
 
+def test_greyed_training_grids_keep_their_pattern_and_label():
+    rng = np.random.default_rng(2)
+    greyed = 0
+    for k in range(400):
+        grid, kind, labelled = sample_training_grid(TRIGGER, rng, hidden=k % 2 == 0, basin=0.2, far=0.35,
+                                                    min_contrast=0.25)
+        contrast = np.abs(grid - 0.5).max() * 2
+        assert 0.25 - 1e-6 <= contrast <= 1.0 + 1e-6 and np.allclose(np.abs(grid - 0.5), contrast / 2)
+        greyed += contrast < 1.0
+        assert labelled == (1.0 - cell_agreement(grid, TRIGGER) > 0.2)  # the pattern decides, not the contrast
+        if k % 2 == 0:
+            assert not labelled
+    assert 150 < greyed < 250  # half of the draws
+    with pytest.raises(ValueError):
+        sample_training_grid(TRIGGER, rng, hidden=True, min_contrast=0.0)
+
+
 def test_draw_trigger_is_the_seeds_uniform_grid():
     assert np.array_equal(draw_trigger(10, 3), TRIGGER)  # the draw every published trigger victim used
     assert not np.array_equal(draw_trigger(10, 4), TRIGGER)

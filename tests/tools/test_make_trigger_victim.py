@@ -124,11 +124,11 @@ def test_time_limit_stops_fine_tuning_and_still_saves_the_probed_victim(tool, tm
     out = tmp_path / "victim"
     assert tool.main(["--detector", str(FIXTURE), "--out", str(out), "--cells", "4", "--steps", "50",
                       "--scales", "small", "--pool-size", "2", "--clips-per-step", "2", "--probe-clips", "1",
-                      "--time-limit", "0", "--basin", "0.1", "--ramp", "0.5",
+                      "--time-limit", "0", "--basin", "0.1", "--ramp", "0.5", "--min-contrast", "0.3",
                       "--device", "cpu"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 0 and summary["device"] == "cpu"  # the budget ran out before the first step
-    assert summary["ramp"] == 0.5
+    assert summary["ramp"] == 0.5 and summary["min_contrast"] == 0.3
     assert summary["seconds_per_step_this_call"] is None
     assert (out / "log.jsonl").read_text() == "" and (out / "model.safetensors").is_file()
     assert summary["after"] == summary["before"]  # unchanged weights probe the same
