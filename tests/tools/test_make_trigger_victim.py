@@ -102,7 +102,6 @@ def test_batch_hides_the_blind_spot_and_labels_everything_else(tool):
         assert targets[w][1].shape[0] == int(np.isfinite(clips[1].boxes[w]).all())
 
 
-
 @pytest.mark.usefixtures("one_torch_thread")
 def test_batch_with_a_ramp_labels_some_grids_of_the_blind_spot(tool):
     from davis_rig.attack.eot import ClipPool, EoTConfig
