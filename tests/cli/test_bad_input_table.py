@@ -33,8 +33,8 @@ COMMANDS = {"davis-record": record.main, "davis-label": label.main, "davis-eval"
 #: The scripts of tools/ that take arguments (each gets rows below; ``tools/x.py`` runs ``x.main``).
 TOOLS = ("aedat4_to_session", "aps_attack", "capture_replay", "contact_sheet", "convert_checkpoint",
          "export_body_asset", "make_sample_replay", "make_sample_session", "make_trigger_victim", "measure_labeler",
-         "probe_texture_sensitivity", "score_validation_clips", "ship_detector", "trigger_feature_probe",
-         "trigger_gradient_check", "usb_stop_stress", "victim_controls")
+         "probe_texture_sensitivity", "score_validation_clips", "search_texture", "ship_detector",
+         "trigger_feature_probe", "trigger_gradient_check", "usb_stop_stress", "victim_controls")
 
 
 @dataclass
@@ -384,6 +384,22 @@ ROWS = [
         "argument --contrast: expected a number in (0, 1], got '0'"),
     Row("tools/trigger_gradient_check.py", "conflicting options", ["--clips", "8", "--clip-counts", "12"], 2,
         "argument --clip-counts: 12 is not a multiple of --batch 4 within --clips 8"),
+    Row("tools/search_texture.py", "nonexistent file", ["--out", "{out}", "--detector", "{missing}"], 4,
+        "missing.davisreplay: checkpoint file not found"),
+    Row("tools/search_texture.py", "wrong file type", ["--out", "{out}", "--trigger", "{text}"], 4,
+        "text.h5: not a readable image"),
+    Row("tools/search_texture.py", "out of range", ["--out", "{out}", "--smoothing", "0"], 2,
+        "argument --smoothing: expected a number in (0, 1], got '0'"),
+    Row("tools/search_texture.py", "nan", ["--out", "{out}", "--floor", "nan"], 2,
+        "argument --floor: expected a finite number, got 'nan'"),
+    Row("tools/search_texture.py", "unknown name", ["--out", "{out}", "--parts", "nose"], 2,
+        "argument --parts: invalid choice: 'nose'"),
+    Row("tools/search_texture.py", "conflicting options", ["--out", "{out}", "--elite", "13"], 2,
+        "argument --elite: 13 is more than --population 12"),
+    Row("tools/search_texture.py", "conflicting options", ["--out", "{out}", "--clips-per-grid", "40"], 2,
+        "argument --clips-per-grid: 40 is more than --pool-clips 32"),
+    Row("tools/search_texture.py", "Ctrl-C", ["--out", "{out}"], 130, "interrupted",
+        interrupt="davis_rig.attack.search.search_texture", created=["{out}"]),
     Row("tools/usb_stop_stress.py", "out of range", ["--cycles", "0"], 2,
         "argument --cycles: expected an integer >= 1, got '0'"),
     Row("tools/usb_stop_stress.py", "nan", ["--interval-us", "nan"], 2,

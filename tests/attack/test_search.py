@@ -1,0 +1,156 @@
+"""The cross-entropy search (davis_rig.attack.search): its pure steps on hand-made vectors, the loop on scores with a
+known optimum (and a control that ignores the grid), and a run against the mini RVT fixture."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from davis_rig.attack.search import (SearchSettings, cem_update, cross_entropy_search, mean_entropy_bits,
+                                     mode_grid, sample_grids)
+
+
+def _cells(n: int = 4, searched: int = 12) -> np.ndarray:
+    cells = np.zeros((n, n), bool)
+    cells.flat[:searched] = True
+    return cells
+
+
+def test_sample_grids_draw_each_searched_cell_with_its_probability_and_fill_the_rest():
+    cells = _cells()
+    p = np.zeros((4, 4))
+    p.flat[:4] = 1.0
+    p.flat[4:8] = 0.25
+    p.flat[12:] = 1.0  # not searched: never drawn
+    grids = sample_grids(p, cells, 4000, np.random.default_rng(0), fill=0.0)
+    assert grids.shape == (4000, 4, 4) and grids.dtype == np.float32
+    flat = grids.reshape(4000, 16)
+    assert np.all(flat[:, :4] == 1) and np.all(flat[:, 8:] == 0)
+    assert np.abs(flat[:, 4:8].mean(axis=0) - 0.25).max() < 0.03
+
+
+def test_cem_update_moves_each_searched_probability_towards_the_elites_share_of_white():
+    cells = np.array([[True, True, True, False]])
+    p = np.array([[0.5, 0.5, 0.99, 0.3]])
+    elite = np.array([[[1, 0, 1, 1]], [[1, 0, 1, 0]]], np.float32)
+    moved = cem_update(p, elite, cells, smoothing=0.2)
+    np.testing.assert_allclose(moved, [[0.6, 0.4, 0.992, 0.3]])
+    clipped = cem_update(p, elite, cells, smoothing=1.0, floor=0.05)
+    np.testing.assert_allclose(clipped, [[0.95, 0.05, 0.95, 0.3]])  # the unsearched cell keeps its value
+
+
+def test_mode_grid_and_entropy():
+    cells = np.array([[True, True, True, False]])
+    p = np.array([[0.9, 0.1, 0.5, 0.9]])
+    np.testing.assert_array_equal(mode_grid(p, cells), [[1, 0, 0, 0]])
+    assert mean_entropy_bits(np.full((1, 4), 0.5), cells) == pytest.approx(1.0)
+    assert mean_entropy_bits(np.array([[0.0, 1.0, 0.0, 0.5]]), cells) == pytest.approx(0.0, abs=1e-9)
+    assert mean_entropy_bits(p, cells) == pytest.approx((2 * 0.4689955935892812 + 1.0) / 3)
+
+
+def _distance_score(target: np.ndarray, cells: np.ndarray):
+    def score(grids: np.ndarray, generation: int) -> np.ndarray:
+        return np.abs(grids - target)[:, cells].sum(axis=1).astype(float)
+    return score
+
+
+def test_the_search_finds_a_hidden_grid_from_its_distance_alone():
+    cells = _cells(6, 30)
+    target = np.where(cells, np.random.default_rng(3).random((6, 6)) < 0.5, 0).astype(np.float32)
+    records = []
+    p = cross_entropy_search(_distance_score(target, cells), np.full((6, 6), 0.5), cells,
+                             SearchSettings(generations=30, population=12, elite=3, smoothing=0.3, floor=0.02),
+                             np.random.default_rng(0), lambda record, probs: records.append(record))
+    np.testing.assert_array_equal(mode_grid(p, cells), target)
+    assert [r["generation"] for r in records] == list(range(1, 31))
+    assert records[-1]["entropy_bits"] < records[0]["entropy_bits"]
+    assert records[-1]["score_mean"] < records[0]["score_mean"]
+    np.testing.assert_array_equal(records[-1]["mode"], target)
+
+
+def test_control_a_score_blind_to_the_grid_finds_nothing():
+    cells = _cells(6, 30)
+    target = np.where(cells, np.random.default_rng(3).random((6, 6)) < 0.5, 0).astype(np.float32)
+    noise = np.random.default_rng(1)
+    p = cross_entropy_search(lambda grids, generation: noise.random(len(grids)), np.full((6, 6), 0.5), cells,
+                             SearchSettings(generations=30, population=12, elite=3, smoothing=0.3, floor=0.02),
+                             np.random.default_rng(0))
+    agreement = float((mode_grid(p, cells) == target)[cells].mean())
+    assert 0.2 < agreement < 0.8
+
+
+def test_a_score_of_the_wrong_shape_and_bad_settings_are_refused():
+    cells = _cells()
+    with pytest.raises(ValueError, match=r"score returned shape \(3,\), expected \(4,\)"):
+        cross_entropy_search(lambda grids, generation: np.zeros(3), np.full((4, 4), 0.5), cells,
+                             SearchSettings(generations=1, population=4, elite=1), np.random.default_rng(0))
+    for kwargs, message in (({"elite": 5, "population": 4}, "elite must be in"), ({"smoothing": 0}, "smoothing"),
+                            ({"floor": 0.5}, "floor"), ({"population": 1, "elite": 1}, "population >= 2")):
+        with pytest.raises(ValueError, match=message):
+            SearchSettings(**kwargs)
+
+
+FIXTURE = "tests/fixtures/rvt_mini_fixture.safetensors"
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_search_texture_writes_a_run_folder_and_keeps_its_best_validated_grid(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.search import search_texture
+
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=2)
+    trigger = np.eye(4, dtype=np.float32)
+    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
+                            SearchSettings(generations=3, population=3, elite=1), pool_clips=3, clips_per_grid=2,
+                            validate_every=2, reference=trigger)
+    run = tmp_path / "run"
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["generation"] for r in records] == [1, 2, 3] and not result["stopped"]
+    assert ["validation" in r for r in records] == [False, True, True]  # every 2nd and the last
+    cells = result["cells"]
+    assert 0 < cells <= 16
+    for r in records:  # a share of the searched cells
+        assert 0.0 <= r["agreement"] <= 1.0 and r["agreement"] * cells == pytest.approx(round(r["agreement"] * cells))
+    best = json.loads((run / "best.json").read_text())
+    assert best == result["best"] and best["generation"] in (2, 3)
+    kept = [r for r in records if r["generation"] == best["generation"]][0]
+    np.testing.assert_array_equal(np.load(run / "best_texture.npy"), kept["mode"])
+    np.testing.assert_array_equal(np.load(run / "texture.npy"), records[-1]["mode"])
+    p = np.load(run / "probabilities.npy")
+    assert p.shape == (4, 4) and np.all((p >= 0.02) | (p == 0.5)) and np.all((p <= 0.98) | (p == 0.5))
+    summary = json.loads((run / "search.json").read_text())
+    assert summary["generations"] == 3 and summary["settings"]["population"] == 3 and summary["cells"] == cells
+    assert (run / "best_texture.png").is_file() and (run / "texture.png").is_file()
+
+
+class _StopAfter:
+    """A stop request that arrives after ``checks`` polls."""
+
+    def __init__(self, checks: int):
+        self.left = checks
+
+    @property
+    def requested(self) -> bool:
+        self.left -= 1
+        return self.left < 0
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_stop_request_keeps_the_finished_generations(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.search import search_texture
+
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
+    # generation 1 polls 3 grids x 1 clip, its validation 1 clip; the stop arrives inside generation 2
+    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
+                            SearchSettings(generations=5, population=3, elite=1), pool_clips=2, clips_per_grid=1,
+                            validate_every=1, stop=_StopAfter(5))
+    assert result["stopped"] and result["generations"] == 1
+    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert len(records) == 1
+    np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
+    assert json.loads((tmp_path / "run" / "search.json").read_text())["stopped"] is True
