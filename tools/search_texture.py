@@ -11,7 +11,8 @@ planted trigger that the log compares each generation's grid with (never shown t
 
 The run folder: ``log.jsonl`` (one record per generation), ``probabilities.npy``, ``texture.npy/png`` (the final
 most likely grid), ``best_texture.npy/png`` + ``best.json`` (the best validated) and ``search.json``; score the
-textures with ``davis-attack evaluate --texture NAME=PATH``.
+textures with ``davis-attack evaluate --texture NAME=PATH``. Ctrl-C (or SIGTERM) abandons the generation under
+way, keeps the finished ones in the folder and exits 130.
 
 Run: ``python tools/search_texture.py --out run --detector CKPT [--cells 10] [--generations 60] [--population 12]
 [--elite 3] [--smoothing 0.2] [--clips-per-grid 8] [--seed 0] [--threads 1]``.
@@ -25,12 +26,15 @@ import sys
 from pathlib import Path
 
 
+NAME = Path(__file__).name
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import (PART_CHOICES, add_detector, add_out, add_quiet, add_threads, float_in,
                                        new_parser, positive_int, run_main)
 
-    parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
+    parser = new_parser(NAME, __doc__.splitlines()[0],
                         "examples:\n  python tools/search_texture.py --out out/cem_0 "
                         "--detector victim/model.safetensors --trigger victim/trigger.npy --threads 1\n")
     add_out(parser, metavar="DIR", help="the run folder (created; an existing run in it is replaced)",
@@ -77,7 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     from davis_rig.attack.config import AttackConfig
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.search import SearchSettings, search_texture
-    from davis_rig.cli.common import check_out_folder, removing_new_empty_dirs, tool_provenance
+    from davis_rig.cli.common import (EXIT_INTERRUPTED, EXIT_OK, check_out_folder, removing_new_empty_dirs,
+                                       tool_provenance)
     from davis_rig.controls.planted import trigger_grid
     from davis_rig.stop import StopOnSignal
 
@@ -96,15 +101,19 @@ def _run(args: argparse.Namespace) -> int:
         result = search_texture(config, detector, args.out, settings, pool_clips=args.pool_clips,
                                 clips_per_grid=args.clips_per_grid, validate_every=args.validate_every,
                                 reference=reference, say=say, stop=stop)
-    run = {**tool_provenance(Path(__file__).name),
+    run = {**tool_provenance(NAME),
            "detector": str(args.detector) if args.detector else "bundled default", "parts": parts, **result}
     Path(args.out, "run.json").write_text(json.dumps(run, indent=1))
     best = result["best"]
     print(f"{result['generations']} generations in {result['seconds']:.0f} s"
           + ("" if best is None else f"; kept generation {best['generation']}: validation top score "
-             f"{best['mean_top_score']:.3f}, SeqASR {best['SeqASR']:.1%}")
-          + (" (stopped early)" if result["stopped"] else ""))
-    return 0
+             f"{best['mean_top_score']:.3f}, SeqASR {best['SeqASR']:.1%}"))
+    if result["stopped"]:
+        print(f"{NAME}: stopped after {result['generations']} finished generations, kept in {args.out}",
+              file=sys.stderr)
+        print(f"{NAME}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return EXIT_OK
 
 
 if __name__ == "__main__":

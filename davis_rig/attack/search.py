@@ -187,8 +187,8 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
         ``{"best": validation record of the kept grid (None before the first validation), "generations": done,
         "seconds", "cells": searched, "stopped": whether a stop request ended it}``;
         the folder holds ``log.jsonl`` (a record per generation, validations included), ``probabilities.npy``,
-        ``texture.npy/png`` (the final mode), ``best_texture.npy/png`` + ``best.json`` (the kept one) and
-        ``search.json`` (settings and summary).
+        ``texture.npy/png`` (the final mode; none when stopped before the first generation ended),
+        ``best_texture.npy/png`` + ``best.json`` (the kept one) and ``search.json`` (settings and summary).
     """
     from davis_rig.attack.checkpoint import write_texture_png
     from davis_rig.attack.refine import visible_cells
@@ -254,9 +254,10 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
         stopped = True
     finally:
         log.close()
-    texture = mode_grid(state["probabilities"], cells)
-    np.save(out / "texture.npy", texture)
-    write_texture_png(out / "texture.png", texture)
+    if state["generations"]:  # a stop before the first generation leaves no texture to show for it
+        texture = mode_grid(state["probabilities"], cells)
+        np.save(out / "texture.npy", texture)
+        write_texture_png(out / "texture.png", texture)
     summary = {"settings": asdict(settings), "pool_clips": pool_clips, "clips_per_grid": clips_per_grid,
                "validate_every": validate_every, "cells": int(cells.sum()), "generations": state["generations"],
                "seconds": time.perf_counter() - t0, "stopped": stopped, "best": state["best"]}

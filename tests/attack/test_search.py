@@ -154,3 +154,18 @@ def test_a_stop_request_keeps_the_finished_generations(tmp_path):
     assert len(records) == 1
     np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
     assert json.loads((tmp_path / "run" / "search.json").read_text())["stopped"] is True
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_stop_before_the_first_generation_writes_no_texture(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.search import search_texture
+
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
+    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
+                            SearchSettings(generations=2, population=2, elite=1), pool_clips=1, clips_per_grid=1,
+                            stop=_StopAfter(0))
+    assert result["stopped"] and result["generations"] == 0 and result["best"] is None
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["log.jsonl", "search.json"]
+    assert (tmp_path / "run" / "log.jsonl").read_text() == ""

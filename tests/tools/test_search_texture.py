@@ -27,3 +27,19 @@ def test_a_short_search_writes_its_run_and_reports_the_kept_generation(load_tool
     assert all("agreement" in r and "validation" in r for r in records)
     assert f"kept generation {run['best']['generation']}" in capsys.readouterr().out
     assert np.load(out / "best_texture.npy").shape == (4, 4)
+
+
+def test_a_stopped_search_says_so_and_exits_130(load_tool, tmp_path, monkeypatch, capsys):
+    import davis_rig.attack.search as search
+
+    def stopped(config, detector, out, settings, **kwargs):
+        Path(out).mkdir()
+        return {"best": None, "generations": 4, "seconds": 1.0, "cells": 12, "stopped": True}
+
+    monkeypatch.setattr(search, "search_texture", stopped)
+    tool = load_tool("search_texture")
+    assert tool.main(["--out", str(tmp_path / "run"), "--detector", str(FIXTURE), "--quiet"]) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert err[-2] == f"search_texture.py: stopped after 4 finished generations, kept in {tmp_path / 'run'}"
+    assert err[-1] == "search_texture.py: interrupted"
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["stopped"] is True
