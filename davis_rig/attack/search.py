@@ -193,13 +193,14 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
     from davis_rig.attack.checkpoint import write_texture_png
     from davis_rig.attack.refine import visible_cells
     from davis_rig.attack.validation import better, validate, validation_clips
-    from davis_rig.controls.planted import cell_agreement
     from davis_rig.scene.body import BodyModel
     from davis_rig.scene.masks import part_mask
     from davis_rig.stop import StopRequested
 
     if not 1 <= clips_per_grid <= pool_clips:
         raise ValueError(f"clips_per_grid must be in [1, pool_clips={pool_clips}], got {clips_per_grid}")
+    if reference is not None and np.shape(reference) != (config.grid_n, config.grid_n):
+        raise ValueError(f"reference must be [{config.grid_n}, {config.grid_n}], got {list(np.shape(reference))}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n = config.grid_n
@@ -228,7 +229,8 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
         state["probabilities"] = probabilities
         np.save(out / "probabilities.npy", probabilities)
         if reference is not None:
-            record["agreement"] = cell_agreement(np.asarray(record["mode"]), reference, cells)
+            same = (np.asarray(record["mode"]) > 0.5) == (np.asarray(reference) > 0.5)
+            record["agreement"] = float(same[cells].mean())
         if generation % validate_every == 0 or generation == settings.generations:
             grid = np.asarray(record["mode"], dtype=np.float32)
             res = validate(grid, val, detector, config.validation_threshold, config.events, train_path=train_path,

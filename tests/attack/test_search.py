@@ -169,3 +169,15 @@ def test_a_stop_before_the_first_generation_writes_no_texture(tmp_path):
     assert result["stopped"] and result["generations"] == 0 and result["best"] is None
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["log.jsonl", "search.json"]
     assert (tmp_path / "run" / "log.jsonl").read_text() == ""
+
+
+def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.search import search_texture
+
+    config = AttackConfig(grid_n=4, seed=0)
+    with pytest.raises(ValueError, match=r"reference must be \[4, 4\], got \[3, 3\]"):
+        search_texture(config, None, tmp_path / "run", SearchSettings(), reference=np.ones((3, 3)))
+    with pytest.raises(ValueError, match=r"clips_per_grid must be in \[1, pool_clips=2\], got 3"):
+        search_texture(config, None, tmp_path / "run", SearchSettings(), pool_clips=2, clips_per_grid=3)
+    assert not (tmp_path / "run").exists()
