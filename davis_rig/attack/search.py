@@ -225,9 +225,7 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
     log = open(out / "log.jsonl", "w")
 
     def on_generation(record: dict, probabilities: np.ndarray) -> None:
-        state["generations"] = generation = record["generation"]
-        state["probabilities"] = probabilities
-        np.save(out / "probabilities.npy", probabilities)
+        generation = record["generation"]
         if reference is not None:
             same = (np.asarray(record["mode"]) > 0.5) == (np.asarray(reference) > 0.5)
             record["agreement"] = float(same[cells].mean())
@@ -243,6 +241,9 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
                 (out / "best.json").write_text(json.dumps(state["best"], indent=1))
         log.write(json.dumps({**record, "seconds": time.perf_counter() - t0}) + "\n")
         log.flush()
+        # the generation counts once logged: a stop during its validation leaves the previous one in force
+        state["generations"], state["probabilities"] = generation, probabilities
+        np.save(out / "probabilities.npy", probabilities)
         say(f"generation {generation}/{settings.generations}: scores {record['score_mean']:.3f} mean, "
             f"{record['score_best']:.3f} best, entropy {record['entropy_bits']:.2f} bit"
             + (f", agreement {record['agreement']:.2f}" if "agreement" in record else "")

@@ -181,3 +181,19 @@ def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
     with pytest.raises(ValueError, match=r"clips_per_grid must be in \[1, pool_clips=2\], got 3"):
         search_texture(config, None, tmp_path / "run", SearchSettings(), pool_clips=2, clips_per_grid=3)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_stop_during_a_validation_keeps_the_log_and_the_texture_in_step(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.attack.search import search_texture
+
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
+    # generation 1: 2 grids x 1 clip (2 polls) + its validation (1 poll); generation 2: 2 more, then its validation
+    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
+                            SearchSettings(generations=3, population=2, elite=1), pool_clips=1, clips_per_grid=1,
+                            validate_every=1, stop=_StopAfter(5))
+    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert result["stopped"] and result["generations"] == len(records) == 1
+    np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
