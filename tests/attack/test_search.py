@@ -95,19 +95,39 @@ def test_a_score_of_the_wrong_shape_and_bad_settings_are_refused():
 FIXTURE = "tests/fixtures/rvt_mini_fixture.safetensors"
 
 
-@pytest.mark.usefixtures("one_torch_thread")
-def test_search_texture_writes_a_run_folder_and_keeps_its_best_validated_grid(tmp_path):
+def _search(tmp_path, settings: SearchSettings, validation_clips: int = 1, **kwargs) -> dict:
+    """search_texture against the mini RVT on 4x4 grids, into ``tmp_path / "run"``."""
     from davis_rig.attack.config import AttackConfig
     from davis_rig.attack.optimize import load_attack_detector
     from davis_rig.attack.search import search_texture
 
-    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=2)
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=validation_clips)
+    return search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run", settings, **kwargs)
+
+
+def _log(tmp_path) -> list[dict]:
+    return [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+
+
+class _StopAfter:
+    """A stop request that arrives after ``checks`` polls."""
+
+    def __init__(self, checks: int):
+        self.left = checks
+
+    @property
+    def requested(self) -> bool:
+        self.left -= 1
+        return self.left < 0
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_search_texture_writes_a_run_folder_and_keeps_its_best_validated_grid(tmp_path):
     trigger = np.eye(4, dtype=np.float32)
-    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
-                            SearchSettings(generations=3, population=3, elite=1), pool_clips=3, clips_per_grid=2,
-                            validate_every=2, reference=trigger)
+    result = _search(tmp_path, SearchSettings(generations=3, population=3, elite=1), validation_clips=2,
+                     pool_clips=3, clips_per_grid=2, validate_every=2, reference=trigger)
     run = tmp_path / "run"
-    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    records = _log(tmp_path)
     assert [r["generation"] for r in records] == [1, 2, 3] and not result["stopped"]
     assert ["validation" in r for r in records] == [False, True, True]  # every 2nd and the last
     cells = result["cells"]
@@ -126,46 +146,32 @@ def test_search_texture_writes_a_run_folder_and_keeps_its_best_validated_grid(tm
     assert (run / "best_texture.png").is_file() and (run / "texture.png").is_file()
 
 
-class _StopAfter:
-    """A stop request that arrives after ``checks`` polls."""
-
-    def __init__(self, checks: int):
-        self.left = checks
-
-    @property
-    def requested(self) -> bool:
-        self.left -= 1
-        return self.left < 0
-
-
 @pytest.mark.usefixtures("one_torch_thread")
 def test_a_stop_request_keeps_the_finished_generations(tmp_path):
-    from davis_rig.attack.config import AttackConfig
-    from davis_rig.attack.optimize import load_attack_detector
-    from davis_rig.attack.search import search_texture
-
-    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
     # generation 1 polls 3 grids x 1 clip, its validation 1 clip; the stop arrives inside generation 2
-    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
-                            SearchSettings(generations=5, population=3, elite=1), pool_clips=2, clips_per_grid=1,
-                            validate_every=1, stop=_StopAfter(5))
+    result = _search(tmp_path, SearchSettings(generations=5, population=3, elite=1), pool_clips=2, clips_per_grid=1,
+                     validate_every=1, stop=_StopAfter(5))
     assert result["stopped"] and result["generations"] == 1
-    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    records = _log(tmp_path)
     assert len(records) == 1
     np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
     assert json.loads((tmp_path / "run" / "search.json").read_text())["stopped"] is True
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-def test_a_stop_before_the_first_generation_writes_no_texture(tmp_path):
-    from davis_rig.attack.config import AttackConfig
-    from davis_rig.attack.optimize import load_attack_detector
-    from davis_rig.attack.search import search_texture
+def test_a_stop_during_a_validation_keeps_the_log_and_the_texture_in_step(tmp_path):
+    # generation 1: 2 grids x 1 clip (2 polls) + its validation (1 poll); generation 2: 2 more, then its validation
+    result = _search(tmp_path, SearchSettings(generations=3, population=2, elite=1), pool_clips=1, clips_per_grid=1,
+                     validate_every=1, stop=_StopAfter(5))
+    records = _log(tmp_path)
+    assert result["stopped"] and result["generations"] == len(records) == 1
+    np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
 
-    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
-    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
-                            SearchSettings(generations=2, population=2, elite=1), pool_clips=1, clips_per_grid=1,
-                            stop=_StopAfter(0))
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_stop_before_the_first_generation_writes_no_texture(tmp_path):
+    result = _search(tmp_path, SearchSettings(generations=2, population=2, elite=1), pool_clips=1, clips_per_grid=1,
+                     stop=_StopAfter(0))
     assert result["stopped"] and result["generations"] == 0 and result["best"] is None
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["log.jsonl", "search.json"]
     assert (tmp_path / "run" / "log.jsonl").read_text() == ""
@@ -181,19 +187,3 @@ def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
     with pytest.raises(ValueError, match=r"clips_per_grid must be in \[1, pool_clips=2\], got 3"):
         search_texture(config, None, tmp_path / "run", SearchSettings(), pool_clips=2, clips_per_grid=3)
     assert not (tmp_path / "run").exists()
-
-
-@pytest.mark.usefixtures("one_torch_thread")
-def test_a_stop_during_a_validation_keeps_the_log_and_the_texture_in_step(tmp_path):
-    from davis_rig.attack.config import AttackConfig
-    from davis_rig.attack.optimize import load_attack_detector
-    from davis_rig.attack.search import search_texture
-
-    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
-    # generation 1: 2 grids x 1 clip (2 polls) + its validation (1 poll); generation 2: 2 more, then its validation
-    result = search_texture(config, load_attack_detector(FIXTURE), tmp_path / "run",
-                            SearchSettings(generations=3, population=2, elite=1), pool_clips=1, clips_per_grid=1,
-                            validate_every=1, stop=_StopAfter(5))
-    records = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
-    assert result["stopped"] and result["generations"] == len(records) == 1
-    np.testing.assert_array_equal(np.load(tmp_path / "run" / "texture.npy"), records[0]["mode"])
