@@ -466,9 +466,11 @@ def _motions(args, split: str) -> tuple:
     return ()
 
 
-def _command_line() -> str:
-    """This call as a shell command that re-runs it (arguments quoted where they need it)."""
-    return shlex.join(["davis-attack", *sys.argv[1:]])
+def _command_line(args=None) -> str:
+    """This call as a shell command that re-runs it (arguments quoted where they need it): the arguments
+    :func:`davis_rig.cli.attack.main` was given (``args.argv``), else the process's."""
+    argv = getattr(args, "argv", None)
+    return shlex.join(["davis-attack", *(sys.argv[1:] if argv is None else argv)])
 
 
 def evaluate_command(args) -> int:
@@ -493,7 +495,7 @@ def evaluate_command(args) -> int:
         grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
     device = resolve_device(args.device)
     detector = load_attack_detector(args.detector, device=device)
-    command = _command_line()
+    command = _command_line(args)
     model = BodyModel()
     motions = _motions(args, "test")
     with removing_new_empty_dirs(args.out):
@@ -542,7 +544,7 @@ def reproduce_command(args) -> int:
                                   grids=args.grids, combinations=args.combinations,
                                   train_motions=_motions(args, "train"), test_motions=_motions(args, "test"),
                                   detector_name=str(args.detector) if args.detector else "bundled default",
-                                  command=_command_line(), progress=not args.quiet)
+                                  command=_command_line(args), progress=not args.quiet)
     except AttackInterrupted as exc:
         return _interrupted("reproduce", exc)
     print(res["markdown"].read_text())

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from davis_rig.attack.search import (SearchSettings, cem_update, cross_entropy_search, mean_entropy_bits,
-                                     mode_grid, sample_grids)
+                                     mode_grid, sample_grids, start_probabilities)
 
 
 def _cells(n: int = 4, searched: int = 12) -> np.ndarray:
@@ -48,6 +48,35 @@ def test_mode_grid_and_entropy():
     assert mean_entropy_bits(np.full((1, 4), 0.5), cells) == pytest.approx(1.0)
     assert mean_entropy_bits(np.array([[0.0, 1.0, 0.0, 0.5]]), cells) == pytest.approx(0.0, abs=1e-9)
     assert mean_entropy_bits(p, cells) == pytest.approx((2 * 0.4689955935892812 + 1.0) / 3)
+
+
+def test_start_probabilities_keep_the_start_grids_colours_with_the_given_confidence():
+    cells = np.array([[True, True, False], [True, True, True]])
+    grid = np.array([[1, 0, 1], [0, 1, 0]], np.float32)
+    np.testing.assert_allclose(start_probabilities(grid, 0.9, cells), [[0.9, 0.1, 0.5], [0.1, 0.9, 0.1]])
+    np.testing.assert_allclose(start_probabilities(grid, 0.5, cells), np.full((2, 3), 0.5))
+    for confidence in (0.4, 1.0):
+        with pytest.raises(ValueError, match=r"confidence must be in \[0.5, 1\)"):
+            start_probabilities(grid, confidence, cells)
+    with pytest.raises(ValueError, match=r"the start grid is \[2, 3\], the cells \[3, 2\]"):
+        start_probabilities(grid, 0.9, cells.T)
+
+
+def test_a_continued_search_draws_what_the_uninterrupted_one_draws():
+    cells = _cells(6, 30)
+    target = (np.arange(36).reshape(6, 6) % 3 == 0).astype(np.float32)
+    settings = SearchSettings(generations=6, population=8, elite=2, smoothing=0.3)
+    whole = []
+    p_whole = cross_entropy_search(_distance_score(target, cells), np.full((6, 6), 0.5), cells, settings,
+                                   np.random.default_rng(3), lambda record, p: whole.append(record))
+    parts, rng = [], np.random.default_rng(3)
+    first = cross_entropy_search(_distance_score(target, cells), np.full((6, 6), 0.5), cells,
+                                 SearchSettings(generations=2, population=8, elite=2, smoothing=0.3), rng,
+                                 lambda record, p: parts.append(record))
+    p_parts = cross_entropy_search(_distance_score(target, cells), first, cells, settings, rng,
+                                   lambda record, p: parts.append(record), first_generation=3)
+    assert parts == whole and [r["generation"] for r in parts] == [1, 2, 3, 4, 5, 6]
+    np.testing.assert_array_equal(p_parts, p_whole)
 
 
 def _distance_score(target: np.ndarray, cells: np.ndarray):
@@ -177,6 +206,72 @@ def test_a_stop_before_the_first_generation_writes_no_texture(tmp_path):
     assert (tmp_path / "run" / "log.jsonl").read_text() == ""
 
 
+def _without_seconds(records: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "seconds"} for r in records]
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_stopped_search_resumed_scores_what_the_uninterrupted_one_scores(tmp_path):
+    settings = SearchSettings(generations=4, population=2, elite=1)
+    kwargs = dict(pool_clips=3, clips_per_grid=1, validate_every=2)
+    whole = _search(tmp_path / "whole", settings, **kwargs)
+    # generation 1: 2 polls; 2: 2 + its validation's 1; the stop arrives inside generation 3
+    stopped = _search(tmp_path / "parts", settings, stop=_StopAfter(6), **kwargs)
+    assert stopped["stopped"] and stopped["generations"] == 2
+    state = json.loads((tmp_path / "parts" / "run" / "state.json").read_text())
+    assert state["generation"] == 2 and state["best"] == stopped["best"]
+    resumed = _search(tmp_path / "parts", settings, resume=True, **kwargs)
+    assert resumed["generations"] == 4 and not resumed["stopped"] and resumed["best"] == whole["best"]
+    assert _without_seconds(_log(tmp_path / "parts")) == _without_seconds(_log(tmp_path / "whole"))
+    for name in ("probabilities.npy", "texture.npy", "best_texture.npy"):
+        np.testing.assert_array_equal(np.load(tmp_path / "parts" / "run" / name),
+                                      np.load(tmp_path / "whole" / "run" / name))
+    # a finished run continued with more generations goes on where it ended
+    longer = _search(tmp_path / "parts", SearchSettings(generations=5, population=2, elite=1), resume=True,
+                     **kwargs)
+    assert longer["generations"] == 5 and [r["generation"] for r in _log(tmp_path / "parts")] == [1, 2, 3, 4, 5]
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_folder_holding_a_search_is_refused_without_resume_and_with_other_settings(tmp_path):
+    from davis_rig.errors import CheckpointError
+
+    settings = SearchSettings(generations=1, population=2, elite=1)
+    _search(tmp_path, settings, pool_clips=1, clips_per_grid=1)
+    run = tmp_path / "run"
+    before = (run / "log.jsonl").read_text()
+    with pytest.raises(CheckpointError, match=r"already holds a search .*state.json.*--resume"):
+        _search(tmp_path, settings, pool_clips=1, clips_per_grid=1)
+    with pytest.raises(CheckpointError, match=r"written with other settings \(settings\); only --generations"):
+        _search(tmp_path, SearchSettings(generations=2, population=3, elite=1), pool_clips=1, clips_per_grid=1,
+                resume=True)
+    with pytest.raises(CheckpointError, match=r"\(clips_per_grid, pool_clips\)"):
+        _search(tmp_path, settings, pool_clips=2, clips_per_grid=2, resume=True)
+    assert (run / "log.jsonl").read_text() == before  # nothing of the run is lost
+    (run / "state.json").write_text('{"generation": 1')
+    with pytest.raises(CheckpointError, match=r"state.json: unreadable search state"):
+        _search(tmp_path, settings, pool_clips=1, clips_per_grid=1, resume=True)
+    (run / "state.json").unlink()
+    with pytest.raises(CheckpointError, match=r"records generations but there is no .*state.json"):
+        _search(tmp_path, settings, pool_clips=1, clips_per_grid=1, resume=True)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_search_around_a_start_grid_validates_the_start_first(tmp_path):
+    start = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [1, 0, 1, 0], [0, 1, 0, 1]], np.float32)
+    result = _search(tmp_path, SearchSettings(generations=1, population=2, elite=1, smoothing=0.5),
+                     pool_clips=1, clips_per_grid=1, validate_every=1, start_grid=start, start_confidence=0.8)
+    records = _log(tmp_path)
+    assert [r["generation"] for r in records] == [0, 1] and records[0]["start"] is True
+    seen = np.array(records[0]["mode"]) != 0  # the start's mode: the start grid on the searched cells, 0 elsewhere
+    np.testing.assert_array_equal(np.array(records[0]["mode"])[seen], start[seen])
+    assert 0 < seen.sum() < start.sum() <= result["cells"]
+    best = result["best"]["generation"]
+    np.testing.assert_array_equal(np.load(tmp_path / "run" / "best_texture.npy"), records[best]["mode"])
+    p = np.load(tmp_path / "run" / "probabilities.npy")  # one step of 0.5 from 0.8 / 0.2 towards one grid
+    assert set(np.round(p[p != 0.5], 6)) <= {0.1, 0.4, 0.6, 0.9}
+
+
 def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
     from davis_rig.attack.config import AttackConfig
     from davis_rig.attack.search import search_texture
@@ -186,4 +281,9 @@ def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
         search_texture(config, None, tmp_path / "run", SearchSettings(), reference=np.ones((3, 3)))
     with pytest.raises(ValueError, match=r"clips_per_grid must be in \[1, pool_clips=2\], got 3"):
         search_texture(config, None, tmp_path / "run", SearchSettings(), pool_clips=2, clips_per_grid=3)
+    with pytest.raises(ValueError, match=r"start_grid must be \[4, 4\], got \[5, 5\]"):
+        search_texture(config, None, tmp_path / "run", SearchSettings(), start_grid=np.ones((5, 5)))
+    with pytest.raises(ValueError, match=r"start_confidence must be in \[0.5, 1\), got 1.0"):
+        search_texture(config, None, tmp_path / "run", SearchSettings(), start_grid=np.ones((4, 4)),
+                       start_confidence=1.0)
     assert not (tmp_path / "run").exists()
