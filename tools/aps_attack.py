@@ -201,7 +201,7 @@ def _run(args: argparse.Namespace) -> int:
                          "blend_shapes": args.blend_shapes},
               "held_out": {"headings_rad": list(headings), "phases": list(args.phases), "shapes": "test split",
                            "scales": ["large", "middle", "small"]},
-              **tool_provenance(Path(__file__).name), "seconds_this_call": time.perf_counter() - t0,
+              **tool_provenance(Path(__file__).name, args.argv), "seconds_this_call": time.perf_counter() - t0,
               "optimise_seconds_this_call": optimise_s}
     (out / "aps_control.json").write_text(json.dumps(report, indent=1))
     lines = ["# Real-data control: the texture pipeline against the APS labeler's YOLO", "",

@@ -123,7 +123,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"| {r['texture']} | {100 * r['SeqASR']:.1f} | {r['mean_top_score']:.3f} | "
               f"{100 * r['train_SeqASR']:.1f} / {r['train_top_score']:.3f} |")
     if args.out:
-        report = {**tool_provenance(Path(__file__).name),
+        report = {**tool_provenance(Path(__file__).name, args.argv),
                   "detector": str(args.detector) if args.detector else "bundled default", "cells": n,
                   "parts": parts, "clips": args.clips, "seed": args.seed, "threshold": args.threshold, "rows": rows}
         Path(args.out).write_text(json.dumps(report, indent=1))

@@ -165,7 +165,7 @@ def _probe(args: argparse.Namespace) -> int:
               "clips": len(clips), "visible_cells": int(visible.sum()), "stages": args.stages,
               "features": int(len(rows["trigger"]["x"][0])), "basin": args.basin, "folds": args.folds,
               "weight_decay": args.weight_decay, "tasks": results,
-              **tool_provenance(Path(__file__).name), "seconds": round(time.perf_counter() - t0, 1)}
+              **tool_provenance(Path(__file__).name, args.argv), "seconds": round(time.perf_counter() - t0, 1)}
     (out / "probe.json").write_text(json.dumps(report, indent=1))
     (out / "probe.md").write_text(_markdown(report))
     print(json.dumps({task: r["held_out_accuracy"] for task, r in results.items()}))

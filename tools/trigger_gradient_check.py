@@ -142,7 +142,7 @@ def _run(args: argparse.Namespace) -> int:
               f"{_share(r['half_consistency'])} | {r['loss']:.4g} | "
               f"{r['first_order_change']:.4g} / {r['measured_change']:.4g} |")
     if args.out:
-        report = {**tool_provenance(Path(__file__).name),
+        report = {**tool_provenance(Path(__file__).name, args.argv),
                   "detector": str(args.detector) if args.detector else "bundled default", "trigger": trigger_source,
                   "cells": n, "parts": parts, "loss": args.loss, "loss_anchors": args.loss_anchors,
                   "v2e_gradient": args.v2e_gradient, "contrast": args.contrast, "clips": args.clips, "seed": args.seed,

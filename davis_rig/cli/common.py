@@ -55,14 +55,16 @@ def version_text(prog: str) -> str:
     return f"{prog} (davis_rig {__version__})"
 
 
-def tool_provenance(script: str) -> dict:
-    """Where a report of ``tools/<script>`` came from: ``command`` (as typed, from ``sys.argv``), ``measured``
-    (today, YYYY-MM-DD) and ``machine`` (architecture and host name)."""
+def tool_provenance(script: str, argv: Sequence[str] | None = None) -> dict:
+    """Where a report of ``tools/<script>`` came from: ``command`` (the arguments its ``main`` was given, ``argv``,
+    as :func:`run_main` keeps them in ``args.argv``; ``None``: the process's), ``measured`` (today, YYYY-MM-DD)
+    and ``machine`` (architecture and host name)."""
     import platform
     import shlex
     import time
 
-    return {"command": shlex.join(["python", f"tools/{script}", *sys.argv[1:]]),
+    argv = sys.argv[1:] if argv is None else argv
+    return {"command": shlex.join(["python", f"tools/{script}", *argv]),
             "measured": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {platform.node()}"}
 
 
@@ -439,6 +441,7 @@ def run_main(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except KeyboardInterrupt:
         print(f"{parser.prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # the command a report records, as it was given
     return run_command(parser.prog, lambda: action(args), options)
 
 

@@ -21,6 +21,9 @@ def test_scores_the_baselines_and_a_grey_texture_as_tested_and_as_trained(load_t
                       f"grey={tmp_path / 'grey.npy'}", "--out", str(out), "--quiet"]) == 0
     report = json.loads(out.read_text())
     assert [r["texture"] for r in report["rows"]] == ["white", "black", "random 4x4", "grey"]
+    # the report records the command its main was given, not the process's (here pytest's)
+    assert report["command"] == (f"python tools/score_validation_clips.py --detector {FIXTURE} --cells 4 --clips 1 "
+                                 f"--texture grey={tmp_path / 'grey.npy'} --out {out} --quiet")
     for row in report["rows"]:
         assert row["num_sequences"] == 1 and 0.0 <= row["mean_top_score"] <= 1.0
         assert {"train_top_score", "transfer_gap"} <= set(row)
