@@ -360,17 +360,24 @@ def _init_distributed(device):
     return device
 
 
-def _attack_config(args, grid_n: int, parts):
+def _eot_config(args):
+    """The EoT distribution of ``--scene``, ``--events``, ``--walk``, ``--playback-speed`` and
+    ``--test-sensor-probability`` (:class:`~davis_rig.attack.eot.EoTConfig`)."""
     from davis_rig.attack.eot import EoTConfig
-    from davis_rig.attack.optimize import AttackConfig
 
     make = EoTConfig.official if args.scene == "official" else EoTConfig
     # official_relaxed trains on the relaxed counts themselves (their own gradient, no surrogate needed); they take
     # one threshold per clip, so the EoT's per-pixel threshold mismatch is off
     relaxed = args.events == "official_relaxed"
-    eot = make(playback_speed=args.playback_speed, test_sensor_probability=args.test_sensor_probability,
-               walk=args.walk,
-               **({"threshold_sigma": 0.0} if relaxed else {}))
+    return make(playback_speed=args.playback_speed, test_sensor_probability=args.test_sensor_probability,
+                walk=args.walk, **({"threshold_sigma": 0.0} if relaxed else {}))
+
+
+def _attack_config(args, grid_n: int, parts):
+    from davis_rig.attack.optimize import AttackConfig
+
+    relaxed = args.events == "official_relaxed"
+    eot = _eot_config(args)
     return AttackConfig(eot=eot, grid_n=grid_n, parts=parts, iterations=args.iterations,
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,

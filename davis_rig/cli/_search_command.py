@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from davis_rig.cli.common import PART_CHOICES, add_out, epilog, float_in, non_negative_int, positive_int
+from davis_rig.cli.common import PART_CHOICES, add_out, epilog, float_in, non_negative_int, positive_int, probability
 
 EXAMPLES = """\
 examples:
@@ -36,7 +36,7 @@ change, nothing else). Score the textures with `davis-attack evaluate --texture 
 
 def add_search_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``search`` on the ``davis-attack`` subparsers; the action is stored as ``func``."""
-    from davis_rig.cli._attack_commands import _cells, _common_run_args
+    from davis_rig.cli._attack_commands import _cells, _common_run_args, _scene_kind_arg
 
     p = subparsers.add_parser("search", help="gradient-free texture search (cross-entropy method, resumable)",
                               description="Search black/white grids against a frozen RVT without the gradient: the "
@@ -73,6 +73,13 @@ def add_search_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="continue RUN_DIR/state.json after its last finished generation (a clean new run when "
                         "RUN_DIR holds no run); without it RUN_DIR must not hold a run")
+    p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
+                   help="best texture on validation, scored as trained: seqasr (SeqASR, then mean top score; as "
+                        "optimize) or score (mean top score alone)")
+    p.add_argument("--test-sensor-probability", type=probability, default=0.5, metavar="P",
+                   help="share of the search and validation clips whose sensor is the evaluation's ideal one "
+                        "(default 0.5, as optimize)")
+    _scene_kind_arg(p)
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the grids, the clips and the validation")
     _common_run_args(p)
     p.set_defaults(func=search_command, check=_check_search)
@@ -104,7 +111,7 @@ def _grid_file(path: str, n: int, option: str):
 
 def search_command(args) -> int:
     """Action of ``davis-attack search``: one :func:`davis_rig.attack.search.search_texture` call."""
-    from davis_rig.cli._attack_commands import _command_line, _motions, _set_threads, _starting
+    from davis_rig.cli._attack_commands import _command_line, _eot_config, _motions, _set_threads, _starting
     from davis_rig.cli.common import check_out_folder, removing_new_empty_dirs, resolve_device
 
     n = args.cells
@@ -123,7 +130,10 @@ def search_command(args) -> int:
     _set_threads(args)
     parts = None if args.parts == ["all"] else tuple(args.parts)
     detector = load_attack_detector(args.detector, device=resolve_device(args.device))
-    config = AttackConfig(grid_n=n, parts=parts, seed=args.seed, num_validation_clips=args.val_clips)
+    relaxed = args.events == "official_relaxed"  # the relaxed counts in the search and the validation, as optimize
+    config = AttackConfig(eot=_eot_config(args), grid_n=n, parts=parts, seed=args.seed,
+                          num_validation_clips=args.val_clips, select_by=args.select_by, events=args.events,
+                          v2e_mode="official_relaxed" if relaxed else "dvs")
     settings = SearchSettings(generations=args.generations, population=args.population, elite=args.elite,
                               smoothing=args.smoothing, floor=args.floor)
     say = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))

@@ -93,3 +93,32 @@ def test_search_maps_its_options_onto_one_call(monkeypatch, tmp_path, capsys):
     assert calls["resume"] is True and calls["start_confidence"] == 0.75 and calls["reference"] is None
     np.testing.assert_array_equal(calls["start_grid"], start)
     assert json.loads(capsys.readouterr().out)["best_generation"] is None
+
+
+def test_search_draws_its_clips_from_the_distribution_optimize_would(monkeypatch, tmp_path, capsys):
+    import davis_rig.attack.optimize as opt
+    import davis_rig.attack.search as search
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.eot import EoTConfig
+
+    configs = []
+    monkeypatch.setattr(opt, "load_attack_detector", lambda path, device=None: None)
+
+    def fake(config, detector, out, settings, **kwargs):
+        configs.append(config)
+        Path(out).mkdir(exist_ok=True)
+        return {"best": None, "generations": 0, "seconds": 0.0, "cells": 12, "stopped": False}
+
+    monkeypatch.setattr(search, "search_texture", fake)
+    out = str(tmp_path / "run")
+    assert main(["search", "--out", out, "--val-clips", "64", "--quiet"]) == 0
+    assert configs[-1].to_dict() == AttackConfig(grid_n=10, parts=("torso", "arms", "legs"), seed=0,
+                                                 num_validation_clips=64).to_dict()  # the defaults: optimize's
+    assert main(["search", "--out", out, "--walk", "bundled", "--test-sensor-probability", "0", "--select-by",
+                 "score", "--events", "official_relaxed", "--playback-speed", "1.5", "--quiet"]) == 0
+    config = configs[-1]
+    assert (config.eot.walk, config.eot.test_sensor_probability, config.eot.playback_speed) == ("bundled", 0.0, 1.5)
+    assert (config.select_by, config.events, config.v2e_mode, config.eot.threshold_sigma) == (
+        "score", "official_relaxed", "official_relaxed", 0.0)
+    assert main(["search", "--out", out, "--scene", "official", "--quiet"]) == 0
+    assert configs[-1].eot == EoTConfig.official() != AttackConfig().eot
