@@ -5,8 +5,9 @@ davis-label, davis-eval, davis-eval-dataset, davis-export and davis-view --expor
 unchanged, no output, no staging file); davis-make-dataset keeps the finished sequences (a rerun continues);
 davis-train finishes the step in progress and writes its checkpoint (``--resume`` continues). Elsewhere:
 davis-record stops cleanly (exit 0, a complete file: tests/session/test_capture_end_to_end.py), the davis-view server stops (exit 0:
-tests/viewer/test_cli.py) and davis-attack optimize writes a checkpoint and exits 130
-(tests/cli/test_attack_commands.py). See :mod:`tests.helpers.interrupt` for how the commands are caught mid-work.
+tests/viewer/test_cli.py), davis-attack optimize writes a checkpoint and exits 130
+(tests/cli/test_attack_commands.py) and davis-attack search keeps its finished generations and exits 130
+(tests/cli/test_attack_search.py). See :mod:`tests.helpers.interrupt` for how the commands are caught mid-work.
 """
 
 from __future__ import annotations
