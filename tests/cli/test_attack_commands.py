@@ -432,34 +432,26 @@ def test_ctrl_c_on_a_real_run_exits_130_after_a_checkpoint_and_resume_continues(
     # the command as a user runs it: SIGINT once steps are logged -> exit 130, one line, a checkpoint at the last
     # logged step; --resume continues at the next step (the library test pins the bit-identical losses)
     import json
-    import os
-    import signal
     import subprocess
-    import time
+
+    import torch
+
+    from tests.helpers.interrupt import interrupt_after_log_lines, repo_env
 
     fixture = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
     run = tmp_path / "run"
     argv = [sys.executable, "-m", "davis_rig.cli.attack", "optimize", "--out", str(run), "--cells", "2",
             "--pool-size", "1", "--val-clips", "1", "--iterations", "1000", "--validate-every", "1000",
             "--detector", str(fixture), "--device", "cpu", "--threads", "1", "--no-progress"]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     log = run / "log.jsonl"
-    deadline = time.monotonic() + 240
-    while not (log.is_file() and log.read_text().count("\n") >= 2) and time.monotonic() < deadline:
-        assert proc.poll() is None, proc.stderr.read()
-        time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("davis-attack optimize: interrupted")
-    import torch
-
+    stopped = interrupt_after_log_lines(argv, log)
+    assert stopped.returncode == 130, stopped.stderr
+    assert "Traceback" not in stopped.stderr and stopped.last_line.startswith("davis-attack optimize: interrupted")
     step = torch.load(run / "checkpoints" / "last.pt", weights_only=True)["step"]
     logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
     assert step >= 2 and logged == list(range(1, step + 1))
-    done = subprocess.run([*argv, "--resume", "--max-steps", "2"], capture_output=True, text=True, env=env,
-                          timeout=240)
+    done = subprocess.run([*argv, "--resume", "--max-steps", "2"], capture_output=True, text=True, timeout=240,
+                          env=repo_env())
     assert done.returncode == 0, done.stderr
     logged = [json.loads(line)["step"] for line in log.read_text().splitlines()]
     assert logged == list(range(1, step + 3))

@@ -127,31 +127,21 @@ def test_search_draws_its_clips_from_the_distribution_optimize_would(monkeypatch
 def test_a_real_ctrl_c_exits_130_keeping_the_finished_generations_and_resume_continues(tmp_path):
     # the command as a user runs it: SIGINT once generations are logged -> exit 130, one line; state.json at the last
     # logged generation; --resume continues after it (the library test pins the identical scores)
-    import os
-    import signal
     import subprocess
     import sys
-    import time
+
+    from tests.helpers.interrupt import interrupt_after_log_lines, repo_env
 
     run = tmp_path / "run"
     argv = [sys.executable, "-m", "davis_rig.cli.attack", "search", "--out", str(run), "--cells", "2",
             "--population", "2", "--elite", "1", "--pool-clips", "1", "--clips-per-grid", "1", "--val-clips", "1",
             "--validate-every", "1000", "--detector", str(FIXTURE), "--device", "cpu", "--threads", "1", "--quiet"]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    proc = subprocess.Popen([*argv, "--generations", "1000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
-    log = run / "log.jsonl"
-    deadline = time.monotonic() + 240
-    while not (log.is_file() and log.read_text().count("\n") >= 2) and time.monotonic() < deadline:
-        assert proc.poll() is None, proc.stderr.read()
-        time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("davis-attack search: interrupted")
+    stopped = interrupt_after_log_lines([*argv, "--generations", "1000"], run / "log.jsonl")
+    assert stopped.returncode == 130, stopped.stderr
+    assert "Traceback" not in stopped.stderr and stopped.last_line.startswith("davis-attack search: interrupted")
     done = json.loads((run / "state.json").read_text())["generation"]
     assert done >= 2 and [r["generation"] for r in _log(run)] == list(range(1, done + 1))
     finished = subprocess.run([*argv, "--generations", str(done + 2), "--resume"], capture_output=True, text=True,
-                              env=env, timeout=240)
+                              env=repo_env(), timeout=240)
     assert finished.returncode == 0, finished.stderr
     assert [r["generation"] for r in _log(run)] == list(range(1, done + 3))

@@ -56,6 +56,12 @@ raise SystemExit(getattr(importlib.import_module(module_name), function)(argv))
 """
 
 
+def repo_env(**extra: str) -> dict[str, str]:
+    """This process's environment with the repository first on ``PYTHONPATH`` (and ``extra`` variables set)."""
+    path = os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))
+    return dict(os.environ, PYTHONPATH=path, **extra)
+
+
 @dataclass
 class Interrupted:
     """The outcome of :func:`interrupt_while_working`."""
@@ -68,6 +74,25 @@ class Interrupted:
     def last_line(self) -> str:
         lines = self.stderr.strip().splitlines()
         return lines[-1] if lines else ""
+
+
+def _interrupt_when(process: subprocess.Popen, lines_in: Path, lines: int, timeout_s: float, poll_s: float,
+                    what: str) -> Interrupted:
+    """SIGINT ``process`` once the file ``lines_in`` holds ``lines`` lines; kill it if anything goes wrong."""
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not (lines_in.is_file() and lines_in.read_text().count("\n") >= lines):
+            if process.poll() is not None or time.monotonic() > deadline:
+                out, err = process.communicate(timeout=60) if process.poll() is not None else ("", "")
+                raise AssertionError(f"{what} (exit {process.poll()}): {err}")
+            time.sleep(poll_s)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    return Interrupted(process.returncode, out, err)
 
 
 def interrupt_while_working(command: str, argv: list[str], slow: str, tmp_path: Path, *, after_items: int = 1,
@@ -87,21 +112,29 @@ def interrupt_while_working(command: str, argv: list[str], slow: str, tmp_path: 
         Exit code, stdout and stderr of the command.
     """
     marker = tmp_path / ".working"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])),
-               OMP_NUM_THREADS="1")
     process = subprocess.Popen([sys.executable, "-c", _SLOWED_MAIN, slow, str(marker), str(delay_s), command, *argv],
-                               cwd=REPO_ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + start_timeout_s
-        while not (marker.exists() and marker.read_text().count("\n") >= after_items):
-            if process.poll() is not None or time.monotonic() > deadline:
-                out, err = process.communicate(timeout=60) if process.poll() is not None else ("", "")
-                raise AssertionError(f"{command} never reached {slow} (exit {process.poll()}): {err}")
-            time.sleep(0.05)
-        process.send_signal(signal.SIGINT)
-        out, err = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-    return Interrupted(process.returncode, out, err)
+                               cwd=REPO_ROOT, env=repo_env(OMP_NUM_THREADS="1"), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    return _interrupt_when(process, marker, after_items, start_timeout_s, 0.05, f"{command} never reached {slow}")
+
+
+def interrupt_after_log_lines(argv: list[str], log: Path, *, lines: int = 2, start_timeout_s: float = 240.0,
+                              env: dict[str, str] | None = None) -> Interrupted:
+    """Run ``argv`` (a whole command line) unslowed, SIGINT it once ``log`` holds ``lines`` lines.
+
+    For commands whose items are slow enough to catch as they are (an attack step, a search generation): the
+    command runs exactly as a user runs it and is stopped between two logged items.
+
+    Args:
+        argv: the command line, e.g. ``[sys.executable, "-m", "davis_rig.cli.attack", "search", ...]``.
+        log: the file the command appends one line to per item (``log.jsonl``).
+        lines: send SIGINT once the log has this many lines.
+        start_timeout_s: how long the command may take to log them, s.
+        env: the environment (default: this one, with the repository on ``PYTHONPATH``).
+
+    Returns:
+        Exit code, stdout and stderr of the command.
+    """
+    process = subprocess.Popen(argv, env=repo_env() if env is None else env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    return _interrupt_when(process, log, lines, start_timeout_s, 0.2, f"{argv[:5]} never logged {lines} lines")
