@@ -64,7 +64,7 @@ def repo_env(**extra: str) -> dict[str, str]:
 
 @dataclass
 class Interrupted:
-    """The outcome of :func:`interrupt_while_working`."""
+    """The outcome of :func:`interrupt_while_working` and :func:`interrupt_after_log_lines`."""
 
     returncode: int
     stdout: str
@@ -118,8 +118,8 @@ def interrupt_while_working(command: str, argv: list[str], slow: str, tmp_path: 
     return _interrupt_when(process, marker, after_items, start_timeout_s, 0.05, f"{command} never reached {slow}")
 
 
-def interrupt_after_log_lines(argv: list[str], log: Path, *, lines: int = 2, start_timeout_s: float = 240.0,
-                              env: dict[str, str] | None = None) -> Interrupted:
+def interrupt_after_log_lines(argv: list[str], log: Path, *, lines: int = 2,
+                              start_timeout_s: float = 240.0) -> Interrupted:
     """Run ``argv`` (a whole command line) unslowed, SIGINT it once ``log`` holds ``lines`` lines.
 
     For commands whose items are slow enough to catch as they are (an attack step, a search generation): the
@@ -130,11 +130,9 @@ def interrupt_after_log_lines(argv: list[str], log: Path, *, lines: int = 2, sta
         log: the file the command appends one line to per item (``log.jsonl``).
         lines: send SIGINT once the log has this many lines.
         start_timeout_s: how long the command may take to log them, s.
-        env: the environment (default: this one, with the repository on ``PYTHONPATH``).
 
     Returns:
         Exit code, stdout and stderr of the command.
     """
-    process = subprocess.Popen(argv, env=repo_env() if env is None else env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(argv, env=repo_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return _interrupt_when(process, log, lines, start_timeout_s, 0.2, f"{argv[:5]} never logged {lines} lines")
