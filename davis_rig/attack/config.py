@@ -17,7 +17,7 @@ from davis_rig.attack.eot import EoTConfig
 from davis_rig.attack.loss import DEFAULT_LAMBDA, LOSS_ANCHORS, LOSS_REDUCTIONS
 from davis_rig.attack.lr_schedule import LR_SCHEDULES, OFFICIAL_LR_MIN
 from davis_rig.attack.scoring import EVENT_MODELS
-from davis_rig.attack.texture import ALPHA_SCHEDULES, MAX_CELLS, TEXTURE_STARTS
+from davis_rig.attack.texture import ALPHA_SCHEDULES, BINARIZERS, MAX_CELLS, TEXTURE_STARTS
 from davis_rig.errors import ConfigError
 
 #: How the detector part of an attack step runs (:class:`~davis_rig.attack.fixed_step.FixedShapeAttackLoss`).
@@ -52,6 +52,9 @@ class AttackConfig:
         iterations: optimisation steps (paper 11,500).
         clips_per_step: EoT clips per step over all ranks (divisible by the world size).
         alpha_schedule: soft-to-hard schedule name (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+        binarize: the hard part of the binarization (:data:`davis_rig.attack.texture.BINARIZERS`): ``"threshold"``
+            (default, the paper: white where u > 0.5) or ``"sample"`` (each cell white with probability u, drawn
+            afresh every step from ``(seed, step)``; validation, export and the final texture still round u).
         hidden, dropout: generator (default ``2 n^2``, 0.5).
         start: the generator's starting texture (:data:`~davis_rig.attack.texture.TEXTURE_STARTS`): ``"random"``
             (default, the official code's initialisation) or plain ``"white"`` / ``"black"``
@@ -106,6 +109,7 @@ class AttackConfig:
     iterations: int = 11_500
     clips_per_step: int = 1
     alpha_schedule: str = "linear"
+    binarize: str = "threshold"
     hidden: int | None = None
     dropout: float = 0.5
     start: str = "random"
@@ -161,7 +165,8 @@ class AttackConfig:
             refuse("lr_min", f"expected a number in [0, lr = {self.lr:g}]")
         if self.lr_period is not None and int(self.lr_period) < 1:
             refuse("lr_period", "expected an integer >= 1 or None")
-        for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("start", TEXTURE_STARTS),
+        for name, allowed in (("alpha_schedule", tuple(ALPHA_SCHEDULES)), ("binarize", BINARIZERS),
+                              ("start", TEXTURE_STARTS),
                               ("v2e_gradient", V2E_GRADIENTS),
                               ("lr_schedule", LR_SCHEDULES),
                               ("loss_reduction", LOSS_REDUCTIONS), ("loss_anchors", LOSS_ANCHORS),

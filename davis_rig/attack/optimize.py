@@ -3,7 +3,8 @@
 One step (:func:`~davis_rig.attack.step.attack_loss` + Adam)::
 
     u = generator()                       (dropout seeded by (seed, step): identical on all ranks, exact resume)
-    grid = binarize_ste(u, alpha(step))   (soft-to-hard schedule, straight-through gradient)
+    grid = binarize_ste(u, alpha(step))   (soft-to-hard schedule, straight-through gradient; the hard part
+                                          u > 0.5, or u > t with per-cell draws t ~ U[0, 1) for binarize="sample")
     for each clip drawn from the pool:    (pre-rasterized, no grad; see davis_rig.attack.eot)
         video = compose(lookup(grid))     [T, H, W]   grad -> grid
         hist  = V2E(video) + noise        [W, 20, H, W] ("dvs" counts with the clip's per-pixel thresholds;
@@ -80,7 +81,7 @@ from davis_rig.attack.detector import load_attack_detector
 from davis_rig.attack.eot import ClipPool, PoolClip
 from davis_rig.attack.fixed_step import FixedShapeAttackLoss
 from davis_rig.attack.lr_schedule import lr_at
-from davis_rig.attack.step import attack_loss, clip_histograms, soft_grid
+from davis_rig.attack.step import attack_loss, binarization_threshold, clip_histograms, soft_grid
 from davis_rig.stop import StopOnSignal, StopRequested, check_stop
 from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
 from davis_rig.attack.validation import REFINE_SEED_OFFSET, better, validate, validation_clips
@@ -457,7 +458,8 @@ def _optimizer_step(run: _Run, step: int) -> tuple["torch.Tensor", float]:
     alpha = alpha_at(config.alpha_schedule, step, config.iterations)
     for group in run.optimizer.param_groups:
         group["lr"] = lr_at(config.lr_schedule, step, config.lr, config.lr_period or config.iterations, config.lr_min)
-    grid = binarize_ste(soft_grid(run.generator, config.seed, step), alpha)
+    soft = soft_grid(run.generator, config.seed, step)
+    grid = binarize_ste(soft, alpha, binarization_threshold(config.binarize, config.seed, step, soft))
     loss = run.step_loss(grid, run.pool.sample(step, config.clips_per_step // run.world))
     run.optimizer.zero_grad(set_to_none=True)
     loss.total.backward()

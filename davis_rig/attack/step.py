@@ -1,7 +1,7 @@
 """The differentiable forward of one optimisation step: texture grid -> clips' event histograms -> ``L_adv``.
 
 - :func:`soft_grid`: the generator's output with its dropout seeded by ``(seed, step)`` (identical on all ranks,
-  exact on resume);
+  exact on resume); :func:`binarization_threshold`: the cut of its binarization (0.5, or per-cell draws);
 - :func:`clip_histograms`: one pre-rasterized clip in a texture -> RVT's input [W, 20, H, W] (V2E counts of the
   clip's sensor plus its noise events; the backward a relaxed-count surrogate or the paper's straight-through
   floor);
@@ -19,7 +19,7 @@ from davis_rig._lazy import optional_dependency
 from davis_rig.attack.config import V2E_GRADIENTS, AttackConfig
 from davis_rig.attack.eot import PoolClip
 from davis_rig.attack.loss import AdversarialLoss, adversarial_loss, anchor_cells, anchors_on_boxes
-from davis_rig.attack.texture import TextureGenerator
+from davis_rig.attack.texture import TextureGenerator, sampled_thresholds
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS
 
 with optional_dependency("the attack"):
@@ -139,10 +139,30 @@ def attack_loss(grid: "torch.Tensor", clips: Sequence[PoolClip], detector, confi
                             anchor_mask=on_person)
 
 
-def _step_seed(seed: int, step: int) -> int:
-    """The 63-bit torch seed of a step's dropout."""
-    state = np.random.SeedSequence([0xA77AC, int(seed), int(step)]).generate_state(1, dtype=np.uint64)
+def _step_seed(seed: int, step: int, stream: int = 0xA77AC) -> int:
+    """The 63-bit torch seed of a step's dropout (``stream`` 0xA77AC) or binarization cuts (0xB1A5)."""
+    state = np.random.SeedSequence([int(stream), int(seed), int(step)]).generate_state(1, dtype=np.uint64)
     return int(state[0] >> np.uint64(1))
+
+
+def binarization_threshold(binarize: str, seed: int, step: int, like: "torch.Tensor") -> "float | torch.Tensor":
+    """The cut of a step's binarization (:func:`~davis_rig.attack.texture.binarize_ste`'s ``threshold``).
+
+    Args:
+        binarize: ``"threshold"`` (the paper's 0.5) or ``"sample"`` (uniform per-cell cuts seeded by
+            ``(seed, step)``: the same on every rank, a new draw every step, independent of the dropout's).
+        seed: the run's seed.
+        step: the step (0-based).
+        like: the soft grid [n, n] (shape and device of the cuts).
+
+    Returns:
+        0.5, or a float32 tensor shaped like ``like``.
+    """
+    if binarize == "threshold":
+        return 0.5
+    if binarize != "sample":
+        raise ValueError(f"unknown binarize {binarize!r}; expected 'threshold' or 'sample'")
+    return sampled_thresholds(tuple(like.shape), _step_seed(seed, step, 0xB1A5), like.device)
 
 
 def soft_grid(generator: TextureGenerator, seed: int, step: int) -> "torch.Tensor":

@@ -4,7 +4,8 @@ Pipeline (paper, "Texture Map Generation Network"; official ``UV_Generator``)::
 
     z = 1 (n*n)  ->  fc(n*n -> hidden) -> LayerNorm -> LeakyReLU -> Dropout(0.5) -> fc(hidden -> n*n) -> sigmoid
       -> u in (0, 1)^{n x n}                                 (:class:`TextureGenerator`)
-      -> u_b = alpha * [u > 0.5] + (1 - alpha) * u           (:func:`binarize_ste`, backward = identity)
+      -> u_b = alpha * [u > t] + (1 - alpha) * u             (:func:`binarize_ste`, backward = identity;
+                                                             t = 0.5 as the paper, or t ~ U[0, 1) per cell)
       -> U_hat = nearest upsampling of u_b to 1024 x 1024    (:func:`upsample_grid`)
       -> U_tilde = M * U_hat + (1 - M) * 1                   (:func:`apply_part_mask`, white outside the parts)
 
@@ -34,6 +35,7 @@ with optional_dependency("the texture generator"):
 
 __all__ = [
     "ALPHA_SCHEDULES",
+    "BINARIZERS",
     "TEXTURE_STARTS",
     "MAX_CELLS",
     "TextureGenerator",
@@ -47,6 +49,7 @@ __all__ = [
     "hard_binarize",
     "linear_alpha",
     "random_texture",
+    "sampled_thresholds",
     "step_alpha",
     "upsample_grid",
     "white_texture",
@@ -161,41 +164,71 @@ class TextureGenerator(nn.Module):
 
 # ---------------------------------------------------------------------------------------------- STE
 class _SoftToHardSTE(torch.autograd.Function):
-    """forward ``alpha * [u > 0.5] + (1 - alpha) * u``; backward: the identity for ``u``, nothing for alpha."""
+    """forward ``alpha * [u > t] + (1 - alpha) * u``; backward: the identity for ``u``, nothing for alpha or t."""
 
     @staticmethod
-    def forward(ctx, u, alpha):
-        hard = (u > 0.5).to(u.dtype)
+    def forward(ctx, u, alpha, threshold):
+        hard = (u > threshold).to(u.dtype)
         return alpha * hard + (1 - alpha) * u
 
     @staticmethod
     def backward(ctx, grad_output):
-        return grad_output, None
+        return grad_output, None, None
 
 
-def binarize_ste(u: "torch.Tensor", alpha: "float | torch.Tensor" = 1.0) -> "torch.Tensor":
+#: Hard parts of :func:`binarize_ste`: ``"threshold"`` (the paper: white where u > 0.5) or ``"sample"``
+#: (stochastic binarization: each cell white with probability u, a fresh draw every step; :func:`sampled_thresholds`).
+BINARIZERS = ("threshold", "sample")
+
+
+def binarize_ste(u: "torch.Tensor", alpha: "float | torch.Tensor" = 1.0,
+                 threshold: "float | torch.Tensor" = 0.5) -> "torch.Tensor":
     """Straight-through soft-to-hard binarization (paper, Eq. for ``u_b``; official ``STEFunction``).
 
-    Forward: ``alpha * [u > 0.5] + (1 - alpha) * u`` (``alpha = 1``: exactly 0/1; ``alpha = 0``: ``u``).
-    Backward: ``d out / d u = 1`` (identity, whatever ``alpha``); no gradient w.r.t. ``alpha``.
+    Forward: ``alpha * [u > threshold] + (1 - alpha) * u`` (``alpha = 1``: exactly 0/1; ``alpha = 0``: ``u``).
+    Backward: ``d out / d u = 1`` (identity, whatever ``alpha`` and ``threshold``); no gradient w.r.t. either.
 
     Args:
         u: float tensor, any shape, values in [0, 1].
         alpha: hardness in [0, 1], a float or a 0-dim tensor.
+        threshold: the cut of the hard part: 0.5 (the paper's) or a tensor like ``u`` of per-cell cuts; uniform
+            draws in [0, 1) (:func:`sampled_thresholds`) make the hard part a Bernoulli(u) sample.
 
     Returns:
         float tensor like ``u``.
 
     Raises:
-        ValueError: alpha outside [0, 1]; TypeError: u is not a floating-point tensor.
+        ValueError: alpha outside [0, 1], or a threshold tensor not shaped like ``u``;
+        TypeError: u is not a floating-point tensor.
     """
     if not isinstance(u, torch.Tensor) or not torch.is_floating_point(u):
         raise TypeError(f"u must be a floating-point torch tensor, got {type(u).__name__}")
     a = float(alpha)
     if not 0.0 <= a <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {a}")
+    if isinstance(threshold, torch.Tensor) and threshold.dim() > 0 and threshold.shape != u.shape:
+        raise ValueError(f"threshold must be a number or shaped like u {list(u.shape)}, got {list(threshold.shape)}")
     alpha_t = torch.as_tensor(a, dtype=u.dtype, device=u.device)
-    return _SoftToHardSTE.apply(u, alpha_t)
+    threshold_t = torch.as_tensor(threshold, dtype=u.dtype, device=u.device)
+    return _SoftToHardSTE.apply(u, alpha_t, threshold_t)
+
+
+def sampled_thresholds(shape: tuple[int, ...], seed: int, device="cpu") -> "torch.Tensor":
+    """Per-cell cuts of stochastic binarization: uniform draws in [0, 1), reproducible from ``seed`` alone.
+
+    With them, :func:`binarize_ste`'s hard part is white with probability ``u`` per cell (``P[u > t] = u``), so
+    its straight-through gradient is taken at grids sampled around ``u`` rather than at ``u``'s rounding.
+
+    Args:
+        shape: tensor shape, e.g. ``(n, n)``.
+        seed: integer seed (the caller derives it from the run's seed and the step).
+        device: where the tensor goes (drawn on the CPU, so every device and rank gets the same cuts).
+
+    Returns:
+        float32 tensor of ``shape``.
+    """
+    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+    return torch.rand(tuple(shape), generator=generator).to(device)
 
 
 def hard_binarize(u) -> np.ndarray:

@@ -89,7 +89,8 @@ LR_SCHEDULE_CHOICES = ("cosine_restarts", "constant")
 CONFIG_OPTIONS = {
     "grid_n": "--cells", "iterations": "--iterations", "clips_per_step": "--clips-per-step",
     "pool_size": "--pool-size", "refresh_every": "--refresh-every", "lr": "--lr", "lr_min": "--lr-min",
-    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule", "start": "--start", "start_grid": "--start",
+    "lr_period": "--lr-period", "alpha_schedule": "--alpha-schedule", "binarize": "--binarize",
+    "start": "--start", "start_grid": "--start",
     "validate_every": "--validate-every", "num_validation_clips": "--val-clips", "checkpoint_every": "--checkpoint-every",
     "box_margin_px": "--box-margin", "refine_passes": "--refine-passes", "refine_clips": "--refine-clips",
     "playback_speed": "--playback-speed", "thresholds": "--threshold", "device": "--device", "parts": "--parts",
@@ -157,6 +158,10 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
                         "11,500-step run)")
     p.add_argument("--alpha-schedule", choices=ALPHA_SCHEDULE_CHOICES, default="linear",
                    help="binarization schedule: linear (paper), cosine, step, hard, soft")
+    p.add_argument("--binarize", choices=("threshold", "sample"), default="threshold",
+                   help="hard part of the binarization: threshold (default, the paper: white where u > 0.5) or "
+                        "sample (each cell white with probability u, a new draw every step: the straight-through "
+                        "gradient taken at grids around u; validation and the texture kept still round u)")
     p.add_argument("--start", default="random", metavar="{random,white,black,PATH}",
                    help="starting texture: random (default, the official initialisation), plain white / black "
                         "(the generator's cells start at 0.95 / 0.05; steps of the same size as from the random start) "
@@ -382,7 +387,7 @@ def _attack_config(args, grid_n: int, parts):
                         clips_per_step=args.clips_per_step, pool_size=args.pool_size,
                         refresh_every=args.refresh_every, lr=args.lr, lr_schedule=args.lr_schedule,
                         lr_min=args.lr_min, lr_period=args.lr_period, alpha_schedule=args.alpha_schedule,
-                        **_start(args.start, grid_n), validate_every=args.validate_every,
+                        binarize=args.binarize, **_start(args.start, grid_n), validate_every=args.validate_every,
                         num_validation_clips=args.val_clips,
                         checkpoint_every=args.checkpoint_every,
                         box_margin_px=args.box_margin, loss_anchors=args.loss_anchors, loss_reduction=args.loss,

@@ -13,6 +13,7 @@ import torch
 
 from davis_rig.attack.eot import ClipPool, EoTConfig, draw_scene, prepare_clip, slot_seed, split_shapes
 from davis_rig.attack.optimize import AttackConfig, load_attack_detector, optimize_texture
+from davis_rig.attack.texture import binarize_ste
 from davis_rig.attack.validation import REFINE_SEED_OFFSET, VAL_SEED_OFFSET, better
 from davis_rig.errors import CheckpointError
 from davis_rig.models.rvt.checkpoint import load_detector
@@ -858,3 +859,31 @@ def test_a_stop_during_the_plain_starts_validation_leaves_nothing(detector, body
     with pytest.raises(opt.AttackInterrupted) as info:
         optimize_texture(cfg, detector, tmp_path / "run", body_model=body, progress=False)
     assert info.value.checkpoint is None and not (tmp_path / "run").exists()
+
+
+def test_sampled_binarization_cuts_every_step_afresh_and_resumes_exactly(detector, body, tmp_path, monkeypatch):
+    import davis_rig.attack.optimize as optimize_module
+    from davis_rig.attack.step import binarization_threshold
+
+    seen = []
+
+    def recording_binarize(u, alpha=1.0, threshold=0.5):
+        seen.append(threshold)
+        return binarize_ste(u, alpha, threshold)
+
+    monkeypatch.setattr(optimize_module, "binarize_ste", recording_binarize)
+    cfg = _tiny(binarize="sample", alpha_schedule="hard")
+    full = optimize_texture(cfg, detector, tmp_path / "full", body_model=body, progress=False)
+    cuts = seen[:4]
+    assert all(isinstance(c, torch.Tensor) and c.shape == (4, 4) for c in cuts)
+    assert all(torch.equal(c, binarization_threshold("sample", cfg.seed, step, c)) for step, c in enumerate(cuts))
+    assert not any(torch.equal(cuts[i], cuts[j]) for i in range(4) for j in range(i + 1, 4))
+    optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, max_steps=2)
+    rest = optimize_texture(cfg, detector, tmp_path / "part", body_model=body, progress=False, resume=True)
+    assert _log(tmp_path / "full" / "log.jsonl")[0] == _log(tmp_path / "part" / "log.jsonl")[0]
+    assert np.array_equal(full.texture, rest.texture)
+    seen.clear()
+    optimize_texture(_tiny(iterations=1), detector, tmp_path / "paper", body_model=body, progress=False)
+    assert seen == [0.5]  # the paper's cut by default
+    with pytest.raises(ValueError, match="binarize"):
+        AttackConfig(binarize="gumbel")

@@ -17,6 +17,7 @@ from davis_rig.attack.texture import (
     hard_binarize,
     linear_alpha,
     random_texture,
+    sampled_thresholds,
     step_alpha,
     upsample_grid,
     white_texture,
@@ -158,6 +159,31 @@ def test_ste_does_not_mutate_and_validates():
     with pytest.raises(TypeError):
         binarize_ste(np.array([0.1, 0.9]), 1.0)
     assert hard_binarize(U).tolist() == [0, 0, 0, 1, 1, 1]
+
+
+def test_ste_with_per_cell_cuts_rounds_each_cell_at_its_cut_and_keeps_the_identity_backward():
+    cuts = torch.tensor([0.0, 0.1, 0.9, 0.5, 0.7, 0.999], dtype=torch.float64)
+    hard = torch.tensor([0, 1, 0, 1, 0, 1], dtype=torch.float64)  # u > cut, strictly
+    assert torch.equal(binarize_ste(U, 1.0, cuts), hard)
+    assert torch.equal(binarize_ste(U, 0.25, cuts), 0.25 * hard + 0.75 * U)
+    u = U.clone().requires_grad_(True)
+    g = torch.tensor([1.0, -2.0, 3.0, 0.5, -0.25, 7.0], dtype=torch.float64)
+    binarize_ste(u, 1.0, cuts).backward(g)
+    assert torch.equal(u.grad, g)
+    with pytest.raises(ValueError, match="shaped like u"):
+        binarize_ste(U, 1.0, torch.zeros(3, dtype=torch.float64))
+
+
+def test_sampled_cuts_make_each_cell_white_with_probability_u():
+    a, b = sampled_thresholds((4, 5), seed=7), sampled_thresholds((4, 5), seed=7)
+    assert a.shape == (4, 5) and a.dtype == torch.float32 and torch.equal(a, b)
+    assert not torch.equal(a, sampled_thresholds((4, 5), seed=8))
+    assert float(a.min()) >= 0.0 and float(a.max()) < 1.0
+    u = torch.tensor([0.0, 0.1, 0.5, 0.8, 1.0])
+    draws = torch.stack([binarize_ste(u, 1.0, sampled_thresholds((5,), seed=s)) for s in range(4000)])
+    share = draws.mean(dim=0)
+    assert share[0] == 0.0 and share[-1] == 1.0  # u = 0 never white, u = 1 always
+    assert torch.allclose(share[1:4], u[1:4], atol=0.03)  # binomial sd <= 0.008 at 4000 draws
 
 
 # ------------------------------------------------------------------ schedules
