@@ -55,9 +55,9 @@ def test_heading_anchors_follow_githubs_rule():
 def test_a_broken_link_is_found(tmp_path):
     (tmp_path / "b.md").write_text("# Against the RVT-T default (2026-11-25)\n")
     doc = tmp_path / "a.md"
-    doc.write_text("[ok](b.md#against-the-rvt-t-default-2026-11-25) [old](b.md#against-the-rvt-t-default-session-8) "
+    doc.write_text("[ok](b.md#against-the-rvt-t-default-2026-11-25) [old](b.md#against-the-rvt-t-default-renamed) "
                    "[gone](c.md) [web](https://example.org/x#y)\n")
-    assert broken_links(doc) == ["b.md#against-the-rvt-t-default-session-8 (no such heading)", "c.md (no such file)"]
+    assert broken_links(doc) == ["b.md#against-the-rvt-t-default-renamed (no such heading)", "c.md (no such file)"]
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=[str(d.relative_to(ROOT)) for d in DOCS])
