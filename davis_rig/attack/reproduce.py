@@ -157,7 +157,9 @@ def _budget_markdown(attack: AttackConfig, eval_config: EvalConfig, records: dic
              f"- detector: `{detector_name}`" if detector_name else "- detector: (not named)",
              f"- optimize: {attack.iterations} iterations, Adam lr {attack.lr:g}, {attack.clips_per_step} clip(s) per "
              f"step, pool {attack.pool_size} (refresh {attack.refresh_fraction:g} every {attack.refresh_every}), "
-             f"alpha schedule {attack.alpha_schedule}, V2E gradient {attack.v2e_gradient}, anchors "
+             f"alpha schedule {attack.alpha_schedule}"
+             + (" (hard part sampled, Bernoulli(u) per cell and step)" if attack.binarize == "sample" else "")
+             + f", V2E gradient {attack.v2e_gradient}, anchors "
              + ("all (paper)" if attack.box_margin_px is None else f"within {attack.box_margin_px:g} px of the box")
              + f", loss reduction {attack.loss_reduction}"
              + f", best of validation every {attack.validate_every} steps on {attack.num_validation_clips} clips"

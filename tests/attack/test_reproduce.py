@@ -53,3 +53,12 @@ def test_reproduce_table1_optimizes_then_evaluates_and_resumes(tmp_path, one_tor
     again = reproduce_table(1, detector, tmp_path, attack=attack, eval_config=scenes, grids=(4,))
     assert again["runs"][key]["steps_this_call"] == 0 and again["runs"][key]["seconds_per_step"] is None
     assert [r["AP"] for r in again["rows"]] == [r["AP"] for r in res["rows"]]
+
+
+def test_the_budget_note_names_a_sampled_binarization():
+    from davis_rig.attack.reproduce import _budget_markdown
+
+    paper = _budget_markdown(AttackConfig(), EvalConfig(), {}, None)
+    sampled = _budget_markdown(AttackConfig(binarize="sample"), EvalConfig(), {}, None)
+    assert "alpha schedule linear, V2E gradient" in paper and "sampled" not in paper
+    assert "alpha schedule linear (hard part sampled, Bernoulli(u) per cell and step), V2E gradient" in sampled
