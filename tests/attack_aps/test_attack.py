@@ -76,7 +76,7 @@ def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
     assert steps == [1, 2, 3]
     # a checkpoint written before the loss and probe settings existed resumes as their defaults
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    for key in ("loss", "temperature", "scale_draw", "probe_every", "probe_clips", "lr_schedule", "lr_min"):
+    for key in ("loss", "temperature", "scale_draw", "probe_every", "probe_clips", "lr_schedule", "lr_min", "binarize"):
         del state["config"][key]
     torch.save(state, tmp_path / "checkpoint.pt")
     optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 4}), yolo, tmp_path, resume=True)
@@ -84,10 +84,11 @@ def test_attack_writes_texture_and_log_and_resumes(tiny_yolo, tmp_path):
         optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "grid_n": 5}), yolo, tmp_path, resume=True)
 
 
-def test_an_interrupted_run_resumed_repeats_the_uninterrupted_runs_steps_exactly(tiny_yolo, tmp_path):
+@pytest.mark.parametrize("binarize", ["threshold", "sample"])
+def test_an_interrupted_run_resumed_repeats_the_uninterrupted_runs_steps_exactly(tiny_yolo, tmp_path, binarize):
     yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
     config = ApsAttackConfig(grid_n=4, iterations=4, frames_per_step=1, scales=("small",), pool_size=1,
-                             checkpoint_every=2, alpha_schedule="hard", lr=0.05)
+                             checkpoint_every=2, alpha_schedule="hard", lr=0.05, binarize=binarize)
     whole = optimize_aps_texture(config, yolo, tmp_path / "whole")
     optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "iterations": 2}), yolo, tmp_path / "parts")
     torch.manual_seed(123)  # whatever ran in between (another run, a new process) must not matter
@@ -139,6 +140,34 @@ def test_attack_logs_the_hard_probe(tiny_yolo, tmp_path):
         assert 0.0 < r["probe_top_score"] < 1.0 and set(r["probe_by_scale"]) == {"small"}
     with pytest.raises(ValueError, match="loss must be"):
         ApsAttackConfig(loss="max")
+
+
+def test_sampled_binarization_draws_each_steps_cuts(tiny_yolo, tmp_path, monkeypatch):
+    import davis_rig.attack.texture as texture_module
+    from davis_rig.attack.step import binarization_threshold
+
+    cuts = []
+    real = texture_module.binarize_ste
+
+    def recording(u, alpha=1.0, threshold=0.5):
+        cuts.append((u.detach().clone(), threshold))
+        return real(u, alpha, threshold)
+
+    monkeypatch.setattr(texture_module, "binarize_ste", recording)
+    yolo = TorchYolo(tiny_yolo, PinholeCamera.davis346().hw)
+    config = ApsAttackConfig(grid_n=4, iterations=3, frames_per_step=1, scales=("small",), pool_size=1,
+                             alpha_schedule="hard", binarize="sample", seed=5)
+    optimize_aps_texture(config, yolo, tmp_path / "sample")
+    assert len(cuts) == 3
+    for step, (soft, cut) in enumerate(cuts):
+        assert isinstance(cut, torch.Tensor) and cut.shape == (4, 4)
+        torch.testing.assert_close(cut, binarization_threshold("sample", 5, step, soft), rtol=0, atol=0)
+    assert not torch.equal(cuts[0][1], cuts[1][1]) and not torch.equal(cuts[1][1], cuts[2][1])
+    cuts.clear()
+    optimize_aps_texture(ApsAttackConfig(**{**config.__dict__, "binarize": "threshold"}), yolo, tmp_path / "cut")
+    assert [cut for _, cut in cuts] == [0.5, 0.5, 0.5]
+    with pytest.raises(ValueError, match="binarize"):
+        ApsAttackConfig(binarize="round")
 
 
 def test_cosine_schedule_sets_each_steps_rate(tiny_yolo, tmp_path):
