@@ -210,7 +210,8 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
     After every generation ``state.json`` holds what the next one needs (the probabilities, the random states of
     the grids and the clip draws, the best so far, the settings): ``resume=True`` continues from it and scores the
     same grids on the same clips as a run that was never stopped. ``settings.generations`` and ``validate_every``
-    may change on resume, nothing else.
+    may change on resume, nothing else; a resume that names no ``start_grid`` continues around the run's own (and
+    with its ``start_confidence``).
 
     Args:
         config: :class:`~davis_rig.attack.config.AttackConfig` (grid size, parts, EoT, seed, validation).
@@ -224,7 +225,7 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
         reference: float [n, n], a known grid (a planted trigger) each generation's mode is compared with
             (``agreement``: the share of searched cells where they agree); never shown to the search.
         start_grid: float [n, n] black/white grid the search starts around (:func:`start_probabilities`;
-            ``None``: P(white) = 0.5 everywhere).
+            ``None``: P(white) = 0.5 everywhere; on resume, ``None`` means the run's own start, as saved).
         start_confidence: P(a draw keeps the start grid's colour), in [0.5, 1).
         resume: continue the run in ``out`` (a new run when it holds none); ``False`` refuses a folder that holds
             one.
@@ -261,6 +262,8 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
     if not 0.5 <= start_confidence < 1.0:
         raise ValueError(f"start_confidence must be in [0.5, 1), got {start_confidence}")
     out = Path(out)
+    if resume and start_grid is None:
+        start_grid, start_confidence = _saved_start(out, start_confidence)
     run_key = {"config": config.to_dict(), "pool_clips": pool_clips, "clips_per_grid": clips_per_grid,
                "motions": len(motions), "start_confidence": start_confidence if start_grid is not None else None,
                "start_grid": None if start_grid is None else (np.asarray(start_grid) > 0.5).astype(int).tolist(),
@@ -369,6 +372,19 @@ def _write_json_atomic(path: Path, obj) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(obj))
     os.replace(tmp, path)
+
+
+def _saved_start(out: Path, start_confidence: float) -> tuple[np.ndarray | None, float]:
+    """The start grid and confidence saved in ``out``'s state (``(None, start_confidence)``: a run without a start,
+    or no readable state, which :func:`_resumed_state` then judges)."""
+    try:
+        state = json.loads((out / STATE_FILE).read_text())
+        grid, confidence = state["start_grid"], state["start_confidence"]
+    except (OSError, ValueError, TypeError, KeyError):
+        return None, start_confidence
+    if grid is None or not isinstance(confidence, float):
+        return None, start_confidence
+    return np.asarray(grid, dtype=np.float32), confidence
 
 
 def _resumed_state(out: Path, resume: bool, run_key: dict) -> dict | None:

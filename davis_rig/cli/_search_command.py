@@ -30,7 +30,8 @@ RUN_DIR gets log.jsonl (a record per generation), probabilities.npy, texture.npy
 best_texture.npy/png + best.json (the best validated), search.json, run.json and state.json. Ctrl-C or SIGTERM
 abandons the generation under way and exits 130; --resume then continues after the last finished generation,
 scoring the same grids on the same clips as a run that was never stopped (--generations and --validate-every may
-change, nothing else). Score the textures with `davis-attack evaluate --texture NAME=PATH`.
+change, nothing else; a run started with --start continues around its own start grid when --start is left out).
+Score the textures with `davis-attack evaluate --texture NAME=PATH`.
 """
 
 
@@ -72,7 +73,8 @@ def add_search_parser(subparsers) -> argparse.ArgumentParser:
                         "agreement); never shown to the search")
     p.add_argument("--resume", action="store_true",
                    help="continue RUN_DIR/state.json after its last finished generation (a clean new run when "
-                        "RUN_DIR holds no run); without it RUN_DIR must not hold a run")
+                        "RUN_DIR holds no run; --start and --start-confidence default to the run's own); without "
+                        "it RUN_DIR must not hold a run")
     p.add_argument("--select-by", choices=["seqasr", "score"], default="seqasr",
                    help="best texture on validation, scored as trained: seqasr (SeqASR, then mean top score; as "
                         "optimize) or score (mean top score alone)")

@@ -272,6 +272,28 @@ def test_a_search_around_a_start_grid_validates_the_start_first(tmp_path):
     assert set(np.round(p[p != 0.5], 6)) <= {0.1, 0.4, 0.6, 0.9}
 
 
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_search_around_a_start_grid_resumes_around_it_without_naming_it_again(tmp_path):
+    from davis_rig.errors import CheckpointError
+
+    start = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [1, 0, 1, 0], [0, 1, 0, 1]], np.float32)
+    kwargs = dict(pool_clips=2, clips_per_grid=1, validate_every=1)
+    whole = _search(tmp_path / "whole", SearchSettings(generations=2, population=2, elite=1), start_grid=start,
+                    start_confidence=0.8, **kwargs)
+    _search(tmp_path / "parts", SearchSettings(generations=1, population=2, elite=1), start_grid=start,
+            start_confidence=0.8, **kwargs)
+    resumed = _search(tmp_path / "parts", SearchSettings(generations=2, population=2, elite=1), resume=True, **kwargs)
+    assert resumed["best"] == whole["best"]
+    assert _without_seconds(_log(tmp_path / "parts")) == _without_seconds(_log(tmp_path / "whole"))
+    with pytest.raises(CheckpointError, match=r"other settings \(start_grid\)"):  # another start is still refused
+        _search(tmp_path / "parts", SearchSettings(generations=3, population=2, elite=1), resume=True,
+                start_grid=1 - start, start_confidence=0.8, **kwargs)
+    # a run without a start resumes as one: nothing is taken from a state that has none
+    _search(tmp_path / "plain", SearchSettings(generations=1, population=2, elite=1), **kwargs)
+    plain = _search(tmp_path / "plain", SearchSettings(generations=2, population=2, elite=1), resume=True, **kwargs)
+    assert plain["generations"] == 2 and [r["generation"] for r in _log(tmp_path / "plain")] == [1, 2]
+
+
 def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
     from davis_rig.attack.config import AttackConfig
     from davis_rig.attack.search import search_texture
