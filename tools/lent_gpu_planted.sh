@@ -8,8 +8,9 @@
 #      trigger lowest; else the largest gap random - trigger) is attacked by the paper's recipe from three seeds
 #      at once, without knowledge of the trigger, each stopped (SIGTERM: checkpoint, best texture kept) before the
 #      time runs out.
-# Everything it prints goes to $OUT/log.txt; the run folders (both victims' weights, probes, logs and textures;
-# no checkpoints) come back as results.tgz in parts of 15 MiB: cat results.tgz.part_* | tar xz.
+# Everything it prints goes to $OUT/log.txt; the run folders (both victims' weights, probes, logs and textures; the
+# recoveries' checkpoints/last.pt, so that `davis-attack optimize --resume` continues them on another machine; not
+# the victims' training state) come back as results.tgz in parts of 15 MiB: cat results.tgz.part_* | tar xz.
 #
 # Usage (repository root): bash tools/lent_gpu_planted.sh [TOTAL_SECONDS]   (default 560)
 # A dry run on a CPU machine:
@@ -93,7 +94,7 @@ done
 
 # ---- what comes back
 echo "$VICTIM" > $W/chosen_victim.txt
-find $W -name "*.pt" -delete
+find $W -name "*.pt" ! -path "$W/recover_*/checkpoints/*" -delete  # the recoveries' run state is small
 tar czf /tmp/results.tgz -C "$(dirname $W)" "$(basename $W)"
 split -b 15M /tmp/results.tgz "$OUT/results.tgz.part_"
 ls -la "$OUT"
