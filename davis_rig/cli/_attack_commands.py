@@ -212,7 +212,10 @@ def _budget_args(p: argparse.ArgumentParser) -> None:
 SCENES = ("toolkit", "official")
 
 
-def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
+def scene_kind_args(p: argparse.ArgumentParser) -> None:
+    """``--scene``, ``--events``, ``--walk`` and ``--playback-speed``: the kind of scene and event model a command
+    renders, scores (and trains on); shared by ``optimize``, ``evaluate``, ``reproduce``, ``search`` and the
+    controls tool."""
     p.add_argument("--scene", choices=SCENES, default="toolkit",
                    help="toolkit (default): grey background, walking across, and for training the toolkit's EoT "
                         "(lights, backgrounds, placement, sensor noise); official: the official code's renders "
@@ -234,7 +237,7 @@ def _scene_kind_arg(p: argparse.ArgumentParser) -> None:
 
 def _scene_args(p: argparse.ArgumentParser) -> None:
     """The test scenes and thresholds shared by ``evaluate`` and ``reproduce``."""
-    _scene_kind_arg(p)
+    scene_kind_args(p)
     add_threshold(p, aliases=("--thresholds",),
                   help="confidence threshold (default: 0.001, 0.01, 0.1, 0.25 for Table 1 and named textures, "
                        "0.25 for Table 2)")
@@ -274,7 +277,7 @@ def add_optimize_parser(subparsers) -> argparse.ArgumentParser:
                    help="painted body parts: torso, arms, legs, head, hands, feet (default: torso arms legs); "
                         "'all' = whole body without mask")
     _budget_args(p)
-    _scene_kind_arg(p)
+    scene_kind_args(p)
     p.add_argument("--max-steps", type=positive_int, default=None,
                    help="stop after N steps in this call (then --resume)")
     p.add_argument("--resume", action="store_true",

@@ -37,7 +37,7 @@ Score the textures with `davis-attack evaluate --texture NAME=PATH`.
 
 def add_search_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``search`` on the ``davis-attack`` subparsers; the action is stored as ``func``."""
-    from davis_rig.cli._attack_commands import _cells, _common_run_args, _scene_kind_arg
+    from davis_rig.cli._attack_commands import _cells, _common_run_args, scene_kind_args
 
     p = subparsers.add_parser("search", help="gradient-free texture search (cross-entropy method, resumable)",
                               description="Search black/white grids against a frozen RVT without the gradient: the "
@@ -81,7 +81,7 @@ def add_search_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--test-sensor-probability", type=probability, default=0.5, metavar="P",
                    help="share of the search and validation clips whose sensor is the evaluation's ideal one "
                         "(default 0.5, as optimize)")
-    _scene_kind_arg(p)
+    scene_kind_args(p)
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the grids, the clips and the validation")
     _common_run_args(p)
     p.set_defaults(func=search_command, check=_check_search)

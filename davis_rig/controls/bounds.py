@@ -25,7 +25,9 @@ appearance change can reach on those scenes, the bound an optimized texture is m
 
 Optimisation: Adam on logits (albedo = sigmoid), the event counts' forward value exact (the ideal sensor's
 quantized counts) and their gradient the relaxed counts' ``relu(±ΔL / θ)`` (as ``davis-attack``'s default
-``--v2e-gradient relaxed``), loss :func:`hinge_loss`.
+``--v2e-gradient relaxed``), loss :func:`hinge_loss`. With ``events="official_relaxed"`` (the official code's
+event model, :class:`~davis_rig.attack.evaluate.EvalConfig` ``events``) the relaxed counts are both the value and
+the gradient, and the scoring runs on them too.
 """
 
 from __future__ import annotations
@@ -71,6 +73,9 @@ class BoundConfig:
             whole visible body.
         theta: contrast threshold of the relaxed counts' gradient (log units; the evaluation's ideal sensor: 0.2).
         kinds: the free appearances to optimise (a subset of :data:`BOUND_KINDS`, in that order).
+        events: the event model optimised and scored (:data:`~davis_rig.attack.scoring.EVENT_MODELS`): ``"exact"``
+            (default: exact counts, relaxed gradient) or ``"official_relaxed"`` (the official code's continuous
+            counts, value and gradient); it must be the evaluation config's.
     """
 
     steps: int = 100
@@ -80,8 +85,11 @@ class BoundConfig:
     parts: tuple[str, ...] | None = ("torso", "arms", "legs")
     theta: float = 0.2
     kinds: tuple[str, ...] = BOUND_KINDS
+    events: str = "exact"
 
     def __post_init__(self) -> None:
+        from davis_rig.attack.scoring import EVENT_MODELS
+
         if int(self.steps) < 0 or not self.lr > 0 or not 0 < self.threshold < 1 or int(self.grid_n) < 1:
             raise ValueError(f"need steps >= 0, lr > 0, 0 < threshold < 1, grid_n >= 1; got {self}")
         if not self.theta > 0:
@@ -89,6 +97,8 @@ class BoundConfig:
         unknown = [k for k in self.kinds if k not in BOUND_KINDS]
         if unknown or len(set(self.kinds)) != len(self.kinds):
             raise ValueError(f"kinds must be distinct names from {BOUND_KINDS}, got {self.kinds}")
+        if self.events not in EVENT_MODELS:
+            raise ValueError(f"events must be one of {EVENT_MODELS}, got {self.events!r}")
 
 
 def fingerprint_textures(grid_n: int = 10, parts: tuple[str, ...] | None = ("torso", "arms", "legs"),
@@ -189,11 +199,17 @@ def _appearance(scene, kind: str, config: BoundConfig, mask):
 
 
 def _scene_hinge(video: torch.Tensor, scene, detector, config: BoundConfig) -> torch.Tensor:
-    """:func:`hinge_loss` of a scene's video [T, H, W]: its windows' counts (exact value, relaxed gradient) through
-    the detector with its recurrent states, as the evaluation runs them."""
+    """:func:`hinge_loss` of a scene's video [T, H, W]: its windows' counts (``config.events``: exact value and
+    relaxed gradient, or the official relaxed counts) through the detector with its recurrent states, as the
+    evaluation runs them."""
+    from davis_rig.events.v2e_torch import v2e_histograms
     from davis_rig.models.rvt.detector import pad_to_input
 
-    hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
+    if config.events == "official_relaxed":  # as the evaluation's window_histograms, with its gradient
+        hist = v2e_histograms(video.to(torch.float32), scene.t_us, scene.window_end_us, mode="official_relaxed",
+                              threshold_on=config.theta, threshold_off=config.theta)
+    else:
+        hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
     decoded, states = [], None
     for k in range(hist.shape[0]):
         out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
@@ -308,6 +324,13 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
     config = config or BoundConfig()
     if int(eval_config.warmup_windows) != 0:
         raise ValueError("the free-appearance bound scores scenes without warm-up windows (warmup_windows = 0)")
+    if config.events != eval_config.events:
+        raise ValueError(f"the bound optimises {config.events!r} events and the evaluation scores "
+                         f"{eval_config.events!r}: give both the same event model")
+    if config.events == "official_relaxed" and not (
+            config.theta == eval_config.simulator.threshold_on == eval_config.simulator.threshold_off):
+        raise ValueError(f"official_relaxed events need the bound's theta ({config.theta}) equal to the simulator's "
+                         f"thresholds ({eval_config.simulator.threshold_on}, {eval_config.simulator.threshold_off})")
     baselines = baselines if baselines is not None else {"white": TextureSpec(white_texture(1), config.parts),
                               "black": TextureSpec(black_texture(1), config.parts)}
     detector = detector.eval()
@@ -329,7 +352,7 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
             else:
                 video = optimise_appearance(scene, detector, name, config, mask)
             dec, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, eval_config.simulator,
-                                    window_us=eval_config.window_us)
+                                    events=eval_config.events, window_us=eval_config.window_us)
             decoded[name].append(dec)
             record[name] = round(float(np.mean([(d[:, 4] * d[:, 6]).max() for d in dec])), 4)
         per_scene.append(record)

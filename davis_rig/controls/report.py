@@ -105,8 +105,7 @@ def victim_controls(detector, out_dir, *, name: str, eval_config, bound_config: 
     bound_config = bound_config or BoundConfig()
     out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
     report = {**_provenance(name, detector_name, command),
-              "eval_config": {"scales": list(map(str, eval_config.scales)), "headings_rad": list(eval_config.headings_rad),
-                              "phases": list(eval_config.phases), "thresholds": list(eval_config.thresholds)}}
+              "eval_config": _eval_config_record(eval_config)}
     if fingerprint:
         report["fingerprint"] = _fingerprint_section(detector, out, specs, model, eval_config, bound_config, say)
     if bound:
@@ -273,7 +272,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         kept.with_suffix(".tmp.npy").replace(kept)
     fit_s = time.perf_counter() - t0
     n = config.grid_n
-    textures = {"white": TextureSpec(white_texture(1), config.parts), "black": TextureSpec(black_texture(1), config.parts)}
+    textures = {"white": TextureSpec(white_texture(1), config.parts),
+                "black": TextureSpec(black_texture(1), config.parts)}
     if binary:
         textures[f"shared binary-fitted {n}x{n}"] = TextureSpec(hard_binarize(grey), config.parts)
     else:
@@ -283,6 +283,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
               "config": {"grid_n": n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
                          "threshold": config.threshold, "theta": config.theta, "binary": bool(binary),
                          "fit_shapes": fit_shapes},
+              "eval_config": _eval_config_record(eval_config),
               "fitted_scenes": fitted, "held_out_scenes": held_out, "fit_seconds_this_call": fit_s,
               "white_cells": float(hard_binarize(grey).mean())}
     for key, indices in (("fitted", fitted), ("held_out", held_out)):
@@ -294,7 +295,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         report[key] = {"rows": rows, "markdown": results_markdown(rows, eval_config.thresholds)}
     (out / f"shared_{name}.json").write_text(json.dumps(report, indent=1))
     lines = [f"# One shared grey texture: `{name}`", "", f"Detector: {detector_name}. Measured {report['measured']} "
-             f"on {report['machine']}.", ""]
+             f"on {report['machine']}. " + _protocol_line(report["eval_config"]), ""]
     if command:
         lines += ["```bash", command, "```", ""]
     what = ("black/white (straight-through gradient)" if binary else "grey")
@@ -323,7 +324,8 @@ def _shared_fit_record(config: BoundConfig, binary: bool, detector_name: str, fi
         "grid_n": config.grid_n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
         "threshold": config.threshold, "theta": config.theta, "binary": bool(binary), "detector": detector_name,
         "scenes": [[str(scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]
-                   for scale, spec in fitted_specs]}))
+                   for scale, spec in fitted_specs],
+        **({} if config.events == "exact" else {"events": config.events})}))
 
 
 def _kept_shared_texture(kept: Path, fit: dict) -> np.ndarray:
@@ -366,16 +368,41 @@ def _provenance(name: str, detector_name: str, command: str) -> dict:
             "machine": f"{platform.machine()}, {platform.node()}"}
 
 
+def _eval_config_record(eval_config) -> dict:
+    """The evaluation protocol of a report, as JSON values: its scenes (scales, headings, phases, walk, background,
+    walking in place), event model and thresholds."""
+    return {"scales": list(map(str, eval_config.scales)), "headings_rad": list(eval_config.headings_rad),
+            "phases": list(eval_config.phases), "thresholds": list(eval_config.thresholds),
+            "walk": eval_config.walk, "background": float(eval_config.background),
+            "walk_in_place": bool(eval_config.walk_in_place), "events": eval_config.events}
+
+
+def _protocol_line(record: dict) -> str:
+    """One sentence naming a report's scenes and event model (reports written before these fields: the toolkit's
+    scene and exact events, which were then the only ones)."""
+    events = record.get("events", "exact")
+    if record.get("walk_in_place") and record.get("background") == 1.0:
+        scene = "the official code's scene (blank white background, its light, walking in place)"
+    else:
+        scene = f"the toolkit's scene (grey {record.get('background', 0.5):g} background, walking across)"
+    what = ("the official code's relaxed counts (continuous, not events)" if events == "official_relaxed"
+            else "exact events (ideal sensor)")
+    return f"Scenes: {scene}, the {record.get('walk', 'natural')} walk; scored on {what}."
+
+
 def _bound_settings(config: BoundConfig) -> dict:
-    """What a kept bound part depends on besides its scene: every :class:`BoundConfig` field but ``kinds``."""
-    return {"steps": int(config.steps), "lr": float(config.lr), "threshold": float(config.threshold),
-            "grid_n": int(config.grid_n), "parts": None if config.parts is None else list(config.parts),
-            "theta": float(config.theta)}
+    """What a kept bound part depends on besides its scene: every :class:`BoundConfig` field but ``kinds`` (the
+    event model only when not the default exact one, so that parts kept before it was a field still match)."""
+    settings = {"steps": int(config.steps), "lr": float(config.lr), "threshold": float(config.threshold),
+                "grid_n": int(config.grid_n), "parts": None if config.parts is None else list(config.parts),
+                "theta": float(config.theta)}
+    return settings if config.events == "exact" else {**settings, "events": config.events}
 
 
 def _markdown(report: dict) -> str:
     lines = [f"# Controls of the victim `{report['name']}`", "",
-             f"Detector: {report['detector']}. Measured {report['measured']} on {report['machine']}.", ""]
+             f"Detector: {report['detector']}. Measured {report['measured']} on {report['machine']}. "
+             + _protocol_line(report.get("eval_config", {})), ""]
     if report["command"]:
         lines += ["```bash", report["command"], "```", ""]
     if "fingerprint" in report:
@@ -398,6 +425,8 @@ def _markdown(report: dict) -> str:
                                        "parts, the same in every frame"}
         shown = [r["appearance"] for r in b["rows"] if r["appearance"] in meaning]
         if shown:
+            scored = ("on the official relaxed counts" if report.get("eval_config", {}).get("events") ==
+                      "official_relaxed" else "with the exact simulator")
             lines += ["", "; ".join(f"{k}: {meaning[k]}" for k in shown)
-                      + "; each optimised per scene, scored with the exact simulator.", ""]
+                      + f"; each optimised per scene, scored {scored}.", ""]
     return "\n".join(lines)

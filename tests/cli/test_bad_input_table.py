@@ -432,6 +432,8 @@ ROWS = [
         "argument --fit-shapes: only with --shared"),
     Row("tools/victim_controls.py", "unknown name", ["--name", "x", "--out", "{out}", "--scales", "huge"], 2,
         "argument --scales: expected large, middle, small or a height in px > 0, got 'huge'"),
+    Row("tools/victim_controls.py", "unknown name", ["--name", "x", "--out", "{out}", "--events", "relaxed"], 2,
+        "argument --events: invalid choice: 'relaxed'"),
 ]
 
 #: Stand-ins that also create output folders before the Ctrl-C (a half-made run, dataset or pattern folder).

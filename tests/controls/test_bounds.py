@@ -4,6 +4,7 @@ the free-appearance bound on a tiny detector."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_sce
 from davis_rig.controls.bounds import (BoundConfig, fingerprint_textures, free_appearance_bound, hinge_loss,
                                        relaxed_event_histograms)
 from davis_rig.models.rvt.checkpoint import load_detector
+from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.scene.body import BodyModel
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "rvt_mini_fixture.safetensors"
@@ -95,3 +97,54 @@ def test_bound_config_kinds_are_checked():
         BoundConfig(kinds=("static texture", "static texture"))
     with pytest.raises(ValueError, match="kinds"):
         BoundConfig(kinds=("per-frame",))
+
+
+def test_bound_config_events_are_checked():
+    assert BoundConfig().events == "exact"
+    with pytest.raises(ValueError, match="events"):
+        BoundConfig(events="relaxed")
+
+
+def test_official_relaxed_hinge_runs_on_the_evaluations_relaxed_counts_with_their_gradient():
+    from davis_rig.controls.bounds import _appearance, _scene_hinge
+
+    config = EvalConfig(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1,
+                        events="official_relaxed")
+    detector = load_detector(FIXTURE).eval()
+    model = BodyModel()
+    scene = prepare_scenes(evaluation_scenes(config, model.num_shapes), model, config)[0]
+    bound = BoundConfig(grid_n=4, events="official_relaxed")
+    logits, render = _appearance(scene, "static texture", bound, None)
+    video = render(logits)
+    seen = []
+    original = detector.forward
+    detector.forward = lambda x, states=None: seen.append(x.detach().clone()) or original(x, states)
+    loss = _scene_hinge(video, scene, detector, replace(bound, threshold=0.01))
+    # the detector saw exactly the evaluation's inputs: the relaxed counts window_histograms scores
+    scored = window_histograms(video.detach(), scene.t_us, scene.window_end_us, config.simulator, config.events)
+    assert scored.dtype == np.float32 and not np.array_equal(scored, np.round(scored))  # continuous, not events
+    for k, x in enumerate(seen):
+        expected = pad_to_input(torch.from_numpy(scored[k : k + 1]), detector.config.in_res_hw)
+        assert torch.equal(x, expected)
+    loss.backward()
+    assert float(loss.detach()) > 0 and logits.grad.abs().sum() > 0
+
+
+def test_the_bound_refuses_an_event_model_other_than_the_evaluations():
+    config = replace(TINY, events="official_relaxed")
+    with pytest.raises(ValueError, match="same event model"):
+        free_appearance_bound([], None, config, BoundConfig())
+    with pytest.raises(ValueError, match="theta"):
+        free_appearance_bound([], None, config, BoundConfig(events="official_relaxed", theta=0.3))
+
+
+def test_free_appearance_bound_scores_official_relaxed_counts_when_asked():
+    config = replace(TINY, events="official_relaxed", thresholds=(0.25,))
+    detector = load_detector(FIXTURE)
+    model = BodyModel()
+    scenes = prepare_scenes(evaluation_scenes(config, model.num_shapes), model, config)
+    res = free_appearance_bound(scenes, detector, config, BoundConfig(steps=0, grid_n=4, kinds=("per-pixel",),
+                                                                      events="official_relaxed"))
+    exact = free_appearance_bound(scenes, detector, TINY, BoundConfig(steps=0, grid_n=4, kinds=("per-pixel",)))
+    # white scored on the relaxed counts is another detection than on exact events
+    assert res["per_scene"][0]["white"] != exact["per_scene"][0]["white"]

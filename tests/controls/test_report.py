@@ -138,3 +138,21 @@ def test_shared_texture_control_can_fit_the_black_and_white_texture_itself(tmp_p
     assert [r["texture"] for r in report["fitted"]["rows"] if r["scale"] == "all"] == [
         "white", "black", "shared binary-fitted 4x4"]
     assert "held_out" not in report and not (tmp_path / "shared_texture.npy").exists()
+
+
+def test_victim_controls_in_the_official_scene_on_relaxed_counts(tmp_path):
+    config = EvalConfig.official(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,),
+                                 supersample=1, thresholds=(0.25,), events="official_relaxed")
+    detector = load_detector(FIXTURE)
+    kwargs = dict(name="tiny", eval_config=config, scenes_per_scale=1, fingerprint=False)
+    report = victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=4, kinds=("per-pixel",),
+                                                                          events="official_relaxed"), **kwargs)
+    assert report["eval_config"]["events"] == "official_relaxed" and report["eval_config"]["background"] == 1.0
+    text = (tmp_path / "controls_tiny.md").read_text()
+    assert "the official code's scene" in text and "scored on the official relaxed counts" in text
+    # a part kept from relaxed counts is not reused for exact events
+    with pytest.raises(ValueError, match="other bound settings"):
+        victim_controls(detector, tmp_path, bound_config=BoundConfig(steps=1, grid_n=4, kinds=("per-pixel",)),
+                        **{**kwargs, "eval_config": EvalConfig.official(
+                            scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,),
+                            supersample=1, thresholds=(0.25,))})
