@@ -30,6 +30,7 @@ __all__ = [
     "detect_histograms",
     "detect_windows",
     "score_detections",
+    "relaxed_window_histograms",
     "window_histograms",
 ]
 
@@ -39,6 +40,33 @@ __all__ = [
 EVENT_MODELS = ("exact", "official_relaxed")
 #: How tables name the event models.
 EVENT_MODEL_NAMES = {"exact": "exact simulator", "official_relaxed": "official code's relaxed counts, not events"}
+
+
+def relaxed_window_histograms(video: torch.Tensor, t_us, window_end_us, simulator: SimulatorConfig | None = None,
+                              window_us: int = WINDOW_US) -> torch.Tensor:
+    """The official code's continuous counts of a video: float32 [W, 20, H, W], differentiable in ``video``.
+
+    The one definition of the ``"official_relaxed"`` event model: what :func:`window_histograms` scores (without
+    the gradient) and what the free-appearance bound (:mod:`davis_rig.controls.bounds`) optimises, so the two
+    cannot drift apart. :func:`~davis_rig.events.v2e_torch.v2e_histograms` in mode ``"official_relaxed"`` with the
+    simulator's θ_on (= θ_off), intensity scale and lin-log knee.
+
+    Args:
+        video: float tensor [T, H, W], linear intensity in [0, 1] (on the device the counts are computed on).
+        t_us: int64 [T] frame times (µs).
+        window_end_us: int64 [W] window ends (µs).
+        simulator: sensor settings (default the ideal sensor, θ = 0.2).
+        window_us: window duration (µs; RVT: 50 ms).
+
+    Raises:
+        ValueError: θ_on ≠ θ_off (the official counts have one threshold).
+    """
+    from davis_rig.events.v2e_torch import v2e_histograms
+
+    simulator = simulator or SimulatorConfig()
+    return v2e_histograms(video, t_us, window_end_us, mode="official_relaxed", window_us=int(window_us),
+                          threshold_on=float(simulator.threshold_on), threshold_off=float(simulator.threshold_off),
+                          intensity_scale=simulator.intensity_scale, lin_log_threshold=simulator.lin_log_threshold)
 
 
 def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | None = None, events: str = "exact",
@@ -59,8 +87,6 @@ def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | N
     Raises:
         ValueError: unknown ``events``, or unequal thresholds with ``"official_relaxed"``.
     """
-    from davis_rig.events.v2e_torch import v2e_histograms
-
     simulator = simulator or SimulatorConfig()
     video = video.detach() if isinstance(video, torch.Tensor) else torch.as_tensor(np.asarray(video))
     if events == "exact":
@@ -70,12 +96,8 @@ def window_histograms(video, t_us, window_end_us, simulator: SimulatorConfig | N
     if events != "official_relaxed":
         raise ValueError(f"events must be one of {EVENT_MODELS}, got {events!r}")
     with torch.no_grad():
-        hist = v2e_histograms(video.to(device=device, dtype=torch.float32), t_us, window_end_us,
-                              mode="official_relaxed", window_us=int(window_us),
-                              threshold_on=float(simulator.threshold_on),
-                              threshold_off=float(simulator.threshold_off),
-                              intensity_scale=simulator.intensity_scale,
-                              lin_log_threshold=simulator.lin_log_threshold)
+        hist = relaxed_window_histograms(video.to(device=device, dtype=torch.float32), t_us, window_end_us,
+                                         simulator, window_us=window_us)
     return hist.cpu().numpy()
 
 

@@ -48,6 +48,7 @@ __all__ = [
     "BOUND_KINDS",
     "BoundConfig",
     "bound_rows",
+    "check_event_model",
     "fingerprint_textures",
     "free_appearance_bound",
     "hinge_loss",
@@ -198,18 +199,40 @@ def _appearance(scene, kind: str, config: BoundConfig, mask):
     return logits, render
 
 
-def _scene_hinge(video: torch.Tensor, scene, detector, config: BoundConfig) -> torch.Tensor:
-    """:func:`hinge_loss` of a scene's video [T, H, W]: its windows' counts (``config.events``: exact value and
-    relaxed gradient, or the official relaxed counts) through the detector with its recurrent states, as the
-    evaluation runs them."""
-    from davis_rig.events.v2e_torch import v2e_histograms
+def check_event_model(config: BoundConfig, eval_config) -> None:
+    """Refuse a bound that would optimise other counts than ``eval_config`` scores.
+
+    Raises:
+        ValueError: ``config.events`` differs from ``eval_config.events``, or with ``"official_relaxed"`` the
+            bound's θ differs from the simulator's thresholds.
+    """
+    if config.events != eval_config.events:
+        raise ValueError(f"the bound optimises {config.events!r} events and the evaluation scores "
+                         f"{eval_config.events!r}: give both the same event model")
+    if config.events == "official_relaxed" and not (
+            config.theta == eval_config.simulator.threshold_on == eval_config.simulator.threshold_off):
+        raise ValueError(f"official_relaxed events need the bound's theta ({config.theta}) equal to the simulator's "
+                         f"thresholds ({eval_config.simulator.threshold_on}, {eval_config.simulator.threshold_off})")
+
+
+def _scene_hinge(video: torch.Tensor, scene, detector, config: BoundConfig, eval_config=None) -> torch.Tensor:
+    """:func:`hinge_loss` of a scene's video [T, H, W]: its windows' counts through the detector with its recurrent
+    states. ``config.events``: exact value and relaxed gradient, or the official relaxed counts exactly as the
+    evaluation scores them (:func:`~davis_rig.attack.scoring.relaxed_window_histograms`). The counts follow
+    ``eval_config``'s simulator and window (default: the ideal sensor at ``config.theta``, RVT's 50 ms)."""
+    from davis_rig.attack.scoring import relaxed_window_histograms
+    from davis_rig.events.histogram import WINDOW_US
+    from davis_rig.events.simulator import SimulatorConfig
     from davis_rig.models.rvt.detector import pad_to_input
 
-    if config.events == "official_relaxed":  # as the evaluation's window_histograms, with its gradient
-        hist = v2e_histograms(video.to(torch.float32), scene.t_us, scene.window_end_us, mode="official_relaxed",
-                              threshold_on=config.theta, threshold_off=config.theta)
+    window_us = WINDOW_US if eval_config is None else int(eval_config.window_us)
+    if config.events == "official_relaxed":
+        simulator = (SimulatorConfig(threshold_on=config.theta, threshold_off=config.theta) if eval_config is None
+                     else eval_config.simulator)
+        hist = relaxed_window_histograms(video.to(torch.float32), scene.t_us, scene.window_end_us, simulator,
+                                         window_us=window_us)
     else:
-        hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta)
+        hist = relaxed_event_histograms(video, scene.t_us, scene.window_end_us, config.theta, window_us=window_us)
     decoded, states = [], None
     for k in range(hist.shape[0]):
         out, states = detector(pad_to_input(hist[k : k + 1], detector.config.in_res_hw), states)
@@ -217,7 +240,8 @@ def _scene_hinge(video: torch.Tensor, scene, detector, config: BoundConfig) -> t
     return hinge_loss(decoded, config.threshold)
 
 
-def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None) -> torch.Tensor:
+def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=None, *,
+                        eval_config=None) -> torch.Tensor:
     """The free appearance of one scene after ``config.steps`` Adam steps: its video, float tensor [T, H, W].
 
     Args:
@@ -226,16 +250,20 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
         kind: one of :data:`BOUND_KINDS`.
         config: the settings.
         mask: bool [1024, 1024] paintable texels of the textures (``None``: whole body).
+        eval_config: the :class:`~davis_rig.attack.evaluate.EvalConfig` that scores the result: the counts follow
+            its simulator and window (default: the ideal sensor at ``config.theta``, 50 ms windows).
 
     Returns:
         The video of the appearance with the lowest loss seen (no grad).
     """
+    if eval_config is not None:
+        check_event_model(config, eval_config)
     logits, render = _appearance(scene, kind, config, mask)
     optimizer = torch.optim.Adam([logits], lr=config.lr)
     best, best_loss = None, float("inf")
     for _ in range(int(config.steps) + 1):
         video = render(logits)
-        loss = _scene_hinge(video, scene, detector, config)
+        loss = _scene_hinge(video, scene, detector, config, eval_config)
         value = float(loss.detach())
         if value < best_loss:
             best_loss, best = value, video.detach()
@@ -248,7 +276,7 @@ def optimise_appearance(scene, detector, kind: str, config: BoundConfig, mask=No
 
 
 def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mask=None, *,
-                            binary: bool = False) -> np.ndarray:
+                            binary: bool = False, eval_config=None) -> np.ndarray:
     """One free grey ``config.grid_n`` x ``config.grid_n`` texture for all ``scenes`` at once (a print must fit
     every scene it is worn in): Adam on its logits, the sum over scenes of :func:`hinge_loss`, the bound's
     exact-value / relaxed-gradient counts.
@@ -264,6 +292,8 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
         mask: bool [1024, 1024] paintable texels (``None``: whole body).
         binary: optimise the black/white texture itself (``[sigmoid(z) > 0.5]`` forward, the straight-through
             gradient of :func:`~davis_rig.attack.texture.binarize_ste` backward), as the paper's texture must be.
+        eval_config: the evaluation config whose simulator and window the counts follow (as
+            :func:`optimise_appearance`).
 
     Returns:
         float32 [n, n] (1 = white): in (0, 1), or of 0/1 with ``binary``; the texture of the lowest total loss seen.
@@ -272,6 +302,8 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
 
     if not scenes:
         raise ValueError("need at least one scene")
+    if eval_config is not None:
+        check_event_model(config, eval_config)
     lookups = [scene.raster.lookup(size=1024, mode="nearest", grid_n=int(config.grid_n), mask=mask)
                for scene in scenes]
     logits = torch.zeros(config.grid_n, config.grid_n, dtype=scenes[0].raster.shade.dtype, requires_grad=True)
@@ -287,7 +319,7 @@ def optimise_shared_texture(scenes: Sequence, detector, config: BoundConfig, mas
         for scene, lookup in zip(scenes, lookups):  # one scene's graph at a time: memory of one scene
             background = scene.background.to(scene.raster.shade.dtype)
             video = scene.raster.compose(lookup.sample(texture_of(logits), fill=1.0), background)
-            loss = _scene_hinge(video, scene, detector, config)
+            loss = _scene_hinge(video, scene, detector, config, eval_config)
             total += float(loss.detach())
             loss.backward()
         if total < best_loss:
@@ -324,13 +356,7 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
     config = config or BoundConfig()
     if int(eval_config.warmup_windows) != 0:
         raise ValueError("the free-appearance bound scores scenes without warm-up windows (warmup_windows = 0)")
-    if config.events != eval_config.events:
-        raise ValueError(f"the bound optimises {config.events!r} events and the evaluation scores "
-                         f"{eval_config.events!r}: give both the same event model")
-    if config.events == "official_relaxed" and not (
-            config.theta == eval_config.simulator.threshold_on == eval_config.simulator.threshold_off):
-        raise ValueError(f"official_relaxed events need the bound's theta ({config.theta}) equal to the simulator's "
-                         f"thresholds ({eval_config.simulator.threshold_on}, {eval_config.simulator.threshold_off})")
+    check_event_model(config, eval_config)
     baselines = baselines if baselines is not None else {"white": TextureSpec(white_texture(1), config.parts),
                               "black": TextureSpec(black_texture(1), config.parts)}
     detector = detector.eval()
@@ -350,7 +376,7 @@ def free_appearance_bound(scenes: Sequence, detector, eval_config, config: Bound
                 with torch.no_grad():
                     video = texture_video(scene, baselines[name], masks)
             else:
-                video = optimise_appearance(scene, detector, name, config, mask)
+                video = optimise_appearance(scene, detector, name, config, mask, eval_config=eval_config)
             dec, _ = detect_windows(detector, video, scene.t_us, scene.window_end_us, eval_config.simulator,
                                     events=eval_config.events, window_us=eval_config.window_us)
             decoded[name].append(dec)

@@ -227,7 +227,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         out_dir: folder of ``shared_texture.npy``, ``shared_<name>.json`` / ``.md``.
         name: file stem and title.
         eval_config: :class:`~davis_rig.attack.evaluate.EvalConfig` (the protocol and its thresholds).
-        bound_config: the optimisation (``grid_n``, ``parts``, ``steps``, ``lr``, ``threshold``, ``theta``).
+        bound_config: the optimisation (``grid_n``, ``parts``, ``steps``, ``lr``, ``threshold``, ``theta``,
+            ``events``: the evaluation's event model).
         scenes_per_scale: fitted scenes per scale.
         fit_shapes: instead of ``scenes_per_scale``: fit every scene of the first ``fit_shapes`` test bodies
             (:func:`shape_split_indices`), so that the held-out scenes show other people.
@@ -242,16 +243,19 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
 
     Raises:
         ConfigError: (field ``out_dir``) ``out_dir`` keeps a texture of another fit, or one without its record.
+        ValueError: the bound's event model is not the evaluation's
+            (:func:`~davis_rig.controls.bounds.check_event_model`).
     """
     import time
 
     from davis_rig.attack.evaluate import TextureSpec, evaluate_textures, prepare_scenes
     from davis_rig.attack.report import results_markdown
     from davis_rig.attack.texture import black_texture, hard_binarize, white_texture
-    from davis_rig.controls.bounds import optimise_shared_texture
+    from davis_rig.controls.bounds import check_event_model, optimise_shared_texture
     from davis_rig.scene.masks import part_mask
 
     config = bound_config or BoundConfig()
+    check_event_model(config, eval_config)
     out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
     fitted = (bound_scene_indices([str(s) for s, _ in specs], scenes_per_scale) if fit_shapes is None
               else shape_split_indices([spec.shape_index for _, spec in specs], fit_shapes))
@@ -266,7 +270,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
         say(f"fitting one {config.grid_n}x{config.grid_n} {'black/white' if binary else 'grey'} texture to "
             f"{len(scenes)} scenes, {config.steps} steps")
         mask = part_mask(config.parts) if config.parts is not None else None
-        grey = optimise_shared_texture(scenes, detector, config, mask, binary=binary)
+        grey = optimise_shared_texture(scenes, detector, config, mask, binary=binary, eval_config=eval_config)
         kept.with_suffix(".json").write_text(json.dumps(fit, indent=1) + "\n")
         np.save(kept.with_suffix(".tmp.npy"), grey)
         kept.with_suffix(".tmp.npy").replace(kept)

@@ -12,8 +12,9 @@ import pytest
 import torch
 
 from davis_rig.attack.evaluate import EvalConfig, evaluation_scenes, prepare_scenes, window_histograms
+from davis_rig.events.simulator import SimulatorConfig
 from davis_rig.controls.bounds import (BoundConfig, fingerprint_textures, free_appearance_bound, hinge_loss,
-                                       relaxed_event_histograms)
+                                       optimise_appearance, optimise_shared_texture, relaxed_event_histograms)
 from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.models.rvt.detector import pad_to_input
 from davis_rig.scene.body import BodyModel
@@ -105,11 +106,15 @@ def test_bound_config_events_are_checked():
         BoundConfig(events="relaxed")
 
 
-def test_official_relaxed_hinge_runs_on_the_evaluations_relaxed_counts_with_their_gradient():
+OTHER_SENSOR = SimulatorConfig(intensity_scale=100.0, lin_log_threshold=4.0)  # another 8-bit scale and lin-log knee
+
+
+@pytest.mark.parametrize("simulator", [SimulatorConfig(), OTHER_SENSOR], ids=["ideal", "other_scale_and_knee"])
+def test_official_relaxed_hinge_runs_on_the_evaluations_relaxed_counts_with_their_gradient(simulator):
     from davis_rig.controls.bounds import _appearance, _scene_hinge
 
     config = EvalConfig(scales=("small",), shapes=(1,), headings_rad=(math.pi / 2,), phases=(0.0,), supersample=1,
-                        events="official_relaxed")
+                        events="official_relaxed", simulator=simulator)
     detector = load_detector(FIXTURE).eval()
     model = BodyModel()
     scene = prepare_scenes(evaluation_scenes(config, model.num_shapes), model, config)[0]
@@ -119,15 +124,27 @@ def test_official_relaxed_hinge_runs_on_the_evaluations_relaxed_counts_with_thei
     seen = []
     original = detector.forward
     detector.forward = lambda x, states=None: seen.append(x.detach().clone()) or original(x, states)
-    loss = _scene_hinge(video, scene, detector, replace(bound, threshold=0.01))
-    # the detector saw exactly the evaluation's inputs: the relaxed counts window_histograms scores
+    loss = _scene_hinge(video, scene, detector, replace(bound, threshold=0.01), config)
+    # the detector saw exactly the evaluation's inputs: the relaxed counts window_histograms scores, with the
+    # evaluation's sensor (a hinge on the default sensor differs from the second case's counts)
     scored = window_histograms(video.detach(), scene.t_us, scene.window_end_us, config.simulator, config.events)
     assert scored.dtype == np.float32 and not np.array_equal(scored, np.round(scored))  # continuous, not events
+    assert len(seen) == scored.shape[0]
     for k, x in enumerate(seen):
         expected = pad_to_input(torch.from_numpy(scored[k : k + 1]), detector.config.in_res_hw)
         assert torch.equal(x, expected)
     loss.backward()
     assert float(loss.detach()) > 0 and logits.grad.abs().sum() > 0
+
+
+def test_the_relaxed_counts_depend_on_the_sensor_the_hinge_is_given():
+    t_us = np.arange(21, dtype=np.int64) * 5_000  # 200 Hz frames, two 50 ms windows
+    video = torch.full((21, 8, 8), 0.02, dtype=torch.float32)  # dark: inside the lin-log knees
+    video[1::2] *= 0.5  # flicker: every frame change crosses thresholds
+    ends = np.array([50_000, 100_000], dtype=np.int64)
+    ideal = window_histograms(video, t_us, ends, SimulatorConfig(), "official_relaxed")
+    other = window_histograms(video, t_us, ends, OTHER_SENSOR, "official_relaxed")
+    assert ideal.sum() > 0 and not np.array_equal(ideal, other)  # so the parametrized test above can fail
 
 
 def test_the_bound_refuses_an_event_model_other_than_the_evaluations():
@@ -136,6 +153,11 @@ def test_the_bound_refuses_an_event_model_other_than_the_evaluations():
         free_appearance_bound([], None, config, BoundConfig())
     with pytest.raises(ValueError, match="theta"):
         free_appearance_bound([], None, config, BoundConfig(events="official_relaxed", theta=0.3))
+    scene = prepare_scenes(evaluation_scenes(TINY, BodyModel().num_shapes), BodyModel(), TINY)[0]
+    for optimise in (lambda: optimise_appearance(scene, None, "per-pixel", BoundConfig(), eval_config=config),
+                     lambda: optimise_shared_texture([scene], None, BoundConfig(), eval_config=config)):
+        with pytest.raises(ValueError, match="same event model"):
+            optimise()
 
 
 def test_free_appearance_bound_scores_official_relaxed_counts_when_asked():
