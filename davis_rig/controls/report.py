@@ -3,7 +3,8 @@
 :func:`victim_controls` runs both on the digital evaluation protocol (:mod:`davis_rig.attack.evaluate`) for one
 detector: the fingerprint on every test scene, the bound on ``scenes_per_scale`` scenes of each scale (the
 optimisation costs ``2 * steps`` detector passes per scene). Each finished part is kept in the output folder
-(``fingerprint.json``, ``bound/scene_XXX.npz``), so an interrupted run continues where it stopped.
+(``fingerprint.json``, ``bound/scene_XXX.npz``) with the detector name, protocol and settings it was made for,
+so an interrupted run continues where it stopped, and a part made for another run is refused, never mixed in.
 
 :func:`shared_texture_control` steps from the per-scene bound towards the attack: one grey texture fitted to the
 bound's scenes together, scored grey and binarized on those scenes and on the others (held out).
@@ -101,36 +102,52 @@ def victim_controls(detector, out_dir, *, name: str, eval_config, bound_config: 
 
     Returns:
         The report dict written to ``controls_<name>.json``.
+
+    Raises:
+        ConfigError: (field ``out_dir``) a kept part of ``out_dir`` was made for another detector name, protocol
+            or bound settings: a rerun continues only the run that made it.
     """
     bound_config = bound_config or BoundConfig()
     out, model, say, specs = _prepare_run(out_dir, model, progress, eval_config)
     report = {**_provenance(name, detector_name, command),
               "eval_config": _eval_config_record(eval_config)}
     if fingerprint:
-        report["fingerprint"] = _fingerprint_section(detector, out, specs, model, eval_config, bound_config, say)
+        report["fingerprint"] = _fingerprint_section(detector, out, specs, model, eval_config, bound_config,
+                                                     detector_name, say)
     if bound:
         report["bound"] = _bound_section(detector, out / "bound", specs, model, eval_config, bound_config,
-                                         scenes_per_scale, say)
+                                         scenes_per_scale, detector_name, say)
     (out / f"controls_{name}.json").write_text(json.dumps(report, indent=1))
     (out / f"controls_{name}.md").write_text(_markdown(report))
     return report
 
 
 def _fingerprint_section(detector, out: Path, specs, model, eval_config, bound_config: BoundConfig,
-                         say: Callable[[str], None]) -> dict:
-    """The baseline textures scored on every test scene (reuses ``out/fingerprint.json`` when present)."""
+                         detector_name: str, say: Callable[[str], None]) -> dict:
+    """The baseline textures scored on every test scene (reuses ``out/fingerprint.json`` when it was scored for
+    the same detector name, textures and protocol; refuses one scored otherwise)."""
     from davis_rig.attack.evaluate import evaluate_textures, prepare_scenes
     from davis_rig.attack.report import results_markdown
 
     done = out / "fingerprint.json"
+    made_for = json.loads(json.dumps({"detector": detector_name, "grid_n": int(bound_config.grid_n),
+                                      "parts": bound_config.parts,
+                                      "protocol": {**_scene_protocol(eval_config),
+                                                   "thresholds": list(eval_config.thresholds)}}))
     if done.is_file():
-        rows = json.loads(done.read_text())
+        kept = json.loads(done.read_text())
+        if not isinstance(kept, dict) or kept.get("made_for") != made_for:
+            raise ConfigError("out_dir", f"{done} was scored for another detector, textures or protocol (or before "
+                                         f"they were recorded): give another output folder, or delete it to score "
+                                         "again")
+        rows = kept["rows"]
     else:
         scenes = prepare_scenes(specs, model, eval_config)
         say(f"fingerprint: {len(scenes)} scenes x {len(fingerprint_textures(bound_config.grid_n))} textures")
         rows = evaluate_textures(fingerprint_textures(bound_config.grid_n, bound_config.parts), detector, scenes,
                                  eval_config)
-        done.write_text(json.dumps(rows, indent=1))
+        done.with_suffix(".tmp").write_text(json.dumps({"made_for": made_for, "rows": rows}, indent=1))
+        done.with_suffix(".tmp").replace(done)
     at = max(eval_config.thresholds)
     ap = {r["texture"]: r["AP"] for r in rows if r["scale"] == "all" and math.isclose(r["threshold"], at)}
     return {"rows": rows, "threshold": at, "paper_fingerprint": paper_fingerprint(ap),
@@ -138,7 +155,7 @@ def _fingerprint_section(detector, out: Path, specs, model, eval_config, bound_c
 
 
 def _bound_section(detector, folder: Path, specs, model, eval_config, bound_config: BoundConfig,
-                   scenes_per_scale: int, say: Callable[[str], None]) -> dict:
+                   scenes_per_scale: int, detector_name: str, say: Callable[[str], None]) -> dict:
     """The free-appearance bound on ``scenes_per_scale`` scenes per scale, one resumable part file per scene."""
     import time
 
@@ -153,7 +170,7 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
     for k, index in enumerate(keep):
         scene = prepare_scenes([specs[index]], model, eval_config)[0]
         record, scene_decoded = _bound_of_scene(folder / f"scene_{index:03d}.npz", scene, detector, eval_config,
-                                                bound_config, names)
+                                                bound_config, names, detector_name)
         for n in names:
             decoded[n].append(scene_decoded[n])
         record["scene"] = index
@@ -170,10 +187,11 @@ def _bound_section(detector, folder: Path, specs, model, eval_config, bound_conf
 
 
 def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: BoundConfig,
-                    names: list[str]) -> tuple[dict, dict]:
+                    names: list[str], detector_name: str = "") -> tuple[dict, dict]:
     """One scene's bound: the appearances of ``names`` not yet in ``part`` are computed and saved to it (atomically,
     beside those already there); returns the scene's record and, per appearance name, its decoded detections per
-    window."""
+    window. A part is extended or reused only when it was made with the same bound settings, detector name, scene
+    and protocol (:func:`_scene_protocol`)."""
     from dataclasses import replace
 
     from davis_rig.attack.evaluate import TextureSpec
@@ -181,15 +199,17 @@ def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: Boun
     from davis_rig.controls.bounds import free_appearance_bound
 
     windows = range(len(scene.window_end_us))
-    settings = _bound_settings(bound_config)
+    settings = {**_bound_settings(bound_config), "detector": detector_name, "protocol": _scene_protocol(eval_config),
+                "scene": _scene_key(scene)}
     record, decoded = {}, {}
     if part.is_file():
         with np.load(part) as data:
             record = json.loads(str(data["record"]))
             decoded = {n: [data[f"{n}__{w}"] for w in windows] for n in record if f"{n}__0" in data}
         if record.get("settings") != settings:
-            raise ValueError(f"{part} was made with other bound settings ({record.get('settings')}, now {settings}): "
-                             f"give another output folder, or delete {part.parent} to start over")
+            differ = _differing_fields(settings, record.get("settings") or {})
+            raise ConfigError("out_dir", f"{part} was made with other bound settings (other {', '.join(differ)}): "
+                                         f"give another output folder, or delete {part.parent} to start over")
     missing = [n for n in names if n not in decoded]
     if missing:
         plain = {"white": white_texture(1), "black": black_texture(1)}
@@ -262,7 +282,8 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
     kept = out / ("shared_texture_binary.npy" if binary else "shared_texture.npy")
-    fit = _shared_fit_record(config, binary, detector_name, [specs[i] for i in fitted])
+    fit = {**_shared_fit_record(config, binary, detector_name, [specs[i] for i in fitted]),
+           "protocol": _scene_protocol(eval_config)}
     if kept.is_file():
         grey = _kept_shared_texture(kept, fit)
     else:
@@ -344,7 +365,7 @@ def _kept_shared_texture(kept: Path, fit: dict) -> np.ndarray:
         raise ConfigError("out_dir", f"{kept} has no {record_path.name} saying what it was fitted to: give another "
                                      "output folder, or remove it to fit again")
     record = json.loads(record_path.read_text())
-    differ = sorted(k for k in fit.keys() | record.keys() if fit.get(k) != record.get(k))
+    differ = _differing_fields(fit, record)
     if differ:
         raise ConfigError("out_dir", f"{kept} was fitted with other {', '.join(differ)} than this call's: give "
                                      "another output folder, or remove it to fit again")
@@ -372,26 +393,79 @@ def _provenance(name: str, detector_name: str, command: str) -> dict:
             "machine": f"{platform.machine()}, {platform.node()}"}
 
 
+def _light_name(light) -> str:
+    """``"official"`` (:meth:`~davis_rig.scene.shading.Light.official`), ``"toolkit"`` (``None``: the default
+    light) or the light's fields."""
+    from davis_rig.scene.shading import Light
+
+    if light is None or light == Light():
+        return "toolkit"
+    return "official" if light == Light.official() else repr(light)
+
+
 def _eval_config_record(eval_config) -> dict:
     """The evaluation protocol of a report, as JSON values: its scenes (scales, headings, phases, walk, background,
-    walking in place), event model and thresholds."""
+    light, walking in place, playback speed), event model and thresholds."""
     return {"scales": list(map(str, eval_config.scales)), "headings_rad": list(eval_config.headings_rad),
             "phases": list(eval_config.phases), "thresholds": list(eval_config.thresholds),
             "walk": eval_config.walk, "background": float(eval_config.background),
-            "walk_in_place": bool(eval_config.walk_in_place), "events": eval_config.events}
+            "light": _light_name(eval_config.light), "walk_in_place": bool(eval_config.walk_in_place),
+            "playback_speed": float(eval_config.playback_speed), "events": eval_config.events}
+
+
+def _scene_protocol(eval_config) -> dict:
+    """Everything a kept part's detections depend on besides the detector and the bound's settings, as JSON
+    values: the protocol record without its thresholds (they only score), plus the scene list, sequence, rendering,
+    NMS and simulator settings. A kept part is reused only under an equal record."""
+    from dataclasses import asdict
+
+    record = {k: v for k, v in _eval_config_record(eval_config).items() if k != "thresholds"}
+    record.update(shapes=None if eval_config.shapes is None else list(eval_config.shapes),
+                  seq_len=int(eval_config.seq_len), window_us=int(eval_config.window_us),
+                  warmup_windows=int(eval_config.warmup_windows), nms_threshold=float(eval_config.nms_threshold),
+                  render_rate_hz=float(eval_config.render_rate_hz), supersample=int(eval_config.supersample),
+                  simulator=asdict(eval_config.simulator))
+    return json.loads(json.dumps(record))
 
 
 def _protocol_line(record: dict) -> str:
-    """One sentence naming a report's scenes and event model (reports written before these fields: the toolkit's
-    scene and exact events, which were then the only ones)."""
+    """One sentence naming a report's scenes and event model, from the fields of its protocol record; the
+    official code's scene is named only when its background, light and walking in place all are (reports written
+    before the light was recorded name it from the other two; before any of these fields: the toolkit's scene and
+    exact events, which were then the only ones)."""
     events = record.get("events", "exact")
-    if record.get("walk_in_place") and record.get("background") == 1.0:
+    background, light = record.get("background", 0.5), record.get("light")
+    in_place = bool(record.get("walk_in_place"))
+    if in_place and background == 1.0 and light in ("official", None):
         scene = "the official code's scene (blank white background, its light, walking in place)"
+    elif not in_place and background == 0.5 and light in ("toolkit", None):
+        scene = "the toolkit's scene (grey 0.5 background, walking across)"
     else:
-        scene = f"the toolkit's scene (grey {record.get('background', 0.5):g} background, walking across)"
+        scene = (f"a scene of background {background:g}, the {light or 'toolkit'} light, "
+                 f"walking {'in place' if in_place else 'across'}")
+    speed = record.get("playback_speed", 1.0)
+    scene += "" if speed == 1.0 else f", played {speed:g}x"
     what = ("the official code's relaxed counts (continuous, not events)" if events == "official_relaxed"
             else "exact events (ideal sensor)")
     return f"Scenes: {scene}, the {record.get('walk', 'natural')} walk; scored on {what}."
+
+
+def _differing_fields(a: dict, b: dict) -> list[str]:
+    """Sorted names of the fields where two records differ; in a field both hold as a record, the names of its
+    own differing fields (``protocol`` -> ``walk``, ``background``)."""
+    names = set()
+    for key in a.keys() | b.keys():
+        if isinstance(a.get(key), dict) and isinstance(b.get(key), dict):
+            names.update(_differing_fields(a[key], b[key]))
+        elif a.get(key) != b.get(key):
+            names.add(key)
+    return sorted(names)
+
+
+def _scene_key(scene) -> list:
+    """A scene as ``[scale, body shape, heading (rad), walk phase (s)]`` (JSON values)."""
+    spec = scene.spec
+    return json.loads(json.dumps([str(scene.scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]))
 
 
 def _bound_settings(config: BoundConfig) -> dict:

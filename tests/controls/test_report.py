@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import math
 from pathlib import Path
 
@@ -46,6 +47,17 @@ def test_victim_controls_writes_the_report_and_resumes(tmp_path):
     again = victim_controls(detector, tmp_path, **kwargs)  # from the kept parts
     assert json.dumps(again["bound"]["rows"]) == json.dumps(report["bound"]["rows"])
     assert json.dumps(again["fingerprint"]["rows"]) == json.dumps(report["fingerprint"]["rows"])  # NaN-safe
+    # kept parts are reused only for the detector and protocol that made them
+    with pytest.raises(ValueError, match="fingerprint.json was scored for another detector"):
+        victim_controls(detector, tmp_path, **kwargs, detector_name="another.safetensors")
+    official = EvalConfig.official(scales=("small",), shapes=(1, 5), headings_rad=(math.pi / 2,), phases=(0.0,),
+                                   supersample=1, thresholds=(0.25,))
+    with pytest.raises(ValueError, match="fingerprint.json was scored for another"):
+        victim_controls(detector, tmp_path, **{**kwargs, "eval_config": official})
+    with pytest.raises(ValueError, match=r"other bound settings \(other background, light, walk_in_place\)"):
+        victim_controls(detector, tmp_path, **{**kwargs, "eval_config": official}, fingerprint=False)
+    with pytest.raises(ValueError, match=r"other bound settings \(other detector\)"):
+        victim_controls(detector, tmp_path, **kwargs, detector_name="another.safetensors", fingerprint=False)
 
 
 def test_a_bound_part_gains_the_kinds_it_lacks_and_keeps_the_rest(tmp_path, monkeypatch):
@@ -97,6 +109,8 @@ def test_shared_texture_control_fits_one_texture_and_scores_it_fitted_and_held_o
         shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=2, grid_n=5)})
     with pytest.raises(ConfigError, match="other scenes than"):
         shared_texture_control(detector, tmp_path, **{**kwargs, "scenes_per_scale": 2})
+    with pytest.raises(ConfigError, match="other walk than"):
+        shared_texture_control(detector, tmp_path, **{**kwargs, "eval_config": replace(config, walk="bundled")})
     with pytest.raises(ConfigError, match="other detector, steps than"):
         shared_texture_control(detector, tmp_path, **{**kwargs, "bound_config": BoundConfig(steps=3, grid_n=4),
                                                       "detector_name": "another.ckpt"})
