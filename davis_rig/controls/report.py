@@ -199,8 +199,7 @@ def _bound_of_scene(part: Path, scene, detector, eval_config, bound_config: Boun
     from davis_rig.controls.bounds import free_appearance_bound
 
     windows = range(len(scene.window_end_us))
-    settings = {**_bound_settings(bound_config), "detector": detector_name, "protocol": _scene_protocol(eval_config),
-                "scene": _scene_key(scene)}
+    settings = _bound_settings(bound_config, detector_name, eval_config, scene)
     record, decoded = {}, {}
     if part.is_file():
         with np.load(part) as data:
@@ -282,8 +281,7 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     held_out = [i for i in range(len(specs)) if i not in fitted]
     t0 = time.perf_counter()
     kept = out / ("shared_texture_binary.npy" if binary else "shared_texture.npy")
-    fit = {**_shared_fit_record(config, binary, detector_name, [specs[i] for i in fitted]),
-           "protocol": _scene_protocol(eval_config)}
+    fit = _shared_fit_record(config, binary, detector_name, eval_config, [specs[i] for i in fitted])
     if kept.is_file():
         grey = _kept_shared_texture(kept, fit)
     else:
@@ -342,15 +340,14 @@ def shared_texture_control(detector, out_dir, *, name: str, eval_config, bound_c
     return report
 
 
-def _shared_fit_record(config: BoundConfig, binary: bool, detector_name: str, fitted_specs) -> dict:
-    """What a shared texture was fitted to, as JSON values: the optimisation's settings, the detector's name and
-    every fitted scene as ``[scale, body shape, heading (rad), walk phase (s)]``."""
+def _shared_fit_record(config: BoundConfig, binary: bool, detector_name: str, eval_config, fitted_specs) -> dict:
+    """What a shared texture was fitted to, as JSON values: the optimisation's settings, the detector's name, the
+    scene protocol (:func:`_scene_protocol`, with the event model) and every fitted scene (:func:`_scene_key`)."""
     return json.loads(json.dumps({
         "grid_n": config.grid_n, "parts": config.parts, "steps": config.steps, "lr": config.lr,
         "threshold": config.threshold, "theta": config.theta, "binary": bool(binary), "detector": detector_name,
-        "scenes": [[str(scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]
-                   for scale, spec in fitted_specs],
-        **({} if config.events == "exact" else {"events": config.events})}))
+        "scenes": [_scene_key(scale, spec) for scale, spec in fitted_specs],
+        "protocol": _scene_protocol(eval_config)}))
 
 
 def _kept_shared_texture(kept: Path, fit: dict) -> np.ndarray:
@@ -462,19 +459,18 @@ def _differing_fields(a: dict, b: dict) -> list[str]:
     return sorted(names)
 
 
-def _scene_key(scene) -> list:
+def _scene_key(scale, spec) -> list:
     """A scene as ``[scale, body shape, heading (rad), walk phase (s)]`` (JSON values)."""
-    spec = scene.spec
-    return json.loads(json.dumps([str(scene.scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]))
+    return json.loads(json.dumps([str(scale), spec.shape_index, spec.heading_rad, spec.motion_start_s]))
 
 
-def _bound_settings(config: BoundConfig) -> dict:
-    """What a kept bound part depends on besides its scene: every :class:`BoundConfig` field but ``kinds`` (the
-    event model only when not the default exact one, so that parts kept before it was a field still match)."""
-    settings = {"steps": int(config.steps), "lr": float(config.lr), "threshold": float(config.threshold),
-                "grid_n": int(config.grid_n), "parts": None if config.parts is None else list(config.parts),
-                "theta": float(config.theta)}
-    return settings if config.events == "exact" else {**settings, "events": config.events}
+def _bound_settings(config: BoundConfig, detector_name: str, eval_config, scene) -> dict:
+    """What a kept bound part depends on: every :class:`BoundConfig` field but ``kinds`` (its event model is in the
+    protocol), the detector name, the scene protocol (:func:`_scene_protocol`) and the scene."""
+    return {"steps": int(config.steps), "lr": float(config.lr), "threshold": float(config.threshold),
+            "grid_n": int(config.grid_n), "parts": None if config.parts is None else list(config.parts),
+            "theta": float(config.theta), "detector": detector_name, "protocol": _scene_protocol(eval_config),
+            "scene": _scene_key(scene.scale, scene.spec)}
 
 
 def _markdown(report: dict) -> str:
