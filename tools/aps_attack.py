@@ -74,6 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scales", type=camera_scale, nargs="+", default=["large", "middle", "small"],
                         metavar="SCALE", help="one EoT pool per entry: large, middle, small or a person height in "
                                               "px; repeat a scale to draw it more often (default large middle small)")
+    parser.add_argument("--across-view", type=probability, default=0.0, metavar="P",
+                        help="share of the EoT clips that walk across the view (heading within 30 degrees of +-90, "
+                             "the held-out scenes' default headings), the rest at any heading (default 0: every "
+                             "heading alike)")
     parser.add_argument("--probe-every", type=non_negative_int, default=10,
                         help="steps between scores of the hard texture on a fixed probe (default 10; 0: none)")
     parser.add_argument("--validate-every", type=non_negative_int, default=0, metavar="N",
@@ -153,7 +157,7 @@ def _run(args: argparse.Namespace) -> int:
         eot_shapes = tuple(s for s in split_shapes(body.num_shapes)[0] if s not in val_shapes)
     config = ApsAttackConfig(grid_n=args.cells, shapes=eot_shapes, parts=parts, iterations=args.iterations,
                              lr=args.lr, lr_schedule=args.lr_schedule, frames_per_step=args.frames_per_step,
-                             scales=tuple(args.scales),
+                             scales=tuple(args.scales), across_view_probability=args.across_view,
                              pool_size=args.pool_size, refresh_every=args.refresh_every, conf=args.threshold,
                              alpha_schedule=args.alpha_schedule, binarize=args.binarize, loss=args.loss,
                              temperature=args.temperature,
@@ -195,7 +199,7 @@ def _run(args: argparse.Namespace) -> int:
               "attack": {"grid_n": args.cells, "parts": parts, "iterations": args.iterations, "lr": args.lr,
                          "lr_schedule": args.lr_schedule,
                          "frames_per_step": args.frames_per_step, "pool_size_per_scale": args.pool_size,
-                         "scales": list(args.scales),
+                         "scales": list(args.scales), "across_view_probability": args.across_view,
                          "refresh_every": args.refresh_every, "loss": args.loss,
                          "alpha_schedule": args.alpha_schedule, "binarize": args.binarize,
                          "scale_draw": args.scale_draw,

@@ -106,6 +106,11 @@ class EoTConfig:
     Attributes:
         shapes: body shapes to draw from; ``None`` = the training split of :func:`split_shapes`.
         heading_range_rad: heading uniform in this range (0 = towards the camera, pi/2 = walking right).
+        across_view_probability: chance that a clip walks across the view instead: its heading uniform within
+            ``across_view_spread_rad`` of +pi/2 or -pi/2 (either side, equally likely), the direction of the
+            paper's physical test and of the evaluation's default headings; 0 (default) = ``heading_range_rad``
+            alone.
+        across_view_spread_rad: half-width of the across-view headings around +-pi/2 (rad).
         advance_probability: chance that the walk moves forward (else walks in place, as the official code).
         walk: the walk of the clips without a training motion (:data:`~davis_rig.scene.scene.WALKS`):
             ``"natural"`` (default, the gait generator's 1.3 m/s) or ``"bundled"`` (the asset's cycle).
@@ -135,6 +140,8 @@ class EoTConfig:
 
     shapes: tuple[int, ...] | None = None
     heading_range_rad: tuple[float, float] = (0.0, 2.0 * math.pi)
+    across_view_probability: float = 0.0
+    across_view_spread_rad: float = math.pi / 6
     advance_probability: float = 0.5
     walk: str = "natural"
     scale: str | float = TRAIN_SCALE
@@ -185,7 +192,7 @@ class EoTConfig:
         if int(self.seq_len) < 1:
             refuse("seq_len", "expected an integer >= 1")
         for name in ("advance_probability", "random_light_probability", "random_background_probability",
-                     "test_sensor_probability"):
+                     "test_sensor_probability", "across_view_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 refuse(name, "expected a number in [0, 1]")
         lo, hi = self.threshold_range
@@ -198,6 +205,8 @@ class EoTConfig:
             refuse("threshold_sigma", "expected a number >= 0")
         if int(self.window_us) <= 0:
             refuse("window_us", "expected an integer > 0")
+        if not 0.0 <= self.across_view_spread_rad <= math.pi / 2:
+            refuse("across_view_spread_rad", "expected a half-width in [0, pi/2] rad")
         if self.walk not in WALKS:
             refuse("walk", f"expected one of {WALKS}")
         if not (math.isfinite(self.playback_speed) and self.playback_speed > 0):
@@ -317,7 +326,7 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
         length_s = motion.rotations_wxyz.shape[0] / motion.fps_hz
         start_s = float(rng.uniform(0.0, max(0.0, length_s - config.playback_speed * config.duration_s)))
     advance = bool(rng.random() < config.advance_probability)
-    heading = float(rng.uniform(*config.heading_range_rad))
+    heading = _draw_heading(config, rng)
     offset = (float(rng.uniform(-config.offset_x_m, config.offset_x_m)),
               float(rng.uniform(-config.offset_depth_m, config.offset_depth_m)))
     light = "random" if rng.random() < config.random_light_probability else config.light
@@ -344,6 +353,17 @@ def draw_scene(config: EoTConfig, seed: int, num_shapes: int, motions: Sequence[
     if config.test_sensor_probability > 0 and rng.random() < config.test_sensor_probability:
         sensor.update(threshold=TEST_THRESHOLD, threshold_sigma=0.0, noise_rate_hz=0.0, test_sensor=True)
     return spec, sensor
+
+
+def _draw_heading(config: EoTConfig, rng: np.random.Generator) -> float:
+    """A clip's heading (rad): across the view with ``config.across_view_probability`` (uniform within the spread
+    around +-pi/2), else uniform in ``config.heading_range_rad``. With the probability 0 it draws exactly one
+    number from ``rng``, as before the option existed, so earlier seeds give the same clips."""
+    if config.across_view_probability > 0.0 and rng.random() < config.across_view_probability:
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        spread = config.across_view_spread_rad
+        return float(side * math.pi / 2 + rng.uniform(-spread, spread))
+    return float(rng.uniform(*config.heading_range_rad))
 
 
 def prepare_clip(

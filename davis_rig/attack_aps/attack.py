@@ -168,6 +168,9 @@ class ApsAttackConfig:
         lr_min: the floor of the cosine.
         frames_per_step: EoT frames (one per clip) per step.
         scales: camera scales of the pool (names or person heights in px).
+        across_view_probability: share of the EoT clips that walk across the view (heading within 30 degrees of
+            +-90; :attr:`~davis_rig.attack.eot.EoTConfig.across_view_probability`), the rest at any heading; 0
+            (default): every heading alike.
         shapes: body shapes of the EoT clips (``None``: the training split of
             :func:`~davis_rig.attack.eot.split_shapes`; the tool leaves the validation shapes out of it).
         blend_shapes: in-between bodies added to the EoT clips' shapes (0: none): each blends two of ``shapes``
@@ -199,6 +202,7 @@ class ApsAttackConfig:
     lr_min: float = 1e-7
     frames_per_step: int = 2
     scales: tuple = ("large", "middle", "small")
+    across_view_probability: float = 0.0
     shapes: tuple[int, ...] | None = None
     blend_shapes: int = 0
     pool_size: int = 6
@@ -226,6 +230,8 @@ class ApsAttackConfig:
         if not 0 < self.conf < 1 or not self.lr > 0 or not self.temperature > 0 or self.probe_every < 0:
             raise ValueError(f"need 0 < conf < 1, lr > 0, temperature > 0 and probe_every >= 0, got {self.conf}, "
                              f"{self.lr}, {self.temperature}, {self.probe_every}")
+        if not 0.0 <= self.across_view_probability <= 1.0:
+            raise ValueError(f"across_view_probability must be in [0, 1], got {self.across_view_probability}")
         from davis_rig.attack.lr_schedule import LR_SCHEDULES
 
         if self.lr_schedule not in LR_SCHEDULES or not 0 <= self.lr_min < self.lr:
@@ -285,8 +291,9 @@ def aps_pools(config: ApsAttackConfig, body, mask, generations=None, *, probe: b
     camera = PinholeCamera.davis346()
     generations = generations or [None] * len(config.scales)
     size, offset = (config.probe_clips, 1_000_003) if probe else (config.pool_size, 0)
-    return [ClipPool(EoTConfig(camera=camera, scale=s, shapes=config.shapes), body, config.grid_n, mask, size=size,
-                     base_seed=config.seed + offset + 31 * k, generations=gens)
+    return [ClipPool(EoTConfig(camera=camera, scale=s, shapes=config.shapes,
+                               across_view_probability=config.across_view_probability),
+                     body, config.grid_n, mask, size=size, base_seed=config.seed + offset + 31 * k, generations=gens)
             for k, (s, gens) in enumerate(zip(config.scales, generations))]
 
 

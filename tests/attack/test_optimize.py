@@ -15,7 +15,7 @@ from davis_rig.attack.eot import ClipPool, EoTConfig, draw_scene, prepare_clip, 
 from davis_rig.attack.optimize import AttackConfig, load_attack_detector, optimize_texture
 from davis_rig.attack.texture import binarize_ste
 from davis_rig.attack.validation import REFINE_SEED_OFFSET, VAL_SEED_OFFSET, better
-from davis_rig.errors import CheckpointError
+from davis_rig.errors import CheckpointError, ConfigError
 from davis_rig.models.rvt.checkpoint import load_detector
 from davis_rig.scene.body import BodyModel
 
@@ -69,6 +69,25 @@ def test_draw_scene_seeded_and_train_shapes_only():
     assert a.playback_speed == 1.0
     fast, _ = draw_scene(EoTConfig(playback_speed=5 / 3), 7, 24)
     assert fast == replace(a, playback_speed=5 / 3)  # the same draw, the motion played faster
+
+
+def test_across_view_probability_draws_walks_across_the_view():
+    def headings(config):
+        return np.degrees([draw_scene(config, s, 24)[0].heading_rad for s in range(400)])
+
+    def across(deg):  # within 30 degrees of +-90
+        return np.mean(np.abs(np.abs(((deg + 180.0) % 360.0) - 180.0) - 90.0) <= 30.0)
+
+    always = headings(EoTConfig(across_view_probability=1.0))
+    assert np.all(np.abs(np.abs(always) - 90.0) <= 30.0) and 0.4 < np.mean(always > 0) < 0.6  # both sides
+    assert 0.25 < across(headings(EoTConfig())) < 0.42  # uniform headings: a third of them
+    assert 0.58 < across(headings(EoTConfig(across_view_probability=0.5))) < 0.76  # 1/2 + 1/2 * 1/3
+    # off, the draws are those of every earlier run
+    plain = [draw_scene(EoTConfig(), s, 24) for s in range(5)]
+    assert plain == [draw_scene(EoTConfig(across_view_probability=0.0), s, 24) for s in range(5)]
+    for bad in ({"across_view_probability": 1.5}, {"across_view_spread_rad": 2.0}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            EoTConfig(**bad)
 
 
 def test_official_eot_draws_the_official_scene_with_camera_jitter_only(body):

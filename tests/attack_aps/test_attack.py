@@ -242,6 +242,18 @@ def test_pools_draw_only_the_configured_shapes():
     assert {clip.spec.shape_index for clip in pool.clips.values()} <= {2, 6}
 
 
+def test_pools_walk_across_the_view_when_asked():
+    from davis_rig.attack_aps.attack import aps_pools
+    from davis_rig.scene.body import BodyModel
+
+    config = ApsAttackConfig(grid_n=4, scales=("small",), pool_size=6, across_view_probability=1.0)
+    (pool,) = aps_pools(config, BodyModel(), None)
+    degrees = np.degrees([clip.spec.heading_rad for clip in pool.clips.values()])
+    assert np.all(np.abs(np.abs(degrees) - 90.0) <= 30.0)
+    with pytest.raises(ValueError, match="across_view_probability"):
+        ApsAttackConfig(across_view_probability=-0.1)
+
+
 def test_blended_shapes_join_the_clips_shapes():
     from davis_rig.attack_aps.attack import aps_pools, blended_body, shape_blends
     from davis_rig.scene.body import BodyModel
