@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from davis_rig.errors import ConfigError, FormatError, ModelFormatError, SessionError, ShapeError
-from davis_rig.evaluation.windows import event_chunks, label_windows, window_grid
+from davis_rig.evaluation.windows import event_chunks, label_windows, labels_in_span, window_grid
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.metrics.ap import MIN_DIAG_PX, MIN_SIDE_PX, SKIP_FIRST_US
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PAPER_THRESHOLDS, PEDESTRIAN_CLASS_ID, RVT_HW, RVT_NMS_IOU
@@ -191,7 +191,8 @@ def _open_checked(path: Path):
         if reader.num_events == 0:
             raise SessionError(f"{path}: the session has no events to score")
         hw = tuple(reader.frames.data.shape[1:]) if len(reader.frames) else DAVIS346_HW
-        layout = reader.device_info.get("layout", {})
+        layout = reader.device_info.get("layout")
+        layout = layout if isinstance(layout, dict) else {}  # missing, or damaged: the frames' size decides
         cols, rows = layout.get("dvs_size_columns", DAVIS346_HW[1]), layout.get("dvs_size_rows", DAVIS346_HW[0])
         if hw != DAVIS346_HW or (cols, rows) != (DAVIS346_HW[1], DAVIS346_HW[0]):
             raise SessionError(f"{path}: sensor {cols}x{rows}, frames {hw[1]}x{hw[0]} (w x h); expected a DAVIS346 "
@@ -254,8 +255,8 @@ def scoring_crop_origin(path, requested: tuple[int, int] | None, labels_attrs: d
 
     Raises:
         SessionError: ``requested`` differs from the origin the labels were made for, or the stored origin is
-            unreadable.
-        ShapeError: the 304x240 crop at that origin does not fit the DAVIS346 sensor.
+            unreadable or does not fit the sensor.
+        ShapeError: the 304x240 crop at the requested origin does not fit the DAVIS346 sensor.
     """
     from davis_rig.events.crop import center_crop_origin, crop_origin_error
     from davis_rig.session.labels import labels_crop_origin
@@ -267,6 +268,8 @@ def scoring_crop_origin(path, requested: tuple[int, int] | None, labels_attrs: d
                            "the crop origin")
     x0, y0 = (int(v) for v in (requested or stored or center_crop_origin()))
     if (reason := crop_origin_error((x0, y0))) is not None:
+        if requested is None:  # the file's own origin: the file is damaged
+            raise SessionError(f"{path}: the labels' stored crop origin ({x0}, {y0}): {reason}")
         raise ShapeError(f"{path}: crop origin ({x0}, {y0}): {reason}")
     return x0, y0
 
@@ -345,6 +348,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         SessionError: unreadable or empty (0-byte) session file, no events, no labels, not a DAVIS346 recording,
             ``settings.crop_origin_xy`` not the labels' crop origin.
         ShapeError: the crop at the origin does not fit the sensor.
+        ModelFormatError: the detector's output is NaN or inf in every window.
     """
     from contextlib import closing
 
@@ -358,17 +362,18 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         labels_attrs = reader.labels_attrs()
         origin = scoring_crop_origin(path, settings.crop_origin_xy, labels_attrs)
         t0 = int(reader.t_offset_us)
-        t_events_end = t0 + 1000 * len(reader.ms_to_idx)
-        t_last = max(t_events_end, int(labels["t"].max()) if len(labels) else 0)
-        ends = window_grid(t0, t_last, settings.window_us)
+        t_events_end = t0 + reader.indexed_span_us()
+        labels = labels_in_span(labels, t0, t_events_end, path)
+        ends = window_grid(t0, max(t_events_end, int(labels["t"].max())), settings.window_us)
         thresholds = sorted({float(th) for th in settings.thresholds})
         split = _split_or_none(runner, settings)
         gif: list = []
         totals = {"events": 0}
+        damage = {"outside_sensor": 0}
         busy = {"step": 0.0, "pre": 0.0, "recur": 0.0, "head": 0.0}
         bar = progress(total=len(ends), desc=path.name) if progress is not None else None
         chunks = event_chunks(reader, ends, origin, window_us=settings.window_us, chunk_windows=settings.chunk_windows,
-                              gif_windows=settings.gif_windows, timings=timings)
+                              gif_windows=settings.gif_windows, timings=timings, damage=damage)
         with closing(prefetch(chunks, depth=2)) as chunks:
             windows = _windows(chunks, runner, totals, gif)
             steps = (_whole_steps(windows, runner, busy) if split is None
@@ -382,6 +387,12 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
     finally:
         reader.close()
     timings["wall"] = time.perf_counter() - wall
+    if damage["outside_sensor"]:
+        warnings.warn(f"{path.name}: {damage['outside_sensor']} events lie outside the {DAVIS346_HW[1]}x"
+                      f"{DAVIS346_HW[0]} sensor (damaged coordinates) and are not scored", stacklevel=2)
+    if totals["nonfinite_windows"] == len(ends):
+        raise ModelFormatError(f"{path.name}: the detector's output holds NaN or inf in every one of the {len(ends)} "
+                               "windows: the model is broken (scored, it would read as AP 0 and SeqASR 100 %)")
     if totals["nonfinite_windows"]:
         warnings.warn(f"{path.name}: the detector's output holds NaN or inf in {totals['nonfinite_windows']} of "
                       f"{len(ends)} windows (no box can come from those anchors): check the model", stacklevel=2)

@@ -10,14 +10,20 @@ exported window are exactly one scored RVT input.
 from __future__ import annotations
 
 import time
+import warnings
+from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from davis_rig.errors import SessionError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
 
-__all__ = ["event_chunks", "label_windows", "window_grid"]
+__all__ = ["LABEL_SPAN_SLACK_US", "event_chunks", "label_windows", "labels_in_span", "window_grid"]
+
+#: How far after the last event a label may lie and still be scored (on windows without events), µs.
+LABEL_SPAN_SLACK_US = 1_000_000
 
 
 def window_grid(t0_us: int, t_last_us: int, window_us: int = WINDOW_US) -> np.ndarray:
@@ -44,8 +50,36 @@ def label_windows(labels: np.ndarray, window_end_us: np.ndarray, window_us: int)
     return np.where(inside, index, -1)
 
 
+def labels_in_span(labels: np.ndarray, t0_us: int, t_end_us: int, path, *, refuse_none: bool = True) -> np.ndarray:
+    """The labels inside the events' span ``[t0_us, t_end_us + 1 s]`` (device µs): the window grid covers the
+    events, so a label time far outside them (a damaged label, or a ``t_offset`` that does not match the labels)
+    would otherwise stretch it over hours of empty windows. Warns with the count of labels left out.
+
+    Args:
+        labels: BBOX_DTYPE [L] (``t`` device µs), at least one.
+        t0_us: the grid's start (the session's ``t_offset``), device µs.
+        t_end_us: the end of the events (:meth:`~davis_rig.session.SessionReader.indexed_span_us` after ``t0_us``).
+        path: the session (named in the messages).
+        refuse_none: raise when no label is inside (else warn and return none).
+
+    Raises:
+        SessionError: no label is inside the span (with ``refuse_none``).
+    """
+    t = labels["t"].astype(np.float64)  # uint64 label times: no wrap-around in the comparison
+    inside = (t >= t0_us) & (t <= t_end_us + LABEL_SPAN_SLACK_US)
+    if not inside.any() and refuse_none:
+        raise SessionError(f"{path}: none of the {len(labels)} labels (t {int(labels['t'].min())}.."
+                           f"{int(labels['t'].max())} µs) lies inside the events' span ({t0_us}..{t_end_us} µs): "
+                           "the labels or the file's t_offset are damaged")
+    if not inside.all():
+        warnings.warn(f"{Path(path).name}: {int((~inside).sum())} of {len(labels)} labels lie outside the events' "
+                      f"span ({t0_us}..{t_end_us} µs) and are left out", stacklevel=3)
+    return labels[inside]
+
+
 def event_chunks(reader, ends: np.ndarray, origin_xy: tuple[int, int], *, window_us: int, chunk_windows: int,
-                 gif_windows: int = 0, timings: dict | None = None) -> Iterator[tuple]:
+                 gif_windows: int = 0, timings: dict | None = None,
+                 damage: dict | None = None) -> Iterator[tuple]:
     """Per chunk of windows, ``(chunk_ends, uint8 hists [k, 20, 240, 304], gif images, events read)``.
 
     Reads the recording once, front to back, in consecutive pieces (each up to its chunk's last window end),
@@ -63,6 +97,8 @@ def event_chunks(reader, ends: np.ndarray, origin_xy: tuple[int, int], *, window
         gif_windows: the first this many windows also come back as int16 ON − OFF count images [g, 240, 304]
             (the annotated GIF); the other chunks give empty ones.
         timings: when given, its ``"read"`` and ``"histogram"`` entries gain this generator's busy seconds.
+        damage: when given, its ``"outside_sensor"`` entry gains the count of events whose pixel lies outside
+            the 346x260 sensor (damaged coordinates: the crop drops them like any event outside it).
     """
     from davis_rig.events.crop import crop_events
     from davis_rig.events.histogram import stacked_histograms
@@ -79,6 +115,9 @@ def event_chunks(reader, ends: np.ndarray, origin_xy: tuple[int, int], *, window
         events = reader.events_between(t_read, t_next)
         t_read = t_next
         num_read = len(events)
+        if damage is not None:
+            outside = (events["x"] >= DAVIS346_HW[1]) | (events["y"] >= DAVIS346_HW[0])
+            damage["outside_sensor"] = damage.get("outside_sensor", 0) + int(np.count_nonzero(outside))
         events = crop_events(events, origin_xy, frame_hw=RVT_HW, sensor_hw=DAVIS346_HW)
         if len(events):
             t = np.maximum.accumulate(np.maximum(events["t"], running_max))

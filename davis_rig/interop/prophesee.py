@@ -54,7 +54,7 @@ def export_prophesee_dat(source: ExportSource, out: str | os.PathLike, *, overwr
     out = Path(out)
     reader = source.reader
     t_offset = source.t_offset_us
-    span_us = 1000 * len(reader.ms_to_idx)
+    span_us = reader.indexed_span_us()
     if span_us > DAT_MAX_T_US:
         raise FormatError(f"{source.path}: {span_us / 60e6:.1f} min of events do not fit the DAT format's 32-bit µs "
                           f"timestamps ({DAT_MAX_T_US / 60e6:.1f} min)")

@@ -36,6 +36,44 @@ def _recover_hint(path: Path) -> str:
     return ""
 
 
+#: A dataset of more than :data:`_CHECKED_BYTES` may declare at most this many times the bytes the file stores for
+#: it: the compression of recorded data stays far below (events about 2-10x), while a damaged or hand-edited shape
+#: over unwritten chunks does not (a few KB declaring GBs), and reading those would allocate the declared size.
+_MAX_DECLARED_PER_STORED = 1000
+#: How far (µs) an ``ms_to_idx`` entry may disagree with event times that step back in time around it (files of
+#: other tools; davis_rig's writer keeps time order, and where the times are in order an entry must be exact).
+INDEX_DISORDER_TOLERANCE_US = 1_000_000
+_CHECKED_BYTES = 64 << 20
+
+
+def _check_stored(path: Path, dataset, what: str) -> None:
+    """Refuse a dataset whose declared size is out of all proportion to the bytes stored for it.
+
+    Raises:
+        SessionError: more than 64 MiB declared and over 1000 times the stored bytes.
+    """
+    declared = int(dataset.size) * dataset.dtype.itemsize
+    if declared <= _CHECKED_BYTES:
+        return
+    stored = int(dataset.id.get_storage_size())
+    if stored * _MAX_DECLARED_PER_STORED < declared:
+        raise SessionError(f"{path}: {what} declares {dataset.shape} ({declared:,} bytes) but the file stores "
+                           f"{stored:,} bytes of it: the file is damaged (that data was never written)")
+
+
+def _check_column(path: Path, dataset, what: str, kinds: str = "iu") -> None:
+    """Refuse a column that is not 1-D of the expected dtype kind (numpy ``kind`` letters) or declares data the
+    file does not store (:func:`_check_stored`).
+
+    Raises:
+        SessionError: naming the column, its shape and dtype.
+    """
+    if dataset.ndim != 1 or dataset.dtype.kind not in kinds:
+        expected = "integers" if kinds == "iu" else "numbers"
+        raise SessionError(f"{path}: {what} is {dataset.dtype} of shape {dataset.shape}; expected 1-D {expected}")
+    _check_stored(path, dataset, what)
+
+
 def _read(path: Path, dataset, key, what: str) -> np.ndarray:
     """``dataset[key]``, with HDF5 read errors (damaged chunks) turned into a SessionError naming the file."""
     try:
@@ -107,8 +145,15 @@ class FrameStore:
 
     def __init__(self, group, path: Path):
         self._group = group
-        self.data = FrameData(group[schema.FRAME_DATA], path)
-        self._roi = group[schema.FRAME_ROI][:]
+        data, roi = group[schema.FRAME_DATA], group[schema.FRAME_ROI]
+        if data.ndim != 3 or roi.ndim != 2 or roi.shape[1:] != (4,):
+            raise SessionError(f"{path}: /frames/data {data.shape} and /frames/roi {roi.shape}; expected [F, H, W] "
+                               "and [F, 4]")
+        _check_stored(path, roi, "/frames/roi")
+        for name in schema.FRAME_TIME_COLUMNS:
+            _check_column(path, group[name], f"/frames/{name}")
+        self.data = FrameData(data, path)
+        self._roi = roi[:]
         self._times = {name: group[name][:] for name in schema.FRAME_TIME_COLUMNS}
         n = len(self.data)
         lengths = {name: len(values) for name, values in self._times.items()} | {"roi": len(self._roi)}
@@ -221,6 +266,8 @@ class SessionReader:
             for name in (*schema.EVENT_COLUMNS, schema.MS_TO_IDX):
                 if name not in events:
                     raise SessionError(f"{self.path}: missing dataset /events/{name}")
+            for name in (*schema.EVENT_COLUMNS, schema.MS_TO_IDX):
+                _check_column(self.path, events[name], f"/events/{name}")
             lengths = {name: events[name].shape[0] for name in schema.EVENT_COLUMNS}
             if len(set(lengths.values())) != 1:
                 raise SessionError(f"{self.path}: /events columns have different lengths {lengths}")
@@ -284,13 +331,36 @@ class SessionReader:
         if t_rel <= 0 or n == 0:
             return 0
         ms = self._ms_to_idx
-        m = -(-t_rel // 1000)  # ceil: ms_to_idx[m] is an upper bound of the answer
-        lo = int(ms[min(t_rel // 1000, len(ms) - 1)]) if len(ms) else 0
-        hi = int(ms[m]) if m < len(ms) else n
+        if not len(ms):
+            raise SessionError(f"{self.path}: /events/ms_to_idx is empty but the file holds {n} events")
+        m_lo = min(t_rel // 1000, len(ms) - 1)
+        m_hi = -(-t_rel // 1000)  # ceil: ms_to_idx[m_hi] is an upper bound of the answer
+        lo = int(ms[m_lo])
+        hi = int(ms[m_hi]) if m_hi < len(ms) else n
+        # the events on both sides of each entry used prove the entry (a damaged index would pick the wrong
+        # events in silence); where the times step back (a file from another tool) the index may disagree with
+        # them by as much as they do, up to INDEX_DISORDER_TOLERANCE_US
+        first, stop = max(lo - 1, 0), min(max(hi, lo) + 1, n)
+        t_read = _read(self.path, group["t"], slice(first, stop), f"event times [{first}, {stop})")
+        slack = 0 if np.all(np.diff(t_read) >= 0) else INDEX_DISORDER_TOLERANCE_US
+        for m, value in ((m_lo, lo), (m_hi, hi)) if m_hi < len(ms) else ((m_lo, lo),):
+            before = value == 0 or int(t_read[value - 1 - first]) < 1000 * m + slack
+            after = value == n or int(t_read[value - first]) >= 1000 * m - slack
+            if not (before and after):
+                raise SessionError(f"{self.path}: /events/ms_to_idx[{m}] = {value} does not point at the first "
+                                   f"event of millisecond {m}: the index is damaged")
         if lo >= hi:
             return hi
-        t_window = _read(self.path, group["t"], slice(lo, hi), f"event times [{lo}, {hi})")
-        return lo + int(np.searchsorted(t_window, t_rel, side="left"))
+        return lo + int(np.searchsorted(t_read[lo - first : hi - first], t_rel, side="left"))
+
+    def events_end_us(self) -> int:
+        """Device µs just after the last event in the file (``t_offset_us`` when there is none): the end of the
+        recording's event span, read from the data (one timestamp), not from the length of ``ms_to_idx``."""
+        if self.num_events == 0:
+            return self.t_offset_us
+        group = self._require_open()[schema.EVENTS_GROUP]
+        last = self.num_events - 1
+        return int(_read(self.path, group["t"], last, f"event time [{last}]")) + self.t_offset_us + 1
 
     def events_between(self, t0_us: int, t1_us: int) -> np.ndarray:
         """Return the events with ``t0_us <= t < t1_us`` (half-open, device µs), EVENT_DTYPE [N].
@@ -320,18 +390,22 @@ class SessionReader:
         """
         if window_us <= 0:
             raise ValueError(f"window_us must be > 0, got {window_us}")
-        group = self._require_open()[schema.EVENTS_GROUP]
         t0 = self.t_offset_us if t_start_us is None else int(t_start_us)
         if t_end_us is None:
-            last = self.num_events - 1
-            t_end_us = (int(_read(self.path, group["t"], last, f"event time [{last}]")) + self.t_offset_us + 1
-                        if self.num_events else t0)
+            t_end_us = self.events_end_us() if self.num_events else t0
         start = self.event_index(t0)
         while t0 < t_end_us:
             t1 = min(t0 + window_us, t_end_us)
             stop = self.event_index(t1)
             yield t0, self._read_events(start, stop)
             start, t0 = stop, t0 + window_us
+
+    def indexed_span_us(self) -> int:
+        """µs from ``t_offset_us`` to the end of the events by ``ms_to_idx``: 1000 µs per entry up to the first
+        that equals the event count (the millisecond after the last event; later such entries, an index padded
+        past the data, do not count)."""
+        past = int(np.searchsorted(self._ms_to_idx, self.num_events, side="left"))
+        return 1000 * min(past + 1, len(self._ms_to_idx))
 
     @property
     def ms_to_idx(self) -> np.ndarray:
@@ -356,6 +430,8 @@ class SessionReader:
         if "t" in names:
             names.remove("t")
             names.insert(0, "t")
+        for name in names:
+            _check_column(self.path, group[name], f"/{group_name}/{name}", kinds="iufb")
         lengths = {name: group[name].shape[0] for name in names}
         if len(set(lengths.values())) != 1:
             raise SessionError(f"{self.path}: /{group_name} columns have different lengths {lengths}")
@@ -381,9 +457,18 @@ class SessionReader:
         group = f[schema.LABELS_GROUP]
         if schema.LABEL_BOXES not in group:
             raise SessionError(f"{self.path}: /labels has no '{schema.LABEL_BOXES}' dataset")
-        boxes = _read(self.path, group[schema.LABEL_BOXES], slice(None), f"/{schema.LABELS_GROUP}/{schema.LABEL_BOXES}")
-        if boxes.dtype != schema.LABEL_DTYPE:
-            raise SessionError(f"{self.path}: /labels/boxes dtype {boxes.dtype}, expected {schema.LABEL_DTYPE}")
+        dataset = group[schema.LABEL_BOXES]
+        if dataset.dtype != schema.LABEL_DTYPE or dataset.ndim != 1:
+            raise SessionError(f"{self.path}: /labels/boxes is {dataset.dtype} of shape {dataset.shape}, expected "
+                               f"1-D {schema.LABEL_DTYPE}")
+        _check_stored(self.path, dataset, "/labels/boxes")
+        boxes = _read(self.path, dataset, slice(None), f"/{schema.LABELS_GROUP}/{schema.LABEL_BOXES}")
+        floats = [name for name in boxes.dtype.names if boxes.dtype[name].kind == "f"]
+        bad = int(np.count_nonzero(~np.all([np.isfinite(boxes[name]) for name in floats], axis=0))) if (
+            floats and len(boxes)) else 0
+        if bad:
+            raise SessionError(f"{self.path}: {bad} of {len(boxes)} labels hold NaN or inf in "
+                               f"{', '.join(floats)}: the labels are damaged; re-label with davis-label --overwrite")
         return boxes
 
     def labels_attrs(self) -> dict:

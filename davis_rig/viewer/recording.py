@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from davis_rig.errors import SessionError
-from davis_rig.evaluation.windows import label_windows, window_grid
+from davis_rig.evaluation.windows import label_windows, labels_in_span, window_grid
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW
 from davis_rig.viewer.render import LAYERS, ViewContent, event_counts, render_view
@@ -64,10 +64,12 @@ class RecordingView:
                 raise SessionError(f"{self.path}: the session has neither events nor APS frames")
             if reader.num_events:
                 t0 = int(reader.t_offset_us)
-                t_last = t0 + 1000 * len(reader.ms_to_idx)
+                t_last = t0 + reader.indexed_span_us()
             else:
                 t0 = int(frames.times_us("t_start_of_frame_us")[0]) // 1000 * 1000
                 t_last = int(frames.times_us("t_end_of_frame_us")[-1])
+            if len(self.labels):
+                self.labels = labels_in_span(self.labels, t0, t_last, self.path, refuse_none=False)
             if len(self.labels):
                 t_last = max(t_last, int(self.labels["t"].max()))
             self.t0_us = t0

@@ -219,7 +219,9 @@ def test_scoring_crop_origin_reads_both_stored_spellings():
         with pytest.raises(SessionError, match=r"s.h5: the labels were made for crop origin \(0, 3\), not \(21, 10\)"):
             scoring_crop_origin("s.h5", (21, 10), attrs)
     with pytest.raises(ShapeError, match=r"s.h5: crop origin \(43, 0\): the 304x240 crop at \(43, 0\) leaves"):
-        scoring_crop_origin("s.h5", None, {"crop_origin_xy": [43, 0]})
+        scoring_crop_origin("s.h5", (43, 0), {})  # the caller's origin
+    with pytest.raises(SessionError, match=r"s.h5: the labels' stored crop origin \(43, 0\): the 304x240 crop"):
+        scoring_crop_origin("s.h5", None, {"crop_origin_xy": [43, 0]})  # the file's
     with pytest.raises(SessionError, match="unreadable crop origin"):
         scoring_crop_origin("s.h5", None, {"crop_origin_xy": "[1]"})
 
@@ -286,7 +288,8 @@ def test_crop_origin_conflict_and_bounds_are_checked_for_every_session_before_an
     with pytest.raises(SessionError, match=r"other_origin.h5: the labels were made for crop origin \(0, 0\), not "
                                            r"\(21, 10\)"):
         evaluate_sessions([labelled, other], model, EvalSettings(seq_len=5, crop_origin_xy=(21, 10)))
-    with pytest.raises(ShapeError, match=r"outside.h5: crop origin \(100, 10\): .* leaves the 346x260 sensor"):
+    with pytest.raises(SessionError, match=r"outside.h5: the labels' stored crop origin \(100, 10\): .* leaves the "
+                                           r"346x260 sensor"):
         evaluate_sessions([labelled, outside], model, SETTINGS)
     unset = tmp_path / "no_stored_origin.h5"
     unset.write_bytes(labelled.read_bytes())
@@ -417,3 +420,61 @@ def test_a_model_that_outputs_nan_is_warned_about_not_scored_in_silence(tmp_path
     with pytest.warns(UserWarning, match=r"s\.h5: the detector's output holds NaN or inf in 2 of 3 windows"):
         scores = score_session(session, _NaNRunner(), EvalSettings(thresholds=(0.1,)))
     assert [d is None or len(d) == 0 for d in scores.detections[0.1]] == [True, True, True]
+
+
+class _AllNaNRunner(_HistogramRecorder):
+    """A broken model: NaN scores in every window."""
+
+    def step(self, hist, states):
+        decoded, states = super().step(hist, states)
+        return np.full_like(decoded, np.nan), states
+
+
+def test_a_model_that_outputs_nan_in_every_window_is_refused(tmp_path):
+    session = _session_with_times(tmp_path / "s.h5", np.array([500, 60_000, 120_000]))
+    with pytest.raises(ModelFormatError, match="NaN or inf in every one of the 3 windows"):
+        score_session(session, _AllNaNRunner(), EvalSettings(thresholds=(0.1,)))
+
+
+def _set_labels(path, times_us):
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        boxes = f["labels/boxes"][:1].repeat(len(times_us))
+        boxes["t"] = times_us
+        del f["labels/boxes"]
+        f["labels"].create_dataset("boxes", data=boxes)
+
+
+def test_labels_far_outside_the_events_are_left_out_not_scored_over_empty_windows(tmp_path):
+    session = _session_with_times(tmp_path / "s.h5", np.array([500, 60_000, 120_000]))
+    _set_labels(session, [25_000, 3_600_000_000, np.iinfo(np.uint64).max])  # an hour late; the largest time
+    with pytest.warns(UserWarning, match=r"2 of 3 labels lie outside the events' span"):
+        scores = score_session(session, _HistogramRecorder(), EvalSettings(thresholds=(0.1,)))
+    np.testing.assert_array_equal(scores.window_end_us, [50_000, 100_000, 150_000])  # the events' grid
+    assert len(scores.labels) == 1
+    _set_labels(session, [3_600_000_000])
+    with pytest.raises(SessionError, match="none of the 1 labels .* lies inside the events' span"):
+        score_session(session, _HistogramRecorder(), EvalSettings(thresholds=(0.1,)))
+
+
+def test_a_stored_crop_origin_off_the_sensor_is_a_damaged_file(tmp_path):
+    import h5py
+
+    session = _session_with_times(tmp_path / "s.h5", np.array([500, 60_000, 120_000]))
+    with h5py.File(session, "r+") as f:
+        f["labels"].attrs["crop_origin_x"], f["labels"].attrs["crop_origin_y"] = 500, 10
+    with pytest.raises(SessionError, match=r"stored crop origin \(500, 10\)"):
+        score_session(session, _HistogramRecorder(), EvalSettings(thresholds=(0.1,)))
+
+
+def test_events_outside_the_sensor_are_counted_and_a_damaged_layout_is_ignored(tmp_path):
+    import h5py
+
+    session = _session_with_times(tmp_path / "s.h5", np.array([500, 60_000, 61_000, 120_000]))
+    with h5py.File(session, "r+") as f:
+        f["events/x"][1] = 400  # off the 346-pixel-wide sensor
+        f.attrs["device_info"] = json.dumps({"serial": "FOREIGN", "layout": "not a mapping"})
+    with pytest.warns(UserWarning, match="1 events lie outside the 346x260 sensor"):
+        scores = score_session(session, _HistogramRecorder(), EvalSettings(thresholds=(0.1,)))
+    assert scores.num_events == 4

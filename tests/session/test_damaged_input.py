@@ -139,3 +139,85 @@ def test_a_journal_header_that_is_no_object_is_a_session_error(tmp_path, header)
     journal_path(path).write_bytes(MAGIC + struct.pack("<BII", 1, len(header), zlib.crc32(header)) + header)
     with pytest.raises(SessionError, match=r"s\.h5\.journal: the journal header is not"):
         recover_session(path)
+
+
+def _small_session(path, n=2_000, span_us=400_000, labels=True):
+    """A written session of ``n`` ordered events over ``span_us`` µs, with one label per 50 ms when asked."""
+    from davis_rig.session import schema
+    from davis_rig.types import BBOX_DTYPE, make_events
+
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.integers(0, span_us, n))
+    with SessionWriter(path, device_info={"serial": "DAMAGE"}) as writer:
+        writer.append_events(make_events(t, rng.integers(0, 346, n), rng.integers(0, 260, n), rng.integers(0, 2, n)))
+    if labels:
+        boxes = np.zeros(span_us // 50_000, BBOX_DTYPE)
+        boxes["t"] = int(t[0]) // 1000 * 1000 + 50_000 * np.arange(1, len(boxes) + 1)
+        boxes["x"], boxes["y"], boxes["w"], boxes["h"] = 100, 60, 40, 80
+        with h5py.File(path, "r+") as f:
+            f.create_group(schema.LABELS_GROUP).create_dataset(schema.LABEL_BOXES, data=boxes)
+    return path
+
+
+@pytest.mark.parametrize("dataset", ["events/ms_to_idx", "events/t", "frames/t_start_exposure_us",
+                                     "labels/boxes"])
+def test_a_declared_size_the_file_does_not_store_is_refused_before_any_allocation(tmp_path, dataset):
+    path = _small_session(tmp_path / "s.h5")
+    with h5py.File(path, "r+") as f:
+        if dataset == "labels/boxes":  # written contiguous: re-made resizable, as another tool may write it
+            boxes = f[dataset][:]
+            del f[dataset]
+            f.create_dataset(dataset, data=boxes, maxshape=(None,), chunks=(64,))
+        columns = ["events/t", "events/x", "events/y", "events/p"] if dataset == "events/t" else [dataset]
+        for name in columns:
+            f[name].resize((2_000_000_000,))  # a few bytes of metadata declaring gigabytes of unwritten chunks
+    with pytest.raises(SessionError, match=f"/{dataset} declares .* the file is damaged"):
+        with SessionReader(path) as reader:
+            reader.labels()
+
+
+@pytest.mark.parametrize("damage", ["2-D", "float"])
+def test_an_event_column_of_the_wrong_shape_or_type_is_a_session_error(tmp_path, damage):
+    path = _small_session(tmp_path / "s.h5")
+    with h5py.File(path, "r+") as f:
+        t = f["events/t"][:]
+        del f["events/t"]
+        f.create_dataset("events/t", data=np.stack([t, t], 1) if damage == "2-D" else t.astype(np.float64))
+    with pytest.raises(SessionError, match="/events/t is .* expected 1-D integers"):
+        SessionReader(path).open()
+
+
+def test_a_damaged_millisecond_index_is_refused_where_it_would_pick_other_events(tmp_path):
+    path = _small_session(tmp_path / "s.h5")
+    with SessionReader(path) as reader:
+        intact = [len(reader.events_between(t, t + 50_000)) for t in range(reader.t_offset_us, 400_000, 50_000)]
+    with h5py.File(path, "r+") as f:
+        f["events/ms_to_idx"][:] = 0
+    with SessionReader(path) as reader:
+        with pytest.raises(SessionError, match=r"ms_to_idx\[\d+\] = 0 does not point at the first event"):
+            reader.events_between(reader.t_offset_us + 100_000, reader.t_offset_us + 150_000)
+    assert sum(intact) == 2_000  # the intact index reads every event once
+
+
+def test_an_index_padded_past_the_last_event_does_not_stretch_the_span(tmp_path):
+    path = _small_session(tmp_path / "s.h5")
+    with h5py.File(path, "r+") as f:
+        index = f["events/ms_to_idx"]
+        size = len(index)
+        index.resize((size + 3_600_000,))  # one hour more of entries, all past the last event
+        index[size:] = 2_000
+    with SessionReader(path) as reader:
+        assert reader.indexed_span_us() == 1000 * size
+        assert reader.events_end_us() <= reader.t_offset_us + 1000 * size
+        assert len(reader.events_between(reader.t_offset_us, reader.t_offset_us + 10**9)) == 2_000
+
+
+def test_labels_holding_nan_or_inf_are_a_session_error(tmp_path):
+    path = _small_session(tmp_path / "s.h5")
+    with h5py.File(path, "r+") as f:
+        boxes = f["labels/boxes"][:]
+        boxes["w"][1], boxes["x"][2] = np.nan, np.inf
+        f["labels/boxes"][:] = boxes
+    with SessionReader(path) as reader:
+        with pytest.raises(SessionError, match="2 of 8 labels hold NaN or inf"):
+            reader.labels()
