@@ -173,7 +173,11 @@ def _recover(path: str) -> int:
     from davis_rig.session.recovery import recover_session
 
     report = recover_session(path)
-    if report.recovered:
+    if report.kept_original:
+        print(f"{report.path}: kept as it is: it holds more than its journal gave back ({report.events} events, "
+              f"{report.frames} frames up to its last flush, against the journal's {report.transfers} transfers); "
+              "the journal is removed")
+    elif report.recovered:
         print(
             f"{report.path}: rebuilt from the journal: {report.transfers} transfers, {report.events} events, "
             f"{report.frames} frames (last event t={report.t_last_us} µs; {report.discarded_bytes} damaged bytes "

@@ -199,6 +199,20 @@ class SessionJournal:
                 self.transfers += 1
                 self.bytes += len(payload)
 
+    def flush_to_os(self) -> None:
+        """Hand every record appended so far to the OS (no fsync: cheap): from then on a ``kill -9`` loses none
+        of them. :class:`~davis_rig.session.writer.SessionWriter` calls it before each HDF5 flush, so that the
+        journal never holds less than the file (a rebuild from it then never has less data than the crashed file).
+        Never raises on I/O errors (the next :meth:`sync` does)."""
+        with self._lock:
+            if self._file is None or self._error is not None:
+                return
+            try:
+                self._file.flush()
+                self._last_flush = time.monotonic()
+            except OSError as exc:
+                self._error = exc
+
     def sync(self, force: bool = False) -> None:
         """Check for write errors; with ``force`` also flush and ``fsync`` now (else a background thread fsyncs
         every :data:`FSYNC_INTERVAL_S`).

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from davis_rig.errors import ProtocolError, SessionError
@@ -32,6 +32,9 @@ class RecoveryReport:
         events, frames, specials: items in the rebuilt file.
         t_last_us: device time of the last recovered event, µs (None when there are none).
         discarded_bytes: bytes at the journal's end that were cut short by the crash and dropped.
+        kept_original: the crashed file held more events or frames than the journal gave back (its data reached
+            the disk, the journal's last second did not: a power cut), so it was kept as it is and the rebuild
+            dropped; the other counts are then the file's.
     """
 
     path: Path
@@ -43,6 +46,7 @@ class RecoveryReport:
     specials: int = 0
     t_last_us: int | None = None
     discarded_bytes: int = 0
+    kept_original: bool = False
 
 
 def recover_session(path: str | os.PathLike) -> RecoveryReport:
@@ -51,7 +55,10 @@ def recover_session(path: str | os.PathLike) -> RecoveryReport:
     The journal holds every raw transfer of the recording from its start and is flushed to the OS every 0.25 s
     (fsync'd every 1 s), so the rebuilt file loses at most the last fraction of a second before a ``kill -9``
     (≤ 1 s before a power cut). The new file is written next to the old one (``<path>.recovering``, removed
-    again if the rebuild fails) and swapped in atomically; the old, possibly unreadable, file is replaced. Damaged
+    again if the rebuild fails) and swapped in atomically; the old, possibly unreadable, file is replaced, unless
+    it opens and holds more events or frames than the rebuild (the journal is handed to the OS before every write
+    of the file, so only a power cut can leave it behind): then the old file is kept and the rebuild dropped
+    (:attr:`RecoveryReport.kept_original`). Damaged
     timestamps in the journal are handled as while recording (see ``SessionWriter.append``): memory and the
     file's time span stay proportional to the data. Without a journal the file is only checked (see
     :attr:`RecoveryReport.complete`).
@@ -100,11 +107,27 @@ def recover_session(path: str | os.PathLike) -> RecoveryReport:
         tmp.unlink(missing_ok=True)  # a failed rebuild leaves nothing behind; the journal is kept
         raise
     discarded = jpath.stat().st_size - end
+    held = _held(path)
+    if held is not None and (held.events > counts["events"] or held.frames > counts["frames"]):
+        tmp.unlink()  # the crashed file got further than the journal (a power cut before the journal's fsync)
+        jpath.unlink()
+        return replace(held, kept_original=True, transfers=transfers)
     os.replace(tmp, path)
     jpath.unlink()
     return RecoveryReport(path=path, recovered=True, transfers=transfers, events=counts["events"],
                           frames=counts["frames"], specials=counts["specials"], t_last_us=t_last,
                           discarded_bytes=discarded)
+
+
+def _held(path: Path) -> RecoveryReport | None:
+    """What the crashed file holds, if it opens (``None``: missing or unreadable)."""
+    try:
+        with SessionReader(path) as reader:
+            t_last = reader.events_end_us() - 1 if reader.num_events else None
+            return RecoveryReport(path=path, recovered=False, complete=reader.complete, events=reader.num_events,
+                                  frames=len(reader.frames), specials=len(reader.specials()), t_last_us=t_last)
+    except SessionError:
+        return None
 
 
 def _json_object(payload: bytes, jpath: Path, what: str) -> dict:

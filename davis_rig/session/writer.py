@@ -462,6 +462,8 @@ class SessionWriter:
     def _write_out(self) -> None:
         if not (self._buffered_events or any(self._buffers[k] for k in ("frames", "specials", "imu"))):
             return
+        if self.journal is not None:
+            self.journal.flush_to_os()  # the journal first: it must never hold less than the file
         self._check_space()
         self._guarded(self._write_buffers)
 

@@ -47,6 +47,7 @@ LIBUSB_TRANSFER_NO_DEVICE = 5
 LIBUSB_TRANSFER_OVERFLOW = 6
 LIBUSB_ERROR_NO_DEVICE = -4
 LIBUSB_ERROR_NOT_FOUND = -5
+LIBUSB_ERROR_INTERRUPTED = -10
 
 #: libusb_transfer_status names, for messages.
 TRANSFER_STATUS_NAMES = {
@@ -168,8 +169,17 @@ class LibusbAsyncApi:
         return self._cancel(transfer)
 
     def handle_events(self, timeout_ms: int) -> int:
+        """Run the callbacks that are due (0); a signal that interrupts the wait is not an error.
+
+        Raises:
+            TransportError: libusb's event handling failed (its negative code): the ring ends with it, and the
+                drain gives up after :data:`DRAIN_LIMIT_S` instead of waiting on completions that never come.
+        """
         timeout = _Timeval(timeout_ms // 1000, (timeout_ms % 1000) * 1000)
-        return self._handle(self._context, ctypes.byref(timeout), None)
+        code = self._handle(self._context, ctypes.byref(timeout), None)
+        if code < 0 and code != LIBUSB_ERROR_INTERRUPTED:
+            raise TransportError(f"libusb_handle_events_timeout_completed failed (libusb error {code})", code)
+        return 0
 
 
 @dataclass
@@ -255,6 +265,7 @@ class BulkTransferRing:
         self._stopping = False
         self._stalled = False
         self._error: BaseException | None = None
+        self._probe_on_end = False  # a transfer came back ERROR: unplugged, or a USB error on a live camera?
         self._started = False
         self._thread: threading.Thread | None = None
 
@@ -399,6 +410,10 @@ class BulkTransferRing:
                     )
                 elif status != LIBUSB_TRANSFER_CANCELLED:
                     name = TRANSFER_STATUS_NAMES.get(status, f"status {status}")
+                    # Linux reports an unplug to transfers in flight as EPROTO / EILSEQ (ERROR) as often as
+                    # ENODEV (NO_DEVICE): probed once every transfer is back (see _run)
+                    if status == LIBUSB_TRANSFER_ERROR and self._error is None:
+                        self._probe_on_end = True
                     self._fail_locked(
                         TransportError(
                             f"{self._describe}: {self._kind} transfer on 0x{self.endpoint:02x} failed ({name})"
@@ -455,7 +470,22 @@ class BulkTransferRing:
                 self._fail_locked(exc)
         finally:
             self._drain_and_free()
+            self._probe_failed_transfer()
             self._on_end(self._error)
+
+    def _probe_failed_transfer(self) -> None:
+        """After a transfer came back ERROR, clear the endpoint's halt as the synchronous reader does after EIO: on
+        a vanished camera that fails too, and the stream ends "disconnected" (a clean end of a recording) rather
+        than with a transfer error; on a live one the transfer error stands."""
+        if not self._probe_on_end:
+            return
+        try:
+            self._clear_halt()
+        except BaseException as exc:  # any failure to reach the endpoint: it is gone
+            self._error = DeviceDisconnectedError(
+                f"{self._error} and the endpoint could not be recovered ({exc}); the camera was disconnected"
+            )
+            self._error.__cause__ = exc
 
     def _drain_and_free(self) -> None:
         """Cancel what is outstanding, handle events until every callback has returned, then free the transfers.

@@ -103,6 +103,37 @@ def test_a_failed_rebuild_leaves_no_recovering_file_and_keeps_the_journal(tmp_pa
     assert journal_path(path).exists() and not path.exists()
 
 
+def test_the_journal_reaches_the_os_before_the_file_so_a_rebuild_never_has_less(tmp_path, rng):
+    path = tmp_path / "s.h5"
+    events = random_events(rng, 300)
+    with SessionWriter(path, journal=True) as writer:
+        for _ in range(3):  # appended within the journal's 0.25 s flush interval: still in its buffer
+            writer.journal.append_transfer(synth_stream(events[:100]))
+        writer.append(Chunk(events))
+        writer.flush()  # a kill -9 from here on: the file holds the events, so must the journal on disk
+        on_disk = [kind for kind, _, _ in iter_journal(journal_path(path)) if kind == KIND_TRANSFER]
+        assert len(on_disk) == 3
+
+
+def test_recovery_keeps_a_crashed_file_that_holds_more_than_its_journal(tmp_path, rng, capsys):
+    from davis_rig.cli.record import main
+
+    path = tmp_path / "s.h5"
+    with SessionWriter(path, journal=False) as writer:  # the file reached the disk ...
+        writer.append(Chunk(random_events(rng, 500)))
+    with h5py.File(path, "a") as f:
+        f.attrs["complete"] = False
+    _journal(path, [synth_stream(random_events(rng, 100))])  # ... the journal's last second did not
+    report = recover_session(path)
+    assert report.kept_original and not report.recovered and report.events == 500
+    assert not journal_path(path).exists() and not (tmp_path / "s.h5.recovering").exists()
+    with SessionReader(path) as reader:
+        assert reader.num_events == 500
+    _journal(path, [synth_stream(random_events(rng, 100))])
+    assert main(["--recover", str(path)]) == 0
+    assert "kept as it is: it holds more than its journal gave back (500 events" in capsys.readouterr().out
+
+
 def test_recovery_of_a_stream_that_jumps_months_ahead_stays_small(tmp_path, rng):
     events = random_events(rng, 2000)
     months = np.full(10_000, 0x7FFF, "<u2").tobytes()  # 10000 wraps of 4095 x 32768 us: about 15 months

@@ -483,3 +483,37 @@ def test_callbacks_run_by_a_synchronous_transfer_keep_order_and_lose_nothing(emu
         ring.stop()
     assert sink.data == transfers and sink.ends == [None]
     assert usb_backend.emu.counters()["sync_callbacks"] > 0
+
+
+def test_a_transfer_error_on_a_vanished_camera_ends_disconnected():
+    from davis_rig.usb.async_bulk import LIBUSB_TRANSFER_ERROR
+
+    api, sink = ScriptedApi([ok(b"1"), (LIBUSB_TRANSFER_ERROR, b"")]), Collector()
+    sink.clear_halt = lambda: (_ for _ in ()).throw(TransportError("clear halt failed (No such device)"))
+    make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    assert sink.data == [b"1"]
+    assert type(sink.ends[0]) is DeviceDisconnectedError and "could not be recovered" in str(sink.ends[0])
+
+
+def test_a_transfer_error_on_a_live_camera_stays_a_transport_error():
+    from davis_rig.usb.async_bulk import LIBUSB_TRANSFER_ERROR
+
+    api, sink = ScriptedApi([ok(b"1"), (LIBUSB_TRANSFER_ERROR, b"")]), Collector()
+    make_ring(api, sink).start()
+    assert sink.ended.wait(5.0)
+    assert type(sink.ends[0]) is TransportError and "(error)" in str(sink.ends[0]) and sink.halts == 1
+
+
+def test_libusbs_event_handling_errors_raise_but_an_interrupted_wait_does_not():
+    from davis_rig.usb.async_bulk import LIBUSB_ERROR_INTERRUPTED
+
+    api = LibusbAsyncApi.__new__(LibusbAsyncApi)  # only handle_events: the C call replaced by its return codes
+    api._context = None
+    for code, raises in ((0, False), (LIBUSB_ERROR_INTERRUPTED, False), (LIBUSB_ERROR_NO_DEVICE, True)):
+        api._handle = lambda context, timeout, completed, code=code: code
+        if raises:
+            with pytest.raises(TransportError, match=f"libusb error {code}"):
+                api.handle_events(10)
+        else:
+            assert api.handle_events(10) == 0
