@@ -126,6 +126,24 @@ def _progress_line(progress) -> None:
     )
 
 
+def _stop_handler(stop: threading.Event, previous: dict):
+    """The signal handler of a recording: the first SIGINT / SIGTERM sets ``stop`` (the recording ends cleanly,
+    a complete file); a second one, while the recording is still closing (a hung USB request, a slow disk),
+    restores the ``previous`` handlers and raises :class:`KeyboardInterrupt` at once: the file keeps its last
+    flush and the journal is kept for ``davis-record --recover``."""
+    signalled = []
+
+    def handle(signum, frame) -> None:
+        if signalled:
+            for number, handler in previous.items():
+                signal.signal(number, handler)
+            raise KeyboardInterrupt
+        signalled.append(signum)
+        stop.set()
+
+    return handle
+
+
 def _record(args: argparse.Namespace) -> int:
     from davis_rig.session.record import StopReason, record_session
 
@@ -135,7 +153,8 @@ def _record(args: argparse.Namespace) -> int:
         backend, exhausted = fake_backend(args.fake, args.fake_fast)
         _stop_when(exhausted, stop)  # a replay ends the recording when it has been played
     stop_signals = (signal.SIGINT, signal.SIGTERM)  # Ctrl-C, and kill / timeout / a service manager
-    previous = {signum: signal.signal(signum, lambda signum, frame: stop.set()) for signum in stop_signals}
+    previous: dict = {}
+    previous.update({signum: signal.signal(signum, _stop_handler(stop, previous)) for signum in stop_signals})
     try:
         with open_camera(args.serial, backend, args.usb_transfers) as camera, \
                 live_view(args, camera) as source:

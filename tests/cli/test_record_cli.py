@@ -216,3 +216,20 @@ def test_the_replay_itself_as_out_is_refused_even_with_overwrite(tmp_path, monke
     assert capsys.readouterr().err.splitlines()[-1] == ("davis-record: error: argument --out: ./walk.davisreplay is "
                                                         "the --fake replay")
     assert copy.read_bytes() == replay.read_bytes() and [p.name for p in tmp_path.iterdir()] == [copy.name]
+
+
+def test_the_first_signal_stops_cleanly_and_a_second_one_aborts_at_once():
+    import signal
+    import threading
+
+    stop, previous = threading.Event(), {signal.SIGINT: signal.getsignal(signal.SIGINT)}
+    handle = cli._stop_handler(stop, previous)
+    signal.signal(signal.SIGINT, handle)
+    try:
+        handle(signal.SIGINT, None)
+        assert stop.is_set() and signal.getsignal(signal.SIGINT) is handle  # still ours: the recording closes
+        with pytest.raises(KeyboardInterrupt):
+            handle(signal.SIGINT, None)
+        assert signal.getsignal(signal.SIGINT) is previous[signal.SIGINT]  # restored
+    finally:
+        signal.signal(signal.SIGINT, previous[signal.SIGINT])
