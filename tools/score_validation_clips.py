@@ -25,7 +25,7 @@ import numpy as np
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     from davis_rig.cli.common import (PART_CHOICES, add_detector, add_out, add_quiet, add_threads, name_and_path,
-                                       new_parser, positive_int, probability, run_main)
+                                       new_parser, non_negative_int, positive_int, probability, run_main)
 
     parser = new_parser(Path(__file__).name, __doc__.splitlines()[0],
                         "examples:\n  python tools/score_validation_clips.py --cells 10 --texture ours=run/texture.npy "
@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--texture", type=name_and_path, action="append", default=[], metavar="NAME=PATH",
                         help="a texture to score (.npy keeps grey levels; .png etc. read as black/white); repeatable")
     parser.add_argument("--clips", type=positive_int, default=64, help="validation clips (default 64, the run's)")
-    parser.add_argument("--seed", type=int, default=0, help="the run's --seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="the run's --seed (default 0)")
     parser.add_argument("--random", type=positive_int, default=1, metavar="K",
                         help="random grids scored, drawn with seeds --seed ... --seed + K - 1 (default 1); with "
                              "K > 1 a row of their mean follows")
@@ -71,7 +71,9 @@ def load_texture(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"texture not found: {path}")
     try:
-        grid = np.squeeze(np.load(path, allow_pickle=False)).astype(np.float32)
+        grid = np.load(path, allow_pickle=False).astype(np.float32)
+        while grid.ndim > 2 and grid.shape[0] == 1:  # [1, n, n]; a 1x1 grid stays 2-D
+            grid = grid[0]
     except (OSError, ValueError, EOFError, AttributeError) as exc:
         raise FormatError(f"{path}: not a readable .npy array ({exc})") from exc
     if grid.ndim != 2 or grid.shape[0] != grid.shape[1] or not np.all(np.isfinite(grid)) \
@@ -84,7 +86,7 @@ def _run(args: argparse.Namespace) -> int:
     import torch
 
     from davis_rig.attack.optimize import AttackConfig, load_attack_detector
-    from davis_rig.cli.common import tool_provenance
+    from davis_rig.cli.common import check_out_folder, tool_provenance
     from davis_rig.attack.texture import random_texture
     from davis_rig.attack.validation import validate, validation_clips
     from davis_rig.errors import FormatError
@@ -93,6 +95,10 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.out is not None and Path(args.out).is_dir():
+        raise FormatError(f"{args.out}: --out names the JSON file to write, and it is a folder")
+    if args.out is not None:
+        check_out_folder(Path(args.out).parent)  # before the slow part
     parts = None if args.parts == ["all"] else tuple(args.parts)
     n = args.cells
     textures = {"white": np.ones((n, n), np.float32), "black": np.zeros((n, n), np.float32)}
@@ -126,6 +132,7 @@ def _run(args: argparse.Namespace) -> int:
         report = {**tool_provenance(Path(__file__).name, args.argv),
                   "detector": str(args.detector) if args.detector else "bundled default", "cells": n,
                   "parts": parts, "clips": args.clips, "seed": args.seed, "threshold": args.threshold, "rows": rows}
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(report, indent=1))
     return 0
 

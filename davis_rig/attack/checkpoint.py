@@ -163,7 +163,9 @@ RUN_OUTPUTS = ("log.jsonl", "best_texture.npy", "best_texture.png", "best.json",
 
 def check_new_run(out: Path, resume: bool) -> None:
     """Refuse a new run (``resume=False``) in a folder that holds one (``checkpoints/last.pt`` or ``log.jsonl``),
-    and a resume of a run that logged steps but left no checkpoint (it would silently restart at step 1).
+    a resume of a run that logged steps but left no checkpoint (it would silently restart at step 1), and any run
+    without a checkpoint to continue from in a folder holding another run's outputs (a search's, which starting
+    from step 0 would delete).
 
     Raises:
         CheckpointError: the message names the folder and what to do.
@@ -178,6 +180,12 @@ def check_new_run(out: Path, resume: bool) -> None:
         raise CheckpointError(f"{out}/log.jsonl records {logged} steps but there is no {ckpt} to continue from (the "
                               f"run ended before its first checkpoint); remove {out} or start again in another --out "
                               f"folder")
+    if not ckpt.is_file():  # a run starting from step 0 clears RUN_OUTPUTS: never those of another run or tool
+        foreign = [name for name in (*RUN_OUTPUTS, "state.json", "search.json") if (out / name).is_file()]
+        if foreign:
+            raise CheckpointError(f"{out} holds {', '.join(foreign)} of another run (a search, or a run with no "
+                                  f"checkpoint) and no {ckpt} to continue from: write this run to another --out "
+                                  "folder")
 
 
 def clear_outputs(out: Path) -> None:

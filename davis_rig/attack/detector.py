@@ -6,7 +6,7 @@ from pathlib import Path
 
 from davis_rig.errors import CheckpointError
 
-__all__ = ["load_attack_detector"]
+__all__ = ["detector_fingerprint", "load_attack_detector"]
 
 
 def load_attack_detector(path=None, device=None):
@@ -47,3 +47,22 @@ def load_attack_detector(path=None, device=None):
     for p in detector.parameters():
         p.requires_grad_(False)
     return detector
+
+
+def detector_fingerprint(detector) -> str:
+    """A short hash of a detector's weights (names, shapes, dtypes and values of its state dict): what a resumed
+    run checks against the one it was started with, so that textures are never credited to another detector.
+
+    Returns:
+        16 hex digits (the first 64 bits of a SHA-256).
+    """
+    import hashlib
+
+    import torch
+
+    digest = hashlib.sha256()
+    for name, tensor in sorted(detector.state_dict().items()):
+        value = tensor.detach().to("cpu").contiguous().reshape(-1)
+        digest.update(f"{name}:{tuple(tensor.shape)}:{tensor.dtype}".encode())
+        digest.update(value.view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()[:16]

@@ -77,7 +77,7 @@ from davis_rig.attack.checkpoint import (
     write_texture_png,
 )
 from davis_rig.attack.config import SELECTION_RULES, V2E_GRADIENTS, AttackConfig
-from davis_rig.attack.detector import load_attack_detector
+from davis_rig.attack.detector import detector_fingerprint, load_attack_detector
 from davis_rig.attack.eot import ClipPool, PoolClip
 from davis_rig.attack.fixed_step import FixedShapeAttackLoss
 from davis_rig.attack.lr_schedule import lr_at
@@ -173,6 +173,8 @@ class _Run:
             with ``config.detector_step`` other than ``"eager"``, a
             :class:`~davis_rig.attack.fixed_step.FixedShapeAttackLoss` built once for the run.
         steps_done: steps completed in this call.
+        detector_fingerprint: :func:`~davis_rig.attack.detector.detector_fingerprint` of ``detector`` (kept in the
+            checkpoint; a resume with other weights is refused).
     """
 
     config: AttackConfig
@@ -195,6 +197,7 @@ class _Run:
     last_checkpoint_s: float = 0.0
     log: object = None
     steps_done: int = 0
+    detector_fingerprint: str = ""
     step_loss: object = None
 
     @property
@@ -208,7 +211,8 @@ class _Run:
         pool_state = self.pool.state_dict() if self.pool is not None else self.saved_pool
         atomic_save({"generator": self.generator.state_dict(), "optimizer": self.optimizer.state_dict(),
                      "step": next_step, "pool": pool_state, "best": json.dumps(self.best) if self.best else "",
-                     "config": self.config.to_dict(), "pending_validation": bool(pending_validation)},
+                     "config": self.config.to_dict(), "pending_validation": bool(pending_validation),
+                     "detector": self.detector_fingerprint},
                     self.ckpt_path)
         self.wrote_checkpoint, self.last_checkpoint_s = True, time.monotonic()
 
@@ -293,13 +297,15 @@ def optimize_texture(
     out = Path(out_dir)
     check_new_run(out, resume)
     device = torch.device(device) if device is not None else next(detector.parameters()).device
-    state = _read_state(out / "checkpoints" / "last.pt", resume, config, device)
+    fingerprint = detector_fingerprint(detector)
+    state = _read_state(out / "checkpoints" / "last.pt", resume, config, device, fingerprint)
     detector.eval()
     for p in detector.parameters():
         p.requires_grad_(False)
     body_model = body_model or BodyModel(device=device)
     mask = part_mask(config.parts) if config.parts is not None else None
     run = _new_run(config, detector, out, rank, world, device, state, max_steps)
+    run.detector_fingerprint = fingerprint
     created = not out.exists()
     with StopOnSignal(enabled=handle_signals) as stop:
         _prepare_clips(run, body_model, mask, motions, progress, stop)
@@ -311,12 +317,18 @@ def optimize_texture(
     return _finish(run, body_model, mask, motions, elapsed)
 
 
-def _read_state(ckpt_path: Path, resume: bool, config: AttackConfig, device) -> dict | None:
-    """The checkpoint a resume continues from (``None``: a new run), checked against ``config``."""
+def _read_state(ckpt_path: Path, resume: bool, config: AttackConfig, device, fingerprint: str) -> dict | None:
+    """The checkpoint a resume continues from (``None``: a new run), checked against ``config`` and the detector's
+    ``fingerprint`` (a checkpoint written before fingerprints were kept has none to check)."""
     if not (resume and ckpt_path.is_file()):
         return None
     state = read_attack_checkpoint(ckpt_path, map_location=device)
     check_resume_config(state, config, ckpt_path)
+    saved = state.get("detector")
+    if saved and saved != fingerprint:
+        raise CheckpointError(f"{ckpt_path} was written against another detector (weights {saved}, the given one "
+                              f"{fingerprint}): resume with the run's --detector, or start the new one in another "
+                              "--out folder")
     return state
 
 

@@ -247,6 +247,7 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
             written with other settings.
     """
     from davis_rig.attack.checkpoint import write_texture_png
+    from davis_rig.attack.detector import detector_fingerprint
     from davis_rig.attack.refine import visible_cells
     from davis_rig.attack.validation import better, validate, validation_clips
     from davis_rig.scene.body import BodyModel
@@ -267,7 +268,8 @@ def search_texture(config, detector, out: str | Path, settings: SearchSettings, 
     run_key = {"config": config.to_dict(), "pool_clips": pool_clips, "clips_per_grid": clips_per_grid,
                "motions": len(motions), "start_confidence": start_confidence if start_grid is not None else None,
                "start_grid": None if start_grid is None else (np.asarray(start_grid) > 0.5).astype(int).tolist(),
-               "settings": {k: v for k, v in asdict(settings).items() if k != "generations"}}
+               "settings": {k: v for k, v in asdict(settings).items() if k != "generations"},
+               "detector": detector_fingerprint(detector)}
     resumed = _resumed_state(out, resume, run_key)
     out.mkdir(parents=True, exist_ok=True)
     body = BodyModel(device=next(detector.parameters()).device)
@@ -412,11 +414,17 @@ def _resumed_state(out: Path, resume: bool, run_key: dict) -> dict | None:
         state = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: unreadable search state ({type(exc).__name__}: {exc})") from exc
-    keys = ("generation", "probabilities", "best", "grid_rng", "clip_rng", "seconds", *run_key)
+    # "detector": a state written before the fingerprint was kept has none to check
+    keys = ("generation", "probabilities", "best", "grid_rng", "clip_rng", "seconds",
+            *(k for k in run_key if k != "detector"))
     if not isinstance(state, dict) or any(k not in state for k in keys):
         raise CheckpointError(f"{path}: not a search state (missing: "
                               f"{[k for k in keys if not isinstance(state, dict) or k not in state]})")
-    differ = sorted(k for k in run_key if state[k] != run_key[k])
+    if state.get("detector", run_key["detector"]) != run_key["detector"]:
+        raise CheckpointError(f"{path} was written against another detector (weights {state['detector']}, the "
+                              f"given one {run_key['detector']}): resume with the run's --detector, or start the new "
+                              "one in another --out folder")
+    differ = sorted(k for k in run_key if k in state and state[k] != run_key[k])
     if differ:
         raise CheckpointError(f"{path} was written with other settings ({', '.join(differ)}); only --generations "
                               f"and --validate-every may change on resume")

@@ -351,6 +351,15 @@ def _check_evaluate(parser: argparse.ArgumentParser, args) -> None:
         parser.error(f"argument --texture: Table 1 keys are grid sizes (e.g. 10=path), got {keys}")
     if args.table is None and not keys:
         parser.error("argument --texture: give at least one --texture NAME=PATH (or --table 1 / 2)")
+    if args.table == 2:
+        if not keys:
+            parser.error("argument --texture: Table 2 scores textures per part combination: give at least one "
+                         "--texture PARTS=PATH (e.g. torso+legs=best.npy)")
+        for key in keys:
+            try:
+                _combination(key)
+            except argparse.ArgumentTypeError as exc:
+                parser.error(f"argument --texture: Table 2 keys are part combinations: {exc}")
 
 
 def _init_distributed(device):
@@ -490,13 +499,15 @@ def _command_line(args=None) -> str:
 
 def evaluate_command(args) -> int:
     """Action of ``davis-attack evaluate``: Table 1, Table 2 or named textures (one API call each)."""
-    from davis_rig.cli.common import removing_new_empty_dirs
+    from davis_rig.cli.common import check_out_folder, removing_new_empty_dirs
 
+    check_out_folder(args.out)  # before any work: a results folder that cannot be written loses nothing
     _starting("evaluate", args)
     from davis_rig.attack import evaluate as ev
     from davis_rig.attack import report
     from davis_rig.attack.export import load_texture_grid
     from davis_rig.attack.optimize import load_attack_detector
+    from davis_rig.errors import FormatError
     from davis_rig.scene.body import BodyModel
 
     _set_threads(args)
@@ -506,6 +517,9 @@ def evaluate_command(args) -> int:
     parts = None if args.parts == ["all"] else tuple(args.parts)
     if args.table == 1:
         grids = {int(k): load_texture_grid(p, args.cells) for k, p in textures.items()}
+        wrong = {f"{n}={textures[str(n)]}": list(g.shape) for n, g in grids.items() if g.shape != (n, n)}
+        if wrong:
+            raise FormatError(f"--texture: Table 1 keys are grid sizes, and these grids have other shapes: {wrong}")
     else:
         grids = {k: load_texture_grid(p, args.cells) for k, p in textures.items()}
     device = resolve_device(args.device)
@@ -541,8 +555,9 @@ def evaluate_command(args) -> int:
 
 def reproduce_command(args) -> int:
     """Action of ``davis-attack reproduce``: one :func:`davis_rig.attack.reproduce.reproduce_table` call."""
-    from davis_rig.cli.common import removing_new_empty_dirs
+    from davis_rig.cli.common import check_out_folder, removing_new_empty_dirs
 
+    check_out_folder(args.out)
     _starting("reproduce", args)
     from davis_rig.attack import evaluate as ev
     from davis_rig.attack.optimize import AttackInterrupted, load_attack_detector

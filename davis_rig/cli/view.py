@@ -215,8 +215,12 @@ def _bound(server, port_option: str):
     """Enter ``server``; a port that cannot be bound is a usage error (``ConfigError``) naming ``port_option``."""
     from davis_rig.errors import ConfigError
 
+    import socket
+
     try:
         server.__enter__()
+    except socket.gaierror as exc:  # the host name does not resolve: not the port's fault
+        raise ConfigError("host", f"cannot listen on {server.host!r}: no such host ({exc.strerror or exc})") from exc
     except OSError as exc:
         raise ConfigError(port_option, f"cannot listen on {server.host}:{server.requested_port} ({exc.strerror or exc}); "
                                        f"pick another {port_option} (0 = any free port)") from exc
@@ -245,7 +249,7 @@ def _view(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``davis-view``; returns the exit code."""
-    return run_main(build_parser(), argv, _view, check=_check, options={"--port": "--port"})
+    return run_main(build_parser(), argv, _view, check=_check, options={"--port": "--port", "host": "--host"})
 
 
 # --- the live view of davis-record ----------------------------------------------------------------

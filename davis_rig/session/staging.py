@@ -47,7 +47,8 @@ def staged_outputs(*paths: str | os.PathLike, overwrite: bool = False) -> Iterat
         if target.exists() and not overwrite:
             raise FormatError(f"{target}: file exists (pass overwrite=True / --overwrite to replace it)")
         if not target.parent.is_dir():
-            raise FormatError(f"{target}: the folder {target.parent} does not exist")
+            what = "is a file, not a folder" if target.parent.exists() else "does not exist"
+            raise FormatError(f"{target}: the folder {target.parent} {what}")
         if not os.access(target.parent, os.W_OK | os.X_OK):
             raise FormatError(f"{target}: the folder {target.parent} is not writable")
     staged = [_unused_name(target) for target in targets]

@@ -148,3 +148,30 @@ def test_an_empty_or_zipped_npy_texture_is_a_format_error(tmp_path):
     (tmp_path / "grid.npz").rename(tmp_path / "zipped.npy")
     with pytest.raises(FormatError, match="zipped.npy: an .npz archive, not a .npy array"):
         load_texture_grid(tmp_path / "zipped.npy")
+
+
+def test_grids_of_one_cell_and_stacked_grids_load_and_other_shapes_are_format_errors(tmp_path):
+    from davis_rig.attack.export.grid import load_texture_grid
+    from davis_rig.errors import FormatError
+
+    np.save(tmp_path / "one.npy", np.ones((1, 1), np.float32))  # what optimize --cells 1 writes
+    np.testing.assert_array_equal(load_texture_grid(tmp_path / "one.npy"), [[1.0]])
+    np.save(tmp_path / "stacked.npy", np.eye(4, dtype=np.float32)[None])  # [1, n, n]
+    np.testing.assert_array_equal(load_texture_grid(tmp_path / "stacked.npy"), np.eye(4))
+    for name, array in (("cube.npy", np.zeros((3, 10, 10))), ("scalar.npy", np.float32(1)),
+                        ("empty.npy", np.zeros((0, 0)))):
+        np.save(tmp_path / name, array)
+        with pytest.raises(FormatError, match=name):
+            load_texture_grid(tmp_path / name)
+
+
+def test_a_print_wider_than_ten_metres_is_refused_before_any_page(tmp_path):
+    from davis_rig.attack.export.pattern import pattern_pieces
+    from davis_rig.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="would print 1e\\+06 mm wide"):
+        pattern_pieces(("torso",), texture_mm=1e6)
+    with pytest.raises(ConfigError, match="would print 2e\\+06 mm wide"):
+        pattern_pieces(("torso",), cell_mm=2e5, n_cells=10)
+    with pytest.raises(ConfigError, match="ease"):
+        pattern_pieces(("torso",), ease=1e6)

@@ -471,18 +471,26 @@ def test_a_new_run_refuses_a_folder_that_holds_a_run(detector, body, tmp_path):
     assert (tmp_path / "log.jsonl").read_text() == log  # nothing of the earlier run was touched
 
 
-def test_resume_without_a_checkpoint_starts_clean(detector, body, tmp_path):
-    # an earlier run left a best texture, a refinement record and a snapshot but no log and no checkpoint
+def test_a_run_without_a_checkpoint_never_deletes_another_runs_outputs(detector, body, tmp_path):
+    # a folder holding a best texture and records but no log and no checkpoint (another tool's, or a run that left
+    # no checkpoint): starting from step 0 there would delete them, so both a new run and a resume are refused
     np.save(tmp_path / "best_texture.npy", np.full((4, 4), 7.0, np.float32))
     (tmp_path / "best.json").write_text(json.dumps({"SeqASR": 1.0, "mean_top_score": 0.0, "step": 1}))
-    (tmp_path / "refine.json").write_text("{}")
+    for resume in (False, True):
+        with pytest.raises(CheckpointError, match="holds best_texture.npy, best.json of another run"):
+            optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False,
+                             resume=resume)
+    assert np.load(tmp_path / "best_texture.npy")[0, 0] == 7.0 and (tmp_path / "best.json").is_file()
+
+
+def test_resume_without_a_checkpoint_in_an_empty_folder_starts_a_run(detector, body, tmp_path):
     (tmp_path / "snapshots").mkdir()
     (tmp_path / "snapshots" / "step_000500.png").write_bytes(b"old")
     result = optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False,
                               resume=True)
     steps, vals = _log(tmp_path / "log.jsonl")
     assert [s["step"] for s in steps] == [1] and [v["step"] for v in vals] == [1]
-    assert not (tmp_path / "refine.json").exists() and not (tmp_path / "snapshots" / "step_000500.png").exists()
+    assert not (tmp_path / "snapshots" / "step_000500.png").exists()
     assert set(np.unique(result.best_texture)) <= {0.0, 1.0}
     assert json.loads((tmp_path / "best.json").read_text()) == vals[0]
 
@@ -906,3 +914,18 @@ def test_sampled_binarization_cuts_every_step_afresh_and_resumes_exactly(detecto
     assert seen == [0.5]  # the paper's cut by default
     with pytest.raises(ValueError, match="binarize"):
         AttackConfig(binarize="gumbel")
+
+
+def test_a_resume_against_other_weights_is_refused(detector, body, tmp_path):
+    import copy
+
+    optimize_texture(_tiny(iterations=1, pool_size=1), detector, tmp_path, body_model=body, progress=False)
+    other = copy.deepcopy(detector)
+    with torch.no_grad():
+        next(other.parameters()).mul_(1.05)
+    with pytest.raises(CheckpointError, match="written against another detector"):
+        optimize_texture(_tiny(iterations=2, pool_size=1), other, tmp_path, body_model=body, progress=False,
+                         resume=True)
+    result = optimize_texture(_tiny(iterations=2, pool_size=1), detector, tmp_path, body_model=body, progress=False,
+                              resume=True)  # the run's own detector continues it
+    assert result.steps == 1

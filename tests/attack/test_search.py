@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import torch
 import pytest
 
 from davis_rig.attack.search import (SearchSettings, cem_update, cross_entropy_search, mean_entropy_bits,
@@ -309,3 +310,26 @@ def test_search_texture_refuses_bad_arguments_before_any_work(tmp_path):
         search_texture(config, None, tmp_path / "run", SearchSettings(), start_grid=np.ones((4, 4)),
                        start_confidence=1.0)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_search_or_an_optimisation_resumed_against_other_weights_is_refused_and_keeps_the_search(tmp_path):
+    from davis_rig.attack.config import AttackConfig
+    from davis_rig.attack.optimize import load_attack_detector, optimize_texture
+    from davis_rig.attack.search import search_texture
+    from davis_rig.errors import CheckpointError
+
+    settings = SearchSettings(generations=1, population=2, elite=1)
+    _search(tmp_path, settings, pool_clips=1, clips_per_grid=1)
+    run = tmp_path / "run"
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    other = load_attack_detector(FIXTURE)
+    with torch.no_grad():
+        next(other.parameters()).mul_(1.05)
+    config = AttackConfig(grid_n=4, seed=0, num_validation_clips=1)
+    with pytest.raises(CheckpointError, match="written against another detector"):
+        search_texture(config, other, run, settings, pool_clips=1, clips_per_grid=1, resume=True)
+    # an optimisation "resumed" in the search's folder would start from step 0 and clear its outputs
+    with pytest.raises(CheckpointError, match="holds log.jsonl.* of another run"):
+        optimize_texture(AttackConfig(grid_n=4, iterations=1, pool_size=1, num_validation_clips=1), other, run,
+                         progress=False, resume=True)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before

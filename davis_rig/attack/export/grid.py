@@ -21,10 +21,12 @@ MAX_GRID_CELLS = 256
 def _to_unit(image: np.ndarray, where: str) -> np.ndarray:
     if image.ndim == 3:
         if image.shape[2] not in (1, 3, 4):
-            raise ShapeError(f"{where}: image must be grey, RGB or RGBA, got shape {image.shape}")
+            raise FormatError(f"{where}: image must be grey, RGB or RGBA, got shape {image.shape}")
         image = image[..., :3].mean(axis=2) if image.shape[2] >= 3 else image[..., 0]
     if image.ndim != 2:
-        raise ShapeError(f"{where}: texture must be a 2-D grid or image, got shape {image.shape}")
+        raise FormatError(f"{where}: texture must be a 2-D grid or image, got shape {image.shape}")
+    if image.size == 0:
+        raise FormatError(f"{where}: the texture is empty (shape {image.shape})")
     if image.dtype == np.uint8:
         return image.astype(np.float64) / 255.0
     if image.dtype == np.uint16:
@@ -97,7 +99,8 @@ def load_texture_grid(path: str | Path, n_cells: int | None = None) -> np.ndarra
         if not isinstance(raw, np.ndarray):
             raw.close()
             raise FormatError(f"{path}: an .npz archive, not a .npy array")
-        raw = np.squeeze(raw)
+        while raw.ndim > 2 and 1 in (raw.shape[0], raw.shape[-1]):  # [1, n, n] or [n, n, 1]; a 1x1 grid stays 2-D
+            raw = raw[0] if raw.shape[0] == 1 else raw[..., 0]
     else:
         import cv2
 

@@ -177,7 +177,8 @@ def pattern_pieces(
         list of :class:`PatternPiece`, in part order then by decreasing island size.
 
     Raises:
-        ConfigError (a ValueError): an unknown part, a non-positive size or ease, a shape outside the asset.
+        ConfigError (a ValueError): an unknown part, a non-positive size or ease, a texture wider than
+            :data:`MAX_TEXTURE_MM` or an ease over :data:`MAX_EASE`, a shape outside the asset.
         ValueError: unknown stretch mode, conflicting sizes, no faces.
     """
     parts = tuple(dict.fromkeys(parts))
@@ -187,8 +188,8 @@ def pattern_pieces(
     if stretch not in ("median", "area"):
         raise ValueError(f"stretch must be 'median' or 'area', got {stretch!r}")
     user_scale = _user_scale(texture_mm, cell_mm, n_cells)
-    if not ease > 0:
-        raise ConfigError("ease", f"expected a number > 0, got {ease}")
+    if not 0 < ease <= MAX_EASE:
+        raise ConfigError("ease", f"expected a number in (0, {MAX_EASE:g}], got {ease}")
     asset = BodyAsset.load() if asset is None else asset
     if not 0 <= int(shape_index) < asset.num_shapes:
         raise ConfigError("shape_index", f"expected a shape in [0, {asset.num_shapes}), got {shape_index}")
@@ -202,6 +203,13 @@ def pattern_pieces(
             name = part if len(islands) == 1 else f"{part}-{k + 1}"
             pieces.append(_island_piece(asset, faces, part_faces[local], name, part, scale))
     return pieces
+
+
+#: Largest printed side of the whole UV square, mm (10 m: a person's texture is 0.5-2 m; a typo beyond it would
+#: rasterize pages of gigabytes).
+MAX_TEXTURE_MM = 10_000.0
+#: Largest ``ease`` on the body's own scale.
+MAX_EASE = 10.0
 
 
 def _user_scale(texture_mm: float | None, cell_mm: float | None, n_cells: int | None) -> float | None:
@@ -218,6 +226,10 @@ def _user_scale(texture_mm: float | None, cell_mm: float | None, n_cells: int | 
             raise ConfigError("cell_mm", f"expected a number > 0 (and n_cells >= 1), got cell_mm={cell_mm}, "
                                          f"n_cells={n_cells}")
         user_scale = float(cell_mm) * int(n_cells)
+    if user_scale is not None and user_scale > MAX_TEXTURE_MM:
+        name, value = ("texture_mm", texture_mm) if texture_mm is not None else ("cell_mm", cell_mm)
+        raise ConfigError(name, f"the whole texture would print {user_scale:g} mm wide, over the "
+                                f"{MAX_TEXTURE_MM:g} mm this export lays out; got {value:g}")
     return user_scale
 
 

@@ -323,12 +323,22 @@ def load_detector(
         The detector with the weights loaded (float32 parameters; other float dtypes are converted).
 
     Raises:
-        CheckpointError: unreadable file, unknown variant, or keys/shapes that do not match (readable report).
+        CheckpointError: unreadable file, unknown variant, keys/shapes that do not match (readable report), or
+            weights holding NaN or inf; the message names ``path``.
     """
     path = Path(path)
     state_dict, metadata = _read_with_metadata(path, inert_unknown_globals)
     if config is None:
-        config = infer_config(state_dict, metadata)
+        try:
+            config = infer_config(state_dict, metadata)
+        except CheckpointError as exc:
+            raise CheckpointError(f"{path}: {exc}") from None
+    damaged = sorted(key for key, value in state_dict.items()
+                     if hasattr(value, "is_floating_point") and value.is_floating_point()
+                     and not bool(value.isfinite().all()))
+    if damaged:
+        raise CheckpointError(f"{path}: {len(damaged)} weight tensors hold NaN or inf (e.g. {', '.join(damaged[:3])}): "
+                              "the checkpoint is damaged (scored, it would read as a perfect attack)")
     model = RVTDetector(config)
     try:
         check_state_dict(model, state_dict, source=str(path))

@@ -232,3 +232,13 @@ def test_unknown_shapes_need_an_explicit_config():
         infer_config(weights)
     with pytest.raises(CheckpointError, match="is this an RVT detector checkpoint"):
         infer_config({"conv.weight": torch.zeros(1)})
+
+
+def test_weights_holding_nan_are_refused_naming_the_file(tmp_path, mini_weights):
+    damaged = {k: v.clone() for k, v in mini_weights.items()}
+    first_float = next(k for k, v in damaged.items() if v.is_floating_point())
+    damaged[first_float].view(-1)[0] = float("nan")
+    path = tmp_path / "damaged.pt"
+    torch.save(damaged, path)
+    with pytest.raises(CheckpointError, match=r"damaged.pt: 1 weight tensors hold NaN or inf"):
+        load_detector(path, config=RVTConfig.mini())
