@@ -175,3 +175,15 @@ def test_a_print_wider_than_ten_metres_is_refused_before_any_page(tmp_path):
         pattern_pieces(("torso",), cell_mm=2e5, n_cells=10)
     with pytest.raises(ConfigError, match="ease"):
         pattern_pieces(("torso",), ease=1e6)
+
+
+def test_an_export_into_the_same_folder_leaves_no_file_of_the_earlier_print(tmp_path):
+    from davis_rig.attack.export import export_texture
+
+    grid = np.eye(10, dtype=np.float32)
+    export_texture(grid, tmp_path, parts=("arms",), paper="A4", cell_mm=30.0, preview=False, map_size=256)
+    (tmp_path / "notes.txt").write_text("mine")
+    written = export_texture(grid, tmp_path, parts=("arms",), paper="A3", cell_mm=30.0, preview=False)
+    assert not (tmp_path / "pattern_A4.pdf").exists() and not (tmp_path / "texture_256.png").exists()
+    assert written["pdf"].name == "pattern_A3.pdf" and (tmp_path / "texture_1024.png").is_file()
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # not one of the export's own files

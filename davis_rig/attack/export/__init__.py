@@ -106,6 +106,8 @@ def export_texture(
 
     Returns:
         dict name -> path of the written files (``pdf``, ``grid_png``, ``map_png``, ``preview_png``, ``json``).
+        Files of an earlier export into ``out_dir`` that this one does not rewrite (another paper's PDF, a map of
+        another size, a preview) are removed.
 
     Raises:
         ShapeError: grid not square. ValueError: bad options. MissingDependencyError: reportlab missing.
@@ -139,7 +141,18 @@ def export_texture(
             "pieces": _pieces_info(pieces, tiles, n), "notes": notes}
     written["json"] = out / "pattern.json"
     written["json"].write_text(json.dumps(info, indent=2) + "\n")
+    _remove_stale(out, set(written.values()))
     return written
+
+
+def _remove_stale(out: Path, kept: set[Path]) -> None:
+    """Remove this export's own files from an earlier export into ``out`` that this one did not rewrite (the other
+    paper's PDF, a map of another size, a preview now skipped), so the folder never mixes two prints."""
+    names = [*(f"pattern_{paper}.pdf" for paper in PAPER_SIZES_MM), "preview.png"]
+    stale = [out / name for name in names] + [p for p in out.glob("texture_*.png") if p.stem[8:].isdigit()]
+    for path in stale:
+        if path not in kept and path.is_file():
+            path.unlink()
 
 
 def _pieces_info(pieces: list[PatternPiece], tiles: list[Tile], n_cells: int) -> list[dict]:
