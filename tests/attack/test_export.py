@@ -187,3 +187,14 @@ def test_an_export_into_the_same_folder_leaves_no_file_of_the_earlier_print(tmp_
     assert not (tmp_path / "pattern_A4.pdf").exists() and not (tmp_path / "texture_256.png").exists()
     assert written["pdf"].name == "pattern_A3.pdf" and (tmp_path / "texture_1024.png").is_file()
     assert (tmp_path / "notes.txt").read_text() == "mine"  # not one of the export's own files
+
+
+def test_texture_values_outside_zero_to_one_are_a_format_error(tmp_path):
+    from davis_rig.attack.export.grid import load_texture_grid
+    from davis_rig.errors import FormatError
+
+    np.save(tmp_path / "bytes_as_floats.npy", np.eye(4, dtype=np.float32) * 255)  # would read as all white cells
+    with pytest.raises(FormatError, match=r"values must lie in \[0, 1\] \(1 = white\), got 0..255"):
+        load_texture_grid(tmp_path / "bytes_as_floats.npy")
+    np.save(tmp_path / "ints.npy", np.eye(4, dtype=np.int64))  # 0/1 integers are a grid
+    np.testing.assert_array_equal(load_texture_grid(tmp_path / "ints.npy"), np.eye(4))

@@ -31,11 +31,13 @@ def _to_unit(image: np.ndarray, where: str) -> np.ndarray:
         return image.astype(np.float64) / 255.0
     if image.dtype == np.uint16:
         return image.astype(np.float64) / 65535.0
-    if np.issubdtype(image.dtype, np.bool_) or np.issubdtype(image.dtype, np.integer):
-        return image.astype(np.float64)
-    if np.issubdtype(image.dtype, np.floating):
-        if not np.all(np.isfinite(image)):
+    if np.issubdtype(image.dtype, np.bool_) or np.issubdtype(image.dtype, np.integer) or \
+            np.issubdtype(image.dtype, np.floating):
+        if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
             raise FormatError(f"{where}: texture has non-finite values")
+        if image.size and (image.min() < 0 or image.max() > 1):  # e.g. 0..255 saved as floats: not 1 = white
+            raise FormatError(f"{where}: texture values must lie in [0, 1] (1 = white), got "
+                              f"{float(image.min()):g}..{float(image.max()):g}")
         return image.astype(np.float64)
     raise FormatError(f"{where}: unsupported texture dtype {image.dtype}")
 
