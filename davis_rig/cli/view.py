@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import socket
 import sys
 import threading
 from pathlib import Path
@@ -214,8 +215,6 @@ def _serve(args: argparse.Namespace, views) -> int:
 def _bound(server, port_option: str):
     """Enter ``server``; a port that cannot be bound is a usage error (``ConfigError``) naming ``port_option``."""
     from davis_rig.errors import ConfigError
-
-    import socket
 
     try:
         server.__enter__()

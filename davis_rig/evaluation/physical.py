@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from davis_rig.errors import ConfigError, FormatError, ModelFormatError, SessionError, ShapeError
-from davis_rig.evaluation.windows import event_chunks, label_windows, labels_in_span, window_grid
+from davis_rig.evaluation.windows import event_chunks, label_windows, labelled_window_grid
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.metrics.ap import MIN_DIAG_PX, MIN_SIDE_PX, SKIP_FIRST_US
 from davis_rig.types import BBOX_DTYPE, DAVIS346_HW, PAPER_THRESHOLDS, PEDESTRIAN_CLASS_ID, RVT_HW, RVT_NMS_IOU
@@ -362,9 +362,7 @@ def score_session(path, runner, settings: EvalSettings, *, progress: Callable | 
         labels_attrs = reader.labels_attrs()
         origin = scoring_crop_origin(path, settings.crop_origin_xy, labels_attrs)
         t0 = int(reader.t_offset_us)
-        t_events_end = t0 + reader.indexed_span_us()
-        labels = labels_in_span(labels, t0, t_events_end, path)
-        ends = window_grid(t0, max(t_events_end, int(labels["t"].max())), settings.window_us)
+        labels, ends = labelled_window_grid(reader, labels, settings.window_us, path)
         thresholds = sorted({float(th) for th in settings.thresholds})
         split = _split_or_none(runner, settings)
         gif: list = []

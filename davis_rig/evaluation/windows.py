@@ -20,7 +20,8 @@ from davis_rig.errors import SessionError
 from davis_rig.events.histogram import WINDOW_US
 from davis_rig.types import DAVIS346_HW, EVENT_DTYPE, RVT_HW
 
-__all__ = ["LABEL_SPAN_SLACK_US", "event_chunks", "label_windows", "labels_in_span", "window_grid"]
+__all__ = ["LABEL_SPAN_SLACK_US", "event_chunks", "label_windows", "labelled_window_grid", "labels_in_span",
+           "window_grid"]
 
 #: How far after the last event a label may lie and still be scored (on windows without events), µs.
 LABEL_SPAN_SLACK_US = 1_000_000
@@ -75,6 +76,21 @@ def labels_in_span(labels: np.ndarray, t0_us: int, t_end_us: int, path, *, refus
         warnings.warn(f"{Path(path).name}: {int((~inside).sum())} of {len(labels)} labels lie outside the events' "
                       f"span ({t0_us}..{t_end_us} µs) and are left out", stacklevel=3)
     return labels[inside]
+
+
+def labelled_window_grid(reader, labels: np.ndarray, window_us: int, path) -> tuple[np.ndarray, np.ndarray]:
+    """The window grid of a labelled session and the labels it scores: ``(labels, ends)``.
+
+    The grid starts at the session's ``t_offset`` and covers the events (:meth:`~davis_rig.session.SessionReader.
+    indexed_span_us`) and the labels inside their span (:func:`labels_in_span`, which warns about the others).
+
+    Raises:
+        SessionError: no label is inside the events' span.
+    """
+    t0 = int(reader.t_offset_us)
+    t_events_end = t0 + reader.indexed_span_us()
+    labels = labels_in_span(labels, t0, t_events_end, path)
+    return labels, window_grid(t0, max(t_events_end, int(labels["t"].max())), window_us)
 
 
 def event_chunks(reader, ends: np.ndarray, origin_xy: tuple[int, int], *, window_us: int, chunk_windows: int,

@@ -40,7 +40,7 @@ import numpy as np
 
 from davis_rig import __version__
 from davis_rig.errors import ConfigError, FormatError
-from davis_rig.evaluation.windows import label_windows, labels_in_span, window_grid
+from davis_rig.evaluation.windows import label_windows, labelled_window_grid
 from davis_rig.events.histogram import COUNT_CUTOFF, NUM_BINS, WINDOW_US
 from davis_rig.interop.source import ExportSource
 from davis_rig.interop.summary import ExportSummary
@@ -179,9 +179,7 @@ def export_rvt(source: ExportSource, out: str | os.PathLike, *, split: str = "te
     out = Path(out)
     name, labels, seq_dir = _check_request(source, out, split, name, overwrite)
     t0 = source.t_offset_us
-    t_events_end = t0 + source.reader.indexed_span_us()
-    labels = labels_in_span(labels, t0, t_events_end, source.path)
-    ends = window_grid(t0, max(t_events_end, int(labels["t"].max())), WINDOW_US)
+    labels, ends = labelled_window_grid(source.reader, labels, WINDOW_US, source.path)
     frame_labels, frame_window, frame_t, frame_start = labelled_frames(labels, ends)
     frame_labels = frame_labels.copy()
     frame_labels["t"] = frame_labels["t"].astype(np.int64) - t0
